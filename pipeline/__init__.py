@@ -1,0 +1,1 @@
+"""The DAG runner: stage registry, cache keys, manifests, atomic writes, locks, CLI."""

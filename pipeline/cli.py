@@ -1,0 +1,65 @@
+"""The ``interactavatar`` Hydra app: one whole DAG for one subject per job.
+
+Single run::
+
+    interactavatar subject=synth_a quality=draft run.until=frames
+
+Batch (one job per subject, through any Hydra launcher)::
+
+    interactavatar -m subject=synth_a,synth_b hydra/launcher=local
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig
+
+from pipeline.config import ConfigError, validate_config
+from pipeline.registry import RegistryError, load_registry
+from pipeline.runner import MissingUpstream, Runner, StageFailed, StageReport
+from pipeline.summary import metrics_table, stage_table
+from pipeline.workspace import LockTimeout
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+USER_ERRORS = (ConfigError, RegistryError, MissingUpstream, StageFailed, LockTimeout)
+
+
+def run_app(cfg: DictConfig) -> list[StageReport]:
+    """Validate ``cfg``, then plan (``run.dry``) or run the DAG and print the summary."""
+    registry = load_registry(cfg.pipeline.stages_module)
+    cfg = validate_config(cfg, registry)
+    runner = Runner(cfg, registry)
+    if cfg.run.dry:
+        reports = runner.plan()
+        print(f"dry run for subject '{cfg.subject}': nothing was executed")
+        return reports
+    reports = runner.run()
+    print()
+    print(stage_table(reports))
+    print()
+    print(metrics_table(reports))
+    report_html = runner.ws.root / "report" / "report.html"
+    if report_html.is_file():
+        print(f"\nreport: {report_html.resolve()}")
+    return reports
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
+def main(cfg: DictConfig) -> None:
+    """Console entry point (``interactavatar``)."""
+    try:
+        run_app(cfg)
+    except USER_ERRORS as exc:
+        print(f"interactavatar: error: {exc}", file=sys.stderr)
+        if HydraConfig.get().mode == RunMode.MULTIRUN:
+            raise  # let the launcher record this job as failed and go on with the others
+        sys.exit(2 if isinstance(exc, (ConfigError, RegistryError)) else 1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""Typed schemas for the runner's own config, and validation of a whole config before any stage runs.
+
+Every problem found is collected into one :class:`ConfigError`, so a user sees
+all of them at once, before anything is written.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf.errors import OmegaConfBaseException
+
+from pipeline.registry import RegistryError, StageRegistry
+
+
+class ConfigError(ValueError):
+    """The config cannot run; the message lists every problem and how to fix it."""
+
+
+@dataclass
+class RunConfig:
+    """``run.*``: which stages to consider and how."""
+
+    only: str | None = None  # run just this stage (its inputs must already be complete)
+    # ``from`` is a Python keyword; the YAML key is ``from`` and maps onto this field by name.
+    until: str | None = None  # this stage and everything it depends on
+    force: bool = False  # recompute selected stages even when cached
+    dry: bool = False  # print the plan and the reason per stage, run nothing
+    progress: bool = True  # progress bars for long loops
+    lock_timeout_s: float = 3600.0  # how long to wait for another run holding a stage lock
+
+
+@dataclass
+class PathsConfig:
+    outputs: str = "outputs"
+
+
+def _check_schema(section: Any, schema: type, where: str, errors: list[str]) -> DictConfig | None:
+    """``section`` merged onto the structured ``schema`` (defaults filled, types converted).
+
+    Unknown keys and wrong types are appended to ``errors`` and give ``None``.
+    """
+    try:
+        return OmegaConf.merge(OmegaConf.structured(schema), section)
+    except OmegaConfBaseException as exc:
+        msg = str(exc).splitlines()[0]
+        errors.append(f"{where}: {msg}")
+        return None
+
+
+def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
+    """``cfg`` with every stage section completed by its schema's defaults.
+
+    Raises :class:`ConfigError` listing every problem in ``cfg`` for this ``registry``.
+    """
+    cfg = cfg.copy()
+    errors: list[str] = []
+    run = cfg.get("run")
+    if run is None:
+        errors.append("missing section 'run'")
+    else:
+        run_plain = {k: v for k, v in OmegaConf.to_container(run, resolve=True).items() if k != "from"}
+        _check_schema(run_plain, RunConfig, "run", errors)
+        known = registry.names()
+        for key in ("only", "from", "until"):
+            name = run.get(key)
+            if name is not None and name not in registry:
+                errors.append(f"run.{key}={name}: unknown stage; choose one of {', '.join(known)}")
+        if run.get("only") is not None and (run.get("from") is not None or run.get("until") is not None):
+            errors.append("run.only cannot be combined with run.from or run.until")
+    _check_schema(cfg.get("paths", {}), PathsConfig, "paths", errors)
+    if not isinstance(cfg.get("subject"), str) or not cfg.get("subject"):
+        errors.append("subject: must be a non-empty string, e.g. subject=synth_a")
+
+    try:
+        stages = registry.topological()
+    except RegistryError as exc:
+        errors.append(str(exc))
+        stages = []
+    for s in stages:
+        for key in s.config_keys:
+            if OmegaConf.select(cfg, key, default=_MISSING) is _MISSING:
+                errors.append(f"stage '{s.name}' depends on config key '{key}', which is not set")
+        if s.config_schema is not None:
+            section = OmegaConf.select(cfg, f"stage.{s.name}", default=None)
+            if section is None:
+                errors.append(f"stage.{s.name}: missing (expected fields of {s.config_schema.__name__})")
+            else:
+                typed = _check_schema(section, s.config_schema, f"stage.{s.name}", errors)
+                if typed is not None:
+                    with open_dict(cfg):
+                        cfg.stage[s.name] = typed
+    if errors:
+        raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors))
+    return cfg
+
+
+_MISSING = object()
+
+
+def config_subset(cfg: DictConfig, keys: tuple[str, ...]) -> dict[str, Any]:
+    """The resolved values of the dotted ``keys``, as plain JSON-able data."""
+    out: dict[str, Any] = {}
+    for key in keys:
+        value = OmegaConf.select(cfg, key, throw_on_missing=True)
+        out[key] = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+    return out
+
+
+def changed_keys(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """Dotted leaf keys whose values differ between two config subsets."""
+    flat_old, flat_new = _flatten(old), _flatten(new)
+    return sorted(k for k in set(flat_old) | set(flat_new) if flat_old.get(k, _MISSING) != flat_new.get(k, _MISSING))
+
+
+def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(d, dict):
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: d}

@@ -1,0 +1,280 @@
+"""Plan and execute a DAG of stages for one subject, with content-addressed caching.
+
+For each stage the runner decides, and prints with its reason, one of:
+
+- ``cached``: the manifest's key matches and every output hashes as recorded;
+- ``run``: forced, never run, config/code/upstream changed, or outputs missing or corrupted;
+- ``skip``: not selected by ``run.only`` / ``run.from`` / ``run.until``.
+
+Execution holds the per-stage lock, re-decides under it (another run may just
+have produced the stage), writes into a temporary directory, and publishes it
+atomically with the manifest written last.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import functools
+import shutil
+import subprocess
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig
+
+from pipeline.config import changed_keys, config_subset
+from pipeline.manifest import (
+    Manifest,
+    ManifestError,
+    cache_key,
+    hash_outputs,
+    read_manifest,
+    verify_outputs,
+    write_manifest,
+)
+from pipeline.monitor import ResourceMonitor
+from pipeline.registry import StageRegistry
+from pipeline.stage import Stage, StageContext
+from pipeline.workspace import Workspace
+
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which stages a run considers (``run.only``/``from``/``until``) and whether to force them."""
+
+    only: str | None = None
+    start: str | None = None
+    until: str | None = None
+    force: bool = False
+
+    @classmethod
+    def from_cfg(cls, run: DictConfig) -> Selection:
+        return cls(only=run.get("only"), start=run.get("from"), until=run.get("until"), force=bool(run.get("force")))
+
+    def stages(self, registry: StageRegistry) -> list[str]:
+        """Selected stage names in topological order."""
+        names = registry.names()
+        if self.only is not None:
+            return [self.only]
+        keep = set(names)
+        if self.start is not None:
+            keep &= {self.start} | registry.descendants(self.start)
+        if self.until is not None:
+            keep &= {self.until} | registry.ancestors(self.until)
+        return [n for n in names if n in keep]
+
+
+@dataclass
+class StageReport:
+    """What happened to one stage in this run."""
+
+    stage: str
+    action: str  # "run", "cached", "skip", "failed", "would run"
+    reason: str
+    wall_s: float = 0.0
+    peak_rss_mb: float = 0.0
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+class StageFailed(RuntimeError):
+    """A stage raised; nothing of it was published."""
+
+    def __init__(self, stage: str, cause: BaseException) -> None:
+        super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}")
+        self.stage = stage
+
+
+class MissingUpstream(RuntimeError):
+    """A selected stage reads a stage that has no complete artifact and is not selected."""
+
+
+@dataclass
+class _Decision:
+    run: bool
+    reason: str
+    key: str
+    config: dict[str, Any]
+    upstream: dict[str, str]
+
+
+class Runner:
+    """Runs a registry's stages for one subject.
+
+    Args:
+        cfg: the whole resolved config (already validated).
+        registry: the DAG.
+        log: where one-line decisions and the summary go.
+    """
+
+    def __init__(self, cfg: DictConfig, registry: StageRegistry, log: Log = print) -> None:
+        self.cfg = cfg
+        self.registry = registry
+        self.log = log
+        self.ws = Workspace(Path(cfg.paths.outputs), cfg.subject)
+        self.selection = Selection.from_cfg(cfg.run)
+        self.show_progress = bool(cfg.run.get("progress", True))
+        self.lock_timeout_s = float(cfg.run.get("lock_timeout_s", 3600.0))
+
+    # ----------------------------------------------------------------- decisions
+    def _upstream_digests(self, s: Stage, pending: set[str]) -> tuple[dict[str, str], list[str]]:
+        """Output digest of each input, and the inputs that are planned to rerun (dry runs only)."""
+        digests: dict[str, str] = {}
+        rerunning: list[str] = []
+        for name in s.inputs:
+            if name in pending:
+                rerunning.append(name)
+                continue
+            up_dir = self.ws.stage_dir(name)
+            try:
+                manifest = read_manifest(up_dir)
+            except ManifestError:
+                manifest = None
+            if manifest is None or verify_outputs(up_dir, manifest, self.registry[name].outputs) is not None:
+                raise MissingUpstream(
+                    f"stage '{s.name}' reads '{name}', which has no complete artifact in {up_dir}; "
+                    f"run it first (e.g. interactavatar subject={self.ws.subject} run.until={name})"
+                )
+            digests[name] = manifest.output_digest
+        return digests, rerunning
+
+    def _decide(self, s: Stage, force: bool, pending: set[str]) -> _Decision:
+        upstream, rerunning = self._upstream_digests(s, pending)
+        config = config_subset(self.cfg, s.config_keys)
+        config["subject"] = self.ws.subject
+        key = cache_key(s.name, s.version, config, upstream)
+
+        def decision(run: bool, reason: str) -> _Decision:
+            return _Decision(run, reason, key, config, upstream)
+
+        if force:
+            return decision(True, "forced")
+        if rerunning:
+            return decision(True, f"upstream reruns: {', '.join(rerunning)}")
+        stage_dir = self.ws.stage_dir(s.name)
+        try:
+            manifest = read_manifest(stage_dir)
+        except ManifestError as exc:
+            return decision(True, f"manifest corrupted: {exc}")
+        if manifest is None:
+            return decision(True, "outputs missing" + ("" if stage_dir.exists() else ": never run"))
+        if manifest.key != key:
+            return decision(True, _why_key_changed(manifest, s.version, config, upstream))
+        problem = verify_outputs(stage_dir, manifest, s.outputs)
+        return decision(problem is not None, problem or "cached")
+
+    # ----------------------------------------------------------------- running
+    def plan(self) -> list[StageReport]:
+        """Decide every stage without running anything (``run.dry=true``)."""
+        selected = set(self.selection.stages(self.registry))
+        pending: set[str] = set()
+        reports = []
+        for s in self.registry:
+            if s.name not in selected:
+                reports.append(StageReport(s.name, "skip", "not selected"))
+                continue
+            d = self._decide(s, self.selection.force, pending)
+            if d.run:
+                pending.add(s.name)
+            reports.append(StageReport(s.name, "would run" if d.run else "cached", d.reason))
+            self._log_decision(reports[-1])
+        return reports
+
+    def run(self) -> list[StageReport]:
+        """Execute the selected stages in order; raises :class:`StageFailed` on the first failure."""
+        selected = set(self.selection.stages(self.registry))
+        self.ws.root.mkdir(parents=True, exist_ok=True)
+        reports = []
+        for s in self.registry:
+            if s.name not in selected:
+                continue
+            reports.append(self._run_one(s))
+        return reports
+
+    def _run_one(self, s: Stage) -> StageReport:
+        with self.ws.lock(s.name, self.lock_timeout_s):
+            d = self._decide(s, self.selection.force, set())
+            if not d.run:
+                manifest = read_manifest(self.ws.stage_dir(s.name))
+                assert manifest is not None
+                report = StageReport(s.name, "cached", d.reason, metrics=manifest.metrics)
+                self._log_decision(report)
+                return report
+            report = StageReport(s.name, "run", d.reason)
+            self._log_decision(report)
+            tmp = self.ws.new_tmp_dir(s.name)
+            try:
+                ctx = StageContext(
+                    cfg=self.cfg,
+                    subject=self.ws.subject,
+                    out_dir=tmp,
+                    inputs={name: self.ws.stage_dir(name) for name in s.inputs},
+                    show_progress=self.show_progress,
+                )
+                with ResourceMonitor() as monitor:
+                    s.fn(ctx)
+                missing = [rel for rel in s.outputs if not (tmp / rel).exists()]
+                if missing:
+                    raise RuntimeError(f"stage did not write its declared output(s) {missing}")
+                usage = monitor.usage
+                write_manifest(
+                    tmp,
+                    Manifest(
+                        stage=s.name,
+                        key=d.key,
+                        version=s.version,
+                        config=d.config,
+                        upstream=d.upstream,
+                        outputs=hash_outputs(tmp),
+                        timings={"wall_s": usage.wall_s},
+                        peak_memory_mb=usage.peak_rss_mb,
+                        metrics=dict(ctx.metrics),
+                        git_sha=_git_sha(),
+                        created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                    ),
+                )
+                self.ws.publish(s.name, tmp)
+            except BaseException as exc:
+                shutil.rmtree(tmp, ignore_errors=True)
+                if isinstance(exc, Exception):
+                    raise StageFailed(s.name, exc) from exc
+                raise
+            report.wall_s, report.peak_rss_mb, report.metrics = usage.wall_s, usage.peak_rss_mb, dict(ctx.metrics)
+            return report
+
+    def _log_decision(self, r: StageReport) -> None:
+        self.log(f"[{self.ws.subject}] {r.stage:<10} {r.action:<9} {r.reason}")
+
+
+def _why_key_changed(manifest: Manifest, version: str, config: dict[str, Any], upstream: dict[str, str]) -> str:
+    """Human reason for a cache-key mismatch, most specific first."""
+    reasons = []
+    if manifest.version != version:
+        reasons.append(f"code version changed: {manifest.version} -> {version}")
+    keys = changed_keys(manifest.config, config)
+    if keys:
+        reasons.append(f"config changed: {', '.join(keys)}")
+    ups = sorted(k for k in set(manifest.upstream) | set(upstream) if manifest.upstream.get(k) != upstream.get(k))
+    if ups:
+        reasons.append(f"upstream changed: {', '.join(ups)}")
+    return "; ".join(reasons) or "cache key changed"
+
+
+@functools.lru_cache(maxsize=1)
+def _git_sha() -> str:
+    """The code's git commit, or 'unknown' outside a checkout."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return "unknown"
+    return out.stdout.strip() or "unknown"

@@ -1,0 +1,140 @@
+"""The stage contract: what a stage declares, and what it is handed when it runs.
+
+A stage is a plain function wrapped in a :class:`Stage` that declares
+
+- ``name``: unique within a registry, also the name of its output directory;
+- ``inputs``: the upstream stages whose artifacts it reads (this defines the DAG);
+- ``config_keys``: dotted paths into the resolved config that its output depends
+  on (``"quality.image_size"``, ``"stage.capture"``); only these enter its cache key;
+- ``outputs``: relative paths (files or directories) it must produce;
+- ``version``: bumped by hand whenever the code changes what the stage writes;
+- ``resources``: what it needs (cpu cores, gpus), used by launchers and the report;
+- ``config_schema``: optional dataclass that ``cfg.stage.<name>`` must match
+  (checked, with types, before any stage runs).
+
+Stages never import each other: they talk only through artifacts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from omegaconf import DictConfig
+from tqdm import tqdm
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Resources:
+    """What a stage needs to run."""
+
+    cpus: int = 1
+    gpus: int = 0
+
+
+@dataclass
+class StageContext:
+    """Everything a running stage may touch.
+
+    Attributes:
+        cfg: the whole resolved config (read-only by convention; a stage must read
+            only keys under its declared ``config_keys``).
+        subject: subject id, e.g. ``"synth_a"``.
+        out_dir: a fresh temporary directory; the stage writes its outputs here and
+            the runner moves it into place when the stage returns.
+        inputs: upstream stage name -> its completed artifact directory.
+        metrics: scalar results the stage wants recorded in its manifest and
+            shown in the final table (e.g. ``{"frames": 12}``).
+        show_progress: whether progress bars are drawn.
+    """
+
+    cfg: DictConfig
+    subject: str
+    out_dir: Path
+    inputs: Mapping[str, Path]
+    metrics: dict[str, float | int | str] = field(default_factory=dict)
+    show_progress: bool = True
+
+    def input_dir(self, stage: str) -> Path:
+        """Artifact directory of a declared upstream stage."""
+        try:
+            return self.inputs[stage]
+        except KeyError as exc:
+            raise KeyError(
+                f"stage reads '{stage}' but does not declare it in inputs={sorted(self.inputs)}"
+            ) from exc
+
+    def progress(self, items: Iterable[T], desc: str, total: int | None = None) -> Iterator[T]:
+        """Wrap a long loop in a progress bar (a no-op when progress is off)."""
+        return iter(tqdm(items, desc=desc, total=total, disable=not self.show_progress, leave=False))
+
+
+StageFn = Callable[[StageContext], None]
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A declared node of the DAG. See the module docstring for the fields."""
+
+    name: str
+    fn: StageFn
+    inputs: tuple[str, ...] = ()
+    config_keys: tuple[str, ...] = ()
+    outputs: tuple[str, ...] = ()
+    version: str = "1"
+    resources: Resources = Resources()
+    config_schema: type | None = None
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.name or not self.name.replace("_", "").isalnum():
+            raise ValueError(f"stage name must be alphanumeric/underscore, got {self.name!r}")
+        if not self.outputs:
+            raise ValueError(f"stage '{self.name}' declares no outputs")
+        if self.name in self.inputs:
+            raise ValueError(f"stage '{self.name}' lists itself as an input")
+
+
+def stage(
+    name: str,
+    *,
+    inputs: Iterable[str] = (),
+    config_keys: Iterable[str] = (),
+    outputs: Iterable[str],
+    version: str = "1",
+    resources: Resources = Resources(),
+    config_schema: type | None = None,
+) -> Callable[[StageFn], Stage]:
+    """Decorator that turns ``fn(ctx)`` into a :class:`Stage`; the docstring becomes its description."""
+
+    def wrap(fn: StageFn) -> Stage:
+        return Stage(
+            name=name,
+            fn=fn,
+            inputs=tuple(inputs),
+            config_keys=tuple(config_keys),
+            outputs=tuple(outputs),
+            version=version,
+            resources=resources,
+            config_schema=config_schema,
+            description=(fn.__doc__ or "").strip().splitlines()[0] if fn.__doc__ else "",
+        )
+
+    return wrap
+
+
+def describe(stage_obj: Stage) -> dict[str, Any]:
+    """A JSON-friendly summary of a stage declaration (used by dry runs and the report)."""
+    return {
+        "name": stage_obj.name,
+        "inputs": list(stage_obj.inputs),
+        "config_keys": list(stage_obj.config_keys),
+        "outputs": list(stage_obj.outputs),
+        "version": stage_obj.version,
+        "resources": {"cpus": stage_obj.resources.cpus, "gpus": stage_obj.resources.gpus},
+        "description": stage_obj.description,
+    }

@@ -1,0 +1,52 @@
+"""Shared fixtures: composing the real config tree, and running the CLI in a subprocess."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+REPO = Path(__file__).resolve().parent.parent
+CONF_DIR = REPO / "conf"
+TOY_OVERRIDES = ["pipeline.stages_module=tests.toy_dag", "stage=[]"] + [
+    f"+stage.{n}.value=1" for n in "abcd"
+]
+
+
+def compose_cfg(overrides: Sequence[str]) -> DictConfig:
+    """The app's config as Hydra composes it for these command-line overrides."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+@pytest.fixture
+def toy_cfg(tmp_path: Path) -> Callable[..., DictConfig]:
+    """Compose a config for the toy DAG writing under tmp_path, plus extra overrides."""
+
+    def make(*extra: str) -> DictConfig:
+        return compose_cfg([*TOY_OVERRIDES, f"paths.outputs={tmp_path / 'out'}", "run.progress=false", *extra])
+
+    return make
+
+
+def cli_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def cli_command(*args: str) -> list[str]:
+    return [sys.executable, "-m", "pipeline.cli", *args]
+
+
+def run_cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    """Run ``interactavatar`` with these arguments from the repo root."""
+    return subprocess.run(cli_command(*args), cwd=REPO, env=cli_env(), capture_output=True, text=True,
+                          timeout=timeout, check=False)

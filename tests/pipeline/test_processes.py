@@ -1,0 +1,87 @@
+"""The runner across real processes: SIGKILL mid-stage, concurrent runs, CLI errors, multirun."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli
+
+TOY = [*TOY_OVERRIDES, "run.progress=false"]
+
+
+def _wait_for(predicate, timeout_s: float = 60.0) -> None:
+    deadline = time.time() + timeout_s
+    while not predicate():
+        if time.time() > deadline:
+            raise TimeoutError("condition not met in time")
+        time.sleep(0.05)
+
+
+def test_sigkill_mid_stage_leaves_nothing_that_looks_complete(tmp_path):
+    out = tmp_path / "out"
+    args = [*TOY, f"paths.outputs={out}", "++stage.a.sleep_s=60"]
+    proc = subprocess.Popen(cli_command(*args), cwd=REPO, env=cli_env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        # Wait until stage a has written half of its output into its temporary dir.
+        _wait_for(lambda: any((out / "synth_a" / ".tmp").glob("a-*/parts/half.txt")))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        proc.kill()
+    assert not (out / "synth_a" / "a").exists()
+    result = run_cli(*TOY, f"paths.outputs={out}")
+    assert result.returncode == 0, result.stderr
+    assert "a          run       outputs missing" in result.stdout
+    assert not list((out / "synth_a" / ".tmp").iterdir()), "stale temporary dir not cleaned"
+    assert (out / "synth_a" / "c" / "c.txt").read_text() == "a=1\nb=1\nc=1\n"
+
+
+def test_two_concurrent_runs_do_not_interleave(tmp_path):
+    out, trace = tmp_path / "out", tmp_path / "trace.log"
+    args = [*TOY, f"paths.outputs={out}", "++stage.a.sleep_s=1.5"] + [f"++stage.{s}.trace={trace}" for s in "abcd"]
+    procs = [subprocess.Popen(cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [o[1] for o in outs]
+    events = [line.split() for line in trace.read_text().splitlines()]
+    # Each stage was computed exactly once; the other run found it cached under the lock.
+    for s in "abcd":
+        assert [e[1] for e in events if e[0] == s] == ["start", "end"], events
+    assert sum("a          cached" in o[0] for o in outs) == 1
+    # Both runs agree on the final artifacts.
+    manifest = json.loads((out / "synth_a" / "c" / "_manifest.json").read_text())
+    assert manifest["outputs"]
+
+
+def test_cli_bad_config_is_one_clear_error(tmp_path):
+    result = run_cli(*TOY, f"paths.outputs={tmp_path / 'out'}", "run.only=fitt")
+    assert result.returncode == 2
+    assert "interactavatar: error: invalid config" in result.stderr
+    assert "run.only=fitt: unknown stage" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "out" / "synth_a").exists()
+
+    result = run_cli(*TOY, f"paths.outputs={tmp_path / 'out'}", "run.force=maybe")
+    assert result.returncode == 2
+    assert "run: Value 'maybe' is not a valid bool" in result.stderr
+
+
+def test_cli_failing_stage_exits_nonzero_with_message(tmp_path):
+    result = run_cli(*TOY, f"paths.outputs={tmp_path / 'out'}", "++stage.a.fail=true")
+    assert result.returncode == 1
+    assert "stage 'a' failed: RuntimeError: toy stage a was told to fail" in result.stderr
+
+
+def test_multirun_over_two_subjects_with_local_launcher(tmp_path):
+    out = tmp_path / "out"
+    result = run_cli("-m", "subject=s1,s2", "hydra/launcher=local", *TOY, f"paths.outputs={out}")
+    assert result.returncode == 0, result.stderr
+    for subject in ("s1", "s2"):
+        assert (out / subject / "c" / "c.txt").read_text() == "a=1\nb=1\nc=1\n"
+        assert json.loads((out / subject / "d" / "_manifest.json").read_text())["config"]["subject"] == subject
+    assert "Joblib" in result.stdout + result.stderr

@@ -1,0 +1,58 @@
+"""Test-only stages for exercising the runner: a -> b -> c, and a -> d.
+
+Each stage writes a text file derived from its config value and its inputs, so
+changing ``stage.<name>.value`` changes that stage's output and all below it.
+``stage.a.sleep_s`` makes ``a`` write half its output, then sleep (for kill
+tests); ``stage.a.fail`` makes it raise after writing half its output;
+``stage.<name>.trace`` names a file where start/end times are appended (for
+concurrency tests).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.registry import StageRegistry
+from pipeline.stage import StageContext, stage
+
+
+@dataclass
+class ToyConfig:
+    value: int = 0
+    sleep_s: float = 0.0
+    fail: bool = False
+    trace: str | None = None
+
+
+def _trace(ctx: StageContext, name: str, event: str) -> None:
+    trace = ctx.cfg.stage[name].get("trace")
+    if trace:
+        with open(trace, "a") as f:
+            f.write(f"{name} {event} {os.getpid()} {time.time():.6f}\n")
+
+
+def _toy(name: str, inputs: tuple[str, ...]):
+    @stage(name, inputs=inputs, config_keys=(f"stage.{name}",), outputs=(f"{name}.txt", "parts"),
+           config_schema=ToyConfig)
+    def run(ctx: StageContext) -> None:
+        """Toy stage: concatenates its inputs with its own value."""
+        _trace(ctx, name, "start")
+        conf = ctx.cfg.stage[name]
+        upstream = "".join(Path(ctx.input_dir(i), f"{i}.txt").read_text() for i in inputs)
+        (ctx.out_dir / "parts").mkdir()
+        (ctx.out_dir / "parts" / "half.txt").write_text("first half\n")
+        if conf.sleep_s:
+            time.sleep(conf.sleep_s)
+        if conf.fail:
+            raise RuntimeError(f"toy stage {name} was told to fail")
+        (ctx.out_dir / f"{name}.txt").write_text(f"{upstream}{name}={conf.value}\n")
+        ctx.metrics["value"] = int(conf.value)
+        _trace(ctx, name, "end")
+
+    return run
+
+
+REGISTRY = StageRegistry([_toy("a", ()), _toy("b", ("a",)), _toy("c", ("b",)), _toy("d", ("a",))])
