@@ -1,0 +1,1 @@
+"""Every artifact's schema and its read/write/validate functions (Parquet, EXR, PNG, PLY)."""
