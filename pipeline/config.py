@@ -40,14 +40,21 @@ class PathsConfig:
 def _check_schema(section: Any, schema: type, where: str, errors: list[str]) -> DictConfig | None:
     """``section`` merged onto the structured ``schema`` (defaults filled, types converted).
 
-    Unknown keys and wrong types are appended to ``errors`` and give ``None``.
+    Unknown keys, wrong types and fields left without a value are appended to
+    ``errors`` and give ``None``. Real stages keep their values in
+    ``conf/stage/<name>.yaml`` and declare only types (no defaults) in the schema.
     """
     try:
-        return OmegaConf.merge(OmegaConf.structured(schema), section)
+        merged = OmegaConf.merge(OmegaConf.structured(schema), section)
     except OmegaConfBaseException as exc:
         msg = str(exc).splitlines()[0]
         errors.append(f"{where}: {msg}")
         return None
+    missing = sorted(OmegaConf.missing_keys(merged))
+    if missing:
+        errors.append(f"{where}: missing value for {', '.join(missing)}")
+        return None
+    return merged
 
 
 def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:

@@ -1,0 +1,1 @@
+"""Image preprocessing shared by stages: foreground masks, part boxes, square crops with adjusted intrinsics."""
