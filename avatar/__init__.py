@@ -1,0 +1,1 @@
+"""InteractAvatar model core (importable without the pipeline)."""
