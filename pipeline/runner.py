@@ -118,6 +118,8 @@ class Runner:
         self.selection = Selection.from_cfg(cfg.run)
         self.show_progress = bool(cfg.run.get("progress", True))
         self.lock_timeout_s = float(cfg.run.get("lock_timeout_s", 3600.0))
+        # Stages whose artifacts this run has verified or written, so each is hashed once per run.
+        self._verified: dict[str, Manifest] = {}
 
     # ----------------------------------------------------------------- decisions
     def _upstream_digests(self, s: Stage, pending: set[str]) -> tuple[dict[str, str], list[str]]:
@@ -128,18 +130,27 @@ class Runner:
             if name in pending:
                 rerunning.append(name)
                 continue
-            up_dir = self.ws.stage_dir(name)
-            try:
-                manifest = read_manifest(up_dir)
-            except ManifestError:
-                manifest = None
-            if manifest is None or verify_outputs(up_dir, manifest, self.registry[name].outputs) is not None:
+            manifest = self._verified.get(name) or self._verify(name)
+            if manifest is None:
+                up_dir = self.ws.stage_dir(name)
                 raise MissingUpstream(
                     f"stage '{s.name}' reads '{name}', which has no complete artifact in {up_dir}; "
                     f"run it first (e.g. interactavatar subject={self.ws.subject} run.until={name})"
                 )
             digests[name] = manifest.output_digest
         return digests, rerunning
+
+    def _verify(self, name: str) -> Manifest | None:
+        """The stage's manifest if it and every output on disk are whole (remembered for this run)."""
+        stage_dir = self.ws.stage_dir(name)
+        try:
+            manifest = read_manifest(stage_dir)
+        except ManifestError:
+            return None
+        if manifest is None or verify_outputs(stage_dir, manifest, self.registry[name].outputs) is not None:
+            return None
+        self._verified[name] = manifest
+        return manifest
 
     def _decide(self, s: Stage, force: bool, pending: set[str]) -> _Decision:
         upstream, rerunning = self._upstream_digests(s, pending)
@@ -164,6 +175,8 @@ class Runner:
         if manifest.key != key:
             return decision(True, _why_key_changed(manifest, s.version, config, upstream))
         problem = verify_outputs(stage_dir, manifest, s.outputs)
+        if problem is None:
+            self._verified[s.name] = manifest
         return decision(problem is not None, problem or "cached")
 
     # ----------------------------------------------------------------- running
@@ -198,9 +211,7 @@ class Runner:
         with self.ws.lock(s.name, self.lock_timeout_s):
             d = self._decide(s, self.selection.force, set())
             if not d.run:
-                manifest = read_manifest(self.ws.stage_dir(s.name))
-                assert manifest is not None
-                report = StageReport(s.name, "cached", d.reason, metrics=manifest.metrics)
+                report = StageReport(s.name, "cached", d.reason, metrics=self._verified[s.name].metrics)
                 self._log_decision(report)
                 return report
             report = StageReport(s.name, "run", d.reason)
@@ -220,23 +231,22 @@ class Runner:
                 if missing:
                     raise RuntimeError(f"stage did not write its declared output(s) {missing}")
                 usage = monitor.usage
-                write_manifest(
-                    tmp,
-                    Manifest(
-                        stage=s.name,
-                        key=d.key,
-                        version=s.version,
-                        config=d.config,
-                        upstream=d.upstream,
-                        outputs=hash_outputs(tmp),
-                        timings={"wall_s": usage.wall_s},
-                        peak_memory_mb=usage.peak_rss_mb,
-                        metrics=dict(ctx.metrics),
-                        git_sha=_git_sha(),
-                        created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-                    ),
+                manifest = Manifest(
+                    stage=s.name,
+                    key=d.key,
+                    version=s.version,
+                    config=d.config,
+                    upstream=d.upstream,
+                    outputs=hash_outputs(tmp),
+                    timings={"wall_s": usage.wall_s},
+                    peak_memory_mb=usage.peak_rss_mb,
+                    metrics=dict(ctx.metrics),
+                    git_sha=_git_sha(),
+                    created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                 )
+                write_manifest(tmp, manifest)
                 self.ws.publish(s.name, tmp)
+                self._verified[s.name] = manifest
             except BaseException as exc:
                 shutil.rmtree(tmp, ignore_errors=True)
                 if isinstance(exc, Exception):
