@@ -1,0 +1,175 @@
+"""Stage ``capture``: generate the synthetic capture, or validate and index one already on disk."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from omegaconf import DictConfig
+
+from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, mask_path, video_path
+from data_schemas.cameras import Camera, read_cameras, write_cameras
+from data_schemas.deform import DEFORM
+from data_schemas.images import read_png, write_png
+from data_schemas.keypoints import KEYPOINTS
+from data_schemas.params import PARAM_COLUMNS, PARAMS
+from data_schemas.tables import SchemaError, write_table
+from data_schemas.video import read_video, video_fps, write_video
+from pipeline.stage import Resources, StageContext, stage
+
+if TYPE_CHECKING:
+    from avatar.synthetic import SyntheticCapture
+
+SEQUENCES = ("train", "test")
+
+
+@dataclass
+class CaptureConfig:
+    """Types of ``stage.capture`` (values in conf/stage/capture.yaml)."""
+
+    num_cameras: int
+    default_frame_rate: float
+
+
+@stage(
+    "capture",
+    config_keys=("dataset", "quality.capture_size", "quality.num_frames_train", "quality.num_frames_test",
+                 "quality.supersample", "stage.capture"),
+    outputs=("cameras.parquet", "capture.json"),
+    version="1",
+    resources=Resources(cpus=2),
+    config_schema=CaptureConfig,
+)
+def capture(ctx: StageContext) -> None:
+    """Generate (synthetic) or validate and index (folder) a multi-view capture."""
+    dataset = ctx.cfg.dataset
+    if dataset.name == "synthetic":
+        index = _generate_synthetic(ctx)
+    elif dataset.name == "folder":
+        index = _import_folder(Path(dataset.root) / ctx.subject, ctx.out_dir, ctx.cfg.stage.capture, ctx.subject)
+    else:
+        raise SchemaError(f"dataset.name={dataset.name!r}: unknown dataset; use dataset=synthetic or dataset=folder")
+    index.write(ctx.out_dir)
+    ctx.metrics["cameras"] = len(read_cameras(ctx.out_dir / "cameras.parquet"))
+    for name, seq in index.sequences.items():
+        ctx.metrics[f"{name}_frames"] = seq.num_frames
+
+
+# ---------------------------------------------------------------------------- synthetic
+def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
+    # Imported here: the generator pulls in torch, which folder captures and cached runs never need.
+    from avatar.synthetic import SyntheticConfig, generate
+
+    q, conf = ctx.cfg.quality, ctx.cfg.stage.capture
+    if ctx.subject not in ctx.cfg.dataset.subjects:
+        raise SchemaError(f"subject={ctx.subject!r} is not in the synthetic dataset; "
+                          f"choose one of {list(ctx.cfg.dataset.subjects)}")
+    frames_per_sequence = {"train": q.num_frames_train, "test": q.num_frames_test}
+    sequences: dict[str, SequenceInfo] = {}
+    cameras: list[Camera] | None = None
+    for seq in ctx.progress(SEQUENCES, desc="capture: generating sequences"):
+        cap = generate(SyntheticConfig(subject=ctx.subject, sequence=seq, image_size=int(q.capture_size),
+                                       num_frames=int(frames_per_sequence[seq]), supersample=int(q.supersample),
+                                       seed=int(ctx.cfg.dataset.seed), num_cameras=int(conf.num_cameras)))
+        cams = [Camera(c.camera_id, c.width, c.height, c.K, c.world_to_cam, c.dist, c.split) for c in cap.cameras]
+        cameras = cameras or cams
+        _write_synthetic_sequence(ctx.out_dir, seq, cap)
+        sequences[seq] = SequenceInfo(num_frames=len(cap.contact), frame_rate=cap.frame_rate,
+                                      width=cams[0].width, height=cams[0].height,
+                                      has_masks=True, has_ground_truth=True)
+        ctx.metrics[f"{seq}_contact_frames"] = int(cap.contact.sum())
+    assert cameras is not None
+    write_cameras(ctx.out_dir / "cameras.parquet", cameras)
+    return CaptureIndex(subject=ctx.subject, dataset="synthetic", sequences=sequences)
+
+
+def _write_synthetic_sequence(root: Path, seq: str, cap: SyntheticCapture) -> None:
+    num_frames = len(cap.contact)
+    for cam in cap.cameras:
+        write_video(video_path(root, seq, cam.camera_id), cap.frames[cam.camera_id], cap.frame_rate)
+        for t in range(num_frames):
+            write_png(mask_path(root, seq, cam.camera_id, t), cap.masks[cam.camera_id][t])
+    frames = np.arange(num_frames)
+    write_table(gt_path(root, seq, "params"), PARAMS,
+                {"frame": frames, **{k: cap.params[k] for k in PARAM_COLUMNS}})
+    rows: dict[str, list] = {"frame": [], "camera_id": [], "part": [], "uvc": []}
+    for cam_id, parts in cap.keypoints.items():
+        for part, kp in parts.items():
+            for t in range(num_frames):
+                rows["frame"].append(t)
+                rows["camera_id"].append(cam_id)
+                rows["part"].append(part)
+                rows["uvc"].append(kp[t])
+    write_table(gt_path(root, seq, "keypoints"), KEYPOINTS, {**rows, "frame": np.array(rows["frame"])})
+    write_table(gt_path(root, seq, "deform"), DEFORM,
+                {"frame": frames, "contact": cap.contact, "offsets": cap.face_offsets.reshape(num_frames, -1)})
+
+
+# ---------------------------------------------------------------------------- folder
+def _import_folder(src: Path, out: Path, conf: DictConfig, subject: str) -> CaptureIndex:
+    """Validate a capture on disk and bring it into the stage directory (hard links where possible)."""
+    if not src.is_dir():
+        raise SchemaError(f"{src}: capture folder missing; set dataset.root so that <root>/{subject} exists")
+    cameras = read_cameras(src / "cameras.parquet")
+    seq_names = sorted(p.name for p in src.iterdir() if (p / "videos").is_dir())
+    if not seq_names:
+        raise SchemaError(f"{src}: no <sequence>/videos/ folder; put one video per camera in e.g. {src}/train/videos/")
+    sequences = {name: _validate_sequence(src, name, cameras, conf) for name in seq_names}
+    _link_or_copy(src / "cameras.parquet", out / "cameras.parquet")
+    for name, info in sequences.items():
+        for cam in cameras:
+            _link_or_copy(video_path(src, name, cam.camera_id), video_path(out, name, cam.camera_id))
+            if info.has_masks:
+                for t in range(info.num_frames):
+                    _link_or_copy(mask_path(src, name, cam.camera_id, t), mask_path(out, name, cam.camera_id, t))
+    return CaptureIndex(subject=subject, dataset="folder", sequences=sequences)
+
+
+def _validate_sequence(src: Path, seq: str, cameras: list[Camera], conf: DictConfig) -> SequenceInfo:
+    videos_dir = src / seq / "videos"
+    on_disk = {p.stem: p for p in videos_dir.iterdir() if p.suffix.lower() == ".mp4"}
+    ids = {c.camera_id for c in cameras}
+    without_video, without_camera = sorted(ids - set(on_disk)), sorted(set(on_disk) - ids)
+    if without_video:
+        cam_id = without_video[0]
+        raise SchemaError(f"{video_path(src, seq, cam_id)}: camera '{cam_id}' in {src / 'cameras.parquet'} "
+                          f"has no video; add the video or remove the camera's row")
+    if without_camera:
+        cam_id = without_camera[0]
+        raise SchemaError(f"{on_disk[cam_id]}: video has no camera '{cam_id}' in {src / 'cameras.parquet'}; "
+                          f"add its calibration or remove the video")
+    counts: dict[str, int] = {}
+    for cam in cameras:
+        path = video_path(src, seq, cam.camera_id)
+        frames = read_video(path)
+        if frames.shape[1:3] != (cam.height, cam.width):
+            raise SchemaError(f"{path}: frames are {frames.shape[2]}x{frames.shape[1]} but cameras.parquet says "
+                              f"{cam.width}x{cam.height}; fix the calibration or the video")
+        counts[cam.camera_id] = len(frames)
+    if len(set(counts.values())) != 1:
+        raise SchemaError(f"{videos_dir}: views disagree on frame count {counts}; trim the videos to the same "
+                          f"synchronised range")
+    num_frames = next(iter(counts.values()))
+    has_masks = (src / seq / "masks").is_dir()
+    if has_masks:
+        for cam in cameras:
+            for t in range(num_frames):
+                mask = read_png(mask_path(src, seq, cam.camera_id, t), 1)
+                if mask.shape != (cam.height, cam.width):
+                    raise SchemaError(f"{mask_path(src, seq, cam.camera_id, t)}: mask is {mask.shape[::-1]}, "
+                                      f"expected {cam.width}x{cam.height}")
+    fps = video_fps(video_path(src, seq, cameras[0].camera_id)) or float(conf.default_frame_rate)
+    return SequenceInfo(num_frames=num_frames, frame_rate=fps, width=cameras[0].width, height=cameras[0].height,
+                        has_masks=has_masks, has_ground_truth=False)
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)

@@ -1,0 +1,106 @@
+"""Stage ``report``: one self-contained HTML page about a subject's run."""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from data_schemas.cameras import read_cameras
+from data_schemas.capture import CaptureIndex, gt_path
+from data_schemas.deform import DEFORM
+from data_schemas.frames import FRAMES_INDEX, rgb_path
+from data_schemas.images import read_png
+from data_schemas.tables import read_table
+from pipeline.manifest import MANIFEST_NAME
+from pipeline.stage import StageContext, stage
+
+UPSTREAM = ("capture", "frames")
+
+
+@dataclass
+class ReportConfig:
+    """Types of ``stage.report`` (values in conf/stage/report.yaml)."""
+
+    thumbnail_px: int
+
+
+@stage("report", inputs=UPSTREAM, config_keys=("quality.name", "stage.report"), outputs=("report.html",),
+       version="1", config_schema=ReportConfig)
+def report(ctx: StageContext) -> None:
+    """Write report.html: what was captured and modeled, per-stage timings and metrics, a contact sheet."""
+    cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
+    index = CaptureIndex.read(cap_dir)
+    cameras = read_cameras(cap_dir / "cameras.parquet")
+    frames_index = read_table(frames_dir / "index.parquet", FRAMES_INDEX)
+    manifests = {name: json.loads((ctx.input_dir(name) / MANIFEST_NAME).read_text()) for name in UPSTREAM}
+    seq = "train" if "train" in index.sequences else next(iter(index.sequences))
+    frame, why = _showcase_frame(cap_dir, seq, index)
+    sheet = _contact_sheet(frames_dir, seq, [c.camera_id for c in cameras], frame, int(ctx.cfg.stage.report.thumbnail_px))
+    hand_share = float(np.mean(frames_index["hand_visible"]))
+    sections = [
+        f"<h1>InteractAvatar report: {html.escape(ctx.subject)}</h1>",
+        f"<p>dataset <b>{html.escape(index.dataset)}</b>, quality preset <b>{html.escape(ctx.cfg.quality.name)}</b>, "
+        f"{len(cameras)} cameras, sequences: "
+        + ", ".join(f"{k} ({v.num_frames} frames, {v.width}x{v.height})" for k, v in index.sequences.items()) + "</p>",
+        "<h2>What the scene contains</h2>",
+        f"<p>The hand is visible in {100 * hand_share:.0f}% of the crops.</p>",
+        _contact_summary(cap_dir, index),
+        "<h2>Stages</h2>",
+        _table(("stage", "wall s", "peak MB", "metrics", "written"),
+               [(n, f"{m['timings']['wall_s']:.2f}", f"{m['peak_memory_mb']:.0f}",
+                 ", ".join(f"{k}={_fmt(v)}" for k, v in sorted(m["metrics"].items())), m["created"])
+                for n, m in manifests.items()]),
+        "<h2>Cameras</h2>",
+        _table(("camera", "split", "size", "fx", "position (m)"),
+               [(c.camera_id, c.split, f"{c.width}x{c.height}", f"{c.K[0, 0]:.1f}",
+                 np.array2string(c.cam_to_world[:3, 3], precision=3)) for c in cameras]),
+        f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
+        f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
+    ]
+    page = "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>" \
+           "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}" \
+           "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}</style>\n" + "\n".join(sections)
+    (ctx.out_dir / "report.html").write_text(page)
+
+
+def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, str]:
+    """First contact frame when ground truth says so, else the middle frame."""
+    if index.sequences[seq].has_ground_truth:
+        contact = read_table(gt_path(cap_dir, seq, "deform"), DEFORM)["contact"]
+        if contact.any():
+            return int(np.flatnonzero(contact)[0]), "first frame with hand-face contact"
+    return index.sequences[seq].num_frames // 2, "middle frame"
+
+
+def _contact_summary(cap_dir: Path, index: CaptureIndex) -> str:
+    parts = []
+    for seq, info in index.sequences.items():
+        if info.has_ground_truth:
+            contact = read_table(gt_path(cap_dir, seq, "deform"), DEFORM)["contact"]
+            parts.append(f"{seq}: {int(contact.sum())} of {len(contact)} frames with contact (ground truth)")
+    return "<p>" + "; ".join(parts) + "</p>" if parts else "<p>No contact ground truth in this capture.</p>"
+
+
+def _contact_sheet(frames_dir: Path, seq: str, camera_ids: list[str], frame: int, px: int) -> str:
+    tiles = [cv2.resize(read_png(rgb_path(frames_dir, seq, cid, frame), 3), (px, px), interpolation=cv2.INTER_AREA)
+             for cid in camera_ids]
+    sheet = np.concatenate(tiles, axis=1)
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(sheet[..., ::-1]))
+    assert ok
+    return base64.b64encode(png.tobytes()).decode()
+
+
+def _table(headers: tuple[str, ...], rows: list[tuple]) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in headers)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _fmt(v: object) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)

@@ -1,0 +1,128 @@
+"""capture + frames on a folder dataset: a good capture imports; every bad input is one clear error."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from data_schemas.cameras import Camera, write_cameras
+from data_schemas.capture import mask_path, video_path
+from data_schemas.frames import FRAMES_INDEX
+from data_schemas.images import write_png
+from data_schemas.tables import read_table
+from data_schemas.video import write_video
+from pipeline.cli import run_app
+from pipeline.runner import StageFailed
+from tests.conftest import compose_cfg
+
+SIZE, FRAMES = 48, 3
+
+
+def _camera(i: int) -> Camera:
+    T = np.eye(4)
+    T[:3, 3] = [0.01 * i, 0, 0.8]
+    K = np.array([[60.0, 0, SIZE / 2], [0, 60.0, SIZE / 2], [0, 0, 1]])
+    return Camera(f"cam{i:02d}", SIZE, SIZE, K, T, np.zeros(5), "test" if i == 2 else "train")
+
+
+def _frames(shift: int, n: int = FRAMES) -> np.ndarray:
+    video = np.full((n, SIZE, SIZE, 3), 90, np.uint8)
+    for t in range(n):
+        video[t, 12 + t: 30 + t, 10 + shift: 34 + shift] = (210, 160, 130)
+    return video
+
+
+def make_capture(root: Path, masks: bool = False) -> Path:
+    subject = root / "alice"
+    cams = [_camera(i) for i in range(3)]
+    write_cameras(subject / "cameras.parquet", cams)
+    for i, cam in enumerate(cams):
+        write_video(video_path(subject, "train", cam.camera_id), _frames(i), 25.0)
+        if masks:
+            for t in range(FRAMES):
+                lab = np.zeros((SIZE, SIZE), np.uint8)
+                lab[12 + t: 30 + t, 10 + i: 34 + i] = 1
+                write_png(mask_path(subject, "train", cam.camera_id, t), lab)
+    return subject
+
+
+def _cfg(tmp_path: Path, *extra: str):
+    return compose_cfg(["dataset=folder", f"dataset.root={tmp_path / 'data'}", "subject=alice",
+                        f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.until=frames", *extra])
+
+
+@pytest.mark.parametrize("masks", [False, True], ids=["keyed", "capture-masks"])
+def test_folder_capture_imports_and_crops(tmp_path, masks):
+    make_capture(tmp_path / "data", masks=masks)
+    reports = run_app(_cfg(tmp_path))
+    assert [r.action for r in reports] == ["run", "run"]
+    out = tmp_path / "out" / "alice"
+    index = read_table(out / "frames" / "index.parquet", FRAMES_INDEX)
+    assert len(index["frame"]) == 3 * FRAMES
+    assert set(index["split"]) == {"train", "test"}
+    assert all(f > 0.05 for f in index["foreground_fraction"])
+    assert index["face_visible"].all() == masks  # keyed masks do not know the part
+    assert not index["hand_visible"].any()
+
+
+def _expect_capture_error(tmp_path: Path, fragment: str) -> None:
+    with pytest.raises(StageFailed) as info:
+        run_app(_cfg(tmp_path))
+    assert fragment in str(info.value)
+    assert not (tmp_path / "out" / "alice" / "capture").exists(), "half-written capture left behind"
+
+
+def test_missing_video_names_the_camera_and_fix(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    video_path(subject, "train", "cam01").unlink()
+    _expect_capture_error(tmp_path, "cam01.mp4: camera 'cam01' in")
+    with pytest.raises(StageFailed, match="add the video or remove the camera's row"):
+        run_app(_cfg(tmp_path))
+
+
+def test_video_without_camera(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    shutil.copy(video_path(subject, "train", "cam00"), video_path(subject, "train", "cam09"))
+    _expect_capture_error(tmp_path, "cam09.mp4: video has no camera 'cam09'")
+
+
+def test_views_that_disagree_on_frame_count(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    write_video(video_path(subject, "train", "cam02"), _frames(2, n=FRAMES + 2), 25.0)
+    _expect_capture_error(tmp_path, "views disagree on frame count")
+
+
+def test_corrupt_video(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    video_path(subject, "train", "cam00").write_bytes(b"\x00not a video" * 10)
+    _expect_capture_error(tmp_path, "cam00.mp4: no decodable frames")
+
+
+def test_singular_intrinsics(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    table = pq.read_table(subject / "cameras.parquet")
+    k = table.column("K").to_pylist()
+    k[1] = [0.0] * 9
+    import pyarrow as pa
+
+    idx = table.schema.get_field_index("K")
+    table = table.set_column(idx, table.schema.field("K"), pa.array(k, type=table.schema.field("K").type))
+    pq.write_table(table, subject / "cameras.parquet")
+    _expect_capture_error(tmp_path, "camera 'cam01': K is singular")
+
+
+def test_empty_mask_is_named(tmp_path):
+    subject = make_capture(tmp_path / "data", masks=True)
+    write_png(mask_path(subject, "train", "cam01", 2), np.zeros((SIZE, SIZE), np.uint8))
+    with pytest.raises(StageFailed) as info:
+        run_app(_cfg(tmp_path))
+    assert "masks/cam01/000002.png: empty foreground mask in frame 2" in str(info.value)
+    assert not (tmp_path / "out" / "alice" / "frames").exists()
+
+
+def test_missing_capture_folder(tmp_path):
+    _expect_capture_error(tmp_path, "capture folder missing; set dataset.root")
