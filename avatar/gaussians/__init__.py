@@ -1,0 +1,1 @@
+"""Gaussians bound to mesh triangles: local frames, initialisation, density control."""
