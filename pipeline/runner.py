@@ -223,6 +223,7 @@ class Runner:
                     subject=self.ws.subject,
                     out_dir=tmp,
                     inputs={name: self.ws.stage_dir(name) for name in s.inputs},
+                    scratch_dir=self.ws.scratch_dir(s.name, d.key),
                     show_progress=self.show_progress,
                 )
                 with ResourceMonitor() as monitor:
@@ -246,6 +247,7 @@ class Runner:
                 )
                 write_manifest(tmp, manifest)
                 self.ws.publish(s.name, tmp)
+                self.ws.discard_scratch(s.name)
                 self._verified[s.name] = manifest
             except BaseException as exc:
                 shutil.rmtree(tmp, ignore_errors=True)

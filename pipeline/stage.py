@@ -47,6 +47,9 @@ class StageContext:
         out_dir: a fresh temporary directory; the stage writes its outputs here and
             the runner moves it into place when the stage returns.
         inputs: upstream stage name -> its completed artifact directory.
+        scratch_dir: persistent space for checkpoints: it survives a killed run and is
+            handed to the next run with the same cache key (so it can resume), and is
+            removed once the stage is published.
         metrics: scalar results the stage wants recorded in its manifest and
             shown in the final table (e.g. ``{"frames": 12}``).
         show_progress: whether progress bars are drawn.
@@ -56,6 +59,7 @@ class StageContext:
     subject: str
     out_dir: Path
     inputs: Mapping[str, Path]
+    scratch_dir: Path | None = None
     metrics: dict[str, float | int | str] = field(default_factory=dict)
     show_progress: bool = True
 

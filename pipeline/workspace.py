@@ -5,6 +5,8 @@ Layout under ``paths.outputs``::
     <outputs>/<subject>/<stage>/            a completed stage (manifest last)
     <outputs>/<subject>/.tmp/<stage>-<id>/  a stage being written (never read)
     <outputs>/<subject>/.locks/<stage>.lock one lock per subject and stage
+    <outputs>/<subject>/.scratch/<stage>-<key>/  checkpoints of an unfinished stage, kept across
+                                            killed runs with the same cache key, removed on success
 
 A stage is written into ``.tmp`` and renamed into place. If a previous version
 exists it is first renamed aside, so at every instant the final path holds
@@ -73,6 +75,23 @@ class Workspace:
         """Remove leftovers of killed runs of ``stage`` (safe: the caller holds its lock)."""
         if self._tmp_root.is_dir():
             for p in self._tmp_root.glob(f"{stage}-*"):
+                shutil.rmtree(p, ignore_errors=True)
+
+    def scratch_dir(self, stage: str, key: str) -> Path:
+        """Persistent scratch space (checkpoints) of ``stage`` for one cache ``key``.
+
+        It survives a killed run so the next run with the same key can resume; a
+        different key (config or inputs changed) never sees it.
+        """
+        path = self.root / ".scratch" / f"{stage}-{key[:16]}"
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+
+    def discard_scratch(self, stage: str) -> None:
+        """Remove every scratch dir of ``stage`` (after it was published)."""
+        root = self.root / ".scratch"
+        if root.is_dir():
+            for p in root.glob(f"{stage}-*"):
                 shutil.rmtree(p, ignore_errors=True)
 
     def publish(self, stage: str, tmp_dir: Path) -> Path:

@@ -4,7 +4,9 @@ Each stage writes a text file derived from its config value and its inputs, so
 changing ``stage.<name>.value`` changes that stage's output and all below it.
 ``stage.a.sleep_s`` makes ``a`` write half its output, then sleep (for kill
 tests); ``stage.a.fail`` makes it raise after writing half its output;
-``stage.<name>.trace`` names a file where start/end times are appended (for
+``stage.a.fail_once`` makes it leave a checkpoint in its scratch dir and
+raise, and resume from that checkpoint on the next run; ``stage.<name>.trace``
+names a file where start/end times are appended (for
 concurrency tests).
 """
 
@@ -24,6 +26,7 @@ class ToyConfig:
     value: int = 0
     sleep_s: float = 0.0
     fail: bool = False
+    fail_once: bool = False
     trace: str | None = None
 
 
@@ -48,6 +51,12 @@ def _toy(name: str, inputs: tuple[str, ...]):
             time.sleep(conf.sleep_s)
         if conf.fail:
             raise RuntimeError(f"toy stage {name} was told to fail")
+        checkpoint = ctx.scratch_dir / "checkpoint.txt"
+        if conf.fail_once and not checkpoint.exists():
+            checkpoint.write_text("half done\n")
+            raise RuntimeError(f"toy stage {name} failed after a checkpoint")
+        if checkpoint.exists():
+            (ctx.out_dir / "parts" / "resumed.txt").write_text(checkpoint.read_text())
         (ctx.out_dir / f"{name}.txt").write_text(f"{upstream}{name}={conf.value}\n")
         ctx.metrics["value"] = int(conf.value)
         _trace(ctx, name, "end")

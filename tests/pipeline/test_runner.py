@@ -93,6 +93,17 @@ def test_failing_stage_leaves_no_artifact_and_next_run_redoes_it(toy_cfg):
     assert actions(reports)["a"] == "run"
 
 
+def test_checkpoint_in_scratch_survives_a_failure_and_is_removed_on_success(toy_cfg):
+    cfg = toy_cfg("++stage.a.fail_once=true")
+    with pytest.raises(StageFailed, match="failed after a checkpoint"):
+        run_app(cfg)
+    scratch = list((subject_dir(cfg) / ".scratch").glob("a-*"))
+    assert len(scratch) == 1 and (scratch[0] / "checkpoint.txt").exists()
+    run_app(cfg)
+    assert (subject_dir(cfg) / "a" / "parts" / "resumed.txt").read_text() == "half done\n"
+    assert not list((subject_dir(cfg) / ".scratch").glob("a-*"))
+
+
 def test_failing_rerun_keeps_old_whole_artifact(toy_cfg):
     run_app(toy_cfg())
     with pytest.raises(StageFailed):
