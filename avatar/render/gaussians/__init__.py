@@ -1,0 +1,12 @@
+"""Differentiable 3D Gaussian rasterizer: one interface (``render_gaussians``), several backends.
+
+``torch`` (pure PyTorch, any device, the reference) and ``gsplat`` (CUDA). Modules:
+``projection`` (EWA projection), ``tiling`` (tile binning and depth sort), ``compositing``
+(alpha compositing with a hand-written backward), ``backend_torch``, ``backend_gsplat``,
+``render`` (backend choice), ``output`` (``RenderOutput``).
+"""
+
+from .output import RenderOutput
+from .render import available_backends, render_gaussians
+
+__all__ = ["RenderOutput", "available_backends", "render_gaussians"]
