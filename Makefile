@@ -6,6 +6,9 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 TORCH  := torch==2.13.0
 ARGS   ?=
+# Idle OpenMP threads sleep instead of spinning: on a loaded 2-core machine spinning
+# threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
+export OMP_WAIT_POLICY ?= PASSIVE
 
 .PHONY: run test test-all bench clean-outputs
 

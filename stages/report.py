@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import html
+import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,12 +16,14 @@ from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, gt_path
 from data_schemas.deform import DEFORM
 from data_schemas.frames import FRAMES_INDEX, rgb_path
+from data_schemas.gaussians import TRAIN_LOG
+from data_schemas.metrics import METRICS, REGIONS, SPLITS
 from data_schemas.images import read_png
 from data_schemas.tables import read_table
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 
-UPSTREAM = ("capture", "frames")
+UPSTREAM = ("capture", "frames", "warmup", "evaluate")
 
 
 @dataclass
@@ -60,8 +63,15 @@ def report(ctx: StageContext) -> None:
         _table(("camera", "split", "size", "fx", "position (m)"),
                [(c.camera_id, c.split, f"{c.width}x{c.height}", f"{c.K[0, 0]:.1f}",
                  np.array2string(c.cam_to_world[:3, 3], precision=3)) for c in cameras]),
+        "<h2>Image quality (held-out camera and held-out motion)</h2>",
+        _metrics_section(ctx.input_dir("evaluate")),
+        "<h2>Warm-up training</h2>",
+        f'<img alt="loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir("warmup"))}">',
         f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
         f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
+        "<h2>Renders: ground truth | render | error x4</h2>",
+        *(f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_png_file(ctx.input_dir('evaluate') / 'grids' / (s + '.png'))}'>"
+          for s in SPLITS),
     ]
     page = "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>" \
            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}" \
@@ -85,6 +95,49 @@ def _contact_summary(cap_dir: Path, index: CaptureIndex) -> str:
             contact = read_table(gt_path(cap_dir, seq, "deform"), DEFORM)["contact"]
             parts.append(f"{seq}: {int(contact.sum())} of {len(contact)} frames with contact (ground truth)")
     return "<p>" + "; ".join(parts) + "</p>" if parts else "<p>No contact ground truth in this capture.</p>"
+
+
+def _metrics_section(evaluate_dir: Path) -> str:
+    """Mean PSNR / SSIM / LPIPS per method, split and region (NaN regions skipped)."""
+    t = read_table(evaluate_dir / "metrics.parquet", METRICS)
+    rows = []
+    for method in sorted(set(t["method"])):
+        for split in SPLITS:
+            for region in REGIONS:
+                sel = [i for i in range(len(t["frame"]))
+                       if t["method"][i] == method and t["split"][i] == split and t["region"][i] == region]
+                vals = {m: np.asarray(t[m])[sel] for m in ("psnr", "ssim", "lpips")}
+                defined = np.isfinite(vals["ssim"]) | np.isfinite(vals["psnr"])
+                if not defined.any():
+                    continue
+                rows.append((method, split, region, int(defined.sum()),
+                             *(f"{np.nanmean(np.where(np.isinf(v), np.nan, v)):.4g}" for v in vals.values())))
+    return _table(("method", "split", "region", "images", "PSNR dB", "SSIM", "LPIPS"), rows)
+
+
+def _loss_curve(warmup_dir: Path) -> str:
+    """Base64 PNG of the warm-up loss terms against steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    log = read_table(warmup_dir / "train_log.parquet", TRAIN_LOG)
+    fig, ax = plt.subplots(figsize=(6, 3), dpi=100)
+    for name in ("loss", "l1", "dssim"):
+        ax.plot(log["step"], log[name], label=name)
+    ax.set_xlabel("step")
+    ax.set_yscale("log")
+    ax.legend()
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def _png_file(path: Path) -> str:
+    return base64.b64encode(path.read_bytes()).decode()
 
 
 def _contact_sheet(frames_dir: Path, seq: str, camera_ids: list[str], frame: int, px: int) -> str:

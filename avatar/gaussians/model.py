@@ -88,9 +88,22 @@ class BoundGaussians(nn.Module):
             part=face_part[binding],
         )
 
+    def resize_like(self, state: dict[str, Tensor]) -> None:
+        """Give every parameter and buffer the shape it has in ``state`` (before ``load_state_dict``
+        of a checkpoint written after density control changed N)."""
+        for name in PARAM_NAMES:
+            setattr(self, name, nn.Parameter(torch.empty_like(state[name])))
+        self.binding = torch.empty_like(state["binding"])
+        self.part = torch.empty_like(state["part"])
+
     @property
     def num_gaussians(self) -> int:
         return self.binding.shape[0]
+
+    @torch.no_grad()
+    def set_colors(self, rgb: Tensor) -> None:
+        """Set the colours from linear RGB (N, 3) in [0, 1]."""
+        self.sh_dc.copy_((rgb - 0.5) / SH_C0)
 
     def opacities(self) -> Tensor:
         return torch.sigmoid(self.opacity_logits)

@@ -1,0 +1,1 @@
+"""Training loops of the avatar (static warm-up; dynamic MLP training arrives later)."""

@@ -1,0 +1,80 @@
+"""In-memory training data: multi-view crops and the posed meshes of every frame."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class ViewSet:
+    """Square crops of one sequence seen by C cameras over T frames.
+
+    Attributes:
+        images: (T, C, S, S, 3) uint8 sRGB crops (converted to float per sample, to keep memory low).
+        labels: (T, C, S, S) uint8 part labels (0 background, 1 face, 2 hand, 3 unknown foreground).
+        K: (C, 3, 3) crop intrinsics (OpenCV pixel convention).
+        world_to_cam: (C, 4, 4) extrinsics.
+        camera_ids: the C camera names.
+        background: (3,) float background colour in [0, 1].
+    """
+
+    images: Tensor
+    labels: Tensor
+    K: Tensor
+    world_to_cam: Tensor
+    camera_ids: list[str]
+    background: Tensor
+
+    @property
+    def num_frames(self) -> int:
+        return self.images.shape[0]
+
+    @property
+    def num_cameras(self) -> int:
+        return self.images.shape[1]
+
+    @property
+    def size(self) -> int:
+        return self.images.shape[2]
+
+    def image(self, frame: int, camera: int) -> Tensor:
+        """(S, S, 3) float image in [0, 1]."""
+        return self.images[frame, camera].float() / 255.0
+
+
+@dataclass
+class MeshSequence:
+    """The posed meshes of every frame, face and hand concatenated.
+
+    Attributes:
+        vertices: (T, V, 3) world positions.
+        faces: (F, 3) int64.
+        face_part: (F,) int64 index into ``part_names``.
+        part_names: e.g. ("face", "hand").
+    """
+
+    vertices: Tensor
+    faces: Tensor
+    face_part: Tensor
+    part_names: tuple[str, ...]
+
+    def extent(self) -> float:
+        """Radius of the bounding sphere of all frames' vertices (the 3DGS 'scene extent')."""
+        flat = self.vertices.reshape(-1, 3)
+        centre = flat.mean(0)
+        return float((flat - centre).norm(dim=-1).max())
+
+
+def concat_meshes(parts: dict[str, tuple[Tensor, Tensor]]) -> MeshSequence:
+    """Join named meshes ``name -> (vertices (T, V_i, 3), faces (F_i, 3))`` into one sequence."""
+    verts, faces, face_part = [], [], []
+    offset = 0
+    for index, (v, f) in enumerate(parts.values()):
+        verts.append(v)
+        faces.append(f + offset)
+        face_part.append(torch.full((f.shape[0],), index, dtype=torch.long))
+        offset += v.shape[1]
+    return MeshSequence(torch.cat(verts, dim=1), torch.cat(faces), torch.cat(face_part), tuple(parts))

@@ -1,0 +1,190 @@
+"""Static warm-up of mesh-bound Gaussians (stage one of the paper; the GaussianAvatars baseline).
+
+Loss: (1 - lambda) L1 + lambda D-SSIM + a L_s + b L_mu (visible Gaussians only), Adam
+with the 3DGS exponential decay of the position learning rate, and binding-preserving
+density control on a schedule given as fractions of the run. Checkpoints go to a
+directory that survives a killed run; training resumes from the newest one.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from avatar.gaussians.density import DensityConfig, DensityController
+from avatar.gaussians.model import BoundGaussians
+from avatar.losses import position_regulariser, scale_regulariser
+from avatar.metrics.ssim import dssim_loss
+from avatar.render.gaussians import render_gaussians
+from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.schedule import exponential_lr, scaled_interval
+
+CHECKPOINT = "warmup.pt"
+UNKNOWN_PART_LABEL = 3  # keyed foreground whose part is unknown (see data_schemas.frames)
+
+
+@dataclass(frozen=True)
+class StaticConfig:
+    """Warm-up hyperparameters (paper / GaussianAvatars values as defaults)."""
+
+    steps: int
+    lambda_dssim: float = 0.2
+    scale_weight: float = 1.0  # a
+    position_weight: float = 0.01  # b
+    eps_s: float = 0.4
+    eps_mu: float = 0.2
+    lr_position_init: float = 5e-3  # local units (k), GaussianAvatars
+    lr_position_final: float = 5e-5
+    lr_scale: float = 1.7e-2
+    lr_rotation: float = 1e-3
+    lr_opacity: float = 5e-2
+    lr_color: float = 2.5e-3
+    densify_from: float = 0.02  # fractions of ``steps``
+    densify_until: float = 0.5
+    densify_interval: float = 0.01
+    opacity_reset_interval: float = 0.1
+    grad_threshold: float = 2e-4
+    max_gaussians: int = 1_000_000
+    checkpoint_every: int = 0  # steps; 0 = never
+    log_every: int = 10
+    seed: int = 0
+    backend: str = "auto"
+
+    def density(self) -> DensityConfig:
+        s = self.steps
+        return DensityConfig(
+            densify_from=scaled_interval(self.densify_from, s),
+            densify_until=scaled_interval(self.densify_until, s),
+            densify_interval=scaled_interval(self.densify_interval, s),
+            opacity_reset_interval=scaled_interval(self.opacity_reset_interval, s),
+            grad_threshold=self.grad_threshold,
+            max_gaussians=self.max_gaussians,
+        )
+
+
+@dataclass
+class LogRow:
+    step: int
+    loss: float
+    l1: float
+    dssim: float
+    scale_reg: float
+    position_reg: float
+    num_gaussians: int
+
+
+Progress = Callable[[Iterable[int]], Iterator[int]]
+
+
+def _optimizer(model: BoundGaussians, cfg: StaticConfig) -> torch.optim.Adam:
+    groups = [
+        {"params": [model.local_means], "lr": cfg.lr_position_init, "name": "local_means"},
+        {"params": [model.log_scales], "lr": cfg.lr_scale, "name": "log_scales"},
+        {"params": [model.quats], "lr": cfg.lr_rotation, "name": "quats"},
+        {"params": [model.opacity_logits], "lr": cfg.lr_opacity, "name": "opacity_logits"},
+        {"params": [model.sh_dc], "lr": cfg.lr_color, "name": "sh_dc"},
+    ]
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+
+def render_frame(model: BoundGaussians, meshes: MeshSequence, views: ViewSet, frame: int, camera: int,
+                 backend: str = "auto"):  # noqa: ANN201 - returns the rasterizer's RenderOutput
+    """Render the model on frame ``frame``'s meshes from view ``camera`` of ``views``."""
+    means, scales, quats = model.world(meshes.vertices[frame], meshes.faces)
+    return render_gaussians(means, quats, scales, model.opacities(), model.colors(), views.K[camera],
+                            views.world_to_cam[camera], views.size, views.size, views.background,
+                            backend=backend), scales
+
+
+@torch.no_grad()
+def colors_from_views(means: Tensor, part_labels: Tensor, views: ViewSet, frame: int) -> Tensor:
+    """Initial colours (N, 3): the mean pixel colour under each Gaussian's centre over the views of
+    ``frame`` where the centre projects onto its own part (mask label ``part_labels`` (N,), or the
+    unknown-part label 3); 0.5 grey where no view sees it. Short runs then start from the right
+    colours instead of spending their steps on them."""
+    n = means.shape[0]
+    total, count = means.new_zeros(n, 3), means.new_zeros(n)
+    size = views.size
+    for c in range(views.num_cameras):
+        cam = means @ views.world_to_cam[c, :3, :3].T + views.world_to_cam[c, :3, 3]
+        z = cam[:, 2]
+        uvw = cam @ views.K[c].T
+        uv = torch.round(uvw[:, :2] / torch.where(z > 1e-6, z, torch.ones_like(z))[:, None]).long()
+        inside = (z > 1e-6) & (uv >= 0).all(-1) & (uv < size).all(-1)
+        u, v = uv[:, 0].clamp(0, size - 1), uv[:, 1].clamp(0, size - 1)
+        label = views.labels[frame, c][v, u].long()
+        ok = inside & ((label == part_labels) | (label == UNKNOWN_PART_LABEL))
+        total[ok] += views.image(frame, c)[v[ok], u[ok]]
+        count[ok] += 1
+    return torch.where(count[:, None] > 0, total / count.clamp_min(1)[:, None], torch.full_like(total, 0.5))
+
+
+def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cfg: StaticConfig,
+                 checkpoint_dir: Path | None = None, progress: Progress = iter) -> list[LogRow]:
+    """Optimise ``model`` in place for ``cfg.steps`` steps; returns the loss log.
+
+    Samples one (frame, camera) pair per step uniformly. With ``checkpoint_dir`` it
+    resumes from ``warmup.pt`` there when present (the model is resized to match).
+    """
+    gen = torch.Generator().manual_seed(cfg.seed)
+    optimizer = _optimizer(model, cfg)
+    density = DensityController(cfg.density(), model.num_gaussians)
+    extent = meshes.extent()
+    log: list[LogRow] = []
+    start = 0
+    ckpt_path = checkpoint_dir / CHECKPOINT if checkpoint_dir is not None else None
+    if ckpt_path is not None and ckpt_path.is_file():
+        start, log = _load_checkpoint(ckpt_path, model, density, gen, cfg)
+        optimizer = _optimizer(model, cfg)
+        optimizer.load_state_dict(torch.load(ckpt_path, weights_only=False)["optimizer"])
+    for step in progress(range(start + 1, cfg.steps + 1)):
+        frame = int(torch.randint(views.num_frames, (1,), generator=gen))
+        camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
+        for group in optimizer.param_groups:
+            if group["name"] == "local_means":
+                group["lr"] = exponential_lr(step, cfg.lr_position_init, cfg.lr_position_final, cfg.steps)
+        out, world_scales = render_frame(model, meshes, views, frame, camera, cfg.backend)
+        gt = views.image(frame, camera)
+        visible = out.radii > 0
+        l1 = (out.rgb - gt).abs().mean()
+        dssim = dssim_loss(out.rgb.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None])
+        reg_s = scale_regulariser(torch.exp(model.log_scales), visible, cfg.eps_s)
+        reg_mu = position_regulariser(model.local_means, visible, cfg.eps_mu)
+        loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * dssim + cfg.scale_weight * reg_s \
+            + cfg.position_weight * reg_mu
+        loss.backward()
+        density.accumulate(out.grad2d_norm(), visible, views.size)
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        density.step(step, model, optimizer, world_scales.detach(), extent)
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            log.append(LogRow(step, loss.item(), l1.item(), dssim.item(), reg_s.item(), reg_mu.item(),
+                              model.num_gaussians))
+        if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
+            _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log)
+    return log
+
+
+def _save_checkpoint(path: Path, step: int, model: BoundGaussians, optimizer: torch.optim.Optimizer,
+                     density: DensityController, gen: torch.Generator, log: list[LogRow]) -> None:
+    """Write atomically (temp file + rename) so a kill never leaves a half checkpoint."""
+    tmp = path.with_suffix(".tmp")
+    torch.save({"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                "grad_sum": density.grad_sum, "count": density.count, "rng": gen.get_state(),
+                "log": [asdict(r) for r in log]}, tmp)
+    os.replace(tmp, path)
+
+
+def _load_checkpoint(path: Path, model: BoundGaussians, density: DensityController, gen: torch.Generator,
+                     cfg: StaticConfig) -> tuple[int, list[LogRow]]:
+    state = torch.load(path, weights_only=False)
+    model.resize_like(state["model"])
+    model.load_state_dict(state["model"])
+    density.grad_sum, density.count = state["grad_sum"], state["count"]
+    gen.set_state(state["rng"])
+    return int(state["step"]), [LogRow(**r) for r in state["log"]]

@@ -1,0 +1,92 @@
+"""Artifact loaders shared by several stages (not a stage itself: stages still talk only through artifacts)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from avatar.gaussians.model import BoundGaussians
+from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
+from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.posing import posed_meshes
+from data_schemas.cameras import read_cameras
+from data_schemas.capture import CaptureIndex, gt_path
+from data_schemas.gaussians import BOUND_GAUSSIANS
+from data_schemas.frames import FRAMES_INDEX, crop_mask_path, rgb_path
+from data_schemas.images import read_png
+from data_schemas.params import PARAM_COLUMNS, PARAMS
+from data_schemas.tables import SchemaError, read_table
+
+PARAM_SOURCES = ("ground_truth",)
+
+
+def templates(model_cfg: DictConfig) -> tuple[TemplateModel, TemplateModel]:
+    """(head, hand): the official FLAME/MANO files when configured, else the procedural templates."""
+    head = load_official_model(model_cfg.flame_path, "flame") if model_cfg.flame_path else procedural_head()
+    hand = load_official_model(model_cfg.mano_path, "mano") if model_cfg.mano_path else procedural_hand()
+    return head, hand
+
+
+def load_params(capture_dir: Path, sequence: str, source: str) -> dict[str, np.ndarray]:
+    """Per-frame FLAME/MANO parameters of ``sequence`` from the chosen source (``fit.source``)."""
+    if source not in PARAM_SOURCES:
+        raise SchemaError(f"fit.source={source!r}: supported sources are {PARAM_SOURCES}; 'fitted' and 'provided' "
+                          f"need the fit stage")
+    index = CaptureIndex.read(capture_dir)
+    if not index.sequences[sequence].has_ground_truth:
+        raise SchemaError(f"{capture_dir}: fit.source=ground_truth needs a capture with ground truth "
+                          f"(dataset=synthetic); this one has none")
+    table = read_table(gt_path(capture_dir, sequence, "params"), PARAMS)
+    return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
+
+
+def load_meshes(capture_dir: Path, sequence: str, cfg: DictConfig) -> MeshSequence:
+    """Posed face + hand meshes of every frame of ``sequence``."""
+    head, hand = templates(cfg.model)
+    return posed_meshes(load_params(capture_dir, sequence, cfg.fit.source), head, hand)
+
+
+def load_views(capture_dir: Path, frames_dir: Path, sequence: str, split: str) -> ViewSet:
+    """The crops of ``sequence`` seen by the cameras of ``split`` (``train`` or ``test``)."""
+    index = read_table(frames_dir / "index.parquet", FRAMES_INDEX)
+    cameras = {c.camera_id: c for c in read_cameras(capture_dir / "cameras.parquet") if c.split == split}
+    rows = [i for i, (seq, cam) in enumerate(zip(index["sequence"], index["camera_id"]))
+            if seq == sequence and cam in cameras]
+    if not rows:
+        raise SchemaError(f"{frames_dir / 'index.parquet'}: no crops of sequence '{sequence}' for split '{split}'")
+    camera_ids = sorted(cameras)
+    frames = sorted({int(index["frame"][i]) for i in rows})
+    K = {index["camera_id"][i]: index["K"][i].reshape(3, 3) for i in rows}
+    images = np.stack([np.stack([read_png(rgb_path(frames_dir, sequence, c, t), 3) for c in camera_ids])
+                       for t in frames])
+    labels = np.stack([np.stack([read_png(crop_mask_path(frames_dir, sequence, c, t), 1) for c in camera_ids])
+                       for t in frames])
+    background = images[labels == 0].reshape(-1, 3).astype(np.float64).mean(0) / 255.0 \
+        if (labels == 0).any() else np.zeros(3)
+    return ViewSet(
+        images=torch.from_numpy(images),
+        labels=torch.from_numpy(labels),
+        K=torch.tensor(np.stack([K[c] for c in camera_ids]), dtype=torch.float32),
+        world_to_cam=torch.tensor(np.stack([cameras[c].world_to_cam for c in camera_ids]), dtype=torch.float32),
+        camera_ids=camera_ids,
+        background=torch.tensor(background, dtype=torch.float32),
+    )
+
+
+def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussians:
+    """The trained model from ``gaussians.parquet`` (parts mapped to indices of ``part_names``)."""
+    path = warmup_dir / "gaussians.parquet"
+    t = read_table(path, BOUND_GAUSSIANS)
+    unknown = sorted(set(t["part"]) - set(part_names))
+    if unknown:
+        raise SchemaError(f"{path}: Gaussians bound to unknown mesh part(s) {unknown}; expected {part_names}")
+    as_tensor = lambda name: torch.as_tensor(np.asarray(t[name]), dtype=torch.float32)  # noqa: E731
+    return BoundGaussians(
+        local_means=as_tensor("local_means"), log_scales=as_tensor("log_scales"), quats=as_tensor("quats"),
+        opacity_logits=as_tensor("opacity_logits"), sh_dc=as_tensor("sh_dc"),
+        binding=torch.as_tensor(np.asarray(t["binding"])),
+        part=torch.tensor([part_names.index(p) for p in t["part"]]),
+    )

@@ -1,0 +1,95 @@
+"""Stage ``warmup``: static Gaussians bound to the FLAME and MANO triangles (the GaussianAvatars baseline)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from avatar.gaussians.model import BoundGaussians
+from avatar.training.static import StaticConfig, colors_from_views, train_static
+from data_schemas.capture import MASK_LABELS
+from data_schemas.gaussians import BOUND_GAUSSIANS, TRAIN_LOG
+from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
+from data_schemas.tables import write_table
+from pipeline.stage import Resources, StageContext, stage
+from stages.common import load_meshes, load_views
+
+
+@dataclass
+class WarmupConfig:
+    """Types of ``stage.warmup`` (values in conf/stage/warmup.yaml)."""
+
+    lambda_dssim: float
+    scale_weight: float
+    position_weight: float
+    eps_s: float
+    eps_mu: float
+    init_opacity: float
+    opacity_reset_interval: float
+    densify_until: float
+    max_gaussians: int
+    checkpoint_every: int
+    log_every: int
+    ply_frame: int
+    backend: str
+    seed: int
+
+
+@stage(
+    "warmup",
+    inputs=("capture", "frames"),
+    config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "fit.source", "model", "stage.warmup"),
+    outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet"),
+    version="1",
+    resources=Resources(cpus=2, gpus=0),
+    config_schema=WarmupConfig,
+)
+def warmup(ctx: StageContext) -> None:
+    """Train static mesh-bound Gaussians on every train camera and train frame."""
+    conf, q = ctx.cfg.stage.warmup, ctx.cfg.quality
+    torch.manual_seed(conf.seed)
+    cap_dir = ctx.input_dir("capture")
+    views = load_views(cap_dir, ctx.input_dir("frames"), "train", "train")
+    meshes = load_meshes(cap_dir, "train", ctx.cfg)
+    canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
+    model = BoundGaussians.on_triangles(canonical, meshes.faces, meshes.face_part, int(q.gaussians_per_triangle),
+                                        init_opacity=conf.init_opacity, seed=conf.seed)
+    with torch.no_grad():
+        means, _, _ = model.world(canonical, meshes.faces)
+    part_label = torch.tensor([MASK_LABELS[name] for name in meshes.part_names])[model.part]
+    model.set_colors(colors_from_views(means, part_label, views, frame=0))
+    cfg = StaticConfig(steps=int(q.warmup_steps), lambda_dssim=conf.lambda_dssim, scale_weight=conf.scale_weight,
+                       position_weight=conf.position_weight, eps_s=conf.eps_s, eps_mu=conf.eps_mu,
+                       densify_until=conf.densify_until,
+                       opacity_reset_interval=conf.opacity_reset_interval, max_gaussians=conf.max_gaussians, checkpoint_every=conf.checkpoint_every,
+                       log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
+    log = train_static(model, views, meshes, cfg, checkpoint_dir=ctx.scratch_dir,
+                       progress=lambda steps: ctx.progress(steps, desc="warmup", total=len(steps)))
+    _write_gaussians(ctx, model, meshes.part_names)
+    frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
+    with torch.no_grad():
+        means, scales, quats = model.world(meshes.vertices[frame], meshes.faces)
+        cloud = GaussianCloud.from_rgb(means.numpy(), torch.log(scales).numpy(), quats.numpy(),
+                                       model.opacity_logits.numpy(), model.colors().numpy())
+    write_gaussians_ply(ctx.out_dir / "gaussians.ply", cloud)
+    write_table(ctx.out_dir / "train_log.parquet", TRAIN_LOG,
+                {name: np.array([getattr(r, name) for r in log]) for name in
+                 ("step", "loss", "l1", "dssim", "scale_reg", "position_reg", "num_gaussians")})
+    ctx.metrics["gaussians"] = model.num_gaussians
+    ctx.metrics["final_loss"] = log[-1].loss
+    ctx.metrics["steps"] = cfg.steps
+
+
+def _write_gaussians(ctx: StageContext, model: BoundGaussians, part_names: tuple[str, ...]) -> None:
+    with torch.no_grad():
+        write_table(ctx.out_dir / "gaussians.parquet", BOUND_GAUSSIANS, {
+            "binding": model.binding.numpy(),
+            "part": [part_names[i] for i in model.part.tolist()],
+            "local_means": model.local_means.numpy(),
+            "log_scales": model.log_scales.numpy(),
+            "quats": model.quats.numpy(),
+            "opacity_logits": model.opacity_logits.numpy(),
+            "sh_dc": model.sh_dc.numpy(),
+        })

@@ -1,0 +1,45 @@
+"""The whole DAG on the built-in synthetic subject at quality=smoke, through the CLI, twice.
+
+This is the CI smoke run of the product: never skipped, never marked slow.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from data_schemas.gaussians_ply import read_gaussians_ply
+from data_schemas.metrics import METRICS
+from data_schemas.tables import read_table
+from stages import REGISTRY
+from tests.conftest import run_cli
+
+
+def test_whole_dag_runs_then_is_fully_cached(tmp_path):
+    out = tmp_path / "out"
+    first = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false")
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    subject = out / "synth_a"
+    for s in REGISTRY:
+        manifest = json.loads((subject / s.name / "_manifest.json").read_text())
+        assert manifest["stage"] == s.name and manifest["outputs"], s.name
+        assert f"[synth_a] {s.name:<10} run" in first.stdout
+    # The metrics table and the report path end the output.
+    assert "novel_view_psnr" in first.stdout and "self_reenact_lpips" in first.stdout
+    assert f"report: {(subject / 'report' / 'report.html').resolve()}" in first.stdout
+
+    metrics = read_table(subject / "evaluate" / "metrics.parquet", METRICS)
+    full = [i for i, r in enumerate(metrics["region"]) if r == "full"]
+    psnr = np.asarray(metrics["psnr"])[full]
+    assert np.isfinite(psnr).all() and psnr.mean() > 15.0, psnr  # a trained avatar, not noise
+    assert {"novel_view", "self_reenact"} == set(metrics["split"])
+    cloud = read_gaussians_ply(subject / "warmup" / "gaussians.ply")
+    assert len(cloud.means) > 1000 and np.isfinite(cloud.means).all()
+    html = (subject / "report" / "report.html").read_text()
+    assert "Image quality" in html and "data:image/png;base64" in html
+
+    second = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false")
+    assert second.returncode == 0, second.stderr[-3000:]
+    for s in REGISTRY:
+        assert f"[synth_a] {s.name:<10} cached" in second.stdout
