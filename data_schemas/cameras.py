@@ -48,11 +48,16 @@ class Camera:
     def cam_to_world(self) -> np.ndarray:
         return np.linalg.inv(self.world_to_cam)
 
-    def project(self, points: np.ndarray) -> np.ndarray:
-        """World points (N, 3) -> pixel coordinates (N, 2) (pinhole, distortion ignored)."""
-        cam = points @ self.world_to_cam[:3, :3].T + self.world_to_cam[:3, 3]
-        uvw = cam @ self.K.T
-        return uvw[:, :2] / uvw[:, 2:3]
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (..., 3) -> OpenCV pixel coordinates (..., 2) and camera z (...,).
+
+        Pinhole, distortion ignored; ``uv`` is finite but meaningless where ``z <= 0``.
+        """
+        pc = points @ self.world_to_cam[:3, :3].T + self.world_to_cam[:3, 3]
+        z = pc[..., 2]
+        safe = np.where(z > 0, z, 1.0)
+        uv = pc[..., :2] / safe[..., None] @ self.K[:2, :2].T + self.K[:2, 2]
+        return uv, z
 
 
 def check_camera(path: Path, cam: Camera) -> None:

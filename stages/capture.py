@@ -75,7 +75,7 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
         cap = generate(SyntheticConfig(subject=ctx.subject, sequence=seq, image_size=int(q.capture_size),
                                        num_frames=int(frames_per_sequence[seq]), supersample=int(q.supersample),
                                        seed=int(ctx.cfg.dataset.seed), num_cameras=int(conf.num_cameras)))
-        cams = [Camera(c.camera_id, c.width, c.height, c.K, c.world_to_cam, c.dist, c.split) for c in cap.cameras]
+        cams = cap.cameras
         cameras = cameras or cams
         _write_synthetic_sequence(ctx.out_dir, seq, cap)
         sequences[seq] = SequenceInfo(num_frames=len(cap.contact), frame_rate=cap.frame_rate,

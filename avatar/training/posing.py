@@ -23,7 +23,7 @@ def posed_meshes(params: Mapping[str, np.ndarray], head: TemplateModel, hand: Te
     Returns:
         A :class:`MeshSequence` with parts ("face", "hand"), float32.
     """
-    t = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
+    t = {k: torch.tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
     flame = FLAMELayer(head, num_shape=t["flame_shape"].shape[1], num_expression=t["flame_expression"].shape[1])
     mano = MANOLayer(hand)
     with torch.no_grad():

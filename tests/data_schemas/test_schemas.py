@@ -109,7 +109,7 @@ def test_cameras_round_trip_and_projection(tmp_path):
     assert [c.camera_id for c in back] == ["cam00", "cam01"] and back[1].split == "test"
     np.testing.assert_array_equal(back[0].K, cams[0].K)
     # A point on the optical axis projects to the principal point.
-    np.testing.assert_allclose(back[0].project(np.array([[0.0, 0.0, 0.2]])), [[32.0, 32.0]])
+    np.testing.assert_allclose(back[0].project(np.array([[0.0, 0.0, 0.2]]))[0], [[32.0, 32.0]])
 
 
 @pytest.mark.parametrize(

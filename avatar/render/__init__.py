@@ -1,0 +1,1 @@
+"""Renderers: the mesh rasterizer for synthetic data (mesh_raster) and, later, Gaussian backends."""

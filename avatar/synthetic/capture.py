@@ -1,0 +1,77 @@
+"""What the synthetic generator is asked for and what it returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from data_schemas.cameras import Camera
+
+SUBJECTS = ("synth_a", "synth_b")
+SEQUENCES = ("train", "test")
+
+
+@dataclass(frozen=True)
+class SyntheticConfig:
+    """One synthetic capture.
+
+    Attributes:
+        subject: "synth_a" or "synth_b" (two identities: different FLAME/MANO
+            shape and skin texture/colour).
+        sequence: "train" or "test" (different motion; test is held out).
+        image_size: square render resolution per camera, e.g. 64 (smoke) .. 512 (paper).
+        num_frames: frames in the sequence, sampled evenly over the motion script.
+        supersample: antialiasing samples per pixel along each axis.
+        seed: varies the small random perturbations of the motion.
+        num_cameras: cameras in the rig; one of them is the held-out 'test' view.
+    """
+
+    subject: str
+    sequence: str
+    image_size: int
+    num_frames: int
+    supersample: int = 3
+    seed: int = 0
+    num_cameras: int = 8
+
+    def __post_init__(self) -> None:
+        if self.subject not in SUBJECTS:
+            raise ValueError(f"subject must be one of {SUBJECTS}, got {self.subject!r}")
+        if self.sequence not in SEQUENCES:
+            raise ValueError(f"sequence must be one of {SEQUENCES}, got {self.sequence!r}")
+        if self.image_size < 8 or self.num_frames < 1 or self.supersample < 1:
+            raise ValueError(f"need image_size >= 8, num_frames >= 1, supersample >= 1: {self}")
+
+
+@dataclass
+class SyntheticCapture:
+    """A multi-view recording with ground truth (all arrays in memory).
+
+    Attributes:
+        cameras: the calibrated rig (OpenCV conventions, see :mod:`avatar.synthetic.rig`).
+        frames: camera_id -> (T, H, W, 3) uint8 sRGB images (linear light through
+            the sRGB OETF, see :mod:`avatar.synthetic.shading`), plain grey background.
+        masks: camera_id -> (T, H, W) uint8 labels: 0 background, 1 face/head, 2 hand.
+        params: per-frame ground truth, T rows each: flame_shape (T, S),
+            flame_expression (T, E), flame_global_orient (T, 3), flame_neck_pose (T, 3),
+            flame_jaw_pose (T, 3), flame_eye_pose (T, 6), flame_transl (T, 3),
+            mano_shape (T, 10), mano_hand_pose (T, 45), mano_global_orient (T, 3),
+            mano_transl (T, 3); float64, radians and metres.
+        keypoints: camera_id -> {"hand": (T, 21, 3), "face": (T, L, 3)} rows of
+            (u, v, visible) in OpenCV pixel coordinates;
+            visible = 1 if inside the image and not occluded, else 0.
+        face_offsets: (T, V_face, 3) soft-tissue displacement added to the posed
+            FLAME vertices, world metres; zero away from contact.
+        contact: (T,) bool, frames where the hand touches (dents) the face.
+        frame_rate: frames per second of the sequence.
+    """
+
+    cameras: list[Camera]
+    frames: dict[str, np.ndarray]
+    masks: dict[str, np.ndarray]
+    params: dict[str, np.ndarray]
+    keypoints: dict[str, dict[str, np.ndarray]]
+    face_offsets: np.ndarray
+    contact: np.ndarray
+    frame_rate: float
