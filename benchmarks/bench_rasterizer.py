@@ -26,18 +26,17 @@ import multiprocessing
 import os
 import statistics
 import sys
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import psutil
 import torch
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from avatar.render.gaussians import available_backends, render_gaussians  # noqa: E402
+from pipeline.monitor import ResourceMonitor  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 
 FULL = [(size, n) for size in (128, 256, 512) for n in (10_000, 50_000, 200_000)]
@@ -73,7 +72,7 @@ def _iteration(params: list[torch.Tensor], camera: tuple, backend: str) -> Calla
 
 
 def peak_memory_mb(fn: Callable[[], None], device: str) -> float:
-    """Peak memory increase (MiB) while ``fn`` runs: RSS sampled by a thread, or CUDA allocator peak."""
+    """Peak memory increase (MiB) while ``fn`` runs: RSS sampled every 2 ms, or the CUDA allocator peak."""
     if device == "cuda":
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
@@ -81,21 +80,9 @@ def peak_memory_mb(fn: Callable[[], None], device: str) -> float:
         fn()
         torch.cuda.synchronize()
         return (torch.cuda.max_memory_allocated() - base) / 2**20
-    proc = psutil.Process()
-    base = proc.memory_info().rss
-    peak, done = [base], threading.Event()
-
-    def sample() -> None:
-        while not done.is_set():
-            peak[0] = max(peak[0], proc.memory_info().rss)
-            time.sleep(0.002)
-
-    thread = threading.Thread(target=sample)
-    thread.start()
-    fn()
-    done.set()
-    thread.join()
-    return (max(peak[0], proc.memory_info().rss) - base) / 2**20
+    with ResourceMonitor(interval_s=0.002) as monitor:
+        fn()
+    return monitor.usage.rss_growth_mb
 
 
 def first_iteration_memory_mb(size: int, n: int, backend: str, device: str, threads: int) -> float:

@@ -13,8 +13,14 @@ import psutil
 @dataclass
 class Usage:
     wall_s: float = 0.0
+    start_rss_mb: float = 0.0
     peak_rss_mb: float = 0.0
     peak_cuda_mb: float = 0.0
+
+    @property
+    def rss_growth_mb(self) -> float:
+        """Peak resident memory above what the process held when measuring started."""
+        return self.peak_rss_mb - self.start_rss_mb
 
 
 class ResourceMonitor:
@@ -41,6 +47,7 @@ class ResourceMonitor:
 
     def __enter__(self) -> ResourceMonitor:
         self._t0 = time.perf_counter()
+        self.usage.start_rss_mb = self.usage.peak_rss_mb = self._proc.memory_info().rss / 2**20
         cuda = _cuda()
         if cuda is not None:
             cuda.reset_peak_memory_stats()
@@ -52,6 +59,7 @@ class ResourceMonitor:
     ) -> None:
         self._stop.set()
         self._thread.join()
+        self.usage.peak_rss_mb = max(self.usage.peak_rss_mb, self._proc.memory_info().rss / 2**20)
         self.usage.wall_s = time.perf_counter() - self._t0
         cuda = _cuda()
         if cuda is not None:

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import threading
-import time
-
-import psutil
 import pytest
 import torch
 from gs_scenes import intrinsics, random_scene, single_gaussian
@@ -14,6 +10,7 @@ from avatar.render.gaussians import available_backends, render_gaussians
 from avatar.render.gaussians.backend_gsplat import gsplat_available
 from avatar.render.gaussians.backend_torch import render_torch
 from avatar.render.gaussians.render import resolve_backend
+from pipeline.monitor import ResourceMonitor
 
 
 def test_torch_backend_is_always_available_and_auto_picks_it_on_cpu() -> None:
@@ -82,23 +79,9 @@ def test_float32_agrees_with_float64_and_tile_size_does_not_matter() -> None:
 
 def _peak_rss_delta(fn) -> float:
     """Peak increase of the process RSS (bytes) while ``fn`` runs, sampled every 2 ms."""
-    proc = psutil.Process()
-    base = proc.memory_info().rss
-    peak, done = [base], threading.Event()
-
-    def sample() -> None:
-        while not done.is_set():
-            peak[0] = max(peak[0], proc.memory_info().rss)
-            time.sleep(0.002)
-
-    thread = threading.Thread(target=sample)
-    thread.start()
-    try:
+    with ResourceMonitor(interval_s=0.002) as monitor:
         fn()
-    finally:
-        done.set()
-        thread.join()
-    return peak[0] - base
+    return monitor.usage.rss_growth_mb * 2**20
 
 
 @pytest.mark.slow
