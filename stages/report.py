@@ -13,8 +13,7 @@ import cv2
 import numpy as np
 
 from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex, gt_path
-from data_schemas.deform import DEFORM
+from data_schemas.capture import CaptureIndex
 from data_schemas.frames import FRAMES_INDEX, rgb_path
 from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.metrics import METRICS, REGIONS, SPLITS
@@ -22,6 +21,7 @@ from data_schemas.images import read_png
 from data_schemas.tables import read_table
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
+from stages.common import contact_frames
 
 UPSTREAM = ("capture", "frames", "warmup", "evaluate")
 
@@ -81,19 +81,15 @@ def report(ctx: StageContext) -> None:
 
 def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, str]:
     """First contact frame when ground truth says so, else the middle frame."""
-    if index.sequences[seq].has_ground_truth:
-        contact = read_table(gt_path(cap_dir, seq, "deform"), DEFORM)["contact"]
-        if contact.any():
-            return int(np.flatnonzero(contact)[0]), "first frame with hand-face contact"
+    contact = contact_frames(cap_dir, seq, index.sequences[seq].num_frames)
+    if contact.any():
+        return int(np.flatnonzero(contact)[0]), "first frame with hand-face contact"
     return index.sequences[seq].num_frames // 2, "middle frame"
 
 
 def _contact_summary(cap_dir: Path, index: CaptureIndex) -> str:
-    parts = []
-    for seq, info in index.sequences.items():
-        if info.has_ground_truth:
-            contact = read_table(gt_path(cap_dir, seq, "deform"), DEFORM)["contact"]
-            parts.append(f"{seq}: {int(contact.sum())} of {len(contact)} frames with contact (ground truth)")
+    parts = [f"{seq}: {int(contact_frames(cap_dir, seq, info.num_frames).sum())} of {info.num_frames} frames "
+             f"with contact (ground truth)" for seq, info in index.sequences.items() if info.has_ground_truth]
     return "<p>" + "; ".join(parts) + "</p>" if parts else "<p>No contact ground truth in this capture.</p>"
 
 
