@@ -3,8 +3,10 @@
 from pipeline.registry import StageRegistry
 from stages.capture import capture
 from stages.evaluate import evaluate
+from stages.fit import fit
 from stages.frames import frames
+from stages.keypoints import keypoints
 from stages.report import report
 from stages.warmup import warmup
 
-REGISTRY = StageRegistry([capture, frames, warmup, evaluate, report])
+REGISTRY = StageRegistry([capture, frames, keypoints, fit, warmup, evaluate, report])

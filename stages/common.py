@@ -21,7 +21,7 @@ from data_schemas.images import read_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table
 
-PARAM_SOURCES = ("ground_truth",)
+
 
 
 def templates(model_cfg: DictConfig) -> tuple[TemplateModel, TemplateModel]:
@@ -31,11 +31,8 @@ def templates(model_cfg: DictConfig) -> tuple[TemplateModel, TemplateModel]:
     return head, hand
 
 
-def load_params(capture_dir: Path, sequence: str, source: str) -> dict[str, np.ndarray]:
-    """Per-frame FLAME/MANO parameters of ``sequence`` from the chosen source (``fit.source``)."""
-    if source not in PARAM_SOURCES:
-        raise SchemaError(f"fit.source={source!r}: supported sources are {PARAM_SOURCES}; 'fitted' and 'provided' "
-                          f"need the fit stage")
+def load_ground_truth_params(capture_dir: Path, sequence: str) -> dict[str, np.ndarray]:
+    """The capture's ground-truth FLAME/MANO parameters of ``sequence``."""
     index = CaptureIndex.read(capture_dir)
     if not index.sequences[sequence].has_ground_truth:
         raise SchemaError(f"{capture_dir}: fit.source=ground_truth needs a capture with ground truth "
@@ -51,10 +48,11 @@ def contact_frames(capture_dir: Path, sequence: str, num_frames: int) -> np.ndar
     return np.asarray(read_table(gt_path(capture_dir, sequence, "deform"), DEFORM)["contact"], dtype=bool)
 
 
-def load_meshes(capture_dir: Path, sequence: str, cfg: DictConfig) -> MeshSequence:
-    """Posed face + hand meshes of every frame of ``sequence``."""
+def load_meshes(fit_dir: Path, sequence: str, cfg: DictConfig) -> MeshSequence:
+    """Posed face + hand meshes of every frame of ``sequence`` from the fit stage's ``params.parquet``."""
     head, hand = templates(cfg.model)
-    return posed_meshes(load_params(capture_dir, sequence, cfg.fit.source), head, hand)
+    table = read_table(fit_dir / sequence / "params.parquet", PARAMS)
+    return posed_meshes({k: np.asarray(table[k]) for k in PARAM_COLUMNS}, head, hand)
 
 
 def load_views(capture_dir: Path, frames_dir: Path, sequence: str, split: str) -> ViewSet:

@@ -39,8 +39,8 @@ class WarmupConfig:
 
 @stage(
     "warmup",
-    inputs=("capture", "frames"),
-    config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "fit.source", "model", "stage.warmup"),
+    inputs=("capture", "frames", "fit"),
+    config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup"),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet"),
     version="1",
     resources=Resources(cpus=2, gpus=0),
@@ -52,7 +52,7 @@ def warmup(ctx: StageContext) -> None:
     torch.manual_seed(conf.seed)
     cap_dir = ctx.input_dir("capture")
     views = load_views(cap_dir, ctx.input_dir("frames"), "train", "train")
-    meshes = load_meshes(cap_dir, "train", ctx.cfg)
+    meshes = load_meshes(ctx.input_dir("fit"), "train", ctx.cfg)
     canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
     model = BoundGaussians.on_triangles(canonical, meshes.faces, meshes.face_part, int(q.gaussians_per_triangle),
                                         init_opacity=conf.init_opacity, seed=conf.seed)

@@ -36,3 +36,19 @@ def posed_meshes(params: Mapping[str, np.ndarray], head: TemplateModel, hand: Te
         "face": (face, torch.as_tensor(head.faces, dtype=torch.long)),
         "hand": (hand_v, torch.as_tensor(hand.faces, dtype=torch.long)),
     })
+
+
+def posed_keypoints(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel
+                    ) -> dict[str, np.ndarray]:
+    """3D keypoints of every frame: ``hand`` (T, 21, 3) in OpenPose order and ``face`` (T, L, 3)
+    landmarks, plus the posed ``hand_vertices`` and ``face_vertices`` (float64, metres)."""
+    t = {k: torch.tensor(np.asarray(v), dtype=torch.float64) for k, v in params.items()}
+    flame = FLAMELayer(head, num_shape=t["flame_shape"].shape[1], num_expression=t["flame_expression"].shape[1])
+    mano = MANOLayer(hand)
+    with torch.no_grad():
+        face = flame(t["flame_shape"], t["flame_expression"], t["flame_global_orient"], t["flame_neck_pose"],
+                     t["flame_jaw_pose"], t["flame_eye_pose"], t["flame_transl"])
+        hand_out = mano(t["mano_shape"], t["mano_hand_pose"], t["mano_global_orient"], t["mano_transl"])
+        return {"hand": mano.keypoints21(hand_out.vertices, hand_out.joints).numpy(),
+                "face": flame.landmarks(face.vertices).numpy(),
+                "hand_vertices": hand_out.vertices.numpy(), "face_vertices": face.vertices.numpy()}

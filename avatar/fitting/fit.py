@@ -1,0 +1,260 @@
+"""Multi-view FLAME/MANO fitting to 2D keypoints over a sequence.
+
+Method (see :func:`fit_sequence`):
+
+1. Triangulate every frame's hand keypoints and face landmarks (RANSAC DLT,
+   :mod:`avatar.fitting.triangulation`); detections RANSAC rejects are dropped.
+2. Rigidly align the rest template's keypoints (hand: wrist and knuckles) to
+   the triangulated points (Kabsch) for the global rotation and translation of
+   each frame; frames without enough points copy the previous good frame.
+3. Optimise all frames at once with L-BFGS in float64: first the rigid
+   parameters, then everything, under a confidence-weighted Geman-McClure
+   reprojection loss (pixels) whose scale anneals from coarse to fine, weak L2
+   priors on pose, expression and shape (shape is shared by the sequence),
+   second-difference temporal smoothness and a hand-face interpenetration
+   penalty (:mod:`avatar.fitting.penetration`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from avatar.fitting.models import DTYPE, FaceParams, HandParams
+from avatar.fitting.observations import PART_SIZES, Observations, pack_part
+from avatar.fitting.penetration import penetration_depth
+from avatar.fitting.rigid import MIN_RIGID_POINTS, rigid_init
+from avatar.fitting.triangulation import projection_matrices, triangulate
+from avatar.templates import TemplateModel
+from data_schemas.cameras import Camera
+
+
+
+MM_PER_M = 1000.0
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Fitting settings. Loss weights multiply terms that are averaged over frames;
+    the data term is in px^2 per view (sum over keypoints)."""
+
+    ransac_threshold_px: float = 8.0
+    min_confidence: float = 0.05
+    min_views: int = 2
+    min_keypoints_per_view: int = 4
+    robust_scale_start_px: float = 20.0
+    robust_scale_px: float = 8.0
+    rigid_iterations: int = 30
+    coarse_iterations: int = 120
+    fine_iterations: int = 250
+    hand_pose_prior: float = 1e-2
+    face_pose_prior: float = 1e-1
+    expression_prior: float = 1e-2
+    shape_prior: float = 1e-2
+    smooth_rotation: float = 1e-1
+    smooth_transl_mm: float = 1e-3
+    penetration_mm: float = 1e-3
+    penetration_stride: int = 4
+    penetration_radius_m: float = 0.03
+    """Hand vertices checked for interpenetration: every ``penetration_stride``-th one."""
+
+
+@dataclass
+class FitResult:
+    """A fitted sequence.
+
+    Attributes:
+        params: the column layout of :class:`avatar.synthetic.SyntheticCapture`
+            (flame_* and mano_*), float64, T rows each, radians and metres.
+        reprojection_px: part -> (T,) mean pixel distance between the fit's
+            projections and the detections it used (NaN for a frame without any).
+        weak_frames: part -> (T,) bool, frames with fewer than ``min_views``
+            views holding ``min_keypoints_per_view`` confident keypoints, or fewer
+            than 3 triangulated keypoints: the fit there leans on priors and
+            neighbouring frames.
+        timing: seconds per phase ("triangulation_s", "optimisation_s", "total_s")
+            and "per_frame_per_view_ms".
+        final_loss: total loss at the end of the optimisation.
+    """
+
+    params: dict[str, np.ndarray]
+    reprojection_px: dict[str, np.ndarray]
+    weak_frames: dict[str, np.ndarray]
+    timing: dict[str, float] = field(default_factory=dict)
+    final_loss: float = float("nan")
+
+
+def project(P: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Pixel projections (T, C, K, 2) of points (T, K, 3) through P (C, 3, 4);
+    depth is clamped at 1 mm so points behind a camera stay finite."""
+    hom = torch.cat((points, torch.ones_like(points[..., :1])), dim=-1)
+    proj = torch.einsum("cij,tkj->tcki", P, hom)
+    return proj[..., :2] / proj[..., 2:].clamp(min=1e-3)
+
+
+def geman_mcclure(sq_err: torch.Tensor, scale: float) -> torch.Tensor:
+    """Geman-McClure rho of squared residuals (px^2): ~e^2 for e << scale, -> scale^2 beyond."""
+    return sq_err * scale**2 / (sq_err + scale**2)
+
+
+def _data_term(P: torch.Tensor, points: torch.Tensor, obs: Observations, weight: torch.Tensor,
+               scale: float) -> torch.Tensor:
+    sq = (project(P, points) - torch.as_tensor(obs.uv)).pow(2).sum(-1)
+    return (weight * geman_mcclure(sq, scale)).sum() / (points.shape[0] * P.shape[0])
+
+
+def _second_difference(x: torch.Tensor) -> torch.Tensor:
+    """Mean squared second difference over time of (T, D) rows (0 for T < 3)."""
+    if x.shape[0] < 3:
+        return x.new_zeros(())
+    return (x[2:] - 2 * x[1:-1] + x[:-2]).pow(2).sum() / x.shape[0]
+
+
+def _mean_sq(x: torch.Tensor) -> torch.Tensor:
+    return x.pow(2).sum() / x.shape[0]
+
+
+def _regulariser(part: HandParams | FaceParams, cfg: FitConfig) -> torch.Tensor:
+    """Pose, expression and shape priors plus temporal smoothness of one part."""
+    if isinstance(part, HandParams):
+        prior = cfg.hand_pose_prior * _mean_sq(part.hand_pose)
+    else:
+        prior = (cfg.expression_prior * _mean_sq(part.expression)
+                 + cfg.face_pose_prior * (_mean_sq(part.jaw_pose) + _mean_sq(part.neck_pose)))
+    smooth = sum(_second_difference(x) for x in part.motion_terms())
+    return (prior + cfg.shape_prior * part.shape.pow(2).sum() + cfg.smooth_rotation * smooth
+            + cfg.smooth_transl_mm * _second_difference(part.transl * MM_PER_M))
+
+
+class _Problem:
+    """The fitting objective over both parts of one sequence."""
+
+    def __init__(self, hand: HandParams, face: FaceParams, P: torch.Tensor, obs: dict[str, Observations],
+                 weights: dict[str, torch.Tensor], cfg: FitConfig) -> None:
+        self.hand, self.face, self.P, self.obs, self.weights, self.cfg = hand, face, P, obs, weights, cfg
+
+    def loss(self, scale: float, penetration: bool) -> torch.Tensor:
+        hand, face = self.hand(), self.face()
+        total = (_data_term(self.P, hand.keypoints, self.obs["hand"], self.weights["hand"], scale)
+                 + _data_term(self.P, face.keypoints, self.obs["face"], self.weights["face"], scale)
+                 + _regulariser(self.hand, self.cfg) + _regulariser(self.face, self.cfg))
+        if penetration and self.cfg.penetration_mm > 0:
+            depth = penetration_depth(hand.vertices[:, ::self.cfg.penetration_stride], face.vertices,
+                                      self.face.faces, self.cfg.penetration_radius_m)
+            total = total + self.cfg.penetration_mm * (depth * MM_PER_M).pow(2).sum() / depth.shape[0]
+        return total
+
+    def minimise(self, params: list[torch.nn.Parameter], iterations: int, scale: float, penetration: bool
+                 ) -> float:
+        """L-BFGS (strong Wolfe) on ``params``; the others stay fixed. Returns the final loss."""
+        everything = list(self.hand.parameters()) + list(self.face.parameters())
+        for p in everything:
+            p.requires_grad_(any(p is q for q in params))
+        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20,
+                                line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            loss = self.loss(scale, penetration)
+            loss.backward()
+            return loss
+
+        if iterations > 0:
+            opt.step(closure)
+        for p in everything:
+            p.requires_grad_(True)
+        with torch.no_grad():
+            return float(self.loss(scale, penetration))
+
+
+def _weak(obs: Observations, valid: np.ndarray, cfg: FitConfig) -> np.ndarray:
+    """(T,) frames with too few confident views or triangulated points."""
+    confident = (obs.conf >= cfg.min_confidence).sum(-1) >= cfg.min_keypoints_per_view  # (T, C)
+    return (confident.sum(-1) < cfg.min_views) | (valid.sum(-1) < MIN_RIGID_POINTS)
+
+
+def _triangulate_part(obs: Observations, P: np.ndarray, cfg: FitConfig
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """points (T, K, 3), valid (T, K) and per-detection weights (T, C, K) with
+    RANSAC outliers of valid points set to zero."""
+    points, valid, weight = [], [], obs.conf.copy()
+    for t in range(obs.num_frames):
+        uvc = np.concatenate((obs.uv[t], obs.conf[t][..., None]), axis=-1)
+        tri = triangulate(uvc, P, cfg.min_views, cfg.ransac_threshold_px, cfg.min_confidence)
+        points.append(tri.points)
+        valid.append(tri.valid)
+        weight[t] = np.where(tri.valid[None] & ~tri.inlier_mask, 0.0, weight[t])
+    return np.stack(points), np.stack(valid), weight
+
+
+def _reprojection_px(P: torch.Tensor, points: torch.Tensor, obs: Observations, weight: np.ndarray) -> np.ndarray:
+    """(T,) mean pixel distance over the detections with non-zero weight (NaN where none)."""
+    with torch.no_grad():
+        dist = (project(P, points) - torch.as_tensor(obs.uv)).norm(dim=-1).numpy()
+    used = weight > 0
+    count = used.sum(axis=(1, 2))
+    total = np.where(used, dist, 0.0).sum(axis=(1, 2))
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Sequence[Camera],
+                 head: TemplateModel, hand: TemplateModel, cfg: FitConfig | None = None) -> FitResult:
+    """Fit FLAME (``head``) and MANO (``hand``) to multi-view keypoints of a sequence.
+
+    Args:
+        keypoints: camera_id -> {"hand": (T, 21, 3), "face": (T, 68, 3)} rows of
+            (u, v, confidence) in OpenCV pixels; NaN or zero confidence = missing.
+            A camera may lack a part or be absent (no detections).
+        cameras: the calibrated cameras to use (typically the train split).
+        head, hand: the FLAME and MANO templates.
+        cfg: settings and loss weights (defaults: :class:`FitConfig`).
+
+    Returns:
+        :class:`FitResult`; parameters are finite for any input.
+    """
+    cfg = cfg or FitConfig()
+    unknown = set(keypoints) - {c.camera_id for c in cameras}
+    if unknown:
+        raise ValueError(f"keypoints for cameras not in the rig: {sorted(unknown)}")
+    start = time.perf_counter()
+    obs = {part: pack_part(keypoints, cameras, part, size) for part, size in PART_SIZES.items()}
+    T = obs["hand"].num_frames
+    P_np = projection_matrices(cameras)
+    P = torch.as_tensor(P_np, dtype=DTYPE)
+    hand_params, face_params = HandParams(hand, T), FaceParams(head, T)
+    weights, weak = {}, {}
+    for part, model, rigid_ids in (("hand", hand_params, None), ("face", face_params, None)):
+        points, valid, weight = _triangulate_part(obs[part], P_np, cfg)
+        rest, root = model.rest()
+        orient, transl, _ = rigid_init(rest, root, points, valid, rigid_ids)
+        with torch.no_grad():
+            model.global_orient.copy_(torch.as_tensor(orient))
+            model.transl.copy_(torch.as_tensor(transl))
+        weights[part] = torch.as_tensor(weight)
+        weak[part] = _weak(obs[part], valid, cfg)
+    triangulated = time.perf_counter()
+
+    problem = _Problem(hand_params, face_params, P, obs, weights, cfg)
+    rigid = [hand_params.global_orient, hand_params.transl, face_params.global_orient, face_params.transl]
+    everything = list(hand_params.parameters()) + list(face_params.parameters())
+    problem.minimise(rigid, cfg.rigid_iterations, cfg.robust_scale_start_px, penetration=False)
+    problem.minimise(everything, cfg.coarse_iterations, cfg.robust_scale_start_px, penetration=True)
+    final_loss = problem.minimise(everything, cfg.fine_iterations, cfg.robust_scale_px, penetration=True)
+    done = time.perf_counter()
+
+    with torch.no_grad():
+        posed = {"hand": hand_params().keypoints, "face": face_params().keypoints}
+    reprojection = {part: _reprojection_px(P, posed[part], obs[part], weights[part].numpy()) for part in obs}
+    params = {**face_params.columns(), **hand_params.columns()}
+    if not all(np.isfinite(v).all() for v in params.values()):
+        raise FloatingPointError("fit produced non-finite parameters")
+    return FitResult(
+        params=params, reprojection_px=reprojection, weak_frames=weak, final_loss=final_loss,
+        timing={"triangulation_s": triangulated - start, "optimisation_s": done - triangulated,
+                "total_s": done - start,
+                "per_frame_per_view_ms": (done - start) * 1000.0 / max(T * len(cameras), 1)},
+    )

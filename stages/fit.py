@@ -1,0 +1,96 @@
+"""Stage ``fit``: per-frame FLAME/MANO parameters from multi-view keypoints (or ground truth)."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from avatar.fitting.errors import landmark_error, mpjpe, per_vertex_error
+from avatar.fitting.fit import FitConfig, fit_sequence
+from avatar.training.posing import posed_keypoints
+from data_schemas.cameras import read_cameras
+from data_schemas.capture import CaptureIndex
+from data_schemas.keypoints import KEYPOINTS
+from data_schemas.params import PARAM_COLUMNS, PARAMS
+from data_schemas.tables import SchemaError, read_table, write_table
+from pipeline.stage import Resources, StageContext, stage
+from stages.common import load_ground_truth_params, templates
+
+SOURCES = ("ground_truth", "fitted")
+
+
+@dataclass
+class FitStageConfig:
+    """Types of ``stage.fit`` (values in conf/stage/fit.yaml): the optimiser's iterations and loss weights."""
+
+    coarse_iterations: int
+    fine_iterations: int
+    hand_pose_prior: float
+    face_pose_prior: float
+    expression_prior: float
+    shape_prior: float
+    smooth_rotation: float
+    smooth_transl_mm: float
+    penetration_mm: float
+
+
+@stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit"),
+       outputs=("train/params.parquet", "fit_report.json"), version="1", resources=Resources(cpus=2),
+       config_schema=FitStageConfig)
+def fit(ctx: StageContext) -> None:
+    """Write params.parquet per sequence from fit.source, and fit_report.json with the errors."""
+    source = ctx.cfg.fit.source
+    if source not in SOURCES:
+        raise SchemaError(f"fit.source={source!r}: choose one of {SOURCES}")
+    cap_dir = ctx.input_dir("capture")
+    index = CaptureIndex.read(cap_dir)
+    head, hand = templates(ctx.cfg.model)
+    cameras = [c for c in read_cameras(cap_dir / "cameras.parquet") if c.split == "train"]
+    conf = FitConfig(**{f.name: getattr(ctx.cfg.stage.fit, f.name) for f in fields(FitStageConfig)})
+    report: dict[str, dict] = {"source": source, "sequences": {}}
+    for seq, info in ctx.progress(list(index.sequences.items()), desc="fit: sequences"):
+        if source == "ground_truth":
+            params = load_ground_truth_params(cap_dir, seq)
+            entry: dict = {}
+        else:
+            kp = _keypoints_by_camera(read_table(ctx.input_dir("keypoints") / seq / "keypoints.parquet", KEYPOINTS),
+                                      info.num_frames)
+            result = fit_sequence(kp, cameras, head, hand, conf)
+            params = result.params
+            entry = {"reprojection_px": {p: float(np.nanmean(v)) for p, v in result.reprojection_px.items()},
+                     "weak_frames": {p: np.flatnonzero(v).tolist() for p, v in result.weak_frames.items()},
+                     "seconds_per_frame_per_view": result.timing.get("total_s", 0.0) / info.num_frames / len(cameras)}
+        if info.has_ground_truth:
+            entry.update(_errors(params, load_ground_truth_params(cap_dir, seq), head, hand))
+        write_table(ctx.out_dir / seq / "params.parquet", PARAMS,
+                    {"frame": np.arange(info.num_frames), **{k: params[k] for k in PARAM_COLUMNS}})
+        report["sequences"][seq] = entry
+        for key in ("mpjpe_hand_mm", "mpjpe_face_mm"):
+            if key in entry:
+                ctx.metrics[f"{seq}_{key}"] = entry[key]
+    (ctx.out_dir / "fit_report.json").write_text(json.dumps(report, indent=2, sort_keys=True))
+
+
+def _keypoints_by_camera(table: dict, num_frames: int) -> dict[str, dict[str, np.ndarray]]:
+    """keypoints.parquet rows -> camera_id -> part -> (T, K, 3)."""
+    out: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
+    for frame, cam, part, uvc in zip(table["frame"], table["camera_id"], table["part"], table["uvc"]):
+        rows = np.asarray(uvc, np.float64).reshape(-1, 3)
+        if part not in out[cam]:
+            out[cam][part] = np.zeros((num_frames, len(rows), 3))
+        out[cam][part][int(frame)] = rows
+    return dict(out)
+
+
+def _errors(params: dict, gt: dict, head, hand) -> dict[str, float]:  # noqa: ANN001 - TemplateModel
+    """Hand MPJPE (21 keypoints), face landmark error and mean per-vertex errors, in mm."""
+    pred, true = posed_keypoints(params, head, hand), posed_keypoints(gt, head, hand)
+    return {
+        "mpjpe_hand_mm": mpjpe(pred["hand"], true["hand"]),
+        "mpjpe_face_mm": landmark_error(pred["face"], true["face"]),
+        "vertex_error_hand_mm": float(per_vertex_error(pred["hand_vertices"], true["hand_vertices"]).mean()),
+        "vertex_error_face_mm": float(per_vertex_error(pred["face_vertices"], true["face_vertices"]).mean()),
+    }
