@@ -42,10 +42,13 @@ class DensityConfig:
 class DensityController:
     """Accumulates view-space gradients between densification steps and applies them."""
 
-    def __init__(self, cfg: DensityConfig, num_gaussians: int, device: torch.device | None = None) -> None:
+    def __init__(self, cfg: DensityConfig, num_gaussians: int, device: torch.device | None = None,
+                 seed: int = 0) -> None:
         self.cfg = cfg
         self.grad_sum = torch.zeros(num_gaussians, device=device)
         self.count = torch.zeros(num_gaussians, device=device)
+        # Split children are drawn from this generator, so a resumed run repeats them exactly.
+        self.generator = torch.Generator(device=device or "cpu").manual_seed(seed)
 
     def accumulate(self, grad2d_px: Tensor, visible: Tensor, image_size: int) -> None:
         """Add one view's (N,) pixel-space positional gradient norms for the (N,) visible Gaussians.
@@ -80,7 +83,7 @@ class DensityController:
         clone_idx = torch.nonzero(hot & ~big).flatten()[:room]
         split_idx = torch.nonzero(hot & big).flatten()[: max(room - len(clone_idx), 0)]
         n = model.num_gaussians
-        children = _split_children(model, split_idx)
+        children = _split_children(model, split_idx, self.generator)
         _append(model, optimizer, clone_idx, {})
         _append(model, optimizer, split_idx.repeat(2), children)
         # Parents of split Gaussians go away together with the transparent ones.
@@ -130,13 +133,14 @@ def last_of_triangle(model: BoundGaussians, remove: Tensor) -> Tensor:
     return first
 
 
-def _split_children(model: BoundGaussians, idx: Tensor) -> dict[str, Tensor]:
+def _split_children(model: BoundGaussians, idx: Tensor, generator: torch.Generator) -> dict[str, Tensor]:
     """Parameters of two children per split Gaussian (2 * len(idx) rows, in ``idx.repeat(2)`` order)."""
     idx2 = idx.repeat(2)
     scales = torch.exp(model.log_scales.detach()[idx2])
     q = model.quats.detach()[idx2]
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    offsets = _rotate(q, torch.randn_like(scales) * scales)
+    noise = torch.randn(scales.shape, generator=generator, dtype=scales.dtype, device=scales.device)
+    offsets = _rotate(q, noise * scales)
     return {
         "local_means": model.local_means.detach()[idx2] + offsets,
         "log_scales": torch.log(scales / 1.6),

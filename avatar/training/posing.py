@@ -33,8 +33,8 @@ def posed_meshes(params: Mapping[str, np.ndarray], head: TemplateModel, hand: Te
     if face_offsets is not None:
         face = face + torch.as_tensor(face_offsets, dtype=face.dtype)
     return concat_meshes({
-        "face": (face, torch.as_tensor(head.faces, dtype=torch.long)),
-        "hand": (hand_v, torch.as_tensor(hand.faces, dtype=torch.long)),
+        "face": (face, torch.tensor(head.faces, dtype=torch.long)),
+        "hand": (hand_v, torch.tensor(hand.faces, dtype=torch.long)),
     })
 
 

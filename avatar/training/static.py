@@ -133,7 +133,7 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
     """
     gen = torch.Generator().manual_seed(cfg.seed)
     optimizer = _optimizer(model, cfg)
-    density = DensityController(cfg.density(), model.num_gaussians)
+    density = DensityController(cfg.density(), model.num_gaussians, seed=cfg.seed)
     extent = meshes.extent()
     log: list[LogRow] = []
     start = 0
@@ -176,6 +176,7 @@ def _save_checkpoint(path: Path, step: int, model: BoundGaussians, optimizer: to
     tmp = path.with_suffix(".tmp")
     torch.save({"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                 "grad_sum": density.grad_sum, "count": density.count, "rng": gen.get_state(),
+                "density_rng": density.generator.get_state(),
                 "log": [asdict(r) for r in log]}, tmp)
     os.replace(tmp, path)
 
@@ -187,4 +188,5 @@ def _load_checkpoint(path: Path, model: BoundGaussians, density: DensityControll
     model.load_state_dict(state["model"])
     density.grad_sum, density.count = state["grad_sum"], state["count"]
     gen.set_state(state["rng"])
+    density.generator.set_state(state["density_rng"])
     return int(state["step"]), [LogRow(**r) for r in state["log"]]
