@@ -5,10 +5,11 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
@@ -50,3 +51,13 @@ def run_cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str
     """Run ``interactavatar`` with these arguments from the repo root."""
     return subprocess.run(cli_command(*args), cwd=REPO, env=cli_env(), capture_output=True, text=True,
                           timeout=timeout, check=False)
+
+
+@pytest.fixture
+def one_torch_thread() -> Iterator[None]:
+    """Run a test on one torch thread: many small tensor ops gain nothing from threads, and lose
+    badly on a busy machine. Directories opt in through an autouse fixture in their conftest."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
