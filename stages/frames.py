@@ -79,7 +79,7 @@ def _labels(cap_dir: Path, seq: str, cam: Camera, video: np.ndarray, has_masks: 
 
 def _sequence_crop(labels: np.ndarray, margin: float, size: int) -> SquareCrop:
     """One square crop per view and sequence, around all foreground in all frames."""
-    boxes = [label_box(frame > 0, True) for frame in labels]
+    boxes = [label_box((frame > 0).astype(np.uint8), 1) for frame in labels]
     return square_crop(union_box([b for b in boxes if b is not None]), margin, size)
 
 
