@@ -21,6 +21,7 @@ from data_schemas.images import read_png
 from data_schemas.tables import read_table
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
+from pipeline.summary import format_value
 from stages.common import contact_frames
 
 UPSTREAM = ("capture", "frames", "warmup", "evaluate")
@@ -57,7 +58,7 @@ def report(ctx: StageContext) -> None:
         "<h2>Stages</h2>",
         _table(("stage", "wall s", "peak MB", "metrics", "written"),
                [(n, f"{m['timings']['wall_s']:.2f}", f"{m['peak_memory_mb']:.0f}",
-                 ", ".join(f"{k}={_fmt(v)}" for k, v in sorted(m["metrics"].items())), m["created"])
+                 ", ".join(f"{k}={format_value(v)}" for k, v in sorted(m["metrics"].items())), m["created"])
                 for n, m in manifests.items()]),
         "<h2>Cameras</h2>",
         _table(("camera", "split", "size", "fx", "position (m)"),
@@ -149,7 +150,3 @@ def _table(headers: tuple[str, ...], rows: list[tuple]) -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in headers)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
-
-
-def _fmt(v: object) -> str:
-    return f"{v:.4g}" if isinstance(v, float) else str(v)
