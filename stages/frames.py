@@ -9,6 +9,7 @@ import numpy as np
 
 from avatar.preprocess.crops import SquareCrop, label_box, square_crop, union_box
 from avatar.preprocess.masks import background_colour, key_foreground
+from avatar.preprocess.mediapipe_detect import HANDEDNESS, LandmarkDetector, SelfieSegmenter, part_labels
 from data_schemas.cameras import Camera, read_cameras
 from data_schemas.capture import MASK_LABELS, CaptureIndex, mask_path, video_path
 from data_schemas.frames import FRAMES_INDEX, UNKNOWN_PART, crop_mask_path, rgb_path
@@ -17,6 +18,18 @@ from data_schemas.tables import SchemaError, write_table
 from data_schemas.video import read_video
 from pipeline.stage import Resources, StageContext, stage
 
+SEGMENTERS = ("key", "mediapipe")
+
+
+@dataclass
+class MediapipeSegmenterConfig:
+    """``stage.frames.mediapipe``: settings of segmenter=mediapipe."""
+
+    threshold: float
+    parts: bool
+    handedness: str
+    mirrored: bool
+
 
 @dataclass
 class FramesConfig:
@@ -24,6 +37,8 @@ class FramesConfig:
 
     margin: float
     key_threshold: float
+    segmenter: str
+    mediapipe: MediapipeSegmenterConfig
 
 
 @stage(
@@ -41,6 +56,10 @@ def frames(ctx: StageContext) -> None:
     index = CaptureIndex.read(cap_dir)
     cameras = read_cameras(cap_dir / "cameras.parquet")
     conf, size = ctx.cfg.stage.frames, int(ctx.cfg.quality.image_size)
+    if conf.segmenter not in SEGMENTERS:
+        raise SchemaError(f"stage.frames.segmenter={conf.segmenter!r}: choose one of {SEGMENTERS}")
+    if conf.mediapipe.handedness not in HANDEDNESS:
+        raise SchemaError(f"stage.frames.mediapipe.handedness={conf.mediapipe.handedness!r}: choose one of {HANDEDNESS}")
     rows: dict[str, list] = {c.name: [] for c in FRAMES_INDEX.columns}
     jobs = [(seq, cam) for seq in index.sequences for cam in cameras]
     for seq, cam in ctx.progress(jobs, desc="frames: views"):
@@ -49,7 +68,7 @@ def frames(ctx: StageContext) -> None:
         if video.shape[:3] != (info.num_frames, cam.height, cam.width):
             raise SchemaError(f"{video_path(cap_dir, seq, cam.camera_id)}: {video.shape[:3]} (frames, H, W) but the "
                               f"capture says {(info.num_frames, cam.height, cam.width)}; rerun capture")
-        labels = _labels(cap_dir, seq, cam, video, info.has_masks, conf.key_threshold)
+        labels = _labels(cap_dir, seq, cam, video, info.has_masks, conf)
         crop = _sequence_crop(labels, conf.margin, size)
         _write_view(ctx.out_dir, seq, cam, video, labels, crop, rows)
     write_table(ctx.out_dir / "index.parquet", FRAMES_INDEX,
@@ -61,13 +80,17 @@ def frames(ctx: StageContext) -> None:
 
 
 def _labels(cap_dir: Path, seq: str, cam: Camera, video: np.ndarray, has_masks: bool,
-            threshold: float) -> np.ndarray:
-    """(T, H, W) uint8 part labels: the capture's masks, else keyed foreground (UNKNOWN_PART)."""
+            conf: FramesConfig) -> np.ndarray:
+    """(T, H, W) uint8 part labels: the capture's masks, else the configured segmenter's."""
     if has_masks:
         labels = np.stack([read_png(mask_path(cap_dir, seq, cam.camera_id, t), 1) for t in range(len(video))])
-        fix = "fix or delete the mask (without masks the stage keys the plain background)"
+        fix = "fix or delete the mask (without masks the stage segments with stage.frames.segmenter)"
+    elif conf.segmenter == "mediapipe":
+        labels = _segment_mediapipe(video, conf.mediapipe)
+        fix = ("MediaPipe's selfie segmentation found no person; check the video or lower "
+               "stage.frames.mediapipe.threshold")
     else:
-        labels = key_foreground(video, background_colour(video), threshold) * UNKNOWN_PART
+        labels = key_foreground(video, background_colour(video), conf.key_threshold) * UNKNOWN_PART
         fix = "the subject must be visible in every view and frame; check the video or lower stage.frames.key_threshold"
     empty = np.flatnonzero(labels.reshape(len(labels), -1).max(axis=1) == 0)
     if len(empty):
@@ -75,6 +98,19 @@ def _labels(cap_dir: Path, seq: str, cam: Camera, video: np.ndarray, has_masks: 
         source = mask_path(cap_dir, seq, cam.camera_id, t) if has_masks else video_path(cap_dir, seq, cam.camera_id)
         raise SchemaError(f"{source}: empty foreground mask in frame {t} of camera '{cam.camera_id}'; {fix}")
     return labels
+
+
+def _segment_mediapipe(video: np.ndarray, conf: MediapipeSegmenterConfig) -> np.ndarray:
+    """(T, H, W) uint8 labels: selfie segmentation for the foreground; with ``conf.parts`` face and
+    hand from the landmark hulls, the rest of the person UNKNOWN_PART."""
+    feature = "stage.frames.segmenter=mediapipe"
+    with SelfieSegmenter(feature=feature) as segment:
+        foreground = np.stack([segment(frame) > conf.threshold for frame in video])
+    if not conf.parts:
+        return foreground.astype(np.uint8) * UNKNOWN_PART
+    with LandmarkDetector(handedness=conf.handedness, mirrored=conf.mirrored, feature=feature) as detector:
+        return np.stack([part_labels(fg, detector.detect(frame), MASK_LABELS["face"], MASK_LABELS["hand"],
+                                     UNKNOWN_PART) for frame, fg in zip(video, foreground)])
 
 
 def _sequence_crop(labels: np.ndarray, margin: float, size: int) -> SquareCrop:

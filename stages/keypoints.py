@@ -3,17 +3,30 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from avatar.fitting.noise import corrupt_keypoints
+from avatar.preprocess.mediapipe_detect import HANDEDNESS, LandmarkDetector
 from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex, gt_path
-from data_schemas.keypoints import KEYPOINTS
+from data_schemas.capture import CaptureIndex, gt_path, video_path
+from data_schemas.keypoints import KEYPOINTS, PARTS
 from data_schemas.tables import SchemaError, read_table, write_table
+from data_schemas.video import read_video
 from pipeline.stage import StageContext, stage
 
-DETECTORS = ("ground_truth",)
+DETECTORS = ("ground_truth", "mediapipe")
+
+
+@dataclass
+class MediapipeConfig:
+    """``stage.keypoints.mediapipe``: settings of detector=mediapipe (see avatar/preprocess/mediapipe_detect.py)."""
+
+    tracking: bool
+    min_confidence: float
+    handedness: str
+    mirrored: bool
 
 
 @dataclass
@@ -25,6 +38,7 @@ class KeypointsConfig:
     drop_rate: float
     outlier_rate: float
     seed: int
+    mediapipe: MediapipeConfig
 
 
 @stage("keypoints", inputs=("capture",), config_keys=("stage.keypoints",), outputs=("train/keypoints.parquet",),
@@ -36,6 +50,9 @@ def keypoints(ctx: StageContext) -> None:
         raise SchemaError(f"stage.keypoints.detector={conf.detector!r}: available detectors are {DETECTORS}")
     cap_dir = ctx.input_dir("capture")
     index = CaptureIndex.read(cap_dir)
+    if conf.detector == "mediapipe":
+        _detect_mediapipe(ctx, cap_dir, index, conf.mediapipe)
+        return
     sizes = {c.camera_id: (c.width, c.height) for c in read_cameras(cap_dir / "cameras.parquet")}
     rng = np.random.default_rng(conf.seed)
     detected = 0
@@ -50,3 +67,35 @@ def keypoints(ctx: StageContext) -> None:
         detected += int(sum((k[:, 2] > 0).sum() for k in uvc))
         write_table(ctx.out_dir / seq / "keypoints.parquet", KEYPOINTS, {**table, "uvc": uvc})
     ctx.metrics["detections"] = detected
+
+
+def _detect_mediapipe(ctx: StageContext, cap_dir: Path, index: CaptureIndex, conf: MediapipeConfig) -> None:
+    """MediaPipe face (68) and right-hand (21) landmarks on every frame of every view, in full-image
+    pixels; a part not found in a frame gets confidence 0. pixel_noise, drop_rate and outlier_rate
+    do not apply (they corrupt synthetic ground truth)."""
+    if conf.handedness not in HANDEDNESS:
+        raise SchemaError(f"stage.keypoints.mediapipe.handedness={conf.handedness!r}: choose one of {HANDEDNESS}")
+    cameras = read_cameras(cap_dir / "cameras.parquet")
+    found = dict.fromkeys(PARTS, 0)
+    frames_seen = detected = 0
+    for seq in index.sequences:
+        rows: dict[str, list] = {"frame": [], "camera_id": [], "part": [], "uvc": []}
+        for cam in ctx.progress(cameras, desc=f"keypoints: {seq} views"):
+            video = read_video(video_path(cap_dir, seq, cam.camera_id))
+            with LandmarkDetector(conf.tracking, conf.min_confidence, conf.handedness, conf.mirrored,
+                                  feature="stage.keypoints.detector=mediapipe") as detector:
+                detections = [detector.detect(frame) for frame in video]
+            frames_seen += len(video)
+            for part in PARTS:
+                for t, det in enumerate(detections):
+                    uvc = getattr(det, part)
+                    found[part] += bool(uvc[:, 2].any())
+                    detected += int((uvc[:, 2] > 0).sum())
+                    rows["frame"].append(t)
+                    rows["camera_id"].append(cam.camera_id)
+                    rows["part"].append(part)
+                    rows["uvc"].append(uvc.astype(np.float32).reshape(-1))
+        write_table(ctx.out_dir / seq / "keypoints.parquet", KEYPOINTS, {**rows, "frame": np.array(rows["frame"])})
+    ctx.metrics["detections"] = detected
+    for part in PARTS:
+        ctx.metrics[f"{part}_found_fraction"] = found[part] / max(frames_seen, 1)
