@@ -9,21 +9,30 @@ Layout (``<capture>`` is a stage directory, or a subject folder of a folder data
     <sequence>/gt/params.parquet         optional ground truth (synthetic captures)
     <sequence>/gt/keypoints.parquet
     <sequence>/gt/deform.parquet
+    <sequence>/provided/keypoints.parquet   optional, shipped with the dataset (DECAF): 2D keypoints
+    <sequence>/provided/params.parquet      FLAME/MANO parameters (the dataset's own multi-view fit)
+    <sequence>/provided/deform.parquet      per-vertex face offsets (data_schemas.deform.DEFORM)
+    <sequence>/provided/contacts.parquet    per-vertex contacts (data_schemas.deform.CONTACTS)
 
-Sequences are named ``train`` and ``test`` (held-out motion).
+Sequences are named ``train`` and ``test`` (held-out motion). ``SequenceInfo.provided``
+lists the ``provided/`` tables a sequence has; ``SequenceInfo.notes`` says what the
+dataset ships that was not imported, and why.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from data_schemas.tables import SchemaError
 
 CAPTURE_INDEX = "capture.json"
-CAPTURE_VERSION = 1
+CAPTURE_VERSION = 2
 MASK_LABELS = {"background": 0, "face": 1, "hand": 2}
+PROVIDED_TABLES = ("keypoints", "params", "deform", "contacts")
 
 
 @dataclass(frozen=True)
@@ -34,6 +43,12 @@ class SequenceInfo:
     height: int
     has_masks: bool
     has_ground_truth: bool
+    provided: tuple[str, ...] = ()  # which PROVIDED_TABLES exist under <sequence>/provided/
+    notes: tuple[str, ...] = ()     # what the dataset ships that was not imported, and why
+
+    def has_provided(self, name: str) -> bool:
+        """Whether ``<sequence>/provided/<name>.parquet`` exists (``name`` in PROVIDED_TABLES)."""
+        return name in self.provided
 
 
 @dataclass(frozen=True)
@@ -54,7 +69,9 @@ class CaptureIndex:
             body = json.loads(path.read_text())
             if body.get("schema_version") != CAPTURE_VERSION:
                 raise SchemaError(f"{path}: schema_version {body.get('schema_version')} != {CAPTURE_VERSION}")
-            sequences = {k: SequenceInfo(**v) for k, v in body["sequences"].items()}
+            sequences = {k: SequenceInfo(**{**v, "provided": tuple(v.get("provided", ())),
+                                            "notes": tuple(v.get("notes", ()))})
+                         for k, v in body["sequences"].items()}
             return cls(subject=body["subject"], dataset=body["dataset"], sequences=sequences)
         except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
             raise SchemaError(f"{path}: missing or malformed capture index ({exc})") from exc
@@ -71,3 +88,17 @@ def mask_path(root: Path, sequence: str, camera_id: str, frame: int) -> Path:
 def gt_path(root: Path, sequence: str, name: str) -> Path:
     """``name`` is one of ``params``, ``keypoints``, ``deform``."""
     return root / sequence / "gt" / f"{name}.parquet"
+
+
+def provided_path(root: Path, sequence: str, name: str) -> Path:
+    """``name`` is one of :data:`PROVIDED_TABLES`."""
+    return root / sequence / "provided" / f"{name}.parquet"
+
+
+def link_or_copy(src: Path, dst: Path) -> None:
+    """Bring a file into a capture: a hard link where the file system allows it, else a copy."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)

@@ -8,7 +8,12 @@ pinky, four each, tip last); face: the template's landmark set.
 
 from __future__ import annotations
 
-from data_schemas.tables import Column, TableSchema
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from data_schemas.tables import Column, TableSchema, write_table
 
 KEYPOINTS = TableSchema(
     name="keypoints",
@@ -21,3 +26,16 @@ KEYPOINTS = TableSchema(
     ),
 )
 PARTS = ("hand", "face")
+
+
+def write_keypoints(path: Path, keypoints: Mapping[str, Mapping[str, np.ndarray]], num_frames: int) -> None:
+    """Write camera id -> part -> (T, K, 3) (u, v, confidence) arrays as one row per frame, camera and part."""
+    rows: dict[str, list] = {"frame": [], "camera_id": [], "part": [], "uvc": []}
+    for cam, parts in keypoints.items():
+        for part, kp in parts.items():
+            for t in range(num_frames):
+                rows["frame"].append(t)
+                rows["camera_id"].append(cam)
+                rows["part"].append(part)
+                rows["uvc"].append(kp[t])
+    write_table(path, KEYPOINTS, {**rows, "frame": np.array(rows["frame"], dtype=np.int32)})

@@ -6,6 +6,7 @@ module). MPEG-4 Part 2 (``mp4v``) is lossy, like a real studio's recordings.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import cv2
@@ -22,38 +23,72 @@ def write_video(path: str | Path, frames: np.ndarray, fps: float) -> None:
     frames = np.asarray(frames)
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) == 0:
         raise SchemaError(f"{path}: expected (T, H, W, 3) uint8 frames, got {frames.shape} {frames.dtype}")
+    write_video_stream(path, frames, fps)
+
+
+def write_video_stream(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> int:
+    """Encode (H, W, 3) uint8 RGB frames one at a time (long videos never sit in memory);
+    returns how many were written. Every frame must have the first one's size."""
+    path = Path(path)
     if fps <= 0 or not np.isfinite(fps):
         raise SchemaError(f"{path}: frame rate must be positive, got {fps}")
-    height, width = frames.shape[1:3]
     path.parent.mkdir(parents=True, exist_ok=True)
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*FOURCC), float(fps), (width, height))
-    if not writer.isOpened():
-        raise SchemaError(f"{path}: OpenCV cannot open a {FOURCC} writer (is the directory writable?)")
+    writer, size, count = None, None, 0
     try:
         for frame in frames:
+            frame = np.asarray(frame)
+            if frame.ndim != 3 or frame.shape[-1] != 3 or frame.dtype != np.uint8 or \
+                    (size is not None and frame.shape[:2] != size):
+                raise SchemaError(f"{path}: frame {count} is {frame.shape} {frame.dtype}; expected "
+                                  f"{size or '(H, W)'} x 3 uint8 like the first frame")
+            if writer is None:
+                size = frame.shape[:2]
+                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*FOURCC), float(fps), (size[1], size[0]))
+                if not writer.isOpened():
+                    raise SchemaError(f"{path}: OpenCV cannot open a {FOURCC} writer (is the directory writable?)")
             writer.write(np.ascontiguousarray(frame[..., ::-1]))
+            count += 1
     finally:
-        writer.release()
+        if writer is not None:
+            writer.release()
+    if count == 0:
+        raise SchemaError(f"{path}: no frames to write")
+    return count
 
 
 def read_video(path: str | Path) -> np.ndarray:
     """Decode every frame of a video to (T, H, W, 3) uint8 RGB; one clear error if unreadable."""
+    return np.ascontiguousarray(np.stack(list(iter_video(path))))
+
+
+def iter_video(path: str | Path) -> Iterator[np.ndarray]:
+    """Decode a video frame by frame as (H, W, 3) uint8 RGB; one clear error if it is missing or has
+    no decodable frame."""
     path = Path(path)
     if not path.is_file():
         raise SchemaError(f"{path}: video missing; every camera in cameras.parquet needs videos/<camera_id>.mp4")
     cap = cv2.VideoCapture(str(path))
-    frames = []
+    count = 0
     try:
         while True:
             ok, frame = cap.read()
             if not ok:
                 break
-            frames.append(frame[..., ::-1])
+            count += 1
+            yield np.ascontiguousarray(frame[..., ::-1])
     finally:
         cap.release()
-    if not frames:
+    if count == 0:
         raise SchemaError(f"{path}: no decodable frames (corrupt or not a video); re-export it as mp4")
-    return np.ascontiguousarray(np.stack(frames))
+
+
+def video_frame_count(path: str | Path) -> int:
+    """Frames the container says it holds (fast, no decoding; 0 if unknown or unreadable)."""
+    cap = cv2.VideoCapture(str(path))
+    try:
+        return max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 0)
+    finally:
+        cap.release()
 
 
 def video_fps(path: str | Path) -> float:

@@ -1,9 +1,8 @@
-"""Stage ``capture``: generate the synthetic capture, or validate and index one already on disk."""
+"""Stage ``capture``: generate the synthetic capture, or validate and import one on disk (a folder in the
+capture layout, or the DECAF release: ``stages.capture_decaf``)."""
 
 from __future__ import annotations
 
-import os
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -11,11 +10,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig
 
-from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, mask_path, video_path
+from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, link_or_copy, mask_path, video_path
 from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.deform import DEFORM
 from data_schemas.images import read_png, write_png
-from data_schemas.keypoints import KEYPOINTS
+from data_schemas.keypoints import write_keypoints
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.video import read_video, video_fps, write_video
@@ -40,23 +39,30 @@ class CaptureConfig:
     config_keys=("dataset", "quality.capture_size", "quality.num_frames_train", "quality.num_frames_test",
                  "quality.supersample", "stage.capture"),
     outputs=("cameras.parquet", "capture.json"),
-    version="1",
+    version="2",
     resources=Resources(cpus=2),
     config_schema=CaptureConfig,
 )
 def capture(ctx: StageContext) -> None:
-    """Generate (synthetic) or validate and index (folder) a multi-view capture."""
+    """Generate (synthetic) or validate and import (folder, decaf) a multi-view capture."""
     dataset = ctx.cfg.dataset
     if dataset.name == "synthetic":
         index = _generate_synthetic(ctx)
     elif dataset.name == "folder":
         index = _import_folder(Path(dataset.root) / ctx.subject, ctx.out_dir, ctx.cfg.stage.capture, ctx.subject)
+    elif dataset.name == "decaf":
+        from stages.capture_decaf import import_decaf  # pulls in torch (FLAME), which folder captures never need
+
+        index = import_decaf(dataset, ctx.subject, ctx.out_dir, float(ctx.cfg.stage.capture.default_frame_rate))
     else:
-        raise SchemaError(f"dataset.name={dataset.name!r}: unknown dataset; use dataset=synthetic or dataset=folder")
+        raise SchemaError(f"dataset.name={dataset.name!r}: unknown dataset; use dataset=synthetic, dataset=folder "
+                          f"or dataset=decaf")
     index.write(ctx.out_dir)
     ctx.metrics["cameras"] = len(read_cameras(ctx.out_dir / "cameras.parquet"))
     for name, seq in index.sequences.items():
         ctx.metrics[f"{name}_frames"] = seq.num_frames
+        if seq.provided:
+            ctx.metrics[f"{name}_provided"] = "+".join(seq.provided)
 
 
 # ---------------------------------------------------------------------------- synthetic
@@ -96,15 +102,7 @@ def _write_synthetic_sequence(root: Path, seq: str, cap: SyntheticCapture) -> No
     frames = np.arange(num_frames)
     write_table(gt_path(root, seq, "params"), PARAMS,
                 {"frame": frames, **{k: cap.params[k] for k in PARAM_COLUMNS}})
-    rows: dict[str, list] = {"frame": [], "camera_id": [], "part": [], "uvc": []}
-    for cam_id, parts in cap.keypoints.items():
-        for part, kp in parts.items():
-            for t in range(num_frames):
-                rows["frame"].append(t)
-                rows["camera_id"].append(cam_id)
-                rows["part"].append(part)
-                rows["uvc"].append(kp[t])
-    write_table(gt_path(root, seq, "keypoints"), KEYPOINTS, {**rows, "frame": np.array(rows["frame"])})
+    write_keypoints(gt_path(root, seq, "keypoints"), cap.keypoints, num_frames)
     write_table(gt_path(root, seq, "deform"), DEFORM,
                 {"frame": frames, "contact": cap.contact, "offsets": cap.face_offsets.reshape(num_frames, -1)})
 
@@ -119,13 +117,13 @@ def _import_folder(src: Path, out: Path, conf: DictConfig, subject: str) -> Capt
     if not seq_names:
         raise SchemaError(f"{src}: no <sequence>/videos/ folder; put one video per camera in e.g. {src}/train/videos/")
     sequences = {name: _validate_sequence(src, name, cameras, conf) for name in seq_names}
-    _link_or_copy(src / "cameras.parquet", out / "cameras.parquet")
+    link_or_copy(src / "cameras.parquet", out / "cameras.parquet")
     for name, info in sequences.items():
         for cam in cameras:
-            _link_or_copy(video_path(src, name, cam.camera_id), video_path(out, name, cam.camera_id))
+            link_or_copy(video_path(src, name, cam.camera_id), video_path(out, name, cam.camera_id))
             if info.has_masks:
                 for t in range(info.num_frames):
-                    _link_or_copy(mask_path(src, name, cam.camera_id, t), mask_path(out, name, cam.camera_id, t))
+                    link_or_copy(mask_path(src, name, cam.camera_id, t), mask_path(out, name, cam.camera_id, t))
     return CaptureIndex(subject=subject, dataset="folder", sequences=sequences)
 
 
@@ -165,11 +163,3 @@ def _validate_sequence(src: Path, seq: str, cameras: list[Camera], conf: DictCon
     fps = video_fps(video_path(src, seq, cameras[0].camera_id)) or float(conf.default_frame_rate)
     return SequenceInfo(num_frames=num_frames, frame_rate=fps, width=cameras[0].width, height=cameras[0].height,
                         has_masks=has_masks, has_ground_truth=False)
-
-
-def _link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)

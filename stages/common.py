@@ -13,9 +13,9 @@ from avatar.templates import TemplateModel, load_official_model, procedural_hand
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.posing import posed_meshes
 from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex, gt_path
+from data_schemas.capture import CaptureIndex, gt_path, provided_path
 from data_schemas.gaussians import BOUND_GAUSSIANS
-from data_schemas.deform import DEFORM
+from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.frames import FRAMES_INDEX, crop_mask_path, rgb_path
 from data_schemas.images import read_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
@@ -41,11 +41,28 @@ def load_ground_truth_params(capture_dir: Path, sequence: str) -> dict[str, np.n
     return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
 
 
+def load_provided_params(capture_dir: Path, sequence: str) -> dict[str, np.ndarray]:
+    """The FLAME/MANO parameters the dataset ships for ``sequence`` (DECAF's multi-view fit)."""
+    index = CaptureIndex.read(capture_dir)
+    info = index.sequences[sequence]
+    if not info.has_provided("params"):
+        why = "".join(f"; {note}" for note in info.notes if "param" in note)
+        raise SchemaError(f"{capture_dir / sequence}: fit.source=provided needs parameters shipped with the dataset "
+                          f"(dataset=decaf), but the '{index.dataset}' capture of '{index.subject}' has none for "
+                          f"sequence '{sequence}'{why}")
+    table = read_table(provided_path(capture_dir, sequence, "params"), PARAMS)
+    return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
+
+
 def contact_frames(capture_dir: Path, sequence: str, num_frames: int) -> np.ndarray:
-    """(T,) bool: frames where the hand touches the face, from ground truth; all False when unknown."""
-    if not CaptureIndex.read(capture_dir).sequences[sequence].has_ground_truth:
-        return np.zeros(num_frames, dtype=bool)
-    return np.asarray(read_table(gt_path(capture_dir, sequence, "deform"), DEFORM)["contact"], dtype=bool)
+    """(T,) bool: frames where the hand touches the face, from ground truth or the contacts the dataset
+    ships; all False when unknown."""
+    info = CaptureIndex.read(capture_dir).sequences[sequence]
+    if info.has_ground_truth:
+        return np.asarray(read_table(gt_path(capture_dir, sequence, "deform"), DEFORM)["contact"], dtype=bool)
+    if info.has_provided("contacts"):
+        return np.asarray(read_table(provided_path(capture_dir, sequence, "contacts"), CONTACTS)["contact"], dtype=bool)
+    return np.zeros(num_frames, dtype=bool)
 
 
 def load_meshes(fit_dir: Path, sequence: str, cfg: DictConfig) -> MeshSequence:

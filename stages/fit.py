@@ -17,9 +17,9 @@ from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from pipeline.stage import Resources, StageContext, stage
-from stages.common import load_ground_truth_params, templates
+from stages.common import load_ground_truth_params, load_provided_params, templates
 
-SOURCES = ("ground_truth", "fitted")
+SOURCES = ("ground_truth", "provided", "fitted")
 
 
 @dataclass
@@ -38,7 +38,7 @@ class FitStageConfig:
 
 
 @stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit"),
-       outputs=("train/params.parquet", "fit_report.json"), version="1", resources=Resources(cpus=2),
+       outputs=("train/params.parquet", "fit_report.json"), version="2", resources=Resources(cpus=2),
        config_schema=FitStageConfig)
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors."""
@@ -55,6 +55,9 @@ def fit(ctx: StageContext) -> None:
         if source == "ground_truth":
             params = load_ground_truth_params(cap_dir, seq)
             entry: dict = {}
+        elif source == "provided":
+            params = load_provided_params(cap_dir, seq)
+            entry = {}
         else:
             kp = _keypoints_by_camera(read_table(ctx.input_dir("keypoints") / seq / "keypoints.parquet", KEYPOINTS),
                                       info.num_frames)

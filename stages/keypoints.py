@@ -10,13 +10,13 @@ import numpy as np
 from avatar.fitting.noise import corrupt_keypoints
 from avatar.preprocess.mediapipe_detect import HANDEDNESS, LandmarkDetector
 from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex, gt_path, video_path
+from data_schemas.capture import CaptureIndex, gt_path, provided_path, video_path
 from data_schemas.keypoints import KEYPOINTS, PARTS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.video import read_video
 from pipeline.stage import StageContext, stage
 
-DETECTORS = ("ground_truth", "mediapipe")
+DETECTORS = ("ground_truth", "mediapipe", "provided")
 
 
 @dataclass
@@ -42,7 +42,7 @@ class KeypointsConfig:
 
 
 @stage("keypoints", inputs=("capture",), config_keys=("stage.keypoints",), outputs=("train/keypoints.parquet",),
-       version="1", config_schema=KeypointsConfig)
+       version="2", config_schema=KeypointsConfig)
 def keypoints(ctx: StageContext) -> None:
     """Detect (or, for the synthetic capture, corrupt the projected ground-truth) 2D keypoints."""
     conf = ctx.cfg.stage.keypoints
@@ -52,6 +52,9 @@ def keypoints(ctx: StageContext) -> None:
     index = CaptureIndex.read(cap_dir)
     if conf.detector == "mediapipe":
         _detect_mediapipe(ctx, cap_dir, index, conf.mediapipe)
+        return
+    if conf.detector == "provided":
+        _copy_provided(ctx, cap_dir, index)
         return
     sizes = {c.camera_id: (c.width, c.height) for c in read_cameras(cap_dir / "cameras.parquet")}
     rng = np.random.default_rng(conf.seed)
@@ -99,3 +102,18 @@ def _detect_mediapipe(ctx: StageContext, cap_dir: Path, index: CaptureIndex, con
     ctx.metrics["detections"] = detected
     for part in PARTS:
         ctx.metrics[f"{part}_found_fraction"] = found[part] / max(frames_seen, 1)
+
+
+def _copy_provided(ctx: StageContext, cap_dir: Path, index: CaptureIndex) -> None:
+    """The keypoints the dataset ships (DECAF: face_alignment landmarks and MediaPipe hand keypoints),
+    as they are: pixel_noise, drop_rate and outlier_rate do not apply."""
+    detected = 0
+    for seq, info in index.sequences.items():
+        if not info.has_provided("keypoints"):
+            raise SchemaError(f"{cap_dir / seq}: detector=provided needs keypoints shipped with the dataset "
+                              f"(dataset=decaf), but the '{index.dataset}' capture of '{index.subject}' has none "
+                              f"for sequence '{seq}'{''.join('; ' + n for n in info.notes if 'keypoints' in n)}")
+        table = read_table(provided_path(cap_dir, seq, "keypoints"), KEYPOINTS)
+        detected += int(sum((np.reshape(k, (-1, 3))[:, 2] > 0).sum() for k in table["uvc"]))
+        write_table(ctx.out_dir / seq / "keypoints.parquet", KEYPOINTS, table)
+    ctx.metrics["detections"] = detected
