@@ -4,15 +4,21 @@ Method (see :func:`fit_sequence`):
 
 1. Triangulate every frame's hand keypoints and face landmarks (RANSAC DLT,
    :mod:`avatar.fitting.triangulation`); detections RANSAC rejects are dropped.
-2. Rigidly align the rest template's keypoints (hand: wrist and knuckles) to
-   the triangulated points (Kabsch) for the global rotation and translation of
-   each frame; frames without enough points copy the previous good frame.
-3. Optimise all frames at once with L-BFGS in float64: first the rigid
-   parameters, then everything, under a confidence-weighted Geman-McClure
-   reprojection loss (pixels) whose scale anneals from coarse to fine, weak L2
-   priors on pose, expression and shape (shape is shared by the sequence),
-   second-difference temporal smoothness and a hand-face interpenetration
-   penalty (:mod:`avatar.fitting.penetration`).
+2. Initialise each frame from the triangulated points: the hand by analytic
+   inverse kinematics (:mod:`avatar.fitting.hand_ik`: palm by Kabsch, then each
+   finger bone turned onto its observed direction), the face by rigid Kabsch
+   alignment of the rest landmarks; frames without enough points copy the
+   nearest good frame.
+3. Optimise all frames at once with L-BFGS in float64 (translations in
+   centimetres for conditioning): first the rigid parameters, then everything,
+   under a confidence-weighted Geman-McClure reprojection loss (pixels) whose
+   scale anneals from coarse to fine, weak L2 priors on pose, expression and
+   shape (shape is shared by the sequence), second-difference temporal
+   smoothness and a hand-face interpenetration penalty
+   (:mod:`avatar.fitting.penetration`, on the hand points near the face at the
+   start of each phase). Keypoints come from keypoint-only templates
+   (:mod:`avatar.templates.reduce`); full meshes are posed only for frames in
+   contact.
 """
 
 from __future__ import annotations
@@ -26,8 +32,8 @@ import torch
 
 from avatar.fitting.models import DTYPE, FaceParams, HandParams
 from avatar.fitting.observations import PART_SIZES, Observations, pack_part
-from avatar.fitting.penetration import penetration_depth
-from avatar.fitting.rigid import MIN_RIGID_POINTS, rigid_init
+from avatar.fitting.penetration import ContactPairs, contact_depth, find_contact_pairs
+from avatar.fitting.rigid import MIN_RIGID_POINTS
 from avatar.fitting.triangulation import projection_matrices, triangulate
 from avatar.templates import TemplateModel
 from data_schemas.cameras import Camera
@@ -137,29 +143,45 @@ class _Problem:
                  weights: dict[str, torch.Tensor], cfg: FitConfig) -> None:
         self.hand, self.face, self.P, self.obs, self.weights, self.cfg = hand, face, P, obs, weights, cfg
 
-    def loss(self, scale: float, penetration: bool) -> torch.Tensor:
-        hand, face = self.hand(), self.face()
-        total = (_data_term(self.P, hand.keypoints, self.obs["hand"], self.weights["hand"], scale)
-                 + _data_term(self.P, face.keypoints, self.obs["face"], self.weights["face"], scale)
+    def _hand_points(self, hand_vertices: torch.Tensor) -> torch.Tensor:
+        """(T, V, 3) -> the (T, N, 3) hand vertices checked for interpenetration."""
+        return hand_vertices[:, ::self.cfg.penetration_stride]
+
+    def loss(self, scale: float, pairs: ContactPairs | None) -> torch.Tensor:
+        """The objective; ``pairs`` (hand points near the face) switch the penetration term on."""
+        total = (_data_term(self.P, self.hand.keypoints(), self.obs["hand"], self.weights["hand"], scale)
+                 + _data_term(self.P, self.face.keypoints(), self.obs["face"], self.weights["face"], scale)
                  + _regulariser(self.hand, self.cfg) + _regulariser(self.face, self.cfg))
-        if penetration and self.cfg.penetration_mm > 0:
-            depth = penetration_depth(hand.vertices[:, ::self.cfg.penetration_stride], face.vertices,
-                                      self.face.faces, self.cfg.penetration_radius_m)
-            total = total + self.cfg.penetration_mm * (depth * MM_PER_M).pow(2).sum() / depth.shape[0]
+        if pairs is not None:
+            frames, local = torch.unique(pairs.frame, return_inverse=True)  # pose only the frames in contact
+            depth = contact_depth(self._hand_points(self.hand.vertices(frames)), self.face.vertices(frames),
+                                  self.face.faces, pairs._replace(frame=local), self.cfg.penetration_radius_m)
+            total = total + self.cfg.penetration_mm * (depth * MM_PER_M).pow(2).sum() / self.hand.num_frames
         return total
+
+    def _contact_pairs(self, penetration: bool) -> ContactPairs | None:
+        """Hand points near the face at the current parameters (None: term off or no contact)."""
+        if not penetration or self.cfg.penetration_mm <= 0:
+            return None
+        with torch.no_grad():
+            pairs = find_contact_pairs(self._hand_points(self.hand.vertices()), self.face.vertices(),
+                                       self.cfg.penetration_radius_m)
+        return pairs if pairs.frame.numel() else None
 
     def minimise(self, params: list[torch.nn.Parameter], iterations: int, scale: float, penetration: bool
                  ) -> float:
-        """L-BFGS (strong Wolfe) on ``params``; the others stay fixed. Returns the final loss."""
+        """L-BFGS (strong Wolfe) on ``params``; the others stay fixed. Contact pairs
+        are found once at the start and held fixed. Returns the final loss."""
         everything = list(self.hand.parameters()) + list(self.face.parameters())
         for p in everything:
             p.requires_grad_(any(p is q for q in params))
+        pairs = self._contact_pairs(penetration)
         opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20,
                                 line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
 
         def closure() -> torch.Tensor:
             opt.zero_grad()
-            loss = self.loss(scale, penetration)
+            loss = self.loss(scale, pairs)
             loss.backward()
             return loss
 
@@ -168,7 +190,7 @@ class _Problem:
         for p in everything:
             p.requires_grad_(True)
         with torch.no_grad():
-            return float(self.loss(scale, penetration))
+            return float(self.loss(scale, pairs))
 
 
 def _weak(obs: Observations, valid: np.ndarray, cfg: FitConfig) -> np.ndarray:
@@ -227,19 +249,15 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
     P = torch.as_tensor(P_np, dtype=DTYPE)
     hand_params, face_params = HandParams(hand, T), FaceParams(head, T)
     weights, weak = {}, {}
-    for part, model, rigid_ids in (("hand", hand_params, None), ("face", face_params, None)):
+    for part, model in (("hand", hand_params), ("face", face_params)):
         points, valid, weight = _triangulate_part(obs[part], P_np, cfg)
-        rest, root = model.rest()
-        orient, transl, _ = rigid_init(rest, root, points, valid, rigid_ids)
-        with torch.no_grad():
-            model.global_orient.copy_(torch.as_tensor(orient))
-            model.transl.copy_(torch.as_tensor(transl))
+        model.init_from_keypoints(points, valid)
         weights[part] = torch.as_tensor(weight)
         weak[part] = _weak(obs[part], valid, cfg)
     triangulated = time.perf_counter()
 
     problem = _Problem(hand_params, face_params, P, obs, weights, cfg)
-    rigid = [hand_params.global_orient, hand_params.transl, face_params.global_orient, face_params.transl]
+    rigid = [hand_params.global_orient, hand_params.transl_cm, face_params.global_orient, face_params.transl_cm]
     everything = list(hand_params.parameters()) + list(face_params.parameters())
     problem.minimise(rigid, cfg.rigid_iterations, cfg.robust_scale_start_px, penetration=False)
     problem.minimise(everything, cfg.coarse_iterations, cfg.robust_scale_start_px, penetration=True)
@@ -247,7 +265,7 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
     done = time.perf_counter()
 
     with torch.no_grad():
-        posed = {"hand": hand_params().keypoints, "face": face_params().keypoints}
+        posed = {"hand": hand_params.keypoints(), "face": face_params.keypoints()}
     reprojection = {part: _reprojection_px(P, posed[part], obs[part], weights[part].numpy()) for part in obs}
     params = {**face_params.columns(), **hand_params.columns()}
     if not all(np.isfinite(v).all() for v in params.values()):

@@ -8,21 +8,29 @@ project's column layout (see :class:`avatar.synthetic.SyntheticCapture`).
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 import torch
 
-from avatar.templates import FLAMELayer, MANOLayer, TemplateModel
+from avatar.fitting.hand_ik import hand_pose_ik
+from avatar.fitting.rigid import fill_from_nearest, rigid_init
+from avatar.templates import FLAMELayer, LayerOutput, MANOLayer, TemplateModel
+from avatar.templates.reduce import keypoint_template
 
 DTYPE = torch.float64
+CM_PER_M = 100.0
 
 
-class Posed(NamedTuple):
-    """vertices (T, V, 3) and keypoints (T, K, 3), world metres."""
+class _Translated(torch.nn.Module):
+    """Per-frame translation held in centimetres: a 1-unit step then moves a part
+    about as far as a 1-unit step of a pose parameter, which keeps L-BFGS well
+    conditioned (metres made translation steps ~100x too stiff)."""
 
-    vertices: torch.Tensor
-    keypoints: torch.Tensor
+    transl_cm: torch.nn.Parameter
+
+    @property
+    def transl(self) -> torch.Tensor:
+        """(T, 3) metres."""
+        return self.transl_cm / CM_PER_M
 
 
 def _param(rows: int, width: int, init: np.ndarray | None = None) -> torch.nn.Parameter:
@@ -30,27 +38,48 @@ def _param(rows: int, width: int, init: np.ndarray | None = None) -> torch.nn.Pa
     return torch.nn.Parameter(value)
 
 
-class HandParams(torch.nn.Module):
+class HandParams(_Translated):
     """MANO over T frames: shape (1, 10), hand_pose (T, 45), global_orient (T, 3), transl (T, 3)."""
 
     def __init__(self, model: TemplateModel, num_frames: int) -> None:
         super().__init__()
         self.layer = MANOLayer(model)
+        self.keypoint_layer = MANOLayer(keypoint_template(model))
         self.num_frames = num_frames
         self.shape = _param(1, self.layer.num_betas)
         self.hand_pose = _param(num_frames, self.layer.pose_dim)
         self.global_orient = _param(num_frames, 3)
-        self.transl = _param(num_frames, 3)
+        self.transl_cm = _param(num_frames, 3)  # centimetres: steps comparable to the rotations'
 
-    def rest(self) -> tuple[np.ndarray, np.ndarray]:
-        """Rest-pose keypoints (21, 3) and root joint (3,) of the current shape."""
+    def init_from_keypoints(self, points: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """Set global_orient, transl and hand_pose by inverse kinematics on
+        triangulated keypoints (T, 21, 3) with valid (T, 21) bool; frames
+        without a palm copy their nearest frame that has one. Returns ok (T,)."""
+        if self.layer.use_pca or not self.layer.flat_hand_mean:
+            raise ValueError("inverse kinematics needs the full (non-PCA) flat-mean MANO pose")
         with torch.no_grad():
             out = self.layer(self.shape, torch.zeros(1, self.layer.pose_dim, dtype=DTYPE))
-            return self.layer.keypoints21(out.vertices, out.joints)[0].numpy(), out.joints[0, 0].numpy()
+            joints, tips = out.joints[0].numpy(), out.vertices[0, self.layer.tip_vertex_ids].numpy()
+        orient, transl, pose, ok = hand_pose_ik(joints, tips, self.layer.parents, points, valid)
+        fill_from_nearest(ok, orient, transl, pose)
+        with torch.no_grad():
+            self.global_orient.copy_(torch.as_tensor(orient))
+            self.transl_cm.copy_(torch.as_tensor(transl) * CM_PER_M)
+            self.hand_pose.copy_(torch.as_tensor(pose))
+        return ok
 
-    def forward(self) -> Posed:
-        out = self.layer(self.shape.expand(self.num_frames, -1), self.hand_pose, self.global_orient, self.transl)
-        return Posed(out.vertices, self.layer.keypoints21(out.vertices, out.joints))
+    def _posed(self, layer: MANOLayer, frames: torch.Tensor | slice = slice(None)) -> LayerOutput:
+        pose = self.hand_pose[frames]
+        return layer(self.shape.expand(pose.shape[0], -1), pose, self.global_orient[frames], self.transl[frames])
+
+    def keypoints(self) -> torch.Tensor:
+        """(T, 21, 3) world keypoints in OpenPose order."""
+        out = self._posed(self.keypoint_layer)
+        return self.keypoint_layer.keypoints21(out.vertices, out.joints)
+
+    def vertices(self, frames: torch.Tensor | slice = slice(None)) -> torch.Tensor:
+        """(T', V, 3) world vertices of ``frames`` (int64 indices; default all T)."""
+        return self._posed(self.layer, frames).vertices
 
     def pose_terms(self) -> list[torch.Tensor]:
         """Per-frame articulation parameters for the pose prior, (T, D) each."""
@@ -70,37 +99,53 @@ class HandParams(torch.nn.Module):
         }
 
 
-class FaceParams(torch.nn.Module):
+class FaceParams(_Translated):
     """FLAME over T frames: shape (1, S), expression (T, E), global_orient / neck_pose /
     jaw_pose (T, 3), transl (T, 3); eye_pose stays zero (landmarks do not see the eyeballs)."""
 
     def __init__(self, model: TemplateModel, num_frames: int) -> None:
         super().__init__()
         num_shape = int(model.num_shape)
-        self.layer = FLAMELayer(model, num_shape, model.num_shapes_total - num_shape)
+        num_expression = model.num_shapes_total - num_shape
+        self.layer = FLAMELayer(model, num_shape, num_expression)
+        self.keypoint_layer = FLAMELayer(keypoint_template(model), num_shape, num_expression)
         self.num_frames = num_frames
         self.shape = _param(1, num_shape)
         self.expression = _param(num_frames, self.layer.num_expression)
         self.global_orient = _param(num_frames, 3)
         self.neck_pose = _param(num_frames, 3)
         self.jaw_pose = _param(num_frames, 3)
-        self.transl = _param(num_frames, 3)
+        self.transl_cm = _param(num_frames, 3)  # centimetres: steps comparable to the rotations'
         self.register_buffer("eye_pose", torch.zeros(num_frames, 6, dtype=DTYPE))
 
     @property
     def faces(self) -> torch.Tensor:
         return self.layer.faces
 
-    def rest(self) -> tuple[np.ndarray, np.ndarray]:
-        """Rest-pose landmarks (68, 3) and root joint (3,) of the current shape."""
+    def init_from_keypoints(self, points: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """Set global_orient and transl by rigidly aligning the rest-pose landmarks
+        to triangulated landmarks (T, 68, 3) with valid (T, 68) bool. Returns ok (T,)."""
         with torch.no_grad():
             out = self.layer(self.shape, torch.zeros(1, self.layer.num_expression, dtype=DTYPE))
-            return self.layer.landmarks(out.vertices)[0].numpy(), out.joints[0, 0].numpy()
+            rest, root = self.layer.landmarks(out.vertices)[0].numpy(), out.joints[0, 0].numpy()
+        orient, transl, ok = rigid_init(rest, root, points, valid)
+        with torch.no_grad():
+            self.global_orient.copy_(torch.as_tensor(orient))
+            self.transl_cm.copy_(torch.as_tensor(transl) * CM_PER_M)
+        return ok
 
-    def forward(self) -> Posed:
-        out = self.layer(self.shape.expand(self.num_frames, -1), self.expression, self.global_orient,
-                         self.neck_pose, self.jaw_pose, self.eye_pose, self.transl)
-        return Posed(out.vertices, self.layer.landmarks(out.vertices))
+    def _posed(self, layer: FLAMELayer, frames: torch.Tensor | slice = slice(None)) -> LayerOutput:
+        expression = self.expression[frames]
+        return layer(self.shape.expand(expression.shape[0], -1), expression, self.global_orient[frames],
+                     self.neck_pose[frames], self.jaw_pose[frames], self.eye_pose[frames], self.transl[frames])
+
+    def keypoints(self) -> torch.Tensor:
+        """(T, 68, 3) world landmarks."""
+        return self.keypoint_layer.landmarks(self._posed(self.keypoint_layer).vertices)
+
+    def vertices(self, frames: torch.Tensor | slice = slice(None)) -> torch.Tensor:
+        """(T', V, 3) world vertices of ``frames`` (int64 indices; default all T)."""
+        return self._posed(self.layer, frames).vertices
 
     def pose_terms(self) -> list[torch.Tensor]:
         return [self.expression, self.jaw_pose, self.neck_pose]

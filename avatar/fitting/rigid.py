@@ -24,8 +24,8 @@ def kabsch(source: np.ndarray, target: np.ndarray, weight: np.ndarray | None = N
     return R, mu_t - R @ mu_s
 
 
-def rigid_init(rest: np.ndarray, root: np.ndarray, targets: np.ndarray, valid: np.ndarray,
-               rigid_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rigid_init(rest: np.ndarray, root: np.ndarray, targets: np.ndarray, valid: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-frame global rotation and translation of a template rotating about ``root``.
 
     The posed template is ``R (x - root) + root + transl``, as in the MANO/FLAME layers.
@@ -34,8 +34,6 @@ def rigid_init(rest: np.ndarray, root: np.ndarray, targets: np.ndarray, valid: n
         rest: (K, 3) template keypoints in rest pose (metres).
         root: (3,) the root joint the global rotation turns about.
         targets: (T, K, 3) triangulated keypoints; valid: (T, K) bool.
-        rigid_ids: keypoints to align when at least 3 of them are valid (the
-            parts that move least with pose, e.g. the palm); otherwise all valid ones.
 
     Returns:
         global_orient (T, 3) axis-angle, transl (T, 3), ok (T,) frames with >= 3
@@ -45,22 +43,26 @@ def rigid_init(rest: np.ndarray, root: np.ndarray, targets: np.ndarray, valid: n
     """
     T = targets.shape[0]
     orient, transl, ok = np.zeros((T, 3)), np.zeros((T, 3)), np.zeros(T, bool)
-    subset = np.zeros(rest.shape[0], bool)
-    if rigid_ids is not None:
-        subset[rigid_ids] = True
     for t in range(T):
-        use = valid[t] & subset
-        if use.sum() < MIN_RIGID_POINTS:
-            use = valid[t]
+        use = valid[t]
         if use.sum() < MIN_RIGID_POINTS:
             continue
         R, shift = kabsch(rest[use], targets[t, use])
         orient[t] = Rotation.from_matrix(R).as_rotvec()
         transl[t] = shift + R @ root - root
         ok[t] = True
-    good = np.flatnonzero(ok)
-    if good.size:
-        for t in np.flatnonzero(~ok):
-            nearest = good[np.argmin(np.abs(good - t) * 2 - (good < t))]
-            orient[t], transl[t] = orient[nearest], transl[nearest]
+    fill_from_nearest(ok, orient, transl)
     return orient, transl, ok
+
+
+def fill_from_nearest(ok: np.ndarray, *rows: np.ndarray) -> None:
+    """In place: every frame that is not ``ok`` (T,) copies, in each of ``rows``
+    (T, ...), the nearest ok frame (the previous one on ties: frame-to-frame
+    warm start). Nothing changes when no frame is ok."""
+    good = np.flatnonzero(ok)
+    if not good.size:
+        return
+    for t in np.flatnonzero(~ok):
+        nearest = good[np.argmin(np.abs(good - t) * 2 - (good < t))]
+        for values in rows:
+            values[t] = values[nearest]

