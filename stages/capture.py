@@ -39,7 +39,7 @@ class CaptureConfig:
     config_keys=("dataset", "quality.capture_size", "quality.num_frames_train", "quality.num_frames_test",
                  "quality.supersample", "stage.capture"),
     outputs=("cameras.parquet", "capture.json"),
-    version="2",
+    version="3",
     resources=Resources(cpus=2),
     config_schema=CaptureConfig,
 )

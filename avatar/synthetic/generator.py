@@ -18,7 +18,7 @@ from avatar.synthetic.face_paint import FacePaint
 from avatar.synthetic.geometry import vertex_normals
 from avatar.synthetic.hand_pose import HandFrame
 from avatar.synthetic.identity import Identity, make_identity
-from avatar.synthetic.keypoints import FACE_TOLERANCE_M, HAND_TOLERANCE_M, project_keypoints
+from avatar.synthetic.keypoints import FACE_SELF_TOLERANCE_M, HAND_SELF_TOLERANCE_M, project_keypoints
 from avatar.synthetic.motion import SCRIPTS, frame_times, jitter
 from avatar.synthetic.performance import Performance, perform
 from avatar.synthetic.rig import make_rig, mesh_raster_camera
@@ -175,8 +175,10 @@ def _generate(cfg: SyntheticConfig) -> SyntheticCapture:
             frames[cid][t] = srgb_encode(out.rgb.numpy())
             masks[cid][t] = out.labels.numpy().astype(np.uint8)
             depth = out.depth.numpy()
-            keypoints[cid]["hand"][t] = project_keypoints(cam, hand_kp[t], depth, HAND_TOLERANCE_M)
-            keypoints[cid]["face"][t] = project_keypoints(cam, face_kp[t], depth, FACE_TOLERANCE_M)
+            keypoints[cid]["hand"][t] = project_keypoints(cam, hand_kp[t], depth, masks[cid][t], HAND_LABEL,
+                                                          HAND_SELF_TOLERANCE_M)
+            keypoints[cid]["face"][t] = project_keypoints(cam, face_kp[t], depth, masks[cid][t], FACE_LABEL,
+                                                          FACE_SELF_TOLERANCE_M)
     contact = np.abs(offsets).reshape(t_count, -1).max(axis=1) > 0
     return SyntheticCapture(cameras=cameras, frames=frames, masks=masks, params=perf.params,
                             keypoints=keypoints, face_offsets=offsets, contact=contact,

@@ -110,16 +110,20 @@ def test_soft_tissue_compliance_and_no_contact() -> None:
                             far, far_faces) == 0).all()
 
 
-def test_keypoint_visibility_uses_depth_and_image_bounds() -> None:
+def test_keypoint_visibility_uses_depth_labels_and_image_bounds() -> None:
     cam = make_rig(2, 32, np.zeros(3))[0]
     pts = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
     uv, z = cam.project(pts)
-    depth = np.zeros((32, 32))
-    kp = project_keypoints(cam, pts[:1], depth, 0.01)
-    assert kp[0, 2] == 1.0  # nothing drawn: visible
-    depth[:] = z[0] - 0.05  # a surface 5 cm in front
-    kp = project_keypoints(cam, pts, depth, 0.01)
+    depth, labels = np.zeros((32, 32)), np.zeros((32, 32), np.int64)
+    assert project_keypoints(cam, pts[:1], depth, labels, 2, 0.04)[0, 2] == 1.0  # nothing drawn: visible
+    depth[:] = z[0] - 0.02  # a surface 2 cm in front
+    labels[:] = 1  # ... of another part
+    kp = project_keypoints(cam, pts, depth, labels, 2, 0.04)
     np.testing.assert_allclose(kp[:, :2], uv)
     assert kp[:, 2].tolist() == [0.0, 0.0, 0.0]  # occluded, occluded, outside the image
-    depth[:] = z[0] - 0.005
-    assert project_keypoints(cam, pts[:1], depth, 0.01)[0, 2] == 1.0  # within tolerance
+    labels[:] = 2  # ... of the point's own part: self-occlusion within a hand's thickness
+    assert project_keypoints(cam, pts[:1], depth, labels, 2, 0.04)[0, 2] == 1.0
+    depth[:] = z[0] - 0.05  # own part, but deeper than the self tolerance
+    assert project_keypoints(cam, pts[:1], depth, labels, 2, 0.04)[0, 2] == 0.0
+    labels[:], depth[:] = 1, z[0] - 0.003
+    assert project_keypoints(cam, pts[:1], depth, labels, 2, 0.04)[0, 2] == 1.0  # within tolerance
