@@ -61,7 +61,9 @@ def fit(ctx: StageContext) -> None:
         else:
             kp = _keypoints_by_camera(read_table(ctx.input_dir("keypoints") / seq / "keypoints.parquet", KEYPOINTS),
                                       info.num_frames)
-            result = fit_sequence(kp, cameras, head, hand, conf)
+            # Only the train views: the held-out camera's detections would leak the novel view into the fit.
+            result = fit_sequence({c.camera_id: kp[c.camera_id] for c in cameras if c.camera_id in kp}, cameras,
+                                  head, hand, conf)
             params = result.params
             entry = {"reprojection_px": {p: float(np.nanmean(v)) for p, v in result.reprojection_px.items()},
                      "weak_frames": {p: np.flatnonzero(v).tolist() for p, v in result.weak_frames.items()},

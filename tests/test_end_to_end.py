@@ -29,6 +29,11 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert "novel_view_psnr" in first.stdout and "self_reenact_lpips" in first.stdout
     assert f"report: {(subject / 'report' / 'report.html').resolve()}" in first.stdout
 
+    fit = json.loads((subject / "fit" / "fit_report.json").read_text())
+    assert fit["source"] == "fitted"  # the avatar stands on meshes fitted to detected keypoints
+    for seq in ("train", "test"):  # 96 px views: one pixel is ~3.7 mm at the subject
+        assert fit["sequences"][seq]["mpjpe_hand_mm"] < 10.0 and fit["sequences"][seq]["mpjpe_face_mm"] < 5.0, fit
+
     metrics = read_table(subject / "evaluate" / "metrics.parquet", METRICS)
     full = [i for i, r in enumerate(metrics["region"]) if r == "full"]
     psnr = np.asarray(metrics["psnr"])[full]

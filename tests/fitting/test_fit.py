@@ -50,10 +50,12 @@ def test_clean_keypoints_recover_ground_truth(capture: SyntheticCapture) -> None
     assert not res.weak_frames["hand"].any() and not res.weak_frames["face"].any()
     hand_err = mpjpe(_hand(res.params)[0], _hand(capture.params)[0])
     face_err = landmark_error(_face(res.params)[0], _face(capture.params)[0])
-    # 96 px images: one pixel is ~3.7 mm at the subject; contact frames carry soft-tissue dents.
-    assert hand_err < 12.0, hand_err
-    assert face_err < 2.0, face_err
+    # 96 px images: one pixel is ~3.7 mm at the subject; contact frames hide fingers behind the
+    # face and carry soft-tissue dents (measured: hand 4.7 mm, face 0.29 mm).
+    assert hand_err < 7.0, hand_err
+    assert face_err < 1.0, face_err
     assert np.nanmax(res.reprojection_px["face"]) < 0.5
+    assert np.nanmax(res.reprojection_px["hand"]) < 1.5
     assert res.timing["total_s"] > 0
 
 
