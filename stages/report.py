@@ -24,7 +24,7 @@ from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
 from stages.common import contact_frames
 
-UPSTREAM = ("capture", "frames", "warmup", "evaluate")
+UPSTREAM = ("capture", "frames", "fit", "warmup", "evaluate")
 
 
 @dataclass
@@ -35,7 +35,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "stage.report"), outputs=("report.html",),
-       version="1", config_schema=ReportConfig)
+       version="2", config_schema=ReportConfig)
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, a contact sheet."""
     cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
@@ -64,6 +64,8 @@ def report(ctx: StageContext) -> None:
         _table(("camera", "split", "size", "fx", "position (m)"),
                [(c.camera_id, c.split, f"{c.width}x{c.height}", f"{c.K[0, 0]:.1f}",
                  np.array2string(c.cam_to_world[:3, 3], precision=3)) for c in cameras]),
+        "<h2>Fitted meshes</h2>",
+        _fit_section(ctx.input_dir("fit")),
         "<h2>Image quality (held-out camera and held-out motion)</h2>",
         _metrics_section(ctx.input_dir("evaluate")),
         "<h2>Warm-up training</h2>",
@@ -92,6 +94,26 @@ def _contact_summary(cap_dir: Path, index: CaptureIndex) -> str:
     parts = [f"{seq}: {int(contact_frames(cap_dir, seq, info.num_frames).sum())} of {info.num_frames} frames "
              f"with contact (ground truth)" for seq, info in index.sequences.items() if info.has_ground_truth]
     return "<p>" + "; ".join(parts) + "</p>" if parts else "<p>No contact ground truth in this capture.</p>"
+
+
+def _fit_section(fit_dir: Path) -> str:
+    """Where the FLAME/MANO parameters came from and, per sequence, how well they fit."""
+    report = json.loads((fit_dir / "fit_report.json").read_text())
+    source = report["source"]
+    intro = {"fitted": "fitted to the keypoints of the train views",
+             "ground_truth": "the synthetic capture's own parameters (the avatar is measured apart from fitting error)",
+             "provided": "the dataset's own fit"}.get(source, source)
+    rows = []
+    for seq, entry in report["sequences"].items():
+        reproj = entry.get("reprojection_px", {})
+        weak = entry.get("weak_frames", {})
+        rows.append((seq, *(format_value(entry[k]) if k in entry else "-"
+                            for k in ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_hand_mm", "vertex_error_face_mm")),
+                     *(format_value(reproj[p]) if p in reproj else "-" for p in ("hand", "face")),
+                     "; ".join(f"{p}: {v}" for p, v in weak.items() if v) or "-"))
+    table = _table(("sequence", "hand MPJPE mm", "face landmarks mm", "hand vertices mm", "face vertices mm",
+                    "hand reprojection px", "face reprojection px", "weakly constrained frames"), rows)
+    return f"<p>Parameters: {html.escape(intro)}. Errors against ground truth where the capture has it.</p>{table}"
 
 
 def _metrics_section(evaluate_dir: Path) -> str:

@@ -43,6 +43,7 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert len(cloud.means) > 1000 and np.isfinite(cloud.means).all()
     html = (subject / "report" / "report.html").read_text()
     assert "Image quality" in html and "data:image/png;base64" in html
+    assert "Fitted meshes" in html and "fitted to the keypoints of the train views" in html
 
     second = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false")
     assert second.returncode == 0, second.stderr[-3000:]
