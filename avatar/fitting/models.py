@@ -8,6 +8,8 @@ project's column layout (see :class:`avatar.synthetic.SyntheticCapture`).
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import numpy as np
 import torch
 
@@ -20,11 +22,13 @@ DTYPE = torch.float64
 CM_PER_M = 100.0
 
 
-class _Translated(torch.nn.Module):
-    """Per-frame translation held in centimetres: a 1-unit step then moves a part
-    about as far as a 1-unit step of a pose parameter, which keeps L-BFGS well
-    conditioned (metres made translation steps ~100x too stiff)."""
+class _PartParams(torch.nn.Module, ABC):
+    """What both parts share: a per-frame global rotation, and a per-frame
+    translation held in centimetres (a 1-unit step then moves a part about as far
+    as a 1-unit step of a pose parameter, which keeps L-BFGS well conditioned;
+    metres made translation steps ~100x too stiff)."""
 
+    global_orient: torch.nn.Parameter
     transl_cm: torch.nn.Parameter
 
     @property
@@ -32,13 +36,21 @@ class _Translated(torch.nn.Module):
         """(T, 3) metres."""
         return self.transl_cm / CM_PER_M
 
+    @abstractmethod
+    def pose_terms(self) -> list[torch.Tensor]:
+        """Per-frame articulation parameters for the pose prior, (T, D) each."""
+
+    def motion_terms(self) -> list[torch.Tensor]:
+        """Per-frame rotations and articulation (T, D) each, smoothed over time."""
+        return [self.global_orient, *self.pose_terms()]
+
 
 def _param(rows: int, width: int, init: np.ndarray | None = None) -> torch.nn.Parameter:
     value = torch.zeros(rows, width, dtype=DTYPE) if init is None else torch.as_tensor(init, dtype=DTYPE).clone()
     return torch.nn.Parameter(value)
 
 
-class HandParams(_Translated):
+class HandParams(_PartParams):
     """MANO over T frames: shape (1, 10), hand_pose (T, 45), global_orient (T, 3), transl (T, 3)."""
 
     def __init__(self, model: TemplateModel, num_frames: int) -> None:
@@ -82,12 +94,7 @@ class HandParams(_Translated):
         return self._posed(self.layer, frames).vertices
 
     def pose_terms(self) -> list[torch.Tensor]:
-        """Per-frame articulation parameters for the pose prior, (T, D) each."""
         return [self.hand_pose]
-
-    def motion_terms(self) -> list[torch.Tensor]:
-        """Per-frame rotations and articulation (T, D) each, smoothed over time."""
-        return [self.global_orient, *self.pose_terms()]
 
     def columns(self) -> dict[str, np.ndarray]:
         T = self.num_frames
@@ -99,7 +106,7 @@ class HandParams(_Translated):
         }
 
 
-class FaceParams(_Translated):
+class FaceParams(_PartParams):
     """FLAME over T frames: shape (1, S), expression (T, E), global_orient / neck_pose /
     jaw_pose (T, 3), transl (T, 3); eye_pose stays zero (landmarks do not see the eyeballs)."""
 
@@ -149,9 +156,6 @@ class FaceParams(_Translated):
 
     def pose_terms(self) -> list[torch.Tensor]:
         return [self.expression, self.jaw_pose, self.neck_pose]
-
-    def motion_terms(self) -> list[torch.Tensor]:
-        return [self.global_orient, *self.pose_terms()]
 
     def columns(self) -> dict[str, np.ndarray]:
         T = self.num_frames
