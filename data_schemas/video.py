@@ -91,6 +91,16 @@ def video_frame_count(path: str | Path) -> int:
         cap.release()
 
 
+def check_fully_decoded(path: str | Path, decoded: int) -> None:
+    """Raise if fewer frames decoded than the container announces: the file is damaged (a corrupt or
+    truncated stretch stops the decoder), which is not the same fault as views of unequal length."""
+    announced = video_frame_count(path)
+    if announced and decoded < announced:
+        raise SchemaError(f"{path}: the file is damaged: only {decoded} of the {announced} frames its container "
+                          f"announces decode (corrupt or truncated data); re-export or re-encode it, e.g. "
+                          f"ffmpeg -i <original> -c:v libx264 -pix_fmt yuv420p {Path(path).name}")
+
+
 def video_fps(path: str | Path) -> float:
     """Frame rate stored in the container (0 if unknown)."""
     cap = cv2.VideoCapture(str(path))

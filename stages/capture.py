@@ -17,7 +17,7 @@ from data_schemas.images import read_png, write_png
 from data_schemas.keypoints import write_keypoints
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, write_table
-from data_schemas.video import read_video, video_fps, write_video
+from data_schemas.video import check_fully_decoded, read_video, video_fps, write_video
 from pipeline.stage import Resources, StageContext, stage
 
 if TYPE_CHECKING:
@@ -112,6 +112,13 @@ def _import_folder(src: Path, out: Path, conf: DictConfig, subject: str) -> Capt
     """Validate a capture on disk and bring it into the stage directory (hard links where possible)."""
     if not src.is_dir():
         raise SchemaError(f"{src}: capture folder missing; set dataset.root so that <root>/{subject} exists")
+    calibration = ("cameras.parquet, one row per camera (camera_id, width, height, K, world_to_cam, dist, split; "
+                   "data_schemas.cameras.write_cameras writes it)")
+    if not any(src.iterdir()):
+        raise SchemaError(f"{src}: capture folder is empty; put {calibration} and one video per camera in "
+                          f"<sequence>/videos/<camera_id>.mp4 in it, as in the README's artifact layout")
+    if not (src / "cameras.parquet").is_file():
+        raise SchemaError(f"{src / 'cameras.parquet'}: camera calibration missing; add {calibration}")
     cameras = read_cameras(src / "cameras.parquet")
     seq_names = sorted(p.name for p in src.iterdir() if (p / "videos").is_dir())
     if not seq_names:
@@ -144,6 +151,7 @@ def _validate_sequence(src: Path, seq: str, cameras: list[Camera], conf: DictCon
     for cam in cameras:
         path = video_path(src, seq, cam.camera_id)
         frames = read_video(path)
+        check_fully_decoded(path, len(frames))
         if frames.shape[1:3] != (cam.height, cam.width):
             raise SchemaError(f"{path}: frames are {frames.shape[2]}x{frames.shape[1]} but cameras.parquet says "
                               f"{cam.width}x{cam.height}; fix the calibration or the video")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -126,3 +127,40 @@ def test_empty_mask_is_named(tmp_path):
 
 def test_missing_capture_folder(tmp_path):
     _expect_capture_error(tmp_path, "capture folder missing; set dataset.root")
+
+
+def _zero_middle_of_mdat(path: Path) -> None:
+    """Overwrite the middle half of an mp4's media data (its index, the moov box, stays intact)."""
+    data = bytearray(path.read_bytes())
+    box = data.find(b"mdat") - 4
+    size = int.from_bytes(data[box: box + 4], "big")
+    start, end = box + 8 + (size - 8) // 4, box + 8 + 3 * (size - 8) // 4
+    data[start:end] = bytes(end - start)
+    path.write_bytes(bytes(data))
+
+
+def test_video_with_a_corrupt_middle_is_called_damaged(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    for i in range(3):  # long enough that a zeroed stretch stops the decoder (3 frames decode as garbage)
+        write_video(video_path(subject, "train", f"cam{i:02d}"), _frames(i, n=9), 25.0)
+    _zero_middle_of_mdat(video_path(subject, "train", "cam01"))
+    with pytest.raises(StageFailed) as info:
+        run_app(_cfg(tmp_path))
+    message = str(info.value)
+    assert re.search(r"cam01\.mp4: the file is damaged: only \d of the 9 frames its container announces decode",
+                     message), message
+    assert "re-export or re-encode it" in message and "views disagree" not in message
+    assert not (tmp_path / "out" / "alice" / "capture").exists()
+
+
+def test_empty_subject_folder_names_the_layout(tmp_path):
+    (tmp_path / "data" / "alice").mkdir(parents=True)
+    _expect_capture_error(tmp_path, "alice: capture folder is empty; put cameras.parquet, one row per camera")
+    with pytest.raises(StageFailed, match=r"<sequence>/videos/<camera_id>\.mp4"):
+        run_app(_cfg(tmp_path))
+
+
+def test_missing_cameras_table_names_the_file_and_fix(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    (subject / "cameras.parquet").unlink()
+    _expect_capture_error(tmp_path, "alice/cameras.parquet: camera calibration missing; add cameras.parquet, one row")
