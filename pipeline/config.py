@@ -107,12 +107,21 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
 _MISSING = object()
 
 
-def config_subset(cfg: DictConfig, keys: tuple[str, ...]) -> dict[str, Any]:
-    """The resolved values of the dotted ``keys``, as plain JSON-able data."""
+def config_subset(cfg: DictConfig, keys: tuple[str, ...], exclude: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The resolved values of the dotted ``keys``, as plain JSON-able data, without the dotted ``exclude``
+    paths below them (settings that cannot change a stage's result, e.g. its checkpoint interval)."""
     out: dict[str, Any] = {}
     for key in keys:
         value = OmegaConf.select(cfg, key, throw_on_missing=True)
         out[key] = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+    for path in exclude:
+        key = next(k for k in keys if path.startswith(f"{k}."))
+        *parents, leaf = path[len(key) + 1:].split(".")
+        node = out[key]
+        for part in parents:
+            node = node.get(part) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node.pop(leaf, None)
     return out
 
 

@@ -44,9 +44,14 @@ def hash_outputs(stage_dir: Path) -> dict[str, str]:
     return {p.relative_to(stage_dir).as_posix(): sha256_file(p) for p in files}
 
 
-def cache_key(stage: str, version: str, config: dict[str, Any], upstream: dict[str, str]) -> str:
-    """sha256 over the stage name, its code version, its config subset and the upstream output digests."""
-    return sha256_json({"stage": stage, "version": version, "config": config, "upstream": upstream})
+def cache_key(stage: str, version: str, config: dict[str, Any], upstream: dict[str, str],
+              sources: dict[str, str] | None = None) -> str:
+    """sha256 over the stage name, its code version, its config subset, the upstream output digests and,
+    for stages that import user files, those files' digests."""
+    body: dict[str, Any] = {"stage": stage, "version": version, "config": config, "upstream": upstream}
+    if sources is not None:
+        body["sources"] = sha256_json(sources)
+    return sha256_json(body)
 
 
 @dataclass
@@ -64,6 +69,7 @@ class Manifest:
     metrics: dict[str, Any]
     git_sha: str
     created: str
+    sources: dict[str, str] | None = None  # relative path -> sha256 of imported user files
 
     @property
     def output_digest(self) -> str:
@@ -86,6 +92,8 @@ class Manifest:
             "git_sha": self.git_sha,
             "created": self.created,
         }
+        if self.sources is not None:
+            body["sources"] = self.sources
         body["manifest_digest"] = sha256_json(body)
         return body
 
@@ -125,6 +133,7 @@ def read_manifest(stage_dir: Path) -> Manifest | None:
         metrics=body["metrics"],
         git_sha=body["git_sha"],
         created=body["created"],
+        sources=body.get("sources"),
     )
 
 

@@ -6,9 +6,10 @@ For each stage the runner decides, and prints with its reason, one of:
 - ``run``: forced, never run, config/code/upstream changed, or outputs missing or corrupted;
 - ``skip``: not selected by ``run.only`` / ``run.from`` / ``run.until``.
 
-Execution holds the per-stage lock, re-decides under it (another run may just
-have produced the stage), writes into a temporary directory, and publishes it
-atomically with the manifest written last.
+Execution holds the stage's write lock and read locks on its inputs, re-decides
+under them (another run may just have produced the stage or replaced an input),
+writes into a temporary directory, checks that the inputs it read are still the
+ones its manifest names, and publishes atomically with the manifest written last.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from pipeline.manifest import (
 )
 from pipeline.monitor import ResourceMonitor
 from pipeline.registry import StageRegistry
+from pipeline.sources import changed_sources, hash_sources
 from pipeline.stage import Stage, StageContext
 from pipeline.workspace import Workspace
 
@@ -99,6 +101,7 @@ class _Decision:
     key: str
     config: dict[str, Any]
     upstream: dict[str, str]
+    sources: dict[str, str] | None
 
 
 class Runner:
@@ -152,14 +155,50 @@ class Runner:
         self._verified[name] = manifest
         return manifest
 
+    def _forget_replaced_inputs(self, s: Stage) -> None:
+        """Drop remembered verifications of inputs that another run replaced since (call under the locks)."""
+        for name in s.inputs:
+            known = self._verified.get(name)
+            if known is None:
+                continue
+            try:
+                current = read_manifest(self.ws.stage_dir(name))
+            except ManifestError:
+                current = None
+            if current is None or (current.key, current.output_digest) != (known.key, known.output_digest):
+                del self._verified[name]
+
+    def _source_digests(self, s: Stage) -> dict[str, str] | None:
+        """Digests of the user files the stage imports, or ``None`` when it declares none."""
+        if s.sources is None:
+            return None
+        return hash_sources(s.sources(self.cfg, self.ws.subject), self.ws.root / ".cache" / "sources.json")
+
+    def _check_inputs_unchanged(self, s: Stage, d: _Decision) -> None:
+        """Raise if an input artifact or source file differs from what the decision recorded."""
+        for name, digest in d.upstream.items():
+            try:
+                current = read_manifest(self.ws.stage_dir(name))
+            except ManifestError:
+                current = None
+            if current is None or current.output_digest != digest:
+                raise RuntimeError(f"input '{name}' was replaced while the stage ran (by a run that did not hold "
+                                   f"its lock); nothing was published: rerun")
+        if d.sources is not None:
+            changed = changed_sources(d.sources, self._source_digests(s) or {})
+            if changed:
+                raise RuntimeError(f"source files changed while the stage ran ({', '.join(changed)}); nothing "
+                                   f"was published: rerun once they are complete")
+
     def _decide(self, s: Stage, force: bool, pending: set[str]) -> _Decision:
         upstream, rerunning = self._upstream_digests(s, pending)
-        config = config_subset(self.cfg, s.config_keys)
+        config = config_subset(self.cfg, s.config_keys, s.cache_exclude)
         config["subject"] = self.ws.subject
-        key = cache_key(s.name, s.version, config, upstream)
+        sources = self._source_digests(s)
+        key = cache_key(s.name, s.version, config, upstream, sources)
 
         def decision(run: bool, reason: str) -> _Decision:
-            return _Decision(run, reason, key, config, upstream)
+            return _Decision(run, reason, key, config, upstream, sources)
 
         if force:
             return decision(True, "forced")
@@ -173,7 +212,7 @@ class Runner:
         if manifest is None:
             return decision(True, "outputs missing" + ("" if stage_dir.exists() else ": never run"))
         if manifest.key != key:
-            return decision(True, _why_key_changed(manifest, s.version, config, upstream))
+            return decision(True, _why_key_changed(manifest, s.version, config, upstream, sources))
         problem = verify_outputs(stage_dir, manifest, s.outputs)
         if problem is None:
             self._verified[s.name] = manifest
@@ -208,22 +247,25 @@ class Runner:
         return reports
 
     def _run_one(self, s: Stage) -> StageReport:
-        with self.ws.lock(s.name, self.lock_timeout_s):
+        with self.ws.lock(s.name, s.inputs, self.registry.names(), self.lock_timeout_s):
+            self._forget_replaced_inputs(s)
             d = self._decide(s, self.selection.force, set())
             if not d.run:
+                self.ws.discard_leftovers(s.name)
                 report = StageReport(s.name, "cached", d.reason, metrics=self._verified[s.name].metrics)
                 self._log_decision(report)
                 return report
             report = StageReport(s.name, "run", d.reason)
             self._log_decision(report)
             tmp = self.ws.new_tmp_dir(s.name)
+            scratch = self.ws.scratch_dir(s.name, d.key)
             try:
                 ctx = StageContext(
                     cfg=self.cfg,
                     subject=self.ws.subject,
                     out_dir=tmp,
                     inputs={name: self.ws.stage_dir(name) for name in s.inputs},
-                    scratch_dir=self.ws.scratch_dir(s.name, d.key),
+                    scratch_dir=scratch,
                     show_progress=self.show_progress,
                 )
                 with ResourceMonitor() as monitor:
@@ -231,6 +273,7 @@ class Runner:
                 missing = [rel for rel in s.outputs if not (tmp / rel).exists()]
                 if missing:
                     raise RuntimeError(f"stage did not write its declared output(s) {missing}")
+                self._check_inputs_unchanged(s, d)
                 usage = monitor.usage
                 manifest = Manifest(
                     stage=s.name,
@@ -244,6 +287,7 @@ class Runner:
                     metrics=dict(ctx.metrics),
                     git_sha=_git_sha(),
                     created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                    sources=d.sources,
                 )
                 write_manifest(tmp, manifest)
                 self.ws.publish(s.name, tmp)
@@ -251,6 +295,7 @@ class Runner:
                 self._verified[s.name] = manifest
             except BaseException as exc:
                 shutil.rmtree(tmp, ignore_errors=True)
+                self.ws.discard_empty_scratch(scratch)
                 if isinstance(exc, Exception):
                     raise StageFailed(s.name, exc) from exc
                 raise
@@ -261,9 +306,14 @@ class Runner:
         self.log(f"[{self.ws.subject}] {r.stage:<10} {r.action:<9} {r.reason}")
 
 
-def _why_key_changed(manifest: Manifest, version: str, config: dict[str, Any], upstream: dict[str, str]) -> str:
+def _why_key_changed(manifest: Manifest, version: str, config: dict[str, Any], upstream: dict[str, str],
+                     sources: dict[str, str] | None) -> str:
     """Human reason for a cache-key mismatch, most specific first."""
     reasons = []
+    if sources is not None:
+        changed = changed_sources(manifest.sources or {}, sources)
+        if changed:
+            reasons.append(f"source changed: {', '.join(changed)}")
     if manifest.version != version:
         reasons.append(f"code version changed: {manifest.version} -> {version}")
     keys = changed_keys(manifest.config, config)

@@ -6,6 +6,10 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
 - ``inputs``: the upstream stages whose artifacts it reads (this defines the DAG);
 - ``config_keys``: dotted paths into the resolved config that its output depends
   on (``"quality.image_size"``, ``"stage.capture"``); only these enter its cache key;
+- ``cache_exclude``: dotted paths below ``config_keys`` that a stage reads but that
+  cannot change what it writes (``"stage.warmup.checkpoint_every"``): left out of the key;
+- ``sources``: for stages that import user files (a capture folder), a function
+  listing them; their content digests enter the cache key (``pipeline.sources``);
 - ``outputs``: relative paths (files or directories) it must produce;
 - ``version``: bumped by hand whenever the code changes what the stage writes;
 - ``resources``: what it needs (cpu cores, gpus), used by launchers and the report;
@@ -24,6 +28,8 @@ from typing import Any, TypeVar
 
 from omegaconf import DictConfig
 from tqdm import tqdm
+
+from pipeline.sources import SourceLister
 
 T = TypeVar("T")
 
@@ -93,6 +99,8 @@ class Stage:
     resources: Resources = Resources()
     config_schema: type | None = None
     description: str = ""
+    cache_exclude: tuple[str, ...] = ()
+    sources: SourceLister | None = None
 
     def __post_init__(self) -> None:
         if not self.name or not self.name.replace("_", "").isalnum():
@@ -101,6 +109,10 @@ class Stage:
             raise ValueError(f"stage '{self.name}' declares no outputs")
         if self.name in self.inputs:
             raise ValueError(f"stage '{self.name}' lists itself as an input")
+        for key in self.cache_exclude:
+            if not any(key.startswith(f"{k}.") for k in self.config_keys):
+                raise ValueError(f"stage '{self.name}': cache_exclude key '{key}' is not below one of its "
+                                 f"config_keys {self.config_keys}")
 
 
 def stage(
@@ -112,6 +124,8 @@ def stage(
     version: str = "1",
     resources: Resources = Resources(),
     config_schema: type | None = None,
+    cache_exclude: Iterable[str] = (),
+    sources: SourceLister | None = None,
 ) -> Callable[[StageFn], Stage]:
     """Decorator that turns ``fn(ctx)`` into a :class:`Stage`; the docstring becomes its description."""
 
@@ -125,6 +139,8 @@ def stage(
             version=version,
             resources=resources,
             config_schema=config_schema,
+            cache_exclude=tuple(cache_exclude),
+            sources=sources,
             description=(fn.__doc__ or "").strip().splitlines()[0] if fn.__doc__ else "",
         )
 

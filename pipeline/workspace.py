@@ -4,7 +4,8 @@ Layout under ``paths.outputs``::
 
     <outputs>/<subject>/<stage>/            a completed stage (manifest last)
     <outputs>/<subject>/.tmp/<stage>-<id>/  a stage being written (never read)
-    <outputs>/<subject>/.locks/<stage>.lock one lock per subject and stage
+    <outputs>/<subject>/.locks/<stage>.lock one lock per subject and stage: exclusive while the stage is
+                                            decided and written, shared while a stage that reads it runs
     <outputs>/<subject>/.scratch/<stage>-<key>/  checkpoints of an unfinished stage, kept across
                                             killed runs with the same cache key, removed on success
 
@@ -17,25 +18,35 @@ killed at any point leaves nothing that a later run takes for whole.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from filelock import FileLock, Timeout
+from pipeline.locks import LockTimeout, flock_all
+
+__all__ = ["LockTimeout", "SUBJECT_RULE", "Workspace", "subject_problem"]
+
+SUBJECT_RULE = "letters, digits, '-' or '_', starting with a letter or digit"
+_SUBJECT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
 
 
-class LockTimeout(RuntimeError):
-    """Another run holds a stage lock for longer than we are willing to wait."""
+def subject_problem(subject: object) -> str | None:
+    """Why ``subject`` cannot name a subject folder, or ``None`` when it can."""
+    if not isinstance(subject, str) or not _SUBJECT.fullmatch(subject):
+        return f"subject={subject!r}: use {SUBJECT_RULE}, e.g. subject=synth_a"
+    return None
 
 
 class Workspace:
     """The artifact tree of one subject."""
 
     def __init__(self, outputs: Path, subject: str) -> None:
-        if not subject or "/" in subject or subject.startswith((".", "_")):
-            raise ValueError(f"invalid subject name {subject!r}: use letters, digits, '-' or '_' (not leading)")
+        problem = subject_problem(subject)
+        if problem:
+            raise ValueError(problem)
         self.root = Path(outputs) / subject
         self.subject = subject
 
@@ -47,22 +58,20 @@ class Workspace:
         return self.root / ".tmp"
 
     @contextmanager
-    def lock(self, stage: str, timeout_s: float) -> Iterator[None]:
-        """Exclusive lock on one stage of this subject, across processes."""
+    def lock(self, stage: str, reads: Sequence[str], order: Sequence[str], timeout_s: float) -> Iterator[None]:
+        """Write lock on ``stage`` and read locks on the stages it ``reads``, across processes.
+
+        While held, no other run can write ``stage`` or replace any of ``reads``; other
+        readers of ``reads`` may run alongside. Locks are taken in ``order`` (the DAG's
+        topological order), so runs never deadlock.
+        """
         lock_dir = self.root / ".locks"
         lock_dir.mkdir(parents=True, exist_ok=True)
-        lock = FileLock(str(lock_dir / f"{stage}.lock"))
-        try:
-            lock.acquire(timeout=timeout_s)
-        except Timeout as exc:
-            raise LockTimeout(
-                f"stage '{stage}' of subject '{self.subject}' is locked by another run "
-                f"({lock_dir / f'{stage}.lock'}); wait for it or raise run.lock_timeout_s"
-            ) from exc
-        try:
+        wanted = {name: True for name in reads} | {stage: False}
+        requests = [(lock_dir / f"{name}.lock", wanted[name], f"stage '{name}' of subject '{self.subject}'")
+                    for name in order if name in wanted]
+        with flock_all(requests, timeout_s):
             yield
-        finally:
-            lock.release()
 
     def new_tmp_dir(self, stage: str) -> Path:
         """A fresh, empty directory for writing ``stage``; call with the stage lock held."""
@@ -88,11 +97,27 @@ class Workspace:
         return path
 
     def discard_scratch(self, stage: str) -> None:
-        """Remove every scratch dir of ``stage`` (after it was published)."""
+        """Remove every scratch dir of ``stage`` (after it was published or found cached; lock held)."""
         root = self.root / ".scratch"
         if root.is_dir():
             for p in root.glob(f"{stage}-*"):
                 shutil.rmtree(p, ignore_errors=True)
+
+    def discard_leftovers(self, stage: str) -> None:
+        """Remove what killed or failed runs of ``stage`` left behind (temporary dirs, checkpoints).
+
+        Call with the stage's write lock held and only when the stage is whole: no live
+        run can be writing either, and no later run can resume from them.
+        """
+        self.discard_stale_tmp(stage)
+        self.discard_scratch(stage)
+
+    def discard_empty_scratch(self, scratch: Path) -> None:
+        """Remove ``scratch`` if the stage left nothing in it to resume from (after a failure)."""
+        try:
+            scratch.rmdir()
+        except OSError:
+            pass  # not empty: a checkpoint the next run with the same key resumes from
 
     def publish(self, stage: str, tmp_dir: Path) -> Path:
         """Move a completed ``tmp_dir`` to the stage's final path, replacing any old version."""

@@ -2,8 +2,9 @@
 
 Each stage writes a text file derived from its config value and its inputs, so
 changing ``stage.<name>.value`` changes that stage's output and all below it.
-``stage.a.sleep_s`` makes ``a`` write half its output, then sleep (for kill
-tests); ``stage.a.fail`` makes it raise after writing half its output;
+``stage.<name>.sleep_s`` makes the stage write half its output, then sleep (for kill
+tests), then read its inputs a second time and record ``parts/mixed.txt`` if
+they changed meanwhile (for tests of concurrent writers); ``stage.a.fail`` makes it raise after writing half its output;
 ``stage.a.fail_once`` makes it leave a checkpoint in its scratch dir and
 raise, and resume from that checkpoint on the next run; ``stage.<name>.trace``
 names a file where start/end times are appended (for
@@ -49,6 +50,9 @@ def _toy(name: str, inputs: tuple[str, ...]):
         (ctx.out_dir / "parts" / "half.txt").write_text("first half\n")
         if conf.sleep_s:
             time.sleep(conf.sleep_s)
+            again = "".join(Path(ctx.input_dir(i), f"{i}.txt").read_text() for i in inputs)
+            if again != upstream:
+                (ctx.out_dir / "parts" / "mixed.txt").write_text(f"first read:\n{upstream}second read:\n{again}")
         if conf.fail:
             raise RuntimeError(f"toy stage {name} was told to fail")
         checkpoint = ctx.scratch_dir / "checkpoint.txt"

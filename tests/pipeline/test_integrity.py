@@ -1,0 +1,71 @@
+"""Regression tests of the fault catalogue (issue 9): the cache never certifies what it did not compute."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import run_app
+from pipeline.manifest import read_manifest, write_manifest
+from pipeline.runner import StageFailed
+from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli
+
+TOY = [*TOY_OVERRIDES, "run.progress=false"]
+
+
+def _wait_for(predicate, timeout_s: float = 60.0) -> None:
+    deadline = time.time() + timeout_s
+    while not predicate():
+        if time.time() > deadline:
+            raise TimeoutError("condition not met in time")
+        time.sleep(0.05)
+
+
+def test_a_stage_reads_exactly_the_inputs_its_manifest_names_while_another_run_rewrites_them(tmp_path):
+    """Case 1: `run.only=c run.force=true` while another run republishes c's input b with another config."""
+    out = tmp_path / "out"
+    base = [*TOY, f"paths.outputs={out}"]
+    assert run_cli(*base).returncode == 0
+    subject = out / "synth_a"
+    old_b = read_manifest(subject / "b").output_digest
+    reader = subprocess.Popen(cli_command(*base, "run.only=c", "run.force=true", "++stage.c.sleep_s=3"),
+                              cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(lambda: any((subject / ".tmp").glob("c-*/parts/half.txt")))  # c has read b once
+        writer = run_cli(*base, "run.only=b", "run.force=true", "stage.b.value=7")
+        reader_out, reader_err = reader.communicate(timeout=60)
+    finally:
+        reader.kill()
+    assert reader.returncode == 0 and writer.returncode == 0, reader_err + writer.stderr
+    assert not (subject / "c" / "parts" / "mixed.txt").exists(), "c read two versions of b"
+    assert (subject / "c" / "c.txt").read_text() == "a=1\nb=1\nc=1\n"
+    assert read_manifest(subject / "c").upstream["b"] == old_b  # c names the b it read
+    assert (subject / "b" / "b.txt").read_text() == "a=1\nb=7\n"  # the writer waited, then published
+    after = run_cli(*base, "stage.b.value=7", "++stage.c.sleep_s=3")
+    assert "c          run       upstream changed: b" in after.stdout
+
+
+def test_an_input_replaced_without_the_lock_fails_the_stage_and_publishes_nothing(toy_cfg, monkeypatch):
+    """Case 1, second line of defence: inputs are checked again at publish time."""
+    from tests import toy_dag
+
+    run_app(toy_cfg())
+    subject = Path(toy_cfg().paths.outputs) / "synth_a"
+    before = (subject / "c" / "_manifest.json").read_text()
+    original = toy_dag.REGISTRY["c"]
+
+    def rogue(ctx):  # a writer that ignores the locks replaces b while c runs
+        original.fn(ctx)
+        manifest = read_manifest(ctx.input_dir("b"))
+        manifest.outputs = {**manifest.outputs, "rogue.txt": "0" * 64}
+        write_manifest(ctx.input_dir("b"), manifest)
+
+    monkeypatch.setitem(toy_dag.REGISTRY._stages, "c", dataclasses.replace(original, fn=rogue))
+    with pytest.raises(StageFailed, match="input 'b' was replaced while the stage ran"):
+        run_app(toy_cfg("run.only=c", "run.force=true"))
+    assert (subject / "c" / "_manifest.json").read_text() == before
