@@ -21,8 +21,8 @@ dataset ships that was not imported, and why.
 
 from __future__ import annotations
 
+import fcntl
 import json
-import os
 import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -95,10 +95,19 @@ def provided_path(root: Path, sequence: str, name: str) -> Path:
     return root / sequence / "provided" / f"{name}.parquet"
 
 
-def link_or_copy(src: Path, dst: Path) -> None:
-    """Bring a file into a capture: a hard link where the file system allows it, else a copy."""
+_FICLONE = 0x40049409  # Linux ioctl: share the source's blocks copy-on-write (btrfs, XFS, bcachefs)
+
+
+def copy_into_capture(src: Path, dst: Path) -> None:
+    """Bring a user's file into a capture as an independent copy: a copy-on-write clone where the file system
+    has one, else a byte copy. Never a hard link: editing the user's file must not change a published artifact."""
     dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        try:
+            fcntl.ioctl(fout.fileno(), _FICLONE, fin.fileno())
+            cloned = True
+        except OSError:
+            cloned = False
+    if not cloned:
+        shutil.copyfile(src, dst)
+    shutil.copystat(src, dst)

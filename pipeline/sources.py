@@ -28,7 +28,7 @@ class SourceFiles:
 
     Attributes:
         root: the folder they are named relative to in manifests and messages.
-        files: absolute paths of every file read, below ``root``.
+        files: absolute paths of every file read (named by their absolute path when outside ``root``).
     """
 
     root: Path
@@ -67,7 +67,7 @@ def hash_sources(sources: SourceFiles, cache_path: Path) -> dict[str, str]:
                               f"written completely, then rerun")
             cache[str(path)] = [*stamp, digest]
             changed = True
-        digests[path.relative_to(sources.root).as_posix()] = digest
+        digests[path.relative_to(sources.root).as_posix() if path.is_relative_to(sources.root) else str(path)] = digest
     if changed:
         cache_path.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache_path.with_name(f"{cache_path.name}.{uuid.uuid4().hex[:8]}.tmp")

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig
 
-from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, link_or_copy, mask_path, video_path
+from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, copy_into_capture, mask_path, video_path
 from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.deform import DEFORM
 from data_schemas.images import read_png, write_png
@@ -18,7 +18,9 @@ from data_schemas.keypoints import write_keypoints
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.video import check_fully_decoded, read_video, video_fps, write_video
+from pipeline.sources import SourceFiles
 from pipeline.stage import Resources, StageContext, stage
+from stages.common import model_files
 
 if TYPE_CHECKING:
     from avatar.synthetic import SyntheticCapture
@@ -34,6 +36,26 @@ class CaptureConfig:
     default_frame_rate: float
 
 
+def capture_sources(cfg: DictConfig, subject: str) -> SourceFiles:
+    """The user files a capture imports, whose content enters its cache key: every file of the subject's
+    folder (dataset=folder), or the subject's part of the DECAF release and the official model files
+    (dataset=decaf); none for the synthetic generator."""
+    dataset = cfg.dataset
+    if dataset.name == "folder":
+        root = Path(dataset.root) / subject
+        return SourceFiles(root, _files_below(root))
+    if dataset.name == "decaf":
+        root = Path(dataset.root)
+        files = [f for folder in sorted(root.glob(f"*/*/{subject}")) for f in _files_below(folder)]
+        neck = root / "assets" / "FLAME_neck_idx.npy"
+        return SourceFiles(root, (*files, *([neck] if neck.is_file() else []), *model_files(cfg)))
+    return SourceFiles(Path("."), ())
+
+
+def _files_below(folder: Path) -> tuple[Path, ...]:
+    return tuple(sorted(p.resolve() for p in folder.rglob("*") if p.is_file())) if folder.is_dir() else ()
+
+
 @stage(
     "capture",
     config_keys=("dataset", "quality.capture_size", "quality.num_frames_train", "quality.num_frames_test",
@@ -42,6 +64,7 @@ class CaptureConfig:
     version="3",
     resources=Resources(cpus=2),
     config_schema=CaptureConfig,
+    sources=capture_sources,
 )
 def capture(ctx: StageContext) -> None:
     """Generate (synthetic) or validate and import (folder, decaf) a multi-view capture."""
@@ -109,7 +132,7 @@ def _write_synthetic_sequence(root: Path, seq: str, cap: SyntheticCapture) -> No
 
 # ---------------------------------------------------------------------------- folder
 def _import_folder(src: Path, out: Path, conf: DictConfig, subject: str) -> CaptureIndex:
-    """Validate a capture on disk and bring it into the stage directory (hard links where possible)."""
+    """Validate a capture on disk and bring it into the stage directory (copies, never links)."""
     if not src.is_dir():
         raise SchemaError(f"{src}: capture folder missing; set dataset.root so that <root>/{subject} exists")
     calibration = ("cameras.parquet, one row per camera (camera_id, width, height, K, world_to_cam, dist, split; "
@@ -124,13 +147,13 @@ def _import_folder(src: Path, out: Path, conf: DictConfig, subject: str) -> Capt
     if not seq_names:
         raise SchemaError(f"{src}: no <sequence>/videos/ folder; put one video per camera in e.g. {src}/train/videos/")
     sequences = {name: _validate_sequence(src, name, cameras, conf) for name in seq_names}
-    link_or_copy(src / "cameras.parquet", out / "cameras.parquet")
+    copy_into_capture(src / "cameras.parquet", out / "cameras.parquet")
     for name, info in sequences.items():
         for cam in cameras:
-            link_or_copy(video_path(src, name, cam.camera_id), video_path(out, name, cam.camera_id))
+            copy_into_capture(video_path(src, name, cam.camera_id), video_path(out, name, cam.camera_id))
             if info.has_masks:
                 for t in range(info.num_frames):
-                    link_or_copy(mask_path(src, name, cam.camera_id, t), mask_path(out, name, cam.camera_id, t))
+                    copy_into_capture(mask_path(src, name, cam.camera_id, t), mask_path(out, name, cam.camera_id, t))
     return CaptureIndex(subject=subject, dataset="folder", sequences=sequences)
 
 

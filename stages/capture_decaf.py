@@ -5,7 +5,7 @@ capture layout (:mod:`data_schemas.capture`):
 
 * DECAF ``train``/``test`` -> sequences ``train``/``test`` (the paper's self-reenactment split);
 * ``cameras.pkl`` -> ``cameras.parquet`` (``dataset.test_cameras`` held out for novel views);
-* videos -> ``<seq>/videos/<camera>.mp4`` (hard link or copy; re-encoded when frames are skipped or
+* videos -> ``<seq>/videos/<camera>.mp4`` (a copy, never a link; re-encoded when frames are skipped or
   the container is not mp4);
 * segmentation mattes -> part masks: matte foreground inside the grown hull of the provided hand
   keypoints is hand (2), the rest face (1);
@@ -32,7 +32,7 @@ from avatar.templates import OfficialModelError, TemplateModel, load_official_mo
 from avatar.templates.decaf import decaf_hand_to_mano, decaf_head_to_flame, decaf_world_offsets
 from avatar.templates.layers import OPENPOSE_FROM_MANO
 from data_schemas.cameras import Camera, write_cameras
-from data_schemas.capture import CaptureIndex, SequenceInfo, link_or_copy, mask_path, provided_path, video_path
+from data_schemas.capture import CaptureIndex, SequenceInfo, copy_into_capture, mask_path, provided_path, video_path
 from data_schemas.decaf import (
     MODES, DecafParams, DecafSequence, camera_key, decaf_cameras, iter_matte, read_contacts, read_deforms,
     read_keypoints, read_neck_vertices, read_params, scan_sequence,
@@ -230,7 +230,7 @@ def _write_deform(path: Path, scan: DecafSequence, frames: np.ndarray, params: D
 def _import_video(scan: DecafSequence, camera_id: str, frames: np.ndarray, dst: Path, fps: float) -> None:
     src = scan.videos[camera_id]
     if len(frames) == scan.num_frames and src.suffix.lower() == ".mp4":
-        link_or_copy(src, dst)
+        copy_into_capture(src, dst)
         return
     wanted = set(frames.tolist())
     written = write_video_stream(dst, (f for t, f in enumerate(iter_video(src)) if t in wanted), fps)

@@ -20,6 +20,7 @@ from data_schemas.frames import FRAMES_INDEX, crop_mask_path, rgb_path
 from data_schemas.images import read_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table
+from pipeline.sources import SourceFiles
 
 
 
@@ -113,3 +114,13 @@ def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussi
         binding=torch.as_tensor(np.asarray(t["binding"])),
         part=torch.tensor([part_names.index(p) for p in t["part"]]),
     )
+
+
+def model_files(cfg: DictConfig) -> list[Path]:
+    """The official FLAME/MANO files the config names (``model.*_path``), for source hashing."""
+    return [Path(p).resolve() for p in (cfg.model.flame_path, cfg.model.mano_path) if p and Path(p).is_file()]
+
+
+def model_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG001 - the SourceLister signature
+    """Source lister of stages that pose the official models: a replaced model file reruns them."""
+    return SourceFiles(Path("/"), tuple(model_files(cfg)))

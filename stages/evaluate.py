@@ -17,7 +17,7 @@ from data_schemas.images import write_png
 from data_schemas.metrics import METRICS, REGIONS
 from data_schemas.tables import write_table
 from pipeline.stage import StageContext, stage
-from stages.common import contact_frames, load_gaussians, load_meshes, load_views
+from stages.common import contact_frames, load_gaussians, load_meshes, load_views, model_sources
 
 #: split name -> (sequence, camera split) it renders
 SPLIT_SOURCES = {"novel_view": ("train", "test"), "self_reenact": ("test", "train")}
@@ -33,7 +33,8 @@ class EvaluateConfig:
 
 
 @stage("evaluate", inputs=("capture", "frames", "fit", "warmup"), config_keys=("model", "stage.evaluate"),
-       outputs=("metrics.parquet", "grids"), version="2", config_schema=EvaluateConfig)
+       outputs=("metrics.parquet", "grids"), version="2", config_schema=EvaluateConfig,
+       sources=model_sources)
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion; PSNR/SSIM/LPIPS per region; image grids."""
     conf = ctx.cfg.stage.evaluate

@@ -17,7 +17,7 @@ from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from pipeline.stage import Resources, StageContext, stage
-from stages.common import load_ground_truth_params, load_provided_params, templates
+from stages.common import load_ground_truth_params, load_provided_params, model_sources, templates
 
 SOURCES = ("ground_truth", "provided", "fitted")
 
@@ -39,7 +39,7 @@ class FitStageConfig:
 
 @stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit"),
        outputs=("train/params.parquet", "fit_report.json"), version="2", resources=Resources(cpus=2),
-       config_schema=FitStageConfig)
+       config_schema=FitStageConfig, sources=model_sources)
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors."""
     source = ctx.cfg.fit.source

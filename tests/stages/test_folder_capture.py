@@ -164,3 +164,31 @@ def test_missing_cameras_table_names_the_file_and_fix(tmp_path):
     subject = make_capture(tmp_path / "data")
     (subject / "cameras.parquet").unlink()
     _expect_capture_error(tmp_path, "alice/cameras.parquet: camera calibration missing; add cameras.parquet, one row")
+
+
+def test_replacing_a_source_video_reruns_the_capture_and_everything_below(tmp_path):
+    """Issue 9, case 2: the capture's key covers the source files' content, not only the config."""
+    subject = make_capture(tmp_path / "data")
+    reasons = lambda reports: {r.stage: (r.action, r.reason) for r in reports}  # noqa: E731
+    run_app(_cfg(tmp_path))
+    assert {a for a, _ in reasons(run_app(_cfg(tmp_path))).values()} == {"cached"}
+    write_video(video_path(subject, "train", "cam02"), _frames(5), 25.0)  # another take of the same camera
+    after = reasons(run_app(_cfg(tmp_path)))
+    assert after["capture"] == ("run", "source changed: train/videos/cam02.mp4")
+    assert after["frames"] == ("run", "upstream changed: capture")
+
+
+def test_published_capture_shares_no_storage_with_the_source(tmp_path):
+    """Issue 9, case 2: editing a source file in place never changes a published artifact."""
+    subject = make_capture(tmp_path / "data")
+    run_app(_cfg(tmp_path, "run.until=capture"))
+    source = video_path(subject, "train", "cam01")
+    published = video_path(tmp_path / "out" / "alice" / "capture", "train", "cam01")
+    before = published.read_bytes()
+    assert source.stat().st_ino != published.stat().st_ino
+    with open(source, "r+b") as f:  # in place: same inode, and a hard link would see it
+        f.seek(100)
+        f.write(b"\0" * 64)
+    assert published.read_bytes() == before
+    reports = {r.stage: (r.action, r.reason) for r in run_app(_cfg(tmp_path, "run.until=capture"))}
+    assert reports["capture"] == ("run", "source changed: train/videos/cam01.mp4")
