@@ -1,9 +1,10 @@
 """Differentiable 3D Gaussian rasterizer: one interface (``render_gaussians``), several backends.
 
-``torch`` (pure PyTorch, any device, the reference) and ``gsplat`` (CUDA). Modules:
-``projection`` (EWA projection), ``tiling`` (tile binning and depth sort), ``compositing``
-(alpha compositing with a hand-written backward), ``backend_torch``, ``backend_gsplat``,
-``render`` (backend choice), ``output`` (``RenderOutput``).
+``torch`` (pure PyTorch, any device, the reference), ``cpu`` (compiled C++/OpenMP, CPU) and
+``gsplat`` (CUDA). Modules: ``projection`` (EWA projection), ``tiling`` (tile binning and depth
+sort), ``compositing`` (alpha compositing with a hand-written backward), ``backend_torch``,
+``backend_cpu`` (with ``extension``, which builds ``csrc/``), ``backend_gsplat``, ``render``
+(backend choice), ``output`` (``RenderOutput``).
 """
 
 from .output import RenderOutput

@@ -4,28 +4,41 @@ from __future__ import annotations
 
 from torch import Tensor
 
+from .backend_cpu import DTYPES as CPU_DTYPES
+from .backend_cpu import render_cpu
 from .backend_gsplat import gsplat_available, render_gsplat
 from .backend_torch import render_torch
+from .extension import cpu_extension_available, unavailable_reason
 from .output import RenderOutput
 
-BACKENDS = ("torch", "gsplat")
+BACKENDS = ("torch", "cpu", "gsplat")
+_RENDERERS = {"torch": render_torch, "cpu": render_cpu, "gsplat": render_gsplat}
 
 
 def available_backends() -> list[str]:
-    """Backends usable in this process: always ``torch``, ``gsplat`` with CUDA and gsplat installed."""
-    return [name for name in BACKENDS if name == "torch" or gsplat_available()]
+    """Backends usable in this process: always ``torch``; ``cpu`` once the compiled extension is
+    built (building it on first call); ``gsplat`` with CUDA and gsplat installed."""
+    usable = {"torch": True, "cpu": cpu_extension_available(), "gsplat": gsplat_available()}
+    return [name for name in BACKENDS if usable[name]]
 
 
 def resolve_backend(backend: str, means: Tensor) -> str:
-    """The concrete backend for a request: ``auto`` picks gsplat for float32 CUDA inputs when available."""
+    """The concrete backend for a request. ``auto`` picks gsplat for float32 CUDA inputs and the
+    compiled ``cpu`` backend for float32/float64 CPU inputs when they are available, else torch."""
     if backend == "auto":
         use_gsplat = means.is_cuda and means.dtype.is_floating_point and means.element_size() == 4
-        return "gsplat" if use_gsplat and gsplat_available() else "torch"
+        if use_gsplat and gsplat_available():
+            return "gsplat"
+        use_cpu = means.device.type == "cpu" and means.dtype in CPU_DTYPES
+        return "cpu" if use_cpu and cpu_extension_available() else "torch"
     if backend not in BACKENDS:
         raise ValueError(f"unknown Gaussian rasterizer backend {backend!r}; "
                          f"choose one of auto, {', '.join(BACKENDS)}")
-    if backend not in available_backends():
+    if backend == "gsplat" and not gsplat_available():
         raise RuntimeError("backend 'gsplat' needs CUDA and the gsplat package (pip install gsplat); "
+                           "use backend='torch' or 'auto'")
+    if backend == "cpu" and not cpu_extension_available():
+        raise RuntimeError(f"backend 'cpu' (the compiled CPU rasterizer) is unavailable: {unavailable_reason()}; "
                            "use backend='torch' or 'auto'")
     return backend
 
@@ -56,14 +69,14 @@ def render_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Te
         world_to_cam: (4, 4) rigid transform, OpenCV camera axes (x right, y down, z forward).
         width, height: image size in pixels.
         background: (3,) colour behind the Gaussians.
-        backend: ``auto`` (gsplat on float32 CUDA inputs when available, else torch), ``torch``
-            or ``gsplat``.
+        backend: ``auto`` (gsplat on float32 CUDA inputs, the compiled ``cpu`` backend on
+            float32/float64 CPU inputs, when available; else torch), ``torch``, ``cpu`` or ``gsplat``.
         near, far: Gaussians with camera z outside ``[near, far]`` are culled.
 
     Differentiable w.r.t. means, quats, scales, opacities, colors and background (not the
     camera). ``RenderOutput.grad2d()`` gives ``dL/dmeans2d`` after ``backward()``.
     """
     _check_shapes(means, quats, scales, opacities, colors, K, world_to_cam, background)
-    render = render_gsplat if resolve_backend(backend, means) == "gsplat" else render_torch
+    render = _RENDERERS[resolve_backend(backend, means)]
     return render(means, quats, scales, opacities, colors, K, world_to_cam, width, height, background,
                   near=near, far=far)

@@ -1,0 +1,836 @@
+// The compiled CPU backend of the 3DGS rasterizer: the maths of projection.py, tiling.py and
+// compositing.py (see their docstrings), forward and hand-written backward, multithreaded with
+// OpenMP and registered as torch operators (torch.ops.interactavatar_gs.*).
+//
+// Conventions are those of the torch backend: OpenCV camera and pixel centres on integers,
+// per-Gaussian maths in float64 whatever the input dtype, per-pixel compositing in the input
+// dtype (float32 or float64), alpha = min(0.99, o exp(-q / 2)) skipped below 1/255, and a pixel
+// stops before the Gaussian that would take its transmittance below 1e-4.
+//
+// Determinism: every output element is written by exactly one thread in a fixed order. Tiles
+// write their own pixels; the backward writes each (tile, Gaussian) pair's gradient into its
+// own slot and sums a Gaussian's slots in tile order afterwards, so the result does not depend
+// on the thread count or the schedule.
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <torch/library.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <tuple>
+#include <vector>
+
+namespace {
+
+constexpr double kLowPass = 0.3;
+constexpr double kAlphaMin = 1.0 / 255.0;
+constexpr double kAlphaMax = 0.99;
+constexpr double kTMin = 1e-4;
+constexpr double kFovMargin = 0.3;
+constexpr double kQuatEps2 = 1e-24;
+constexpr double kMaxRadius = 1073741824.0;  // 2^30
+// Values per (tile, Gaussian) pair gradient slot: mean x, y, conic a, b, c, opacity, r, g, b, depth.
+constexpr int kPairGrad = 10;
+// Largest tile side: per-pixel tile state lives on the stack (kMaxTile^2 pixels).
+constexpr int kMaxTile = 32;
+constexpr int kMaxTilePixels = kMaxTile * kMaxTile;
+
+// ---------------------------------------------------------------------------------------------
+// Projection (projection.py)
+
+struct Camera {
+  double fx, fy, cx, cy;
+  double rot[3][3];
+  double trans[3];
+  double lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos;  // fov_limits
+  int width, height;
+  double near_plane, far_plane;
+};
+
+Camera make_camera(const at::Tensor& K, const at::Tensor& view, int64_t width, int64_t height,
+                   double near_plane, double far_plane) {
+  TORCH_CHECK(K.scalar_type() == at::kDouble && view.scalar_type() == at::kDouble,
+              "K and world_to_cam must be float64");
+  const at::Tensor k = K.contiguous(), v = view.contiguous();
+  const double* kp = k.const_data_ptr<double>();
+  const double* vp = v.const_data_ptr<double>();
+  Camera cam{};
+  cam.fx = kp[0];
+  cam.fy = kp[4];
+  cam.cx = kp[2];
+  cam.cy = kp[5];
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) cam.rot[i][j] = vp[4 * i + j];
+    cam.trans[i] = vp[4 * i + 3];
+  }
+  const double margin_x = kFovMargin * 0.5 * width / cam.fx;
+  const double margin_y = kFovMargin * 0.5 * height / cam.fy;
+  cam.lim_x_neg = (cam.cx + 0.5) / cam.fx + margin_x;
+  cam.lim_x_pos = (width - 0.5 - cam.cx) / cam.fx + margin_x;
+  cam.lim_y_neg = (cam.cy + 0.5) / cam.fy + margin_y;
+  cam.lim_y_pos = (height - 0.5 - cam.cy) / cam.fy + margin_y;
+  cam.width = static_cast<int>(width);
+  cam.height = static_cast<int>(height);
+  cam.near_plane = near_plane;
+  cam.far_plane = far_plane;
+  return cam;
+}
+
+// Everything the projection of one Gaussian computes; the backward recomputes it.
+struct Projected {
+  bool in_depth;
+  double x, y, z;  // camera point (the safe point (0, 0, 1) where culled by depth)
+  double tx, ty;   // clamped x / z, y / z
+  bool tx_free, ty_free;  // not clamped (the clamp passes the gradient)
+  double jw[2][3];        // EWA Jacobian times the camera rotation
+  double qn[4];           // normalised quaternion (w, x, y, z)
+  double inv_norm;
+  bool norm_free;  // the norm is above the clamp
+  double rq[3][3];  // rotation of the Gaussian
+  double bmat[2][3];  // jw rq
+  double amat[2][3];  // bmat diag(scale)
+  double a, b, c;  // 2D covariance with the low-pass
+  bool finite;
+  double u, v;  // projected mean
+};
+
+template <typename scalar_t>
+Projected project_one(const Camera& cam, const scalar_t* mean, const scalar_t* quat, const scalar_t* scale) {
+  Projected p{};
+  double pc[3];
+  for (int j = 0; j < 3; ++j) {
+    pc[j] = static_cast<double>(mean[0]) * cam.rot[j][0] + static_cast<double>(mean[1]) * cam.rot[j][1] +
+            static_cast<double>(mean[2]) * cam.rot[j][2] + cam.trans[j];
+  }
+  p.in_depth = pc[2] >= cam.near_plane && pc[2] <= cam.far_plane && std::isfinite(pc[0]) &&
+               std::isfinite(pc[1]) && std::isfinite(pc[2]);
+  if (!p.in_depth) {
+    pc[0] = 0.0;
+    pc[1] = 0.0;
+    pc[2] = 1.0;
+  }
+  p.x = pc[0];
+  p.y = pc[1];
+  p.z = pc[2];
+  p.u = cam.fx * p.x / p.z + cam.cx;
+  p.v = cam.fy * p.y / p.z + cam.cy;
+
+  const double rx = p.x / p.z, ry = p.y / p.z;
+  p.tx = std::min(std::max(rx, -cam.lim_x_neg), cam.lim_x_pos);
+  p.ty = std::min(std::max(ry, -cam.lim_y_neg), cam.lim_y_pos);
+  p.tx_free = rx >= -cam.lim_x_neg && rx <= cam.lim_x_pos;
+  p.ty_free = ry >= -cam.lim_y_neg && ry <= cam.lim_y_pos;
+  const double fx_z = cam.fx / p.z, fy_z = cam.fy / p.z;
+  for (int k = 0; k < 3; ++k) {
+    p.jw[0][k] = fx_z * (cam.rot[0][k] - p.tx * cam.rot[2][k]);
+    p.jw[1][k] = fy_z * (cam.rot[1][k] - p.ty * cam.rot[2][k]);
+  }
+
+  const double qw = quat[0], qx = quat[1], qy = quat[2], qz = quat[3];
+  const double n2 = qw * qw + qx * qx + qy * qy + qz * qz;
+  p.norm_free = n2 >= kQuatEps2;
+  p.inv_norm = 1.0 / std::sqrt(std::max(n2, kQuatEps2));
+  const double w = qw * p.inv_norm, x = qx * p.inv_norm, y = qy * p.inv_norm, z = qz * p.inv_norm;
+  p.qn[0] = w;
+  p.qn[1] = x;
+  p.qn[2] = y;
+  p.qn[3] = z;
+  p.rq[0][0] = 1 - 2 * (y * y + z * z);
+  p.rq[0][1] = 2 * (x * y - w * z);
+  p.rq[0][2] = 2 * (x * z + w * y);
+  p.rq[1][0] = 2 * (x * y + w * z);
+  p.rq[1][1] = 1 - 2 * (x * x + z * z);
+  p.rq[1][2] = 2 * (y * z - w * x);
+  p.rq[2][0] = 2 * (x * z - w * y);
+  p.rq[2][1] = 2 * (y * z + w * x);
+  p.rq[2][2] = 1 - 2 * (x * x + y * y);
+
+  for (int i = 0; i < 2; ++i) {
+    for (int j = 0; j < 3; ++j) {
+      p.bmat[i][j] = p.jw[i][0] * p.rq[0][j] + p.jw[i][1] * p.rq[1][j] + p.jw[i][2] * p.rq[2][j];
+      p.amat[i][j] = p.bmat[i][j] * static_cast<double>(scale[j]);
+    }
+  }
+  const double (&am)[2][3] = p.amat;
+  p.a = am[0][0] * am[0][0] + am[0][1] * am[0][1] + am[0][2] * am[0][2] + kLowPass;
+  p.b = am[0][0] * am[1][0] + am[0][1] * am[1][1] + am[0][2] * am[1][2];
+  p.c = am[1][0] * am[1][0] + am[1][1] * am[1][1] + am[1][2] * am[1][2] + kLowPass;
+  p.finite = std::isfinite(p.a) && std::isfinite(p.b) && std::isfinite(p.c);
+  if (!p.finite) {
+    p.a = kLowPass;
+    p.b = 0.0;
+    p.c = kLowPass;
+  }
+  return p;
+}
+
+// One inclusive pixel-box axis [lo, hi] of the centres within `half` of `centre`, clipped to
+// [0, size - 1]; returns whether it is non-empty (projection._pixel_box).
+bool box_axis(double centre, double half, int size, int32_t* lo_out, int32_t* hi_out) {
+  const double lo = std::ceil(centre - half), hi = std::floor(centre + half);
+  const double top = size - 1.0;
+  *lo_out = static_cast<int32_t>(std::min(std::max(lo, 0.0), top));
+  *hi_out = static_cast<int32_t>(std::min(std::max(hi, 0.0), top));
+  return lo <= hi && hi >= 0.0 && lo <= top;
+}
+
+template <typename scalar_t>
+void project_forward_impl(const Camera& cam, int64_t n, const scalar_t* means, const scalar_t* quats,
+                          const scalar_t* scales, const scalar_t* opacities, scalar_t* means2d,
+                          scalar_t* conics, scalar_t* depths, int32_t* radii, int32_t* box, bool* visible) {
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    const Projected p = project_one(cam, means + 3 * i, quats + 4 * i, scales + 3 * i);
+    const double det = p.a * p.c - p.b * p.b;
+    means2d[2 * i] = static_cast<scalar_t>(p.u);
+    means2d[2 * i + 1] = static_cast<scalar_t>(p.v);
+    conics[3 * i] = static_cast<scalar_t>(p.c / det);
+    conics[3 * i + 1] = static_cast<scalar_t>(-p.b / det);
+    conics[3 * i + 2] = static_cast<scalar_t>(p.a / det);
+    depths[i] = static_cast<scalar_t>(p.z);
+
+    const double extent = std::sqrt(2.0 * std::log(std::max(static_cast<double>(opacities[i]) / kAlphaMin, 1.0)));
+    const double half_x = extent * std::sqrt(p.a), half_y = extent * std::sqrt(p.c);
+    int32_t* bx = box + 4 * i;
+    bool nonempty = false;
+    const bool centre_finite = std::isfinite(p.u) && std::isfinite(p.v);
+    if (centre_finite) {
+      const bool nx = box_axis(p.u, std::min(half_x, kMaxRadius), cam.width, bx, bx + 2);
+      const bool ny = box_axis(p.v, std::min(half_y, kMaxRadius), cam.height, bx + 1, bx + 3);
+      nonempty = nx && ny;
+    } else {
+      std::fill(bx, bx + 4, 0);
+    }
+    const bool vis = p.in_depth && p.finite && extent > 0.0 && nonempty && centre_finite;
+    visible[i] = vis;
+    radii[i] = vis ? static_cast<int32_t>(std::ceil(std::min(std::max(half_x, half_y), kMaxRadius))) : 0;
+  }
+}
+
+// dL/d(qn) of the rotation entries, given dL/dR (3 x 3).
+void rotation_vjp(const double qn[4], const double g[3][3], double out[4]) {
+  const double w = qn[0], x = qn[1], y = qn[2], z = qn[3];
+  out[0] = 2 * (-z * g[0][1] + y * g[0][2] + z * g[1][0] - x * g[1][2] - y * g[2][0] + x * g[2][1]);
+  out[1] = 2 * (y * g[0][1] + z * g[0][2] + y * g[1][0] - 2 * x * g[1][1] - w * g[1][2] + z * g[2][0] +
+                w * g[2][1] - 2 * x * g[2][2]);
+  out[2] = 2 * (-2 * y * g[0][0] + x * g[0][1] + w * g[0][2] + x * g[1][0] + z * g[1][2] - w * g[2][0] +
+                z * g[2][1] - 2 * y * g[2][2]);
+  out[3] = 2 * (-2 * z * g[0][0] - w * g[0][1] + x * g[0][2] + w * g[1][0] - 2 * z * g[1][1] + y * g[1][2] +
+                x * g[2][0] + y * g[2][1]);
+}
+
+template <typename scalar_t>
+void project_backward_impl(const Camera& cam, int64_t n, const scalar_t* means, const scalar_t* quats,
+                           const scalar_t* scales, const scalar_t* g_means2d, const scalar_t* g_conics,
+                           const scalar_t* g_depths, scalar_t* g_means, scalar_t* g_quats, scalar_t* g_scales) {
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    const Projected p = project_one(cam, means + 3 * i, quats + 4 * i, scales + 3 * i);
+    // Conic (c, -b, a) / det -> covariance entries a, b, c.
+    double ga = 0.0, gb = 0.0, gc = 0.0;
+    if (p.finite) {
+      const double det = p.a * p.c - p.b * p.b, inv = 1.0 / det, inv2 = inv * inv;
+      const double g0 = g_conics[3 * i], g1 = g_conics[3 * i + 1], g2 = g_conics[3 * i + 2];
+      const double a = p.a, b = p.b, c = p.c;
+      ga = -c * c * inv2 * g0 + b * c * inv2 * g1 - b * b * inv2 * g2;
+      gb = 2 * b * c * inv2 * g0 + (-inv - 2 * b * b * inv2) * g1 + 2 * a * b * inv2 * g2;
+      gc = -b * b * inv2 * g0 + a * b * inv2 * g1 - a * a * inv2 * g2;
+    }
+    double g_jw[2][3] = {}, g_rq[3][3] = {};
+    for (int j = 0; j < 3; ++j) {
+      const double d0 = 2 * ga * p.amat[0][j] + gb * p.amat[1][j];
+      const double d1 = 2 * gc * p.amat[1][j] + gb * p.amat[0][j];
+      g_scales[3 * i + j] = static_cast<scalar_t>(d0 * p.bmat[0][j] + d1 * p.bmat[1][j]);
+      const double s = scales[3 * i + j];
+      const double db[2] = {d0 * s, d1 * s};
+      for (int k = 0; k < 3; ++k) {
+        for (int r = 0; r < 2; ++r) {
+          g_jw[r][k] += db[r] * p.rq[k][j];
+          g_rq[k][j] += db[r] * p.jw[r][k];
+        }
+      }
+    }
+    double g_qn[4];
+    rotation_vjp(p.qn, g_rq, g_qn);
+    const double dot = p.norm_free ? p.qn[0] * g_qn[0] + p.qn[1] * g_qn[1] + p.qn[2] * g_qn[2] + p.qn[3] * g_qn[3]
+                                   : 0.0;
+    for (int k = 0; k < 4; ++k) g_quats[4 * i + k] = static_cast<scalar_t>(p.inv_norm * (g_qn[k] - p.qn[k] * dot));
+
+    if (!p.in_depth) {  // the safe point is a constant
+      for (int k = 0; k < 3; ++k) g_means[3 * i + k] = 0;
+      continue;
+    }
+    const double x = p.x, y = p.y, z = p.z;
+    double gx = 0.0, gy = 0.0, gz = static_cast<double>(g_depths[i]);
+    double g_t[2] = {0.0, 0.0};
+    const double f_z[2] = {cam.fx / z, cam.fy / z};
+    for (int r = 0; r < 2; ++r) {
+      for (int k = 0; k < 3; ++k) {
+        gz -= g_jw[r][k] * p.jw[r][k] / z;
+        g_t[r] -= g_jw[r][k] * f_z[r] * cam.rot[2][k];
+      }
+    }
+    if (p.tx_free) {
+      gx += g_t[0] / z;
+      gz -= g_t[0] * x / (z * z);
+    }
+    if (p.ty_free) {
+      gy += g_t[1] / z;
+      gz -= g_t[1] * y / (z * z);
+    }
+    const double gu = g_means2d[2 * i], gv = g_means2d[2 * i + 1];
+    gx += gu * cam.fx / z;
+    gy += gv * cam.fy / z;
+    gz -= (gu * cam.fx * x + gv * cam.fy * y) / (z * z);
+    for (int k = 0; k < 3; ++k) {
+      g_means[3 * i + k] = static_cast<scalar_t>(cam.rot[0][k] * gx + cam.rot[1][k] * gy + cam.rot[2][k] * gz);
+    }
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Tile binning (tiling.py): per-tile lists, front to back (depth, then index, order).
+
+struct TileGrid {
+  int tile_size, tiles_x, tiles_y, width, height;
+  int num_tiles() const { return tiles_x * tiles_y; }
+};
+
+TileGrid make_grid(int64_t width, int64_t height, int64_t tile_size) {
+  TORCH_CHECK(tile_size >= 1 && tile_size <= kMaxTile, "tile_size must be in [1, ", kMaxTile, "]");
+  const int ts = static_cast<int>(tile_size);
+  return TileGrid{ts, static_cast<int>((width + ts - 1) / ts), static_cast<int>((height + ts - 1) / ts),
+                  static_cast<int>(width), static_cast<int>(height)};
+}
+
+template <typename scalar_t>
+std::vector<int32_t> depth_order(int64_t n, const scalar_t* depths, const bool* visible) {
+  std::vector<int32_t> order;
+  order.reserve(n);
+  for (int64_t i = 0; i < n; ++i) {
+    if (visible[i]) order.push_back(static_cast<int32_t>(i));
+  }
+  std::stable_sort(order.begin(), order.end(), [depths](int32_t l, int32_t r) { return depths[l] < depths[r]; });
+  return order;
+}
+
+template <typename scalar_t>
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles_impl(const TileGrid& grid, int64_t n,
+                                                                          const int32_t* box,
+                                                                          const scalar_t* depths,
+                                                                          const bool* visible) {
+  const int ts = grid.tile_size;
+  const auto long_opts = at::TensorOptions().dtype(at::kLong);
+  at::Tensor gauss_offsets = at::empty({n + 1}, long_opts);
+  int64_t* goff = gauss_offsets.data_ptr<int64_t>();
+  std::vector<int64_t> tile_count(grid.num_tiles() + 1, 0);
+  goff[0] = 0;
+  for (int64_t i = 0; i < n; ++i) {
+    int64_t count = 0;
+    if (visible[i]) {
+      const int32_t* b = box + 4 * i;
+      const int x0 = b[0] / ts, y0 = b[1] / ts, x1 = b[2] / ts, y1 = b[3] / ts;
+      count = static_cast<int64_t>(x1 - x0 + 1) * (y1 - y0 + 1);
+      for (int ty = y0; ty <= y1; ++ty) {
+        for (int tx = x0; tx <= x1; ++tx) ++tile_count[ty * grid.tiles_x + tx + 1];
+      }
+    }
+    goff[i + 1] = goff[i] + count;
+  }
+  const int64_t pairs = goff[n];
+  TORCH_CHECK(pairs <= std::numeric_limits<int32_t>::max(),
+              pairs, " (Gaussian, tile) pairs overflow int32 indices; use a larger tile size");
+  at::Tensor tile_offsets = at::empty({grid.num_tiles() + 1}, long_opts);
+  int64_t* toff = tile_offsets.data_ptr<int64_t>();
+  toff[0] = 0;
+  for (int t = 0; t < grid.num_tiles(); ++t) toff[t + 1] = toff[t] + tile_count[t + 1];
+
+  const auto int_opts = at::TensorOptions().dtype(at::kInt);
+  at::Tensor ids = at::empty({pairs}, int_opts), slots = at::empty({pairs}, int_opts);
+  int32_t* id_p = ids.data_ptr<int32_t>();
+  int32_t* slot_p = slots.data_ptr<int32_t>();
+  std::vector<int64_t> cursor(toff, toff + grid.num_tiles());
+  for (const int32_t g : depth_order(n, depths, visible)) {
+    const int32_t* b = box + 4 * g;
+    int32_t slot = static_cast<int32_t>(goff[g]);
+    for (int ty = b[1] / ts; ty <= b[3] / ts; ++ty) {
+      for (int tx = b[0] / ts; tx <= b[2] / ts; ++tx) {
+        const int64_t pos = cursor[ty * grid.tiles_x + tx]++;
+        id_p[pos] = g;
+        slot_p[pos] = slot++;
+      }
+    }
+  }
+  return {ids, slots, tile_offsets, gauss_offsets};
+}
+
+// ---------------------------------------------------------------------------------------------
+// Compositing (compositing.py), one tile at a time.
+
+// A Gaussian's screen-space parameters, packed for the per-pixel loops.
+template <typename scalar_t>
+struct Splat {
+  scalar_t mx, my, a, b, c, opacity;
+  scalar_t q_max;  // beyond this Mahalanobis power alpha is certainly below ALPHA_MIN
+  scalar_t color[3];
+  scalar_t depth;
+};
+
+template <typename scalar_t>
+std::vector<Splat<scalar_t>> pack_splats(int64_t n, const scalar_t* means2d, const scalar_t* conics,
+                                         const scalar_t* opacities, const scalar_t* colors, const scalar_t* depths) {
+  std::vector<Splat<scalar_t>> splats(n);
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    Splat<scalar_t>& s = splats[i];
+    s.mx = means2d[2 * i];
+    s.my = means2d[2 * i + 1];
+    s.a = conics[3 * i];
+    s.b = conics[3 * i + 1];
+    s.c = conics[3 * i + 2];
+    s.opacity = opacities[i];
+    // o exp(-q / 2) >= 1/255 needs q <= 2 ln(255 o); the margin covers rounding of exp and o * G.
+    const double o = std::max(static_cast<double>(opacities[i]), kAlphaMin);
+    s.q_max = static_cast<scalar_t>(2.0 * std::log(o / kAlphaMin) * (1.0 + 1e-4) + 1e-4);
+    for (int k = 0; k < 3; ++k) s.color[k] = colors[3 * i + k];
+    s.depth = depths[i];
+  }
+  return splats;
+}
+
+// The pixels of a tile that a Gaussian's box covers: rows [y0, y1], columns [x0, x1] (image coordinates).
+struct Span {
+  int x0, x1, y0, y1;
+};
+
+inline Span clip_box(const int32_t* b, int tx0, int ty0, int tw, int th) {
+  return Span{std::max<int>(b[0], tx0), std::min<int>(b[2], tx0 + tw - 1), std::max<int>(b[1], ty0),
+              std::min<int>(b[3], ty0 + th - 1)};
+}
+
+// alpha of a Gaussian at a pixel offset (dx, dy) from its mean, 0 where below ALPHA_MIN; also
+// G = exp(-q / 2) and whether alpha is clamped at ALPHA_MAX. The forward and the backward call
+// this same function, so their skip decisions agree bit for bit.
+template <typename scalar_t>
+inline bool splat_alpha(const Splat<scalar_t>& s, scalar_t dx, scalar_t dy, scalar_t* alpha, scalar_t* gauss,
+                        bool* clamped) {
+  const scalar_t q = s.a * dx * dx + 2 * s.b * dx * dy + s.c * dy * dy;
+  if (!(q <= s.q_max)) return false;
+  const scalar_t g = std::exp(static_cast<scalar_t>(-0.5) * q);
+  const scalar_t raw = s.opacity * g;
+  if (raw < static_cast<scalar_t>(kAlphaMin)) return false;
+  *clamped = raw >= static_cast<scalar_t>(kAlphaMax);
+  *alpha = *clamped ? static_cast<scalar_t>(kAlphaMax) : raw;
+  *gauss = g;
+  return true;
+}
+
+struct TileRect {
+  int x0, y0, w, h;
+};
+
+inline TileRect tile_rect(const TileGrid& grid, int t) {
+  const int x0 = (t % grid.tiles_x) * grid.tile_size, y0 = (t / grid.tiles_x) * grid.tile_size;
+  return TileRect{x0, y0, std::min(grid.tile_size, grid.width - x0), std::min(grid.tile_size, grid.height - y0)};
+}
+
+// Runs `body(tile)` over all tiles on the OpenMP threads, handing out tiles dynamically.
+template <typename Body>
+void for_each_tile(const TileGrid& grid, Body body) {
+  std::atomic<int> next{0};
+#pragma omp parallel
+  {
+    for (int t = next.fetch_add(1); t < grid.num_tiles(); t = next.fetch_add(1)) body(t);
+  }
+}
+
+// Counters of the forward pass, for the benchmark: alpha evaluations (pixels of a Gaussian's box
+// in a tile, not yet stopped) and contributing (Gaussian, pixel) pairs.
+struct Counts {
+  int64_t evaluations = 0, contributions = 0;
+};
+
+template <typename scalar_t, bool kCount>
+void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* box,
+                         const int32_t* ids, const int64_t* toff, const scalar_t* background, scalar_t* rgb,
+                         scalar_t* alpha_out, scalar_t* depth_out, scalar_t* t_final, int32_t* last_out,
+                         std::vector<Counts>* counts) {
+  const int ts = grid.tile_size, width = grid.width;
+  for_each_tile(grid, [&](int t) {
+    const TileRect r = tile_rect(grid, t);
+    const int npix = ts * ts;
+    scalar_t trans[kMaxTilePixels], acc[kMaxTilePixels], feat[kMaxTilePixels][4];
+    int32_t last[kMaxTilePixels];
+    bool done[kMaxTilePixels];
+    std::fill(trans, trans + npix, scalar_t(1));
+    std::fill(acc, acc + npix, scalar_t(0));
+    std::fill(&feat[0][0], &feat[0][0] + 4 * npix, scalar_t(0));
+    std::fill(last, last + npix, -1);
+    std::fill(done, done + npix, false);
+    int remaining = r.w * r.h;
+    Counts local;
+    const int64_t begin = toff[t], end = toff[t + 1];
+    for (int64_t k = begin; k < end && remaining > 0; ++k) {
+      const int32_t g = ids[k];
+      const Splat<scalar_t>& s = splats[g];
+      const Span sp = clip_box(box + 4 * g, r.x0, r.y0, r.w, r.h);
+      for (int py = sp.y0; py <= sp.y1; ++py) {
+        const scalar_t dy = static_cast<scalar_t>(py) - s.my;
+        for (int px = sp.x0; px <= sp.x1; ++px) {
+          const int p = (py - r.y0) * ts + (px - r.x0);
+          if (done[p]) continue;
+          if (kCount) ++local.evaluations;
+          scalar_t alpha, gauss;
+          bool clamped;
+          if (!splat_alpha(s, static_cast<scalar_t>(px) - s.mx, dy, &alpha, &gauss, &clamped)) continue;
+          const scalar_t next = trans[p] * (1 - alpha);
+          if (next < static_cast<scalar_t>(kTMin)) {
+            done[p] = true;
+            --remaining;
+            continue;
+          }
+          if (kCount) ++local.contributions;
+          const scalar_t w = alpha * trans[p];
+          feat[p][0] += w * s.color[0];
+          feat[p][1] += w * s.color[1];
+          feat[p][2] += w * s.color[2];
+          feat[p][3] += w * s.depth;
+          acc[p] += w;
+          trans[p] = next;
+          last[p] = static_cast<int32_t>(k - begin);
+        }
+      }
+    }
+    for (int iy = 0; iy < r.h; ++iy) {
+      for (int ix = 0; ix < r.w; ++ix) {
+        const int p = iy * ts + ix;
+        const int64_t o = static_cast<int64_t>(r.y0 + iy) * width + r.x0 + ix;
+        for (int ch = 0; ch < 3; ++ch) rgb[3 * o + ch] = feat[p][ch] + (1 - acc[p]) * background[ch];
+        alpha_out[o] = acc[p];
+        depth_out[o] = feat[p][3];
+        t_final[o] = trans[p];
+        last_out[o] = last[p];
+      }
+    }
+    if (kCount) (*counts)[t] = local;
+  });
+}
+
+template <typename scalar_t>
+void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* box,
+                          const int32_t* ids, const int32_t* slots, const int64_t* toff, const scalar_t* background,
+                          const scalar_t* alpha_in, const scalar_t* t_final, const int32_t* last_in,
+                          const scalar_t* g_rgb, const scalar_t* g_alpha, const scalar_t* g_depth,
+                          scalar_t* pair_grad, double* tile_bg_grad) {
+  const int ts = grid.tile_size, width = grid.width;
+  for_each_tile(grid, [&](int t) {
+    const TileRect r = tile_rect(grid, t);
+    scalar_t trans[kMaxTilePixels], later[kMaxTilePixels], g_feat[kMaxTilePixels][4], g_acc[kMaxTilePixels];
+    int32_t last[kMaxTilePixels];
+    int32_t max_last = -1;
+    double bg[3] = {0.0, 0.0, 0.0};
+    for (int iy = 0; iy < r.h; ++iy) {
+      for (int ix = 0; ix < r.w; ++ix) {
+        const int p = iy * ts + ix;
+        const int64_t o = static_cast<int64_t>(r.y0 + iy) * width + r.x0 + ix;
+        trans[p] = t_final[o];
+        later[p] = 0;
+        last[p] = last_in[o];
+        max_last = std::max(max_last, last[p]);
+        scalar_t bg_dot = 0;
+        for (int ch = 0; ch < 3; ++ch) {
+          g_feat[p][ch] = g_rgb[3 * o + ch];
+          bg_dot += background[ch] * g_rgb[3 * o + ch];
+          bg[ch] += static_cast<double>((1 - alpha_in[o]) * g_rgb[3 * o + ch]);
+        }
+        g_feat[p][3] = g_depth[o];
+        // rgb = feat + (1 - acc) background, alpha = acc: dL/dacc gathers both.
+        g_acc[p] = g_alpha[o] - bg_dot;
+      }
+    }
+    for (int ch = 0; ch < 3; ++ch) tile_bg_grad[3 * t + ch] = bg[ch];
+    const int64_t begin = toff[t], end = toff[t + 1];
+    for (int64_t k = begin + max_last + 1; k < end; ++k) {
+      std::fill(pair_grad + int64_t{kPairGrad} * slots[k], pair_grad + int64_t{kPairGrad} * (slots[k] + 1),
+                scalar_t(0));
+    }
+    for (int64_t k = begin + max_last; k >= begin; --k) {
+      const int32_t g = ids[k];
+      const int32_t local_k = static_cast<int32_t>(k - begin);
+      const Splat<scalar_t>& s = splats[g];
+      const Span sp = clip_box(box + 4 * g, r.x0, r.y0, r.w, r.h);
+      scalar_t gm_x = 0, gm_y = 0, gc_a = 0, gc_b = 0, gc_c = 0, g_o = 0, g_col[3] = {0, 0, 0}, g_d = 0;
+      for (int py = sp.y0; py <= sp.y1; ++py) {
+        const scalar_t dy = static_cast<scalar_t>(py) - s.my;
+        for (int px = sp.x0; px <= sp.x1; ++px) {
+          const int p = (py - r.y0) * ts + (px - r.x0);
+          if (local_k > last[p]) continue;
+          const scalar_t dx = static_cast<scalar_t>(px) - s.mx;
+          scalar_t alpha, gauss;
+          bool clamped;
+          if (!splat_alpha(s, dx, dy, &alpha, &gauss, &clamped)) continue;
+          const scalar_t one_minus = 1 - alpha;
+          const scalar_t t_prev = trans[p] / one_minus;
+          const scalar_t w = alpha * t_prev;
+          const scalar_t v = s.color[0] * g_feat[p][0] + s.color[1] * g_feat[p][1] + s.color[2] * g_feat[p][2] +
+                             s.depth * g_feat[p][3] + g_acc[p];
+          const scalar_t d_alpha = t_prev * v - later[p] / one_minus;
+          later[p] += w * v;
+          trans[p] = t_prev;
+          g_col[0] += w * g_feat[p][0];
+          g_col[1] += w * g_feat[p][1];
+          g_col[2] += w * g_feat[p][2];
+          g_d += w * g_feat[p][3];
+          if (clamped) continue;
+          g_o += gauss * d_alpha;
+          const scalar_t d_q = static_cast<scalar_t>(-0.5) * alpha * d_alpha;
+          gc_a += d_q * dx * dx;
+          gc_b += 2 * d_q * dx * dy;
+          gc_c += d_q * dy * dy;
+          gm_x -= 2 * d_q * (s.a * dx + s.b * dy);
+          gm_y -= 2 * d_q * (s.b * dx + s.c * dy);
+        }
+      }
+      scalar_t* out = pair_grad + int64_t{kPairGrad} * slots[k];
+      out[0] = gm_x;
+      out[1] = gm_y;
+      out[2] = gc_a;
+      out[3] = gc_b;
+      out[4] = gc_c;
+      out[5] = g_o;
+      out[6] = g_col[0];
+      out[7] = g_col[1];
+      out[8] = g_col[2];
+      out[9] = g_d;
+    }
+  });
+}
+
+// ---------------------------------------------------------------------------------------------
+// Operators
+
+void set_threads(int64_t threads) {
+  TORCH_CHECK(threads >= 1, "threads must be >= 1");
+  omp_set_num_threads(static_cast<int>(threads));
+}
+
+void check_cpu(const at::Tensor& t, const char* name) {
+  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_forward(
+    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& opacities,
+    const at::Tensor& K, const at::Tensor& view, int64_t width, int64_t height, double near_plane,
+    double far_plane, int64_t threads) {
+  check_cpu(means, "means");
+  set_threads(threads);
+  const Camera cam = make_camera(K, view, width, height, near_plane, far_plane);
+  const int64_t n = means.size(0);
+  const auto opts = means.options();
+  at::Tensor means2d = at::empty({n, 2}, opts), conics = at::empty({n, 3}, opts), depths = at::empty({n}, opts);
+  at::Tensor radii = at::empty({n}, opts.dtype(at::kInt)), box = at::empty({n, 4}, opts.dtype(at::kInt));
+  at::Tensor visible = at::empty({n}, opts.dtype(at::kBool));
+  const at::Tensor m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous(), o = opacities.contiguous();
+  auto run = [&](auto tag) {
+    using scalar_t = decltype(tag);
+    project_forward_impl<scalar_t>(cam, n, m.const_data_ptr<scalar_t>(), q.const_data_ptr<scalar_t>(),
+                                   s.const_data_ptr<scalar_t>(), o.const_data_ptr<scalar_t>(),
+                                   means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                                   depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), box.data_ptr<int32_t>(),
+                                   visible.data_ptr<bool>());
+  };
+  if (means.scalar_type() == at::kDouble) run(double{}); else run(float{});
+  return {means2d, conics, depths, radii, box, visible};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> project_backward(
+    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales, const at::Tensor& K,
+    const at::Tensor& view, int64_t width, int64_t height, double near_plane, double far_plane,
+    const at::Tensor& g_means2d, const at::Tensor& g_conics, const at::Tensor& g_depths, int64_t threads) {
+  set_threads(threads);
+  const Camera cam = make_camera(K, view, width, height, near_plane, far_plane);
+  const int64_t n = means.size(0);
+  at::Tensor g_means = at::empty({n, 3}, means.options()), g_quats = at::empty({n, 4}, means.options());
+  at::Tensor g_scales = at::empty({n, 3}, means.options());
+  const at::Tensor m = means.contiguous(), q = quats.contiguous(), s = scales.contiguous();
+  const at::Tensor gm = g_means2d.contiguous(), gc = g_conics.contiguous(), gd = g_depths.contiguous();
+  auto run = [&](auto tag) {
+    using scalar_t = decltype(tag);
+    project_backward_impl<scalar_t>(cam, n, m.const_data_ptr<scalar_t>(), q.const_data_ptr<scalar_t>(),
+                                    s.const_data_ptr<scalar_t>(), gm.const_data_ptr<scalar_t>(),
+                                    gc.const_data_ptr<scalar_t>(), gd.const_data_ptr<scalar_t>(),
+                                    g_means.data_ptr<scalar_t>(), g_quats.data_ptr<scalar_t>(),
+                                    g_scales.data_ptr<scalar_t>());
+  };
+  if (means.scalar_type() == at::kDouble) run(double{}); else run(float{});
+  return {g_means, g_quats, g_scales};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles(const at::Tensor& box, const at::Tensor& depths,
+                                                                     const at::Tensor& visible, int64_t width,
+                                                                     int64_t height, int64_t tile_size) {
+  const TileGrid grid = make_grid(width, height, tile_size);
+  const at::Tensor b = box.contiguous(), d = depths.contiguous(), v = visible.contiguous();
+  const int64_t n = b.size(0);
+  if (d.scalar_type() == at::kDouble) {
+    return bin_tiles_impl<double>(grid, n, b.const_data_ptr<int32_t>(), d.const_data_ptr<double>(),
+                                  v.const_data_ptr<bool>());
+  }
+  return bin_tiles_impl<float>(grid, n, b.const_data_ptr<int32_t>(), d.const_data_ptr<float>(),
+                               v.const_data_ptr<bool>());
+}
+
+// Inputs of both compositing passes, made contiguous once.
+struct RasterInputs {
+  at::Tensor means2d, conics, opacities, colors, depths, background, box, ids, tile_offsets;
+  RasterInputs(const at::Tensor& m, const at::Tensor& c, const at::Tensor& o, const at::Tensor& col,
+               const at::Tensor& d, const at::Tensor& bg, const at::Tensor& b, const at::Tensor& i,
+               const at::Tensor& t)
+      : means2d(m.contiguous()), conics(c.contiguous()), opacities(o.contiguous()), colors(col.contiguous()),
+        depths(d.contiguous()), background(bg.contiguous()), box(b.contiguous()), ids(i.contiguous()),
+        tile_offsets(t.contiguous()) {
+    TORCH_CHECK(colors.size(1) == 3, "colors must be (N, 3)");
+  }
+  template <typename scalar_t>
+  std::vector<Splat<scalar_t>> splats() const {
+    return pack_splats<scalar_t>(means2d.size(0), means2d.const_data_ptr<scalar_t>(),
+                                 conics.const_data_ptr<scalar_t>(), opacities.const_data_ptr<scalar_t>(),
+                                 colors.const_data_ptr<scalar_t>(), depths.const_data_ptr<scalar_t>());
+  }
+};
+
+template <bool kCount>
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> forward_pass(
+    const RasterInputs& in, const TileGrid& grid, std::vector<Counts>* counts) {
+  const auto opts = in.means2d.options();
+  const int64_t h = grid.height, w = grid.width;
+  at::Tensor rgb = at::empty({h, w, 3}, opts), alpha = at::empty({h, w}, opts), depth = at::empty({h, w}, opts);
+  at::Tensor t_final = at::empty({h, w}, opts), last = at::empty({h, w}, opts.dtype(at::kInt));
+  auto run = [&](auto tag) {
+    using scalar_t = decltype(tag);
+    raster_forward_impl<scalar_t, kCount>(grid, in.splats<scalar_t>(), in.box.const_data_ptr<int32_t>(),
+                                          in.ids.const_data_ptr<int32_t>(), in.tile_offsets.const_data_ptr<int64_t>(),
+                                          in.background.const_data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(),
+                                          alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+                                          t_final.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), counts);
+  };
+  if (in.means2d.scalar_type() == at::kDouble) run(double{}); else run(float{});
+  return {rgb, alpha, depth, t_final, last};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_forward(
+    const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities, const at::Tensor& colors,
+    const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& ids,
+    const at::Tensor& tile_offsets, int64_t width, int64_t height, int64_t tile_size, int64_t threads) {
+  set_threads(threads);
+  const RasterInputs in(means2d, conics, opacities, colors, depths, background, box, ids, tile_offsets);
+  return forward_pass<false>(in, make_grid(width, height, tile_size), nullptr);
+}
+
+// (alpha evaluations, contributing pairs) of the forward pass, summed over tiles.
+std::tuple<int64_t, int64_t> rasterize_counts(
+    const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities, const at::Tensor& colors,
+    const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& ids,
+    const at::Tensor& tile_offsets, int64_t width, int64_t height, int64_t tile_size, int64_t threads) {
+  set_threads(threads);
+  const RasterInputs in(means2d, conics, opacities, colors, depths, background, box, ids, tile_offsets);
+  const TileGrid grid = make_grid(width, height, tile_size);
+  std::vector<Counts> counts(grid.num_tiles());
+  forward_pass<true>(in, grid, &counts);
+  Counts total;
+  for (const Counts& c : counts) {
+    total.evaluations += c.evaluations;
+    total.contributions += c.contributions;
+  }
+  return {total.evaluations, total.contributions};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_backward(
+    const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities, const at::Tensor& colors,
+    const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& ids,
+    const at::Tensor& tile_offsets, const at::Tensor& slots, const at::Tensor& gauss_offsets,
+    const at::Tensor& alpha, const at::Tensor& t_final, const at::Tensor& last, const at::Tensor& g_rgb,
+    const at::Tensor& g_alpha, const at::Tensor& g_depth, int64_t width, int64_t height, int64_t tile_size,
+    int64_t threads) {
+  set_threads(threads);
+  const RasterInputs in(means2d, conics, opacities, colors, depths, background, box, ids, tile_offsets);
+  const TileGrid grid = make_grid(width, height, tile_size);
+  const int64_t n = in.means2d.size(0), pairs = in.ids.size(0);
+  const auto opts = in.means2d.options();
+  at::Tensor g_means2d = at::empty({n, 2}, opts), g_conics = at::empty({n, 3}, opts);
+  at::Tensor g_opacities = at::empty({n}, opts), g_colors = at::empty({n, 3}, opts), g_depths = at::empty({n}, opts);
+  at::Tensor g_background = at::empty({3}, opts);
+  const at::Tensor sl = slots.contiguous(), go = gauss_offsets.contiguous(), a = alpha.contiguous();
+  const at::Tensor tf = t_final.contiguous(), la = last.contiguous();
+  const at::Tensor gr = g_rgb.contiguous(), ga = g_alpha.contiguous(), gd = g_depth.contiguous();
+  auto run = [&](auto tag) {
+    using scalar_t = decltype(tag);
+    std::vector<scalar_t> pair_grad(static_cast<size_t>(pairs) * kPairGrad);
+    std::vector<double> tile_bg(3 * static_cast<size_t>(grid.num_tiles()));
+    raster_backward_impl<scalar_t>(grid, in.splats<scalar_t>(), in.box.const_data_ptr<int32_t>(),
+                                   in.ids.const_data_ptr<int32_t>(), sl.const_data_ptr<int32_t>(),
+                                   in.tile_offsets.const_data_ptr<int64_t>(), in.background.const_data_ptr<scalar_t>(),
+                                   a.const_data_ptr<scalar_t>(), tf.const_data_ptr<scalar_t>(),
+                                   la.const_data_ptr<int32_t>(), gr.const_data_ptr<scalar_t>(),
+                                   ga.const_data_ptr<scalar_t>(), gd.const_data_ptr<scalar_t>(), pair_grad.data(),
+                                   tile_bg.data());
+    // Each Gaussian sums its slots in tile order.
+    const int64_t* off = go.const_data_ptr<int64_t>();
+    scalar_t* outs[5] = {g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
+                         g_opacities.data_ptr<scalar_t>(), g_colors.data_ptr<scalar_t>(),
+                         g_depths.data_ptr<scalar_t>()};
+    constexpr int widths[5] = {2, 3, 1, 3, 1};
+#pragma omp parallel for schedule(static)
+    for (int64_t i = 0; i < n; ++i) {
+      double sum[kPairGrad] = {};
+      for (int64_t j = off[i]; j < off[i + 1]; ++j) {
+        for (int k = 0; k < kPairGrad; ++k) sum[k] += pair_grad[kPairGrad * j + k];
+      }
+      int col = 0;
+      for (int o = 0; o < 5; ++o) {
+        for (int k = 0; k < widths[o]; ++k) outs[o][widths[o] * i + k] = static_cast<scalar_t>(sum[col++]);
+      }
+    }
+    scalar_t* gb = g_background.data_ptr<scalar_t>();
+    for (int ch = 0; ch < 3; ++ch) {
+      double sum = 0.0;
+      for (int t = 0; t < grid.num_tiles(); ++t) sum += tile_bg[3 * t + ch];
+      gb[ch] = static_cast<scalar_t>(sum);
+    }
+  };
+  if (in.means2d.scalar_type() == at::kDouble) run(double{}); else run(float{});
+  return {g_means2d, g_conics, g_opacities, g_colors, g_depths, g_background};
+}
+
+}  // namespace
+
+TORCH_LIBRARY(interactavatar_gs, m) {
+  m.def("project_forward(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor K, Tensor view, "
+        "int width, int height, float near, float far, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
+        &project_forward);
+  m.def("project_backward(Tensor means, Tensor quats, Tensor scales, Tensor K, Tensor view, int width, int height, "
+        "float near, float far, Tensor g_means2d, Tensor g_conics, Tensor g_depths, int threads) "
+        "-> (Tensor, Tensor, Tensor)",
+        &project_backward);
+  m.def("bin_tiles(Tensor box, Tensor depths, Tensor visible, int width, int height, int tile_size) "
+        "-> (Tensor, Tensor, Tensor, Tensor)",
+        &bin_tiles);
+  m.def("rasterize_forward(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
+        "Tensor background, Tensor box, Tensor ids, Tensor tile_offsets, int width, int height, int tile_size, "
+        "int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+        &rasterize_forward);
+  m.def("rasterize_counts(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
+        "Tensor background, Tensor box, Tensor ids, Tensor tile_offsets, int width, int height, int tile_size, "
+        "int threads) -> (int, int)",
+        &rasterize_counts);
+  m.def("rasterize_backward(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
+        "Tensor background, Tensor box, Tensor ids, Tensor tile_offsets, Tensor slots, Tensor gauss_offsets, "
+        "Tensor alpha, Tensor t_final, Tensor last, Tensor g_rgb, Tensor g_alpha, Tensor g_depth, int width, "
+        "int height, int tile_size, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
+        &rasterize_backward);
+}
