@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from pipeline.registry import RegistryError, StageRegistry
+from pipeline.workspace import subject_problem
 
 
 class ConfigError(ValueError):
@@ -37,6 +38,37 @@ class PathsConfig:
     outputs: str = "outputs"
 
 
+@dataclass
+class QualityConfig:
+    """``quality.*``: the preset's speed/fidelity knobs (values in ``conf/quality/<name>.yaml``)."""
+
+    name: str
+    capture_size: int  # synthetic capture: render resolution per camera (px)
+    image_size: int  # crops fed to the avatar (px)
+    num_frames_train: int
+    num_frames_test: int
+    supersample: int  # antialiasing samples per pixel side
+    gaussians_per_triangle: int
+    warmup_steps: int
+
+    @classmethod
+    def validate(cls, conf: Any) -> list[str]:
+        """Range problems, one line each, keyed relative to ``quality``."""
+        limits = {"capture_size": (16, 8192), "image_size": (16, 8192), "num_frames_train": (1, None),
+                  "num_frames_test": (1, None), "supersample": (1, 8), "gaussians_per_triangle": (1, 1000),
+                  "warmup_steps": (1, None)}
+        return [problem for key, (low, high) in limits.items()
+                if (problem := _range_problem(key, getattr(conf, key), low, high))]
+
+
+def _range_problem(key: str, value: float, low: float, high: float | None) -> str | None:
+    """``key=value: must be ...`` when ``value`` lies outside ``[low, high]`` (``high=None``: unbounded)."""
+    if value >= low and (high is None or value <= high):
+        return None
+    bound = f"at least {low}" if high is None else f"between {low} and {high}"
+    return f"{key}={value}: must be {bound}"
+
+
 def _check_schema(section: Any, schema: type, where: str, errors: list[str]) -> DictConfig | None:
     """``section`` merged onto the structured ``schema`` (defaults filled, types converted).
 
@@ -48,13 +80,17 @@ def _check_schema(section: Any, schema: type, where: str, errors: list[str]) -> 
         merged = OmegaConf.merge(OmegaConf.structured(schema), section)
     except OmegaConfBaseException as exc:
         msg = str(exc).splitlines()[0]
-        errors.append(f"{where}: {msg}")
+        key = getattr(exc, "full_key", None)
+        errors.append(f"{where}.{key}: {msg}" if key else f"{where}: {msg}")
         return None
     missing = sorted(OmegaConf.missing_keys(merged))
     if missing:
         errors.append(f"{where}: missing value for {', '.join(missing)}")
         return None
-    return merged
+    validate = getattr(schema, "validate", None)
+    problems = validate(merged) if callable(validate) else []
+    errors.extend(f"{where}.{problem}" for problem in problems)
+    return None if problems else merged
 
 
 def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
@@ -78,8 +114,13 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
         if run.get("only") is not None and (run.get("from") is not None or run.get("until") is not None):
             errors.append("run.only cannot be combined with run.from or run.until")
     _check_schema(cfg.get("paths", {}), PathsConfig, "paths", errors)
-    if not isinstance(cfg.get("subject"), str) or not cfg.get("subject"):
-        errors.append("subject: must be a non-empty string, e.g. subject=synth_a")
+    if cfg.get("quality") is None:
+        errors.append("missing section 'quality'; choose a preset, e.g. quality=smoke")
+    else:
+        _check_schema(cfg.quality, QualityConfig, "quality", errors)
+    problem = subject_problem(cfg.get("subject"))
+    if problem:
+        errors.append(problem)
 
     try:
         stages = registry.topological()

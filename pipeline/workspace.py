@@ -27,7 +27,7 @@ from pathlib import Path
 
 from pipeline.locks import LockTimeout, flock_all
 
-__all__ = ["LockTimeout", "SUBJECT_RULE", "Workspace", "subject_problem"]
+__all__ = ["LockTimeout", "SUBJECT_RULE", "Workspace", "outputs_problem", "subject_problem"]
 
 SUBJECT_RULE = "letters, digits, '-' or '_', starting with a letter or digit"
 _SUBJECT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
@@ -37,6 +37,21 @@ def subject_problem(subject: object) -> str | None:
     """Why ``subject`` cannot name a subject folder, or ``None`` when it can."""
     if not isinstance(subject, str) or not _SUBJECT.fullmatch(subject):
         return f"subject={subject!r}: use {SUBJECT_RULE}, e.g. subject=synth_a"
+    return None
+
+
+def outputs_problem(outputs: str | Path) -> str | None:
+    """Why ``paths.outputs`` cannot hold artifacts (a file, not writable), or ``None`` when it can."""
+    path = Path(outputs).absolute()
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return (f"paths.outputs={outputs}: {existing} is a file, not a folder; point paths.outputs at a folder "
+                f"(it is created if missing)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return (f"paths.outputs={outputs}: {existing} is not writable (read-only file system or no permission); "
+                f"choose a writable folder, e.g. paths.outputs=$HOME/interactavatar-outputs")
     return None
 
 

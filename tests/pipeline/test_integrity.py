@@ -69,3 +69,61 @@ def test_an_input_replaced_without_the_lock_fails_the_stage_and_publishes_nothin
     with pytest.raises(StageFailed, match="input 'b' was replaced while the stage ran"):
         run_app(toy_cfg("run.only=c", "run.force=true"))
     assert (subject / "c" / "_manifest.json").read_text() == before
+
+
+@pytest.mark.parametrize("override, message", [
+    ("quality.warmup_steps=abc", "quality.warmup_steps: Value 'abc' of type 'str' could not be converted to Integer"),
+    ("quality.warmup_steps=-5", "quality.warmup_steps=-5: must be at least 1"),
+    ("quality.warmup_steps=0", "quality.warmup_steps=0: must be at least 1"),
+    ("quality.gaussians_per_triangle=0", "quality.gaussians_per_triangle=0: must be between 1 and 1000"),
+    ("quality.image_size=4", "quality.image_size=4: must be between 16 and 8192"),
+])
+def test_quality_block_is_typed_and_range_checked_before_any_stage_runs(toy_cfg, override, message):
+    """Case 4: a bad preset value fails before anything is written, naming the key."""
+    from pipeline.config import ConfigError
+
+    cfg = toy_cfg(override)
+    with pytest.raises(ConfigError) as err:
+        run_app(cfg)
+    assert message in str(err.value)
+    assert not (Path(cfg.paths.outputs) / "synth_a").exists()
+
+
+def test_every_shipped_quality_preset_passes_its_own_schema(toy_cfg):
+    for preset in ("smoke", "draft", "standard", "paper"):
+        assert run_app(toy_cfg(f"quality={preset}", "run.dry=true"))
+
+
+@pytest.mark.parametrize("subject", ["foo bar", "-rf", "a/b", "_x", ".hidden"])
+def test_subject_rule_is_enforced_as_stated_in_one_line(tmp_path, subject):
+    """Case 6: the check enforces the rule the message states."""
+    result = run_cli(*TOY, f"paths.outputs={tmp_path / 'out'}", f"subject={subject}")
+    assert result.returncode == 2, result.stdout
+    assert result.stderr.strip().splitlines()[-1].startswith(f"  - subject={subject!r}: use letters, digits")
+    assert "Traceback" not in result.stderr
+
+
+def test_outputs_pointing_at_a_file_is_one_clear_error(tmp_path):
+    """Case 6: `paths.outputs` at a regular file: one line naming the key, no traceback."""
+    target = tmp_path / "afile"
+    target.write_text("")
+    result = run_cli(*TOY, f"paths.outputs={target}")
+    assert result.returncode == 2
+    assert f"paths.outputs={target}: {target} is a file, not a folder" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_outputs_on_a_read_only_file_system_is_one_clear_error(tmp_path):
+    """Case 6: `paths.outputs` on a read-only mount (a real one: tmpfs mounted read-only)."""
+    mount = tmp_path / "ro"
+    mount.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k,ro", "tmpfs", str(mount)],
+                      capture_output=True, check=False).returncode != 0:
+        pytest.skip("needs root to mount a read-only tmpfs")
+    try:
+        result = run_cli(*TOY, f"paths.outputs={mount / 'out'}")
+    finally:
+        subprocess.run(["umount", str(mount)], check=False)
+    assert result.returncode == 2
+    assert f"paths.outputs={mount / 'out'}: {mount} is not writable (read-only file system" in result.stderr
+    assert "Traceback" not in result.stderr

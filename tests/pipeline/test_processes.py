@@ -68,7 +68,7 @@ def test_cli_bad_config_is_one_clear_error(tmp_path):
 
     result = run_cli(*TOY, f"paths.outputs={tmp_path / 'out'}", "run.force=maybe")
     assert result.returncode == 2
-    assert "run: Value 'maybe' is not a valid bool" in result.stderr
+    assert "run.force: Value 'maybe' is not a valid bool" in result.stderr
 
 
 def test_cli_failing_stage_exits_nonzero_with_message(tmp_path):

@@ -163,9 +163,9 @@ def test_dry_run_plans_and_writes_nothing(toy_cfg, capsys):
     [
         ("run.only=nope", "run.only=nope: unknown stage; choose one of a, b, c, d"),
         ("run.until=zzz", "run.until=zzz: unknown stage"),
-        ("stage.a.value=abc", "stage.a: Value 'abc' of type 'str' could not be converted to Integer"),
-        ("+stage.a.typo=1", "stage.a: Key 'typo' not in 'ToyConfig'"),
-        ("subject=''", "subject: must be a non-empty string"),
+        ("stage.a.value=abc", "stage.a.value: Value 'abc' of type 'str' could not be converted to Integer"),
+        ("+stage.a.typo=1", "stage.a.typo: Key 'typo' not in 'ToyConfig'"),
+        ("subject=''", "subject='': use letters, digits"),
     ],
 )
 def test_bad_config_fails_before_any_stage(toy_cfg, override, message):
