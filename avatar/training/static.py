@@ -8,7 +8,6 @@ directory that survives a killed run; training resumes from the newest one.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -21,6 +20,7 @@ from avatar.gaussians.model import BoundGaussians
 from avatar.losses import position_regulariser, scale_regulariser
 from avatar.metrics.ssim import dssim_loss
 from avatar.render.gaussians import render_gaussians
+from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.schedule import exponential_lr, scaled_interval
 
@@ -138,10 +138,11 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
     log: list[LogRow] = []
     start = 0
     ckpt_path = checkpoint_dir / CHECKPOINT if checkpoint_dir is not None else None
-    if ckpt_path is not None and ckpt_path.is_file():
-        start, log = _load_checkpoint(ckpt_path, model, density, gen, cfg)
+    state = load_checkpoint(ckpt_path, _CHECKPOINT_KEYS) if ckpt_path is not None else None
+    if state is not None:
+        start, log = _restore(state, model, density, gen)
         optimizer = _optimizer(model, cfg)
-        optimizer.load_state_dict(torch.load(ckpt_path, weights_only=False)["optimizer"])
+        optimizer.load_state_dict(state["optimizer"])
     for step in progress(range(start + 1, cfg.steps + 1)):
         frame = int(torch.randint(views.num_frames, (1,), generator=gen))
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
@@ -170,20 +171,20 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
     return log
 
 
+_CHECKPOINT_KEYS = ("step", "model", "optimizer", "grad_sum", "count", "rng", "density_rng", "log")
+
+
 def _save_checkpoint(path: Path, step: int, model: BoundGaussians, optimizer: torch.optim.Optimizer,
                      density: DensityController, gen: torch.Generator, log: list[LogRow]) -> None:
-    """Write atomically (temp file + rename) so a kill never leaves a half checkpoint."""
-    tmp = path.with_suffix(".tmp")
-    torch.save({"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "grad_sum": density.grad_sum, "count": density.count, "rng": gen.get_state(),
-                "density_rng": density.generator.get_state(),
-                "log": [asdict(r) for r in log]}, tmp)
-    os.replace(tmp, path)
+    """Everything needed to resume bit for bit (verified on load: :mod:`avatar.training.checkpoint`)."""
+    save_checkpoint(path, {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                           "grad_sum": density.grad_sum, "count": density.count, "rng": gen.get_state(),
+                           "density_rng": density.generator.get_state(), "log": [asdict(r) for r in log]})
 
 
-def _load_checkpoint(path: Path, model: BoundGaussians, density: DensityController, gen: torch.Generator,
-                     cfg: StaticConfig) -> tuple[int, list[LogRow]]:
-    state = torch.load(path, weights_only=False)
+def _restore(state: dict, model: BoundGaussians, density: DensityController,
+             gen: torch.Generator) -> tuple[int, list[LogRow]]:
+    """Load a verified checkpoint into the model, density controller and sampler; (step, log so far)."""
     model.resize_like(state["model"])
     model.load_state_dict(state["model"])
     density.grad_sum, density.count = state["grad_sum"], state["count"]

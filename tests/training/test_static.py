@@ -75,3 +75,63 @@ def test_killed_run_resumes_from_checkpoint_to_the_same_result(tmp_path, monkeyp
     assert resumed.num_gaussians == reference.num_gaussians
     for name, value in reference.state_dict().items():
         torch.testing.assert_close(resumed.state_dict()[name], value, rtol=1e-5, atol=1e-6)
+
+
+def _run_killed_at(call: int, tmp_path, monkeypatch) -> None:
+    """Run the warm-up into ``tmp_path`` and kill it at render call ``call`` (checkpoints every 10 steps)."""
+    views, meshes = _scene()
+    real_render = static.render_frame
+    calls = {"n": 0}
+
+    def dying_render(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == call:
+            raise KeyboardInterrupt("killed")
+        return real_render(*args, **kwargs)
+
+    monkeypatch.setattr(static, "render_frame", dying_render)
+    with pytest.raises(KeyboardInterrupt):
+        train_static(_model(meshes), views, meshes, CFG, checkpoint_dir=tmp_path)
+    monkeypatch.setattr(static, "render_frame", real_render)
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated", "bit_flip"])
+def test_a_corrupt_checkpoint_is_named_discarded_and_the_run_resumes_from_the_previous_one(
+        tmp_path, monkeypatch, caplog, damage):
+    """Issue 9, case 5: verified on load; the newest is corrupt, so the run resumes from the one before it."""
+    views, meshes = _scene()
+    reference = _model(meshes)
+    train_static(reference, views, meshes, CFG)
+    _run_killed_at(27, tmp_path, monkeypatch)  # checkpoints of steps 10 (.prev) and 20
+    newest = tmp_path / static.CHECKPOINT
+    blob = bytearray(newest.read_bytes())
+    if damage == "garbage":
+        blob = bytearray(b"not a checkpoint at all")
+    elif damage == "truncated":
+        blob = blob[: len(blob) // 2]
+    else:
+        blob[len(blob) // 2] ^= 0x01
+    newest.write_bytes(bytes(blob))
+
+    resumed = _model(meshes)
+    with caplog.at_level("WARNING"):
+        log = train_static(resumed, views, meshes, CFG, checkpoint_dir=tmp_path)
+    assert f"{newest}: checkpoint discarded" in caplog.text and "trying the previous one" in caplog.text
+    assert log[-1].step == CFG.steps
+    for name, value in reference.state_dict().items():
+        torch.testing.assert_close(resumed.state_dict()[name], value, rtol=1e-5, atol=1e-6)
+
+
+def test_with_every_checkpoint_corrupt_the_run_starts_over_instead_of_failing(tmp_path, monkeypatch, caplog):
+    views, meshes = _scene()
+    reference = _model(meshes)
+    train_static(reference, views, meshes, CFG)
+    _run_killed_at(27, tmp_path, monkeypatch)
+    for path in (tmp_path / static.CHECKPOINT, tmp_path / f"{static.CHECKPOINT}.prev"):
+        path.write_bytes(b"\0" * 100)
+    fresh = _model(meshes)
+    with caplog.at_level("WARNING"):
+        train_static(fresh, views, meshes, CFG, checkpoint_dir=tmp_path)
+    assert "starting over" in caplog.text
+    for name, value in reference.state_dict().items():
+        torch.testing.assert_close(fresh.state_dict()[name], value, rtol=1e-5, atol=1e-6)
