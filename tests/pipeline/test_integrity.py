@@ -127,3 +127,56 @@ def test_outputs_on_a_read_only_file_system_is_one_clear_error(tmp_path):
     assert result.returncode == 2
     assert f"paths.outputs={mount / 'out'}: {mount} is not writable (read-only file system" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_leftovers_of_a_killed_run_are_cleaned_when_the_stage_is_found_cached(tmp_path):
+    """Case 9: `.tmp/<stage>-*` and `.scratch/<stage>-*` of a killed run do not stay forever."""
+    out = tmp_path / "out"
+    base = [*TOY, f"paths.outputs={out}", "++stage.a.sleep_s=1"]
+    assert run_cli(*base).returncode == 0
+    subject = out / "synth_a"
+    killed = subprocess.Popen(cli_command(*base, "run.force=true", "run.only=a", "++stage.a.sleep_s=1"),
+                              cwd=REPO, env=cli_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        _wait_for(lambda: any((subject / ".tmp").glob("a-*/parts/half.txt")))
+        killed.kill()
+        killed.wait(timeout=30)
+    finally:
+        killed.kill()
+    assert list((subject / ".tmp").glob("a-*")) and list((subject / ".scratch").glob("a-*"))
+    result = run_cli(*base)
+    assert "a          cached" in result.stdout
+    assert not list((subject / ".tmp").glob("a-*")), "a killed run's temporary dir stayed"
+    assert not list((subject / ".scratch").glob("a-*")), "a killed run's scratch dir stayed"
+
+
+def test_a_failed_run_leaves_no_empty_scratch_dir(toy_cfg):
+    """Case 9: the scratch dir is made for the stage, and removed when it failed without a checkpoint."""
+    cfg = toy_cfg("++stage.a.fail=true")
+    with pytest.raises(StageFailed):
+        run_app(cfg)
+    subject = Path(cfg.paths.outputs) / "synth_a"
+    assert not list((subject / ".scratch").glob("a-*"))
+    assert not list((subject / ".tmp").glob("a-*"))
+
+
+def test_a_failed_run_keeps_its_checkpoint_for_the_next_run(toy_cfg):
+    cfg = toy_cfg("++stage.a.fail_once=true")
+    with pytest.raises(StageFailed):
+        run_app(cfg)
+    assert list((Path(cfg.paths.outputs) / "synth_a" / ".scratch").glob("a-*/checkpoint.txt"))
+
+
+def test_warmup_key_leaves_out_the_checkpoint_interval_and_every_preset_checkpoints():
+    """Case 9: changing checkpoint_every does not retrain a finished warm-up; smoke exercises checkpoints."""
+    from pipeline.config import config_subset
+    from stages import REGISTRY
+    from tests.conftest import compose_cfg
+
+    warmup = REGISTRY["warmup"]
+    subset = lambda *o: config_subset(compose_cfg(list(o)), warmup.config_keys, warmup.cache_exclude)  # noqa: E731
+    assert subset("stage.warmup.checkpoint_every=7") == subset("stage.warmup.checkpoint_every=500")
+    assert subset("stage.warmup.seed=1") != subset("stage.warmup.seed=2")
+    for preset in ("smoke", "draft", "standard", "paper"):
+        cfg = compose_cfg([f"quality={preset}"])
+        assert 0 < cfg.stage.warmup.checkpoint_every < cfg.quality.warmup_steps, preset
