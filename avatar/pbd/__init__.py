@@ -1,0 +1,18 @@
+"""Contact deformation of the face by the hand: an XPBD solver (importable without the pipeline).
+
+``solver`` (per-frame XPBD solve, sequences with warm start), ``constraints`` (stretch, bending,
+attachment, collision projections), ``collision`` (closest points and inside test on the hand),
+``topology`` (edges, bending stencils, colouring), ``stiffness`` (per-vertex stiffness from tissue
+thickness), ``convention`` (world vs DECAF canonical offsets), ``evaluation`` (errors against a
+reference deformation).
+"""
+
+from avatar.pbd.convention import world_to_decaf_offsets
+from avatar.pbd.evaluation import VertexErrors, moving_vertex_errors
+from avatar.pbd.solver import FaceTopology, FrameResult, PBDConfig, detect_contacts, solve_frame, solve_sequence
+from avatar.pbd.stiffness import StiffnessFileError, face_relative_stiffness
+
+__all__ = [
+    "FaceTopology", "FrameResult", "PBDConfig", "StiffnessFileError", "VertexErrors", "detect_contacts",
+    "face_relative_stiffness", "moving_vertex_errors", "solve_frame", "solve_sequence", "world_to_decaf_offsets",
+]

@@ -1,0 +1,253 @@
+"""XPBD contact solve of the face against the kinematic hand, one frame at a time.
+
+Per frame (:func:`solve_frame`), on the posed, undeformed face ``rest`` (V, 3):
+
+1. Face vertices inside the hand's bounding box grown by ``margin_m`` are queried against the
+   hand. No vertex within ``margin_m`` of the hand surface: not ``near``; no vertex inside the
+   hand: not ``simulated``; either way the offsets are exactly zero.
+2. Only vertices within ``free_radius_m`` of a penetrating vertex move (inverse mass 1); all
+   others are pinned where they are (inverse mass 0) and still anchor the constraints they share.
+3. Graph-coloured Gauss-Seidel XPBD sweeps over attachment (per-vertex stiffness), stretch, bending
+   and collision constraints; collision planes are re-detected every ``detect_every`` sweeps.
+   Positions start from the previous frame's solution (``warm``), multipliers from zero.
+4. ``final_passes`` collision-only passes push any vertex still inside the hand (or closer than
+   the clearance) to the surface, so the residual penetration is bounded by construction.
+
+Stiffnesses are relative to a unit particle mass: XPBD's implicit inertia term ties each free
+vertex to its start position with stiffness 1, negligible next to ``attach_stiffness``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from avatar.pbd.collision import HandQuery, closest_on_mesh, query_hand
+from avatar.pbd.constraints import CollisionSet, EdgeSet, LinearSet, attachment_set, bending_set
+from avatar.pbd.topology import bending_stencils, colour_constraints, unique_edges
+
+
+@dataclass(frozen=True)
+class PBDConfig:
+    """Solver settings (lengths in metres; stiffnesses relative to a unit particle mass)."""
+
+    iterations: int = 40
+    detect_every: int = 10
+    final_passes: int = 4
+    margin_m: float = 0.01
+    free_radius_m: float = 0.03
+    clearance_m: float = 0.0002
+    max_depth_m: float = 0.02
+    contact_tolerance_m: float = 0.001
+    edge_stiffness: float = 1.0e4
+    bend_stiffness: float = 1.0e-2
+    attach_stiffness: float = 1.0e3
+    reference_thickness_m: float = 0.01
+    stiffness_power: float = 1.0
+
+
+@dataclass(frozen=True)
+class FaceTopology:
+    """The face mesh's constraint topology, built once per mesh: faces (F, 3), edges (E, 2),
+    bending stencils (B, 4) and their Gauss-Seidel colours (row indices per colour)."""
+
+    faces: torch.Tensor
+    edges: torch.Tensor
+    stencils: torch.Tensor
+    edge_colours: list[torch.Tensor]
+    bend_colours: list[torch.Tensor]
+
+    @classmethod
+    def build(cls, faces: torch.Tensor) -> FaceTopology:
+        edges, stencils = unique_edges(faces), bending_stencils(faces)
+        return cls(faces, edges, stencils, colour_constraints(edges), colour_constraints(stencils))
+
+
+@dataclass
+class FrameResult:
+    """One frame's solve: offsets (V, 3) world metres (added to the posed face), face_contact (V,)
+    bool, hand_contact (Vh,) bool, and the report numbers (lengths in metres)."""
+
+    offsets: torch.Tensor
+    face_contact: torch.Tensor
+    hand_contact: torch.Tensor
+    near: bool
+    simulated: bool
+    iterations: int = 0
+    free_vertices: int = 0
+    penetration_max_m: float = 0.0
+    penetration_mean_m: float = 0.0
+
+    @property
+    def max_offset_m(self) -> float:
+        return float(self.offsets.norm(dim=1).max()) if self.offsets.numel() else 0.0
+
+
+class FrameProblem:
+    """The XPBD system of one frame (see the module docstring); :func:`solve_frame` drives it.
+
+    Args:
+        rest: (V, 3) posed undeformed face; hand: (Vh, 3) posed hand; hand_faces: (Fh, 3).
+        topology: the face's :class:`FaceTopology`; stiffness: (V,) relative attachment stiffness.
+        free: (V,) bool, the vertices that may move; start: (V, 3) initial positions (warm start).
+    """
+
+    def __init__(self, rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, topology: FaceTopology,
+                 stiffness: torch.Tensor, free: torch.Tensor, start: torch.Tensor, cfg: PBDConfig) -> None:
+        self.rest, self.hand, self.hand_faces, self.cfg = rest, hand, hand_faces, cfg
+        self.x = torch.where(free[:, None], start, rest).clone()
+        self.w = free.to(rest.dtype)
+        self.free_idx = torch.nonzero(free).squeeze(1)
+        self.attach = attachment_set(self.free_idx, rest[self.free_idx],
+                                     cfg.attach_stiffness * stiffness[self.free_idx].to(rest.dtype))
+        edges = topology.edges
+        active_e = free[edges].any(dim=1)
+        self.edges = EdgeSet(edges, (rest[edges[:, 0]] - rest[edges[:, 1]]).norm(dim=1),
+                             torch.full((edges.shape[0],), cfg.edge_stiffness, dtype=rest.dtype),
+                             rest.new_zeros(edges.shape[0]))
+        self.edge_colours = _active(topology.edge_colours, active_e)
+        active_b = free[topology.stencils].any(dim=1)
+        self.bend = bending_set(topology.stencils[active_b], rest, cfg.bend_stiffness)
+        self.bend_colours = _active(topology.bend_colours, active_b, renumber=True)
+        self.collisions = CollisionSet(self.free_idx[:0], rest[:0], rest[:0])
+
+    def detect(self) -> HandQuery:
+        """Refresh the collision planes from the free vertices' current positions."""
+        q = query_hand(self.x[self.free_idx], self.hand, self.hand_faces, self.cfg.max_depth_m)
+        self.collisions = collision_planes(self.x[self.free_idx], q, self.free_idx, self.cfg)
+        return q
+
+    def sweep(self) -> None:
+        """One Gauss-Seidel sweep: attachments, stretch and bending colour by colour, then collisions."""
+        self.attach.project(self.x, self.w, slice(None))
+        for rows in self.edge_colours:
+            self.edges.project(self.x, self.w, rows)
+        for rows in self.bend_colours:
+            self.bend.project(self.x, self.w, rows)
+        self.collisions.project(self.x)
+
+    def residual(self) -> float:
+        """Largest XPBD residual ``|k C + lam|`` over the compliant constraints (zero at convergence)."""
+        parts = [self.attach.residual(self.x), self.bend.residual(self.x)]
+        parts += [self.edges.residual(self.x)[torch.cat(self.edge_colours)]] if self.edge_colours else []
+        return float(torch.cat(parts).abs().max())
+
+
+def _active(colours: list[torch.Tensor], active: torch.Tensor, renumber: bool = False) -> list[torch.Tensor]:
+    """The active rows of each colour (empty colours dropped); ``renumber`` maps rows to their index
+    among the active constraints (for sets built from the active rows only)."""
+    new_index = torch.cumsum(active.long(), 0) - 1
+    out = [rows[active[rows]] for rows in colours]
+    return [new_index[r] if renumber else r for r in out if r.numel()]
+
+
+def collision_planes(points: torch.Tensor, q: HandQuery, idx: torch.Tensor, cfg: PBDConfig) -> CollisionSet:
+    """Planes for points (N, 3) (vertex ids idx (N,)) inside the hand or closer to it than the
+    clearance plus the contact tolerance: through the closest hand point moved out by the clearance,
+    normal pointing out of the hand (the exit direction from inside; away from the hand outside)."""
+    take = (q.inside | (q.distance < cfg.clearance_m + cfg.contact_tolerance_m)) & (q.distance > 1e-9)
+    sign = torch.where(q.inside, -1.0, 1.0).to(points.dtype)[:, None]
+    normal = sign * (points - q.closest) / q.distance.clamp_min(1e-12)[:, None]
+    return CollisionSet(idx[take], (q.closest + cfg.clearance_m * normal)[take], normal[take])
+
+
+def _hand_contact(hand: torch.Tensor, face: torch.Tensor, faces: torch.Tensor, face_contact: torch.Tensor,
+                  cfg: PBDConfig) -> torch.Tensor:
+    """(Vh,) bool: hand vertices behind, or within ``contact_tolerance_m`` of, the face patch of
+    triangles around the contact vertices (face (V, 3), faces (F, 3), face_contact (V,) bool)."""
+    out = torch.zeros(hand.shape[0], dtype=torch.bool)
+    patch = faces[face_contact[faces].any(dim=1)]
+    if patch.numel() == 0:
+        return out
+    lo, hi = face[face_contact].amin(0) - cfg.max_depth_m, face[face_contact].amax(0) + cfg.max_depth_m
+    near = torch.nonzero(((hand >= lo) & (hand <= hi)).all(dim=1)).squeeze(1)
+    if near.numel():
+        closest, dist, tri = closest_on_mesh(hand[near], face, patch)
+        corners = face[patch[tri]]
+        normal = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=1)
+        behind = ((hand[near] - closest) * normal).sum(1) < 0
+        out[near] = (dist < cfg.max_depth_m) & (behind | (dist < cfg.contact_tolerance_m))
+    return out
+
+
+def _penetrating(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, cfg: PBDConfig
+                 ) -> tuple[bool, torch.Tensor]:
+    """Whether the hand comes within ``margin_m`` of the face (V, 3), and the (S,) face vertices inside it."""
+    lo, hi = hand.amin(0) - cfg.margin_m, hand.amax(0) + cfg.margin_m
+    cand = torch.nonzero(((rest >= lo) & (rest <= hi)).all(dim=1)).squeeze(1)
+    q = query_hand(rest[cand], hand, hand_faces, cfg.max_depth_m)
+    return bool((q.distance < cfg.margin_m).any()), cand[q.inside]
+
+
+def detect_contacts(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, faces: torch.Tensor,
+                    cfg: PBDConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Contact flags of the undeformed meshes, without solving: face vertices (V,) inside the hand,
+    and hand vertices (Vh,) touching or inside the face around them."""
+    _, seeds = _penetrating(rest, hand, hand_faces, cfg)
+    face_contact = torch.zeros(rest.shape[0], dtype=torch.bool)
+    face_contact[seeds] = True
+    return face_contact, _hand_contact(hand, rest, faces, face_contact, cfg)
+
+
+def solve_frame(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, topology: FaceTopology,
+                stiffness: torch.Tensor, cfg: PBDConfig, warm: torch.Tensor | None = None) -> FrameResult:
+    """Offsets of one frame (see the module docstring).
+
+    Args:
+        rest: (V, 3) posed undeformed face, world metres (float64 recommended).
+        hand: (Vh, 3) posed hand, same frame and dtype; hand_faces: (Fh, 3) int64, outward-oriented.
+        topology: :meth:`FaceTopology.build` of the face triangles.
+        stiffness: (V,) relative attachment stiffness (:mod:`avatar.pbd.stiffness`), >= 0.
+        warm: (V, 3) the previous frame's offsets, or None.
+    """
+    near, seeds = _penetrating(rest, hand, hand_faces, cfg)
+    if seeds.numel() == 0:
+        return FrameResult(torch.zeros_like(rest), torch.zeros(rest.shape[0], dtype=torch.bool),
+                           torch.zeros(hand.shape[0], dtype=torch.bool), near=near, simulated=False)
+    free = torch.cdist(rest, rest[seeds]).amin(dim=1) < cfg.free_radius_m
+    start = rest if warm is None else rest + warm
+    problem = FrameProblem(rest, hand, hand_faces, topology, stiffness, free, start, cfg)
+    for it in range(cfg.iterations):
+        if it % max(cfg.detect_every, 1) == 0:
+            problem.detect()
+        problem.sweep()
+    for _ in range(cfg.final_passes + 1):
+        q = problem.detect()
+        if not bool((q.inside | (q.distance < cfg.clearance_m)).any()):
+            break
+        problem.collisions.project(problem.x)
+    else:
+        q = query_hand(problem.x[problem.free_idx], hand, hand_faces, cfg.max_depth_m)
+    face_contact = torch.zeros(rest.shape[0], dtype=torch.bool)
+    face_contact[seeds] = True
+    face_contact[problem.free_idx[q.inside | (q.distance < cfg.contact_tolerance_m)]] = True
+    depth = q.depth
+    return FrameResult(
+        offsets=problem.x - rest, face_contact=face_contact,
+        hand_contact=_hand_contact(hand, problem.x, topology.faces, face_contact, cfg),
+        near=True, simulated=True, iterations=cfg.iterations, free_vertices=int(free.sum()),
+        penetration_max_m=float(depth.max()), penetration_mean_m=float(depth[face_contact[problem.free_idx]].mean()),
+    )
+
+
+def solve_sequence(face: torch.Tensor, hand: torch.Tensor, face_faces: torch.Tensor, hand_faces: torch.Tensor,
+                   stiffness: torch.Tensor, cfg: PBDConfig) -> list[FrameResult]:
+    """Solve every frame, each warm-started from the previous frame's offsets.
+
+    Args: face (T, V, 3) and hand (T, Vh, 3) posed meshes (world metres), their faces, the (V,)
+    relative attachment stiffness. Raises ValueError naming the first frame whose meshes are not finite.
+    """
+    for t in range(face.shape[0]):
+        for name, verts in (("face", face[t]), ("hand", hand[t])):
+            if not bool(torch.isfinite(verts).all()):
+                raise ValueError(f"frame {t}: the posed {name} mesh has non-finite vertices (NaN or inf "
+                                 f"parameters in this frame); fix or drop the frame's parameters")
+    topology = FaceTopology.build(face_faces)
+    results: list[FrameResult] = []
+    warm = None
+    for t in range(face.shape[0]):
+        result = solve_frame(face[t], hand[t], hand_faces, topology, stiffness, cfg, warm)
+        results.append(result)
+        warm = result.offsets if result.simulated else None
+    return results
