@@ -141,7 +141,7 @@ def render_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, 
     """Render N Gaussians with the compiled CPU rasterizer (arguments as ``render_gaussians``;
     float32 or float64 CPU tensors, computed in ``means.dtype``).
 
-    ``tile_size`` (1 to 32) changes speed only, never the image.
+    ``tile_size`` (8 or 16, the compiled sizes) changes speed only, never the image.
     """
     dtype = means.dtype
     if dtype not in DTYPES or means.device.type != "cpu":

@@ -23,6 +23,7 @@
 #include <cstdint>
 #include <limits>
 #include <tuple>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -36,9 +37,6 @@ constexpr double kQuatEps2 = 1e-24;
 constexpr double kMaxRadius = 1073741824.0;  // 2^30
 // Values per (tile, Gaussian) pair gradient slot: mean x, y, conic a, b, c, opacity, r, g, b, depth.
 constexpr int kPairGrad = 10;
-// Largest tile side: per-pixel tile state lives on the stack (kMaxTile^2 pixels).
-constexpr int kMaxTile = 32;
-constexpr int kMaxTilePixels = kMaxTile * kMaxTile;
 
 // ---------------------------------------------------------------------------------------------
 // Projection (projection.py)
@@ -302,7 +300,7 @@ struct TileGrid {
 };
 
 TileGrid make_grid(int64_t width, int64_t height, int64_t tile_size) {
-  TORCH_CHECK(tile_size >= 1 && tile_size <= kMaxTile, "tile_size must be in [1, ", kMaxTile, "]");
+  TORCH_CHECK(tile_size == 8 || tile_size == 16, "tile_size must be 8 or 16 (compiled sizes), got ", tile_size);
   const int ts = static_cast<int>(tile_size);
   return TileGrid{ts, static_cast<int>((width + ts - 1) / ts), static_cast<int>((height + ts - 1) / ts),
                   static_cast<int>(width), static_cast<int>(height)};
@@ -370,13 +368,61 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles_impl(const 
 }
 
 // ---------------------------------------------------------------------------------------------
-// Compositing (compositing.py), one tile at a time.
+// Compositing (compositing.py), one tile at a time. The pixel loops run over whole tile rows in
+// 32-byte vectors (GCC vector extensions: 8 floats or 4 doubles per vector, AVX2 on x86) with
+// per-lane masks; every lane does the same IEEE operations a scalar loop would.
 
-// A Gaussian's screen-space parameters, packed for the per-pixel loops.
+template <typename scalar_t>
+struct Simd;
+
+template <>
+struct Simd<float> {
+  typedef float V __attribute__((vector_size(32)));
+  typedef int32_t I __attribute__((vector_size(32)));
+  static constexpr int kLanes = 8;
+  static constexpr float kExpFloor = -80.0f;
+  static constexpr float kRound = 12582912.0f;  // 1.5 * 2^23: x + kRound - kRound rounds x to an integer
+  static constexpr int32_t kRoundBits = 0x4B400000;
+  static constexpr int kMantissa = 23, kBias = 127, kTaylor = 7;
+  static constexpr float kLn2Hi = 0.693145751953125f, kLn2Lo = 1.4286068203094172e-06f;
+};
+
+template <>
+struct Simd<double> {
+  typedef double V __attribute__((vector_size(32)));
+  typedef int64_t I __attribute__((vector_size(32)));
+  static constexpr int kLanes = 4;
+  static constexpr double kExpFloor = -700.0;
+  static constexpr double kRound = 6755399441055744.0;  // 1.5 * 2^52
+  static constexpr int64_t kRoundBits = 0x4338000000000000LL;
+  static constexpr int kMantissa = 52, kBias = 1023, kTaylor = 13;
+  static constexpr double kLn2Hi = 6.93147180369123816490e-01, kLn2Lo = 1.90821492927058770002e-10;
+};
+
+// exp(x) for x <= 0 (x = -q / 2, q >= 0) per lane: x = n ln2 + r with |r| <= ln2 / 2 (n rounded
+// by the 1.5 * 2^mantissa trick), a Taylor polynomial for exp(r) (relative error below 1e-8 in
+// float, 1e-16 in double) and 2^n written into the exponent bits. Below x = -80 (float) or -700
+// (double) it returns exp of that limit: alpha is far below ALPHA_MIN there, and the limit keeps
+// o exp(x) (o >= ALPHA_MIN) clear of subnormal numbers, whose arithmetic is ~100x slower.
+template <typename scalar_t>
+inline typename Simd<scalar_t>::V exp_neg(typename Simd<scalar_t>::V x) {
+  using S = Simd<scalar_t>;
+  using V = typename S::V;
+  using I = typename S::I;
+  x = x < S::kExpFloor ? V{} + S::kExpFloor : x;
+  const V t = x * static_cast<scalar_t>(1.4426950408889634074) + S::kRound;
+  const V n = t - S::kRound;
+  const V r = (x - n * S::kLn2Hi) - n * S::kLn2Lo;
+  V p = V{} + 1;
+  for (int k = S::kTaylor; k >= 1; --k) p = 1 + r * p * (static_cast<scalar_t>(1) / static_cast<scalar_t>(k));
+  const I bits = ((reinterpret_cast<const I&>(t) - S::kRoundBits) + S::kBias) << S::kMantissa;
+  return p * reinterpret_cast<const V&>(bits);
+}
+
+// A Gaussian's screen-space parameters, packed for the pixel loops.
 template <typename scalar_t>
 struct Splat {
   scalar_t mx, my, a, b, c, opacity;
-  scalar_t q_max;  // beyond this Mahalanobis power alpha is certainly below ALPHA_MIN
   scalar_t color[3];
   scalar_t depth;
 };
@@ -387,51 +433,32 @@ std::vector<Splat<scalar_t>> pack_splats(int64_t n, const scalar_t* means2d, con
   std::vector<Splat<scalar_t>> splats(n);
 #pragma omp parallel for schedule(static)
   for (int64_t i = 0; i < n; ++i) {
-    Splat<scalar_t>& s = splats[i];
-    s.mx = means2d[2 * i];
-    s.my = means2d[2 * i + 1];
-    s.a = conics[3 * i];
-    s.b = conics[3 * i + 1];
-    s.c = conics[3 * i + 2];
-    s.opacity = opacities[i];
-    // o exp(-q / 2) >= 1/255 needs q <= 2 ln(255 o); the margin covers rounding of exp and o * G.
-    const double o = std::max(static_cast<double>(opacities[i]), kAlphaMin);
-    s.q_max = static_cast<scalar_t>(2.0 * std::log(o / kAlphaMin) * (1.0 + 1e-4) + 1e-4);
-    for (int k = 0; k < 3; ++k) s.color[k] = colors[3 * i + k];
-    s.depth = depths[i];
+    splats[i] = Splat<scalar_t>{means2d[2 * i], means2d[2 * i + 1], conics[3 * i], conics[3 * i + 1],
+                                conics[3 * i + 2], opacities[i], {colors[3 * i], colors[3 * i + 1], colors[3 * i + 2]},
+                                depths[i]};
   }
   return splats;
 }
 
-// The pixels of a tile that a Gaussian's box covers: rows [y0, y1], columns [x0, x1] (image coordinates).
+// exp(-q / 2) of a Gaussian at pixel offsets (dx, dy) from its mean; alpha is o times this. The
+// forward and the backward both call it, so their skip and clamp decisions agree bit for bit.
+template <typename scalar_t>
+inline typename Simd<scalar_t>::V falloff(const Splat<scalar_t>& s, typename Simd<scalar_t>::V dx, scalar_t dy) {
+  const typename Simd<scalar_t>::V q = s.a * dx * dx + 2 * s.b * dx * dy + s.c * dy * dy;
+  return exp_neg<scalar_t>(static_cast<scalar_t>(-0.5) * q);
+}
+
+// The tile-relative rows and columns [lo, hi] of a Gaussian's pixel box inside a tile.
 struct Span {
   int x0, x1, y0, y1;
 };
 
-inline Span clip_box(const int32_t* b, int tx0, int ty0, int tw, int th) {
-  return Span{std::max<int>(b[0], tx0), std::min<int>(b[2], tx0 + tw - 1), std::max<int>(b[1], ty0),
-              std::min<int>(b[3], ty0 + th - 1)};
-}
-
-// alpha of a Gaussian at a pixel offset (dx, dy) from its mean, 0 where below ALPHA_MIN; also
-// G = exp(-q / 2) and whether alpha is clamped at ALPHA_MAX. The forward and the backward call
-// this same function, so their skip decisions agree bit for bit.
-template <typename scalar_t>
-inline bool splat_alpha(const Splat<scalar_t>& s, scalar_t dx, scalar_t dy, scalar_t* alpha, scalar_t* gauss,
-                        bool* clamped) {
-  const scalar_t q = s.a * dx * dx + 2 * s.b * dx * dy + s.c * dy * dy;
-  if (!(q <= s.q_max)) return false;
-  const scalar_t g = std::exp(static_cast<scalar_t>(-0.5) * q);
-  const scalar_t raw = s.opacity * g;
-  if (raw < static_cast<scalar_t>(kAlphaMin)) return false;
-  *clamped = raw >= static_cast<scalar_t>(kAlphaMax);
-  *alpha = *clamped ? static_cast<scalar_t>(kAlphaMax) : raw;
-  *gauss = g;
-  return true;
-}
-
 struct TileRect {
   int x0, y0, w, h;
+  Span clip(const int32_t* b) const {
+    return Span{std::max<int>(b[0] - x0, 0), std::min<int>(b[2] - x0, w - 1), std::max<int>(b[1] - y0, 0),
+                std::min<int>(b[3] - y0, h - 1)};
+  }
 };
 
 inline TileRect tile_rect(const TileGrid& grid, int t) {
@@ -449,146 +476,201 @@ void for_each_tile(const TileGrid& grid, Body body) {
   }
 }
 
+// Lane-index vectors of a tile row: column j of chunk c is lane j - c * kLanes.
+template <typename scalar_t, int TS>
+struct RowLanes {
+  using S = Simd<scalar_t>;
+  static constexpr int kChunks = TS / S::kLanes;
+  typename S::I column[kChunks];
+  typename S::V x[kChunks];  // pixel x coordinates
+  explicit RowLanes(int x0) {
+    for (int c = 0; c < kChunks; ++c) {
+      for (int l = 0; l < S::kLanes; ++l) {
+        column[c][l] = c * S::kLanes + l;
+        x[c][l] = static_cast<scalar_t>(x0 + c * S::kLanes + l);
+      }
+    }
+  }
+  // Whether chunk c has a column in [x0, x1].
+  static bool meets(int c, const Span& sp) { return c * S::kLanes <= sp.x1 && (c + 1) * S::kLanes > sp.x0; }
+};
+
+template <typename V>
+inline auto lane_sum(V v) -> std::remove_reference_t<decltype(v[0])> {
+  std::remove_reference_t<decltype(v[0])> sum = 0;
+  for (int l = 0; l < static_cast<int>(sizeof(V) / sizeof(v[0])); ++l) sum += v[l];
+  return sum;
+}
+
 // Counters of the forward pass, for the benchmark: alpha evaluations (pixels of a Gaussian's box
-// in a tile, not yet stopped) and contributing (Gaussian, pixel) pairs.
+// in a tile that have not stopped) and contributing (Gaussian, pixel) pairs.
 struct Counts {
   int64_t evaluations = 0, contributions = 0;
 };
 
-template <typename scalar_t, bool kCount>
+template <typename scalar_t, int TS, bool kCount>
 void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* box,
                          const int32_t* ids, const int64_t* toff, const scalar_t* background, scalar_t* rgb,
                          scalar_t* alpha_out, scalar_t* depth_out, scalar_t* t_final, int32_t* last_out,
                          std::vector<Counts>* counts) {
-  const int ts = grid.tile_size, width = grid.width;
+  using S = Simd<scalar_t>;
+  using V = typename S::V;
+  using I = typename S::I;
+  using Lanes = RowLanes<scalar_t, TS>;
+  constexpr int L = S::kLanes, kVecs = TS * TS / L;
   for_each_tile(grid, [&](int t) {
     const TileRect r = tile_rect(grid, t);
-    const int npix = ts * ts;
-    scalar_t trans[kMaxTilePixels], acc[kMaxTilePixels], feat[kMaxTilePixels][4];
-    int32_t last[kMaxTilePixels];
-    bool done[kMaxTilePixels];
-    std::fill(trans, trans + npix, scalar_t(1));
-    std::fill(acc, acc + npix, scalar_t(0));
-    std::fill(&feat[0][0], &feat[0][0] + 4 * npix, scalar_t(0));
-    std::fill(last, last + npix, -1);
-    std::fill(done, done + npix, false);
+    const Lanes lanes(r.x0);
+    V trans[kVecs], acc[kVecs], f0[kVecs], f1[kVecs], f2[kVecs], f3[kVecs];
+    I last[kVecs], done[kVecs];
+    for (int v = 0; v < kVecs; ++v) {
+      trans[v] = V{} + 1;
+      acc[v] = f0[v] = f1[v] = f2[v] = f3[v] = V{};
+      last[v] = I{} - 1;
+      // Padding pixels of border tiles start stopped.
+      done[v] = (lanes.column[v % Lanes::kChunks] >= r.w) | (I{} + (v / Lanes::kChunks >= r.h));
+    }
     int remaining = r.w * r.h;
     Counts local;
     const int64_t begin = toff[t], end = toff[t + 1];
     for (int64_t k = begin; k < end && remaining > 0; ++k) {
       const int32_t g = ids[k];
-      const Splat<scalar_t>& s = splats[g];
-      const Span sp = clip_box(box + 4 * g, r.x0, r.y0, r.w, r.h);
-      for (int py = sp.y0; py <= sp.y1; ++py) {
-        const scalar_t dy = static_cast<scalar_t>(py) - s.my;
-        for (int px = sp.x0; px <= sp.x1; ++px) {
-          const int p = (py - r.y0) * ts + (px - r.x0);
-          if (done[p]) continue;
-          if (kCount) ++local.evaluations;
-          scalar_t alpha, gauss;
-          bool clamped;
-          if (!splat_alpha(s, static_cast<scalar_t>(px) - s.mx, dy, &alpha, &gauss, &clamped)) continue;
-          const scalar_t next = trans[p] * (1 - alpha);
-          if (next < static_cast<scalar_t>(kTMin)) {
-            done[p] = true;
-            --remaining;
-            continue;
+      const Splat<scalar_t> s = splats[g];
+      const Span sp = r.clip(box + 4 * g);
+      const I kk = I{} + static_cast<int32_t>(k - begin);
+      I stops = I{}, evaluated = I{}, kept = I{};
+      for (int row = sp.y0; row <= sp.y1; ++row) {
+        const scalar_t dy = static_cast<scalar_t>(r.y0 + row) - s.my;
+        for (int c = 0; c < Lanes::kChunks; ++c) {
+          if (!Lanes::meets(c, sp)) continue;
+          const int v = row * Lanes::kChunks + c;
+          const I open = (lanes.column[c] >= sp.x0) & (lanes.column[c] <= sp.x1) & (done[v] == 0);
+          const V raw = s.opacity * falloff(s, lanes.x[c] - s.mx, dy);
+          const I hit = open & (raw >= static_cast<scalar_t>(kAlphaMin));
+          // Missed lanes get alpha 0: no subnormal products, T unchanged.
+          const V alpha = hit ? (raw < static_cast<scalar_t>(kAlphaMax) ? raw : V{} + static_cast<scalar_t>(kAlphaMax))
+                              : V{};
+          const V next = trans[v] * (1 - alpha);
+          const I stop = hit & (next < static_cast<scalar_t>(kTMin));
+          const I keep = hit & ~stop;
+          const V w = keep ? alpha * trans[v] : V{};
+          f0[v] += w * s.color[0];
+          f1[v] += w * s.color[1];
+          f2[v] += w * s.color[2];
+          f3[v] += w * s.depth;
+          acc[v] += w;
+          trans[v] = keep ? next : trans[v];
+          last[v] = keep ? kk : last[v];
+          done[v] |= stop;
+          stops -= stop;  // masks are -1 per set lane
+          if (kCount) {
+            evaluated -= open;
+            kept -= keep;
           }
-          if (kCount) ++local.contributions;
-          const scalar_t w = alpha * trans[p];
-          feat[p][0] += w * s.color[0];
-          feat[p][1] += w * s.color[1];
-          feat[p][2] += w * s.color[2];
-          feat[p][3] += w * s.depth;
-          acc[p] += w;
-          trans[p] = next;
-          last[p] = static_cast<int32_t>(k - begin);
         }
+      }
+      remaining -= static_cast<int>(lane_sum(stops));
+      if (kCount) {
+        local.evaluations += lane_sum(evaluated);
+        local.contributions += lane_sum(kept);
       }
     }
     for (int iy = 0; iy < r.h; ++iy) {
       for (int ix = 0; ix < r.w; ++ix) {
-        const int p = iy * ts + ix;
-        const int64_t o = static_cast<int64_t>(r.y0 + iy) * width + r.x0 + ix;
-        for (int ch = 0; ch < 3; ++ch) rgb[3 * o + ch] = feat[p][ch] + (1 - acc[p]) * background[ch];
-        alpha_out[o] = acc[p];
-        depth_out[o] = feat[p][3];
-        t_final[o] = trans[p];
-        last_out[o] = last[p];
+        const int v = iy * Lanes::kChunks + ix / L, l = ix % L;
+        const int64_t o = static_cast<int64_t>(r.y0 + iy) * grid.width + r.x0 + ix;
+        const scalar_t a = acc[v][l];
+        rgb[3 * o] = f0[v][l] + (1 - a) * background[0];
+        rgb[3 * o + 1] = f1[v][l] + (1 - a) * background[1];
+        rgb[3 * o + 2] = f2[v][l] + (1 - a) * background[2];
+        alpha_out[o] = a;
+        depth_out[o] = f3[v][l];
+        t_final[o] = trans[v][l];
+        last_out[o] = static_cast<int32_t>(last[v][l]);
       }
     }
     if (kCount) (*counts)[t] = local;
   });
 }
 
-template <typename scalar_t>
+template <typename scalar_t, int TS>
 void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* box,
                           const int32_t* ids, const int32_t* slots, const int64_t* toff, const scalar_t* background,
                           const scalar_t* alpha_in, const scalar_t* t_final, const int32_t* last_in,
                           const scalar_t* g_rgb, const scalar_t* g_alpha, const scalar_t* g_depth,
                           scalar_t* pair_grad, double* tile_bg_grad) {
-  const int ts = grid.tile_size, width = grid.width;
+  using S = Simd<scalar_t>;
+  using V = typename S::V;
+  using I = typename S::I;
+  using Lanes = RowLanes<scalar_t, TS>;
+  constexpr int L = S::kLanes, kVecs = TS * TS / L;
   for_each_tile(grid, [&](int t) {
     const TileRect r = tile_rect(grid, t);
-    scalar_t trans[kMaxTilePixels], later[kMaxTilePixels], g_feat[kMaxTilePixels][4], g_acc[kMaxTilePixels];
-    int32_t last[kMaxTilePixels];
+    const Lanes lanes(r.x0);
+    V trans[kVecs], later[kVecs], g0[kVecs], g1[kVecs], g2[kVecs], g3[kVecs], g_acc[kVecs];
+    I last[kVecs];
+    for (int v = 0; v < kVecs; ++v) {
+      trans[v] = later[v] = g0[v] = g1[v] = g2[v] = g3[v] = g_acc[v] = V{};
+      last[v] = I{} - 1;  // padding pixels: nothing to replay
+    }
     int32_t max_last = -1;
     double bg[3] = {0.0, 0.0, 0.0};
     for (int iy = 0; iy < r.h; ++iy) {
       for (int ix = 0; ix < r.w; ++ix) {
-        const int p = iy * ts + ix;
-        const int64_t o = static_cast<int64_t>(r.y0 + iy) * width + r.x0 + ix;
-        trans[p] = t_final[o];
-        later[p] = 0;
-        last[p] = last_in[o];
-        max_last = std::max(max_last, last[p]);
-        scalar_t bg_dot = 0;
-        for (int ch = 0; ch < 3; ++ch) {
-          g_feat[p][ch] = g_rgb[3 * o + ch];
-          bg_dot += background[ch] * g_rgb[3 * o + ch];
-          bg[ch] += static_cast<double>((1 - alpha_in[o]) * g_rgb[3 * o + ch]);
-        }
-        g_feat[p][3] = g_depth[o];
-        // rgb = feat + (1 - acc) background, alpha = acc: dL/dacc gathers both.
-        g_acc[p] = g_alpha[o] - bg_dot;
+        const int v = iy * Lanes::kChunks + ix / L, l = ix % L;
+        const int64_t o = static_cast<int64_t>(r.y0 + iy) * grid.width + r.x0 + ix;
+        const scalar_t* gr = g_rgb + 3 * o;
+        trans[v][l] = t_final[o];
+        last[v][l] = last_in[o];
+        max_last = std::max(max_last, last_in[o]);
+        g0[v][l] = gr[0];
+        g1[v][l] = gr[1];
+        g2[v][l] = gr[2];
+        g3[v][l] = g_depth[o];
+        // rgb = feat + (1 - acc) background and alpha = acc: dL/dacc gathers both.
+        g_acc[v][l] = g_alpha[o] - (background[0] * gr[0] + background[1] * gr[1] + background[2] * gr[2]);
+        for (int ch = 0; ch < 3; ++ch) bg[ch] += static_cast<double>((1 - alpha_in[o]) * gr[ch]);
       }
     }
     for (int ch = 0; ch < 3; ++ch) tile_bg_grad[3 * t + ch] = bg[ch];
     const int64_t begin = toff[t], end = toff[t + 1];
     for (int64_t k = begin + max_last + 1; k < end; ++k) {
-      std::fill(pair_grad + int64_t{kPairGrad} * slots[k], pair_grad + int64_t{kPairGrad} * (slots[k] + 1),
-                scalar_t(0));
+      std::fill_n(pair_grad + int64_t{kPairGrad} * slots[k], kPairGrad, scalar_t(0));
     }
     for (int64_t k = begin + max_last; k >= begin; --k) {
       const int32_t g = ids[k];
-      const int32_t local_k = static_cast<int32_t>(k - begin);
-      const Splat<scalar_t>& s = splats[g];
-      const Span sp = clip_box(box + 4 * g, r.x0, r.y0, r.w, r.h);
-      scalar_t gm_x = 0, gm_y = 0, gc_a = 0, gc_b = 0, gc_c = 0, g_o = 0, g_col[3] = {0, 0, 0}, g_d = 0;
-      for (int py = sp.y0; py <= sp.y1; ++py) {
-        const scalar_t dy = static_cast<scalar_t>(py) - s.my;
-        for (int px = sp.x0; px <= sp.x1; ++px) {
-          const int p = (py - r.y0) * ts + (px - r.x0);
-          if (local_k > last[p]) continue;
-          const scalar_t dx = static_cast<scalar_t>(px) - s.mx;
-          scalar_t alpha, gauss;
-          bool clamped;
-          if (!splat_alpha(s, dx, dy, &alpha, &gauss, &clamped)) continue;
-          const scalar_t one_minus = 1 - alpha;
-          const scalar_t t_prev = trans[p] / one_minus;
-          const scalar_t w = alpha * t_prev;
-          const scalar_t v = s.color[0] * g_feat[p][0] + s.color[1] * g_feat[p][1] + s.color[2] * g_feat[p][2] +
-                             s.depth * g_feat[p][3] + g_acc[p];
-          const scalar_t d_alpha = t_prev * v - later[p] / one_minus;
-          later[p] += w * v;
-          trans[p] = t_prev;
-          g_col[0] += w * g_feat[p][0];
-          g_col[1] += w * g_feat[p][1];
-          g_col[2] += w * g_feat[p][2];
-          g_d += w * g_feat[p][3];
-          if (clamped) continue;
+      const I kk = I{} + static_cast<int32_t>(k - begin);
+      const Splat<scalar_t> s = splats[g];
+      const Span sp = r.clip(box + 4 * g);
+      V gm_x{}, gm_y{}, gc_a{}, gc_b{}, gc_c{}, g_o{}, g_r{}, g_g{}, g_b{}, g_d{};
+      for (int row = sp.y0; row <= sp.y1; ++row) {
+        const scalar_t dy = static_cast<scalar_t>(r.y0 + row) - s.my;
+        for (int c = 0; c < Lanes::kChunks; ++c) {
+          if (!Lanes::meets(c, sp)) continue;
+          const int v = row * Lanes::kChunks + c;
+          const V dx = lanes.x[c] - s.mx;
+          const V gauss = falloff(s, dx, dy);
+          const V raw = s.opacity * gauss;
+          const I hit = (lanes.column[c] >= sp.x0) & (lanes.column[c] <= sp.x1) & (kk <= last[v]) &
+                        (raw >= static_cast<scalar_t>(kAlphaMin));
+          const I free = hit & (raw < static_cast<scalar_t>(kAlphaMax));  // alpha not clamped
+          // Missed lanes get alpha 0: w = 0, and T and the later sum stay as they are.
+          const V alpha = hit ? (raw < static_cast<scalar_t>(kAlphaMax) ? raw : V{} + static_cast<scalar_t>(kAlphaMax))
+                              : V{};
+          const V one_minus = 1 - alpha;
+          const V t_prev = trans[v] / one_minus;
+          const V w = alpha * t_prev;
+          const V val = s.color[0] * g0[v] + s.color[1] * g1[v] + s.color[2] * g2[v] + s.depth * g3[v] + g_acc[v];
+          // dL/dalpha = T_prev v - (sum over later Gaussians of w v) / (1 - alpha), 0 where clamped.
+          const V d_alpha = free ? t_prev * val - later[v] / one_minus : V{};
+          later[v] = hit ? later[v] + w * val : later[v];
+          trans[v] = hit ? t_prev : trans[v];
+          g_r += w * g0[v];
+          g_g += w * g1[v];
+          g_b += w * g2[v];
+          g_d += w * g3[v];
           g_o += gauss * d_alpha;
-          const scalar_t d_q = static_cast<scalar_t>(-0.5) * alpha * d_alpha;
+          const V d_q = static_cast<scalar_t>(-0.5) * alpha * d_alpha;
           gc_a += d_q * dx * dx;
           gc_b += 2 * d_q * dx * dy;
           gc_c += d_q * dy * dy;
@@ -597,16 +679,8 @@ void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t
         }
       }
       scalar_t* out = pair_grad + int64_t{kPairGrad} * slots[k];
-      out[0] = gm_x;
-      out[1] = gm_y;
-      out[2] = gc_a;
-      out[3] = gc_b;
-      out[4] = gc_c;
-      out[5] = g_o;
-      out[6] = g_col[0];
-      out[7] = g_col[1];
-      out[8] = g_col[2];
-      out[9] = g_d;
+      const V sums[kPairGrad] = {gm_x, gm_y, gc_a, gc_b, gc_c, g_o, g_r, g_g, g_b, g_d};
+      for (int i = 0; i < kPairGrad; ++i) out[i] = lane_sum(sums[i]);
     }
   });
 }
@@ -685,6 +759,25 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles(const at::T
                                v.const_data_ptr<bool>());
 }
 
+// Calls f(scalar_t{}, std::integral_constant<int, tile size>{}) for the compiled dtypes and tile sizes.
+template <typename F>
+void dispatch(at::ScalarType dtype, int tile_size, F f) {
+  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "the cpu rasterizer takes float32 or float64, got ",
+              dtype);
+  auto with_tile = [&](auto tag) {
+    if (tile_size == 8) {
+      f(tag, std::integral_constant<int, 8>{});
+    } else {
+      f(tag, std::integral_constant<int, 16>{});
+    }
+  };
+  if (dtype == at::kDouble) {
+    with_tile(double{});
+  } else {
+    with_tile(float{});
+  }
+}
+
 // Inputs of both compositing passes, made contiguous once.
 struct RasterInputs {
   at::Tensor means2d, conics, opacities, colors, depths, background, box, ids, tile_offsets;
@@ -711,15 +804,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> forward_p
   const int64_t h = grid.height, w = grid.width;
   at::Tensor rgb = at::empty({h, w, 3}, opts), alpha = at::empty({h, w}, opts), depth = at::empty({h, w}, opts);
   at::Tensor t_final = at::empty({h, w}, opts), last = at::empty({h, w}, opts.dtype(at::kInt));
-  auto run = [&](auto tag) {
+  dispatch(in.means2d.scalar_type(), grid.tile_size, [&](auto tag, auto tile) {
     using scalar_t = decltype(tag);
-    raster_forward_impl<scalar_t, kCount>(grid, in.splats<scalar_t>(), in.box.const_data_ptr<int32_t>(),
+    raster_forward_impl<scalar_t, decltype(tile)::value, kCount>(grid, in.splats<scalar_t>(), in.box.const_data_ptr<int32_t>(),
                                           in.ids.const_data_ptr<int32_t>(), in.tile_offsets.const_data_ptr<int64_t>(),
                                           in.background.const_data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(),
                                           alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
                                           t_final.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), counts);
-  };
-  if (in.means2d.scalar_type() == at::kDouble) run(double{}); else run(float{});
+  });
   return {rgb, alpha, depth, t_final, last};
 }
 
@@ -768,11 +860,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const at::Tensor sl = slots.contiguous(), go = gauss_offsets.contiguous(), a = alpha.contiguous();
   const at::Tensor tf = t_final.contiguous(), la = last.contiguous();
   const at::Tensor gr = g_rgb.contiguous(), ga = g_alpha.contiguous(), gd = g_depth.contiguous();
-  auto run = [&](auto tag) {
+  dispatch(in.means2d.scalar_type(), grid.tile_size, [&](auto tag, auto tile) {
     using scalar_t = decltype(tag);
     std::vector<scalar_t> pair_grad(static_cast<size_t>(pairs) * kPairGrad);
     std::vector<double> tile_bg(3 * static_cast<size_t>(grid.num_tiles()));
-    raster_backward_impl<scalar_t>(grid, in.splats<scalar_t>(), in.box.const_data_ptr<int32_t>(),
+    raster_backward_impl<scalar_t, decltype(tile)::value>(grid, in.splats<scalar_t>(), in.box.const_data_ptr<int32_t>(),
                                    in.ids.const_data_ptr<int32_t>(), sl.const_data_ptr<int32_t>(),
                                    in.tile_offsets.const_data_ptr<int64_t>(), in.background.const_data_ptr<scalar_t>(),
                                    a.const_data_ptr<scalar_t>(), tf.const_data_ptr<scalar_t>(),
@@ -802,8 +894,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
       for (int t = 0; t < grid.num_tiles(); ++t) sum += tile_bg[3 * t + ch];
       gb[ch] = static_cast<scalar_t>(sum);
     }
-  };
-  if (in.means2d.scalar_type() == at::kDouble) run(double{}); else run(float{});
+  });
   return {g_means2d, g_conics, g_opacities, g_colors, g_depths, g_background};
 }
 
