@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from data_schemas.tables import SchemaError
+from data_schemas.writes import write_bytes
 
 SH_C0 = 0.28209479177387814
 
@@ -79,10 +80,7 @@ def write_gaussians_ply(path: str | Path, cloud: GaussianCloud) -> None:
     names = _property_names(n_rest)
     header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
     header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(np.ascontiguousarray(data, dtype="<f4").tobytes())
+    write_bytes(path, header.encode("ascii") + np.ascontiguousarray(data, dtype="<f4").tobytes(), "Gaussian PLY")
 
 
 def read_gaussians_ply(path: str | Path) -> GaussianCloud:

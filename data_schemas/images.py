@@ -19,6 +19,7 @@ import numpy as np
 import OpenEXR
 
 from data_schemas.tables import SchemaError
+from data_schemas.writes import write_bytes, write_failed
 
 _EXR_DTYPES = (np.float32, np.float16)
 
@@ -41,8 +42,13 @@ def write_exr(path: str | Path, channels: Mapping[str, np.ndarray]) -> None:
         data[name] = np.ascontiguousarray(arr)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     path.parent.mkdir(parents=True, exist_ok=True)
-    with OpenEXR.File(header, data) as f:
-        f.write(str(path))
+    try:
+        with OpenEXR.File(header, data) as f:
+            f.write(str(path))
+        with OpenEXR.File(str(path), header_only=True):  # reads back the header: cheap
+            pass
+    except Exception as exc:  # the bindings raise plain RuntimeError/OSError subclasses
+        raise write_failed(path, "EXR image", exc) from exc
 
 
 def read_exr(path: str | Path) -> dict[str, np.ndarray]:
@@ -63,10 +69,12 @@ def write_png(path: str | Path, image: np.ndarray) -> None:
     image = np.asarray(image)
     if image.dtype != np.uint8 or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
         raise SchemaError(f"{path}: PNG expects (H, W) or (H, W, 3) uint8, got {image.shape} {image.dtype}")
-    path.parent.mkdir(parents=True, exist_ok=True)
     bgr = image if image.ndim == 2 else np.ascontiguousarray(image[..., ::-1])
-    if not cv2.imwrite(str(path), bgr):
-        raise SchemaError(f"{path}: could not write PNG (is the directory writable?)")
+    # Encoded in memory and written here: cv2.imwrite reports success when the disk fills up.
+    ok, encoded = cv2.imencode(".png", bgr)
+    if not ok:
+        raise SchemaError(f"{path}: OpenCV could not encode a {image.shape} PNG")
+    write_bytes(path, encoded.tobytes(), "PNG")
 
 
 def read_png(path: str | Path, channels: int) -> np.ndarray:

@@ -18,6 +18,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from data_schemas.writes import write_failed
+
 Kind = Literal["int32", "int64", "float32", "float64", "bool", "string", "vec_f32", "vec_f64", "list_f32"]
 
 _SCALAR_TYPES: dict[str, pa.DataType] = {
@@ -136,8 +138,14 @@ def write_table(path: str | Path, schema: TableSchema, data: Mapping[str, Any]) 
     arrays = [_to_arrow(path, c, data[c.name], n_rows) for c in schema.columns]
     fields = [pa.field(c.name, a.type, nullable=False) for c, a in zip(schema.columns, arrays)]
     table = pa.Table.from_arrays(arrays, schema=pa.schema(fields, metadata=schema.metadata()))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pq.write_table(table, path, compression="zstd")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pq.write_table(table, path, compression="zstd")
+        written = pq.read_metadata(path).num_rows  # the footer, read back: cheap
+    except (OSError, pa.ArrowException) as exc:
+        raise write_failed(path, f"{schema.name} table", exc) from exc
+    if written != n_rows:
+        raise write_failed(path, f"{schema.name} table", OSError(f"{written} of {n_rows} rows read back"))
 
 
 def read_table(path: str | Path, schema: TableSchema) -> dict[str, np.ndarray | list[Any]]:

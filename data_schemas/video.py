@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from data_schemas.tables import SchemaError
+from data_schemas.writes import write_failed
 
 FOURCC = "mp4v"
 
@@ -53,7 +54,22 @@ def write_video_stream(path: str | Path, frames: Iterable[np.ndarray], fps: floa
             writer.release()
     if count == 0:
         raise SchemaError(f"{path}: no frames to write")
+    _check_written(path, count)
     return count
+
+
+def _check_written(path: Path, count: int) -> None:
+    """Reopen a video just written: the container must announce ``count`` frames and the first must
+    decode (OpenCV's writer reports success on a full disk, leaving a file without its index)."""
+    cap = cv2.VideoCapture(str(path))
+    try:
+        announced = max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 0) if cap.isOpened() else 0
+        decodes = cap.isOpened() and cap.read()[0]
+    finally:
+        cap.release()
+    if announced != count or not decodes:
+        raise write_failed(path, f"video ({count} frames encoded, {announced} in the file, "
+                                 f"{'first decodes' if decodes else 'none decodes'})")
 
 
 def read_video(path: str | Path) -> np.ndarray:

@@ -36,6 +36,22 @@ class WarmupConfig:
     backend: str
     seed: int
 
+    def __post_init__(self) -> None:
+        problems = self.validate(self)
+        if problems:
+            raise ValueError("; ".join(problems))
+
+    @classmethod
+    def validate(cls, conf: object) -> list[str]:
+        """Range problems of a ``stage.warmup`` section (this dataclass or the DictConfig merged onto it),
+        one line each, keyed relative to ``stage.warmup``; empty when it can run."""
+        problems = []
+        opacity = float(conf.init_opacity)  # type: ignore[attr-defined]
+        if not 0.0 < opacity < 1.0:  # also refuses NaN
+            problems.append(f"init_opacity={opacity:g}: must lie strictly between 0 and 1 (the opacity logit is "
+                            f"infinite at 0 and 1); use e.g. 0.1, the 3DGS default")
+        return problems
+
 
 @stage(
     "warmup",

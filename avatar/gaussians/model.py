@@ -63,6 +63,8 @@ class BoundGaussians(nn.Module):
         """
         if per_triangle < 1:
             raise ValueError(f"per_triangle must be >= 1, got {per_triangle}")
+        if not 0.0 < init_opacity < 1.0:  # also refuses NaN; 0 and 1 have infinite logits
+            raise ValueError(f"init_opacity must lie strictly between 0 and 1, got {init_opacity}")
         gen = torch.Generator().manual_seed(seed)
         F = faces.shape[0]
         frames = triangle_frames(vertices, faces)
