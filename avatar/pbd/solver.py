@@ -14,7 +14,8 @@ Per frame (:func:`solve_frame`), on the posed, undeformed face ``rest`` (V, 3):
    the clearance) to the surface, so the residual penetration is bounded by construction.
 
 Stiffnesses are relative to a unit particle mass: XPBD's implicit inertia term ties each free
-vertex to its start position with stiffness 1, negligible next to ``attach_stiffness``.
+vertex to its start position with stiffness 1 (the defaults, calibrated on the synthetic capture,
+are of the same order, so the inertia term acts as part of the tissue's resistance).
 """
 
 from __future__ import annotations
@@ -28,11 +29,12 @@ from avatar.pbd.constraints import CollisionSet, EdgeSet, LinearSet, attachment_
 from avatar.pbd.topology import bending_stencils, colour_constraints, unique_edges
 
 
-@dataclass(frozen=True)
+@dataclass
 class PBDConfig:
-    """Solver settings (lengths in metres; stiffnesses relative to a unit particle mass)."""
+    """Solver settings (lengths in metres; stiffnesses relative to a unit particle mass). Not frozen:
+    the pipeline merges ``stage.pbd.solver`` onto it as a structured config."""
 
-    iterations: int = 40
+    iterations: int = 30
     detect_every: int = 10
     final_passes: int = 4
     margin_m: float = 0.01
@@ -40,9 +42,9 @@ class PBDConfig:
     clearance_m: float = 0.0002
     max_depth_m: float = 0.02
     contact_tolerance_m: float = 0.001
-    edge_stiffness: float = 1.0e4
-    bend_stiffness: float = 1.0e-2
-    attach_stiffness: float = 1.0e3
+    edge_stiffness: float = 1.0
+    bend_stiffness: float = 1.0e-3
+    attach_stiffness: float = 3.0
     reference_thickness_m: float = 0.01
     stiffness_power: float = 1.0
 
