@@ -52,7 +52,9 @@ class TileBins:
     """Depth-sorted per-tile Gaussian lists of a ``tile_size`` grid (``bin_tiles``).
 
     Attributes:
-        ids: (P,) int32 Gaussian of every (tile, Gaussian) pair, grouped by tile, front to back.
+        order: (V,) int32 the visible Gaussians, front to back (depth, then index).
+        ids: (P,) int32 Gaussian (its rank in ``order``) of every (tile, Gaussian) pair, grouped by
+            tile, front to back.
         tile_offsets: (T + 1,) int64 start of each tile's list in ``ids``.
         slots: (P,) int32 the pair's row in the backward's per-pair gradients, grouped by Gaussian
             (tile order within a Gaussian).
@@ -61,6 +63,7 @@ class TileBins:
         tile_size, width, height: the grid.
     """
 
+    order: Tensor
     ids: Tensor
     tile_offsets: Tensor
     slots: Tensor
@@ -71,7 +74,7 @@ class TileBins:
     height: int
 
     def raster_args(self) -> tuple:
-        return self.box, self.ids, self.tile_offsets
+        return self.box, self.order, self.ids, self.tile_offsets
 
     def grid_args(self) -> tuple:
         return self.width, self.height, self.tile_size
@@ -129,10 +132,40 @@ class _Rasterize(torch.autograd.Function):
 def bin_tiles(box: Tensor, depths: Tensor, visible: Tensor, width: int, height: int, tile_size: int) -> TileBins:
     """Per-tile, front-to-back lists of the visible Gaussians whose ``box`` (N, 4) meets each tile
     (depth ``depths`` (N,) ascending, ties in index order, as ``tiling.build_tile_lists``)."""
-    ids, slots, tile_offsets, gauss_offsets = _ops().bin_tiles(box, depths.detach(), visible, width, height,
-                                                                 tile_size)
-    return TileBins(ids=ids, tile_offsets=tile_offsets, slots=slots, gauss_offsets=gauss_offsets, box=box,
+    order, ids, slots, tile_offsets, gauss_offsets = _ops().bin_tiles(box, depths.detach(), visible, width, height,
+                                                                        tile_size)
+    return TileBins(order=order, ids=ids, tile_offsets=tile_offsets, slots=slots, gauss_offsets=gauss_offsets, box=box,
                     tile_size=tile_size, width=width, height=height)
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """Projected, binned Gaussians and the compositing inputs cast to the rendering dtype."""
+
+    means2d: Tensor
+    conics: Tensor
+    depths: Tensor
+    radii: Tensor
+    opacities: Tensor
+    colors: Tensor
+    background: Tensor
+    bins: TileBins
+
+
+def _project_and_bin(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, K: Tensor,
+                     world_to_cam: Tensor, width: int, height: int, background: Tensor, near: float, far: float,
+                     tile_size: int) -> _Prepared:
+    """Project (differentiably) and bin the Gaussians; arguments as ``render_cpu``."""
+    dtype = means.dtype
+    if dtype not in DTYPES or means.device.type != "cpu":
+        raise TypeError(f"the cpu backend takes float32/float64 CPU tensors, got {dtype} on {means.device}")
+    quats, scales, opacities, colors, background = (t.to(dtype).contiguous() for t in
+                                                    (quats, scales, opacities, colors, background))
+    camera = _Camera(K.detach().to(torch.float64).contiguous(), world_to_cam.detach().to(torch.float64).contiguous(),
+                     width, height, float(near), float(far))
+    means2d, conics, depths, radii, box, visible = _Project.apply(means.contiguous(), quats, scales, opacities, camera)
+    return _Prepared(means2d=means2d, conics=conics, depths=depths, radii=radii, opacities=opacities, colors=colors,
+                     background=background, bins=bin_tiles(box, depths, visible, width, height, tile_size))
 
 
 def render_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
@@ -143,16 +176,25 @@ def render_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, 
 
     ``tile_size`` (8 or 16, the compiled sizes) changes speed only, never the image.
     """
-    dtype = means.dtype
-    if dtype not in DTYPES or means.device.type != "cpu":
-        raise TypeError(f"the cpu backend takes float32/float64 CPU tensors, got {dtype} on {means.device}")
-    quats, scales, opacities, colors, background = (t.to(dtype).contiguous() for t in
-                                                    (quats, scales, opacities, colors, background))
-    camera = _Camera(K.detach().to(torch.float64).contiguous(), world_to_cam.detach().to(torch.float64).contiguous(),
-                     width, height, float(near), float(far))
-    means2d, conics, depths, radii, box, visible = _Project.apply(means.contiguous(), quats, scales, opacities, camera)
-    if means2d.requires_grad:
-        means2d.retain_grad()
-    bins = bin_tiles(box, depths, visible, width, height, tile_size)
-    rgb, alpha, depth = _Rasterize.apply(means2d, conics, opacities, colors, depths, background, bins)
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=radii, grad_holder=means2d)
+    prep = _project_and_bin(means, quats, scales, opacities, colors, K, world_to_cam, width, height, background,
+                            near, far, tile_size)
+    if prep.means2d.requires_grad:
+        prep.means2d.retain_grad()
+    rgb, alpha, depth = _Rasterize.apply(prep.means2d, prep.conics, prep.opacities, prep.colors, prep.depths,
+                                         prep.background, prep.bins)
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=prep.means2d, radii=prep.radii,
+                        grad_holder=prep.means2d)
+
+
+@torch.no_grad()
+def work_counts(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, K: Tensor,
+                world_to_cam: Tensor, width: int, height: int, background: Tensor, near: float = 0.01,
+                far: float = 100.0, tile_size: int = DEFAULT_TILE_SIZE) -> tuple[int, int]:
+    """(alpha evaluations, contributing (Gaussian, pixel) pairs) of one forward pass (arguments as
+    ``render_cpu``): the pixels of each Gaussian's box in each tile that had not stopped, and
+    those the Gaussian was blended into. The benchmark's measure of the work done."""
+    prep = _project_and_bin(means, quats, scales, opacities, colors, K, world_to_cam, width, height, background,
+                            near, far, tile_size)
+    return tuple(_ops().rasterize_counts(prep.means2d, prep.conics, prep.opacities, prep.colors, prep.depths,
+                                         prep.background, *prep.bins.raster_args(), *prep.bins.grid_args(),
+                                         torch.get_num_threads()))

@@ -16,11 +16,15 @@
 #include <ATen/ops/zeros.h>
 #include <torch/library.h>
 #include <omp.h>
+#if defined(__AVX__)
+#include <immintrin.h>
+#endif
 
 #include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <tuple>
 #include <type_traits>
@@ -306,24 +310,62 @@ TileGrid make_grid(int64_t width, int64_t height, int64_t tile_size) {
                   static_cast<int>(width), static_cast<int>(height)};
 }
 
+// Order-preserving unsigned key of a float's bits (negative values flipped, positive ones offset).
+inline uint32_t sort_key(float x) {
+  uint32_t bits;
+  std::memcpy(&bits, &x, sizeof(bits));
+  return bits ^ ((bits >> 31) != 0 ? 0xFFFFFFFFu : 0x80000000u);
+}
+
+inline uint64_t sort_key(double x) {
+  uint64_t bits;
+  std::memcpy(&bits, &x, sizeof(bits));
+  return bits ^ ((bits >> 63) != 0 ? ~uint64_t{0} : uint64_t{1} << 63);
+}
+
+// The visible Gaussians by ascending depth, ties in index order: a stable LSD radix sort of the
+// depth keys, 11 bits a pass, skipping passes whose digit is the same for every key.
 template <typename scalar_t>
 std::vector<int32_t> depth_order(int64_t n, const scalar_t* depths, const bool* visible) {
-  std::vector<int32_t> order;
-  order.reserve(n);
+  using Key = decltype(sort_key(scalar_t{}));
+  constexpr int kBits = 11, kBuckets = 1 << kBits;
+  std::vector<int32_t> order, scratch;
+  std::vector<Key> keys, scratch_keys;
   for (int64_t i = 0; i < n; ++i) {
-    if (visible[i]) order.push_back(static_cast<int32_t>(i));
+    if (visible[i]) {
+      order.push_back(static_cast<int32_t>(i));
+      keys.push_back(sort_key(depths[i]));
+    }
   }
-  std::stable_sort(order.begin(), order.end(), [depths](int32_t l, int32_t r) { return depths[l] < depths[r]; });
+  scratch.resize(order.size());
+  scratch_keys.resize(keys.size());
+  for (int shift = 0; shift < static_cast<int>(8 * sizeof(Key)); shift += kBits) {
+    std::vector<int64_t> start(kBuckets + 1, 0);
+    for (const Key key : keys) ++start[((key >> shift) & (kBuckets - 1)) + 1];
+    if (std::any_of(start.begin() + 1, start.end(), [&](int64_t c) { return c == static_cast<int64_t>(keys.size()); })) {
+      continue;
+    }
+    for (int b = 0; b < kBuckets; ++b) start[b + 1] += start[b];
+    for (size_t i = 0; i < keys.size(); ++i) {
+      const int64_t pos = start[(keys[i] >> shift) & (kBuckets - 1)]++;
+      scratch[pos] = order[i];
+      scratch_keys[pos] = keys[i];
+    }
+    order.swap(scratch);
+    keys.swap(scratch_keys);
+  }
   return order;
 }
 
+// Tile lists of the visible Gaussians: (order, ids, slots, tile_offsets, gauss_offsets) as
+// documented in backend_cpu.TileBins. A list entry is the Gaussian's rank in `order`, so that a
+// tile reads the packed Gaussians in increasing memory order.
 template <typename scalar_t>
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles_impl(const TileGrid& grid, int64_t n,
-                                                                          const int32_t* box,
-                                                                          const scalar_t* depths,
-                                                                          const bool* visible) {
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles_impl(
+    const TileGrid& grid, int64_t n, const int32_t* box, const scalar_t* depths, const bool* visible) {
   const int ts = grid.tile_size;
   const auto long_opts = at::TensorOptions().dtype(at::kLong);
+  const auto int_opts = at::TensorOptions().dtype(at::kInt);
   at::Tensor gauss_offsets = at::empty({n + 1}, long_opts);
   int64_t* goff = gauss_offsets.data_ptr<int64_t>();
   std::vector<int64_t> tile_count(grid.num_tiles() + 1, 0);
@@ -348,23 +390,26 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles_impl(const 
   toff[0] = 0;
   for (int t = 0; t < grid.num_tiles(); ++t) toff[t + 1] = toff[t] + tile_count[t + 1];
 
-  const auto int_opts = at::TensorOptions().dtype(at::kInt);
+  const std::vector<int32_t> sorted = depth_order(n, depths, visible);
+  at::Tensor order = at::empty({static_cast<int64_t>(sorted.size())}, int_opts);
+  std::copy(sorted.begin(), sorted.end(), order.data_ptr<int32_t>());
   at::Tensor ids = at::empty({pairs}, int_opts), slots = at::empty({pairs}, int_opts);
   int32_t* id_p = ids.data_ptr<int32_t>();
   int32_t* slot_p = slots.data_ptr<int32_t>();
   std::vector<int64_t> cursor(toff, toff + grid.num_tiles());
-  for (const int32_t g : depth_order(n, depths, visible)) {
+  for (int32_t rank = 0; rank < static_cast<int32_t>(sorted.size()); ++rank) {
+    const int32_t g = sorted[rank];
     const int32_t* b = box + 4 * g;
     int32_t slot = static_cast<int32_t>(goff[g]);
     for (int ty = b[1] / ts; ty <= b[3] / ts; ++ty) {
       for (int tx = b[0] / ts; tx <= b[2] / ts; ++tx) {
         const int64_t pos = cursor[ty * grid.tiles_x + tx]++;
-        id_p[pos] = g;
+        id_p[pos] = rank;
         slot_p[pos] = slot++;
       }
     }
   }
-  return {ids, slots, tile_offsets, gauss_offsets};
+  return {order, ids, slots, tile_offsets, gauss_offsets};
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -419,23 +464,32 @@ inline typename Simd<scalar_t>::V exp_neg(typename Simd<scalar_t>::V x) {
   return p * reinterpret_cast<const V&>(bits);
 }
 
-// A Gaussian's screen-space parameters, packed for the pixel loops.
+// A Gaussian's screen-space parameters and pixel box, packed for the pixel loops (one or two
+// cache lines). Tile lists jump through them, so the loops prefetch kPrefetch entries ahead.
+constexpr int kPrefetch = 8;
+
 template <typename scalar_t>
-struct Splat {
+struct alignas(64) Splat {
   scalar_t mx, my, a, b, c, opacity;
   scalar_t color[3];
   scalar_t depth;
+  int32_t box[4];
 };
 
+// The Gaussians of `order` (depth order, see bin_tiles_impl), packed.
 template <typename scalar_t>
-std::vector<Splat<scalar_t>> pack_splats(int64_t n, const scalar_t* means2d, const scalar_t* conics,
-                                         const scalar_t* opacities, const scalar_t* colors, const scalar_t* depths) {
+std::vector<Splat<scalar_t>> pack_splats(const at::Tensor& order, const scalar_t* means2d, const scalar_t* conics,
+                                         const scalar_t* opacities, const scalar_t* colors, const scalar_t* depths,
+                                         const int32_t* box) {
+  const int64_t n = order.size(0);
+  const int32_t* ord = order.const_data_ptr<int32_t>();
   std::vector<Splat<scalar_t>> splats(n);
 #pragma omp parallel for schedule(static)
-  for (int64_t i = 0; i < n; ++i) {
-    splats[i] = Splat<scalar_t>{means2d[2 * i], means2d[2 * i + 1], conics[3 * i], conics[3 * i + 1],
+  for (int64_t r = 0; r < n; ++r) {
+    const int64_t i = ord[r];
+    splats[r] = Splat<scalar_t>{means2d[2 * i], means2d[2 * i + 1], conics[3 * i], conics[3 * i + 1],
                                 conics[3 * i + 2], opacities[i], {colors[3 * i], colors[3 * i + 1], colors[3 * i + 2]},
-                                depths[i]};
+                                depths[i], {box[4 * i], box[4 * i + 1], box[4 * i + 2], box[4 * i + 3]}};
   }
   return splats;
 }
@@ -476,30 +530,55 @@ void for_each_tile(const TileGrid& grid, Body body) {
   }
 }
 
-// Lane-index vectors of a tile row: column j of chunk c is lane j - c * kLanes.
+// Pixel columns of a tile row as vectors, and masks of columns as bit sets (bit j: column j).
 template <typename scalar_t, int TS>
 struct RowLanes {
   using S = Simd<scalar_t>;
+  using I = typename S::I;
+  static_assert(TS % S::kLanes == 0 && TS <= 16, "tile rows are whole vectors, at most 16 pixels");
   static constexpr int kChunks = TS / S::kLanes;
-  typename S::I column[kChunks];
-  typename S::V x[kChunks];  // pixel x coordinates
+  static constexpr uint32_t kChunkBits = (1u << S::kLanes) - 1;
+  I bit;                       // lane l: 1 << l
+  typename S::V x[kChunks];    // pixel x coordinates of chunk c
   explicit RowLanes(int x0) {
-    for (int c = 0; c < kChunks; ++c) {
-      for (int l = 0; l < S::kLanes; ++l) {
-        column[c][l] = c * S::kLanes + l;
-        x[c][l] = static_cast<scalar_t>(x0 + c * S::kLanes + l);
-      }
+    for (int l = 0; l < S::kLanes; ++l) {
+      bit[l] = 1 << l;
+      for (int c = 0; c < kChunks; ++c) x[c][l] = static_cast<scalar_t>(x0 + c * S::kLanes + l);
     }
   }
-  // Whether chunk c has a column in [x0, x1].
-  static bool meets(int c, const Span& sp) { return c * S::kLanes <= sp.x1 && (c + 1) * S::kLanes > sp.x0; }
+  // Columns [x0, x1] as a bit set.
+  static uint32_t columns(int x0, int x1) { return ((2u << x1) - 1) & ~((1u << x0) - 1); }
+  // The lanes of chunk c in a row bit set, as a lane mask, and their bits.
+  static uint32_t chunk_bits(uint32_t row_bits, int c) { return (row_bits >> (c * S::kLanes)) & kChunkBits; }
+  I mask(uint32_t bits) const { return ((I{} + static_cast<typename std::remove_reference_t<decltype(bit[0])>>(bits)) & bit) != 0; }
+  // The bit set of a lane mask's set lanes (one instruction with AVX).
+  static uint32_t bits_of(I mask) {
+#if defined(__AVX__)
+    if constexpr (S::kLanes == 8) {
+      return static_cast<uint32_t>(_mm256_movemask_ps(reinterpret_cast<__m256>(mask)));
+    } else {
+      return static_cast<uint32_t>(_mm256_movemask_pd(reinterpret_cast<__m256d>(mask)));
+    }
+#else
+    uint32_t out = 0;
+    for (int l = 0; l < S::kLanes; ++l) out |= static_cast<uint32_t>(mask[l] & 1) << l;
+    return out;
+#endif
+  }
 };
 
-template <typename V>
-inline auto lane_sum(V v) -> std::remove_reference_t<decltype(v[0])> {
-  std::remove_reference_t<decltype(v[0])> sum = 0;
-  for (int l = 0; l < static_cast<int>(sizeof(V) / sizeof(v[0])); ++l) sum += v[l];
-  return sum;
+// Sum of a vector's lanes by halving (a fixed order, so the result is reproducible).
+inline float lane_sum(Simd<float>::V v) {
+  v += __builtin_shufflevector(v, v, 4, 5, 6, 7, 0, 1, 2, 3);
+  v += __builtin_shufflevector(v, v, 2, 3, 0, 1, 6, 7, 4, 5);
+  v += __builtin_shufflevector(v, v, 1, 0, 3, 2, 5, 4, 7, 6);
+  return v[0];
+}
+
+inline double lane_sum(Simd<double>::V v) {
+  v += __builtin_shufflevector(v, v, 2, 3, 0, 1);
+  v += __builtin_shufflevector(v, v, 1, 0, 3, 2);
+  return v[0];
 }
 
 // Counters of the forward pass, for the benchmark: alpha evaluations (pixels of a Gaussian's box
@@ -509,10 +588,9 @@ struct Counts {
 };
 
 template <typename scalar_t, int TS, bool kCount>
-void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* box,
-                         const int32_t* ids, const int64_t* toff, const scalar_t* background, scalar_t* rgb,
-                         scalar_t* alpha_out, scalar_t* depth_out, scalar_t* t_final, int32_t* last_out,
-                         std::vector<Counts>* counts) {
+void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* ids,
+                         const int64_t* toff, const scalar_t* background, scalar_t* rgb, scalar_t* alpha_out,
+                         scalar_t* depth_out, scalar_t* t_final, int32_t* last_out, std::vector<Counts>* counts) {
   using S = Simd<scalar_t>;
   using V = typename S::V;
   using I = typename S::I;
@@ -522,31 +600,33 @@ void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>
     const TileRect r = tile_rect(grid, t);
     const Lanes lanes(r.x0);
     V trans[kVecs], acc[kVecs], f0[kVecs], f1[kVecs], f2[kVecs], f3[kVecs];
-    I last[kVecs], done[kVecs];
+    I last[kVecs];
+    uint32_t done[TS];  // stopped pixels per row; the padding of border tiles starts stopped
     for (int v = 0; v < kVecs; ++v) {
       trans[v] = V{} + 1;
       acc[v] = f0[v] = f1[v] = f2[v] = f3[v] = V{};
       last[v] = I{} - 1;
-      // Padding pixels of border tiles start stopped.
-      done[v] = (lanes.column[v % Lanes::kChunks] >= r.w) | (I{} + (v / Lanes::kChunks >= r.h));
     }
+    for (int row = 0; row < TS; ++row) done[row] = row < r.h ? ~Lanes::columns(0, r.w - 1) : ~0u;
     int remaining = r.w * r.h;
     Counts local;
     const int64_t begin = toff[t], end = toff[t + 1];
     for (int64_t k = begin; k < end && remaining > 0; ++k) {
-      const int32_t g = ids[k];
-      const Splat<scalar_t> s = splats[g];
-      const Span sp = r.clip(box + 4 * g);
+      if (k + kPrefetch < end) __builtin_prefetch(&splats[ids[k + kPrefetch]]);
+      const Splat<scalar_t>& s = splats[ids[k]];
+      const Span sp = r.clip(s.box);
+      const uint32_t span = Lanes::columns(sp.x0, sp.x1);
       const I kk = I{} + static_cast<int32_t>(k - begin);
-      I stops = I{}, evaluated = I{}, kept = I{};
       for (int row = sp.y0; row <= sp.y1; ++row) {
+        const uint32_t open_row = span & ~done[row];
+        if (open_row == 0) continue;
         const scalar_t dy = static_cast<scalar_t>(r.y0 + row) - s.my;
         for (int c = 0; c < Lanes::kChunks; ++c) {
-          if (!Lanes::meets(c, sp)) continue;
+          const uint32_t open_bits = Lanes::chunk_bits(open_row, c);
+          if (open_bits == 0) continue;
           const int v = row * Lanes::kChunks + c;
-          const I open = (lanes.column[c] >= sp.x0) & (lanes.column[c] <= sp.x1) & (done[v] == 0);
           const V raw = s.opacity * falloff(s, lanes.x[c] - s.mx, dy);
-          const I hit = open & (raw >= static_cast<scalar_t>(kAlphaMin));
+          const I hit = lanes.mask(open_bits) & (raw >= static_cast<scalar_t>(kAlphaMin));
           // Missed lanes get alpha 0: no subnormal products, T unchanged.
           const V alpha = hit ? (raw < static_cast<scalar_t>(kAlphaMax) ? raw : V{} + static_cast<scalar_t>(kAlphaMax))
                               : V{};
@@ -561,18 +641,16 @@ void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>
           acc[v] += w;
           trans[v] = keep ? next : trans[v];
           last[v] = keep ? kk : last[v];
-          done[v] |= stop;
-          stops -= stop;  // masks are -1 per set lane
+          const uint32_t stop_bits = Lanes::bits_of(stop);
+          if (stop_bits != 0) {
+            done[row] |= stop_bits << (c * L);
+            remaining -= __builtin_popcount(stop_bits);
+          }
           if (kCount) {
-            evaluated -= open;
-            kept -= keep;
+            local.evaluations += __builtin_popcount(open_bits);
+            local.contributions += __builtin_popcount(Lanes::bits_of(keep));
           }
         }
-      }
-      remaining -= static_cast<int>(lane_sum(stops));
-      if (kCount) {
-        local.evaluations += lane_sum(evaluated);
-        local.contributions += lane_sum(kept);
       }
     }
     for (int iy = 0; iy < r.h; ++iy) {
@@ -594,8 +672,7 @@ void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>
 }
 
 template <typename scalar_t, int TS>
-void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* box,
-                          const int32_t* ids, const int32_t* slots, const int64_t* toff, const scalar_t* background,
+void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* ids, const int32_t* slots, const int64_t* toff, const scalar_t* background,
                           const scalar_t* alpha_in, const scalar_t* t_final, const int32_t* last_in,
                           const scalar_t* g_rgb, const scalar_t* g_alpha, const scalar_t* g_depth,
                           scalar_t* pair_grad, double* tile_bg_grad) {
@@ -609,9 +686,11 @@ void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t
     const Lanes lanes(r.x0);
     V trans[kVecs], later[kVecs], g0[kVecs], g1[kVecs], g2[kVecs], g3[kVecs], g_acc[kVecs];
     I last[kVecs];
+    int32_t chunk_last[kVecs];  // the largest last contributor of each chunk's pixels
     for (int v = 0; v < kVecs; ++v) {
       trans[v] = later[v] = g0[v] = g1[v] = g2[v] = g3[v] = g_acc[v] = V{};
       last[v] = I{} - 1;  // padding pixels: nothing to replay
+      chunk_last[v] = -1;
     }
     int32_t max_last = -1;
     double bg[3] = {0.0, 0.0, 0.0};
@@ -622,6 +701,7 @@ void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t
         const scalar_t* gr = g_rgb + 3 * o;
         trans[v][l] = t_final[o];
         last[v][l] = last_in[o];
+        chunk_last[v] = std::max(chunk_last[v], last_in[o]);
         max_last = std::max(max_last, last_in[o]);
         g0[v][l] = gr[0];
         g1[v][l] = gr[1];
@@ -638,31 +718,33 @@ void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t
       std::fill_n(pair_grad + int64_t{kPairGrad} * slots[k], kPairGrad, scalar_t(0));
     }
     for (int64_t k = begin + max_last; k >= begin; --k) {
-      const int32_t g = ids[k];
-      const I kk = I{} + static_cast<int32_t>(k - begin);
-      const Splat<scalar_t> s = splats[g];
-      const Span sp = r.clip(box + 4 * g);
+      if (k - kPrefetch >= begin) __builtin_prefetch(&splats[ids[k - kPrefetch]]);
+      const int32_t local_k = static_cast<int32_t>(k - begin);
+      const I kk = I{} + local_k;
+      const Splat<scalar_t>& s = splats[ids[k]];
+      const Span sp = r.clip(s.box);
+      const uint32_t span = Lanes::columns(sp.x0, sp.x1);
       V gm_x{}, gm_y{}, gc_a{}, gc_b{}, gc_c{}, g_o{}, g_r{}, g_g{}, g_b{}, g_d{};
       for (int row = sp.y0; row <= sp.y1; ++row) {
         const scalar_t dy = static_cast<scalar_t>(r.y0 + row) - s.my;
         for (int c = 0; c < Lanes::kChunks; ++c) {
-          if (!Lanes::meets(c, sp)) continue;
           const int v = row * Lanes::kChunks + c;
+          const uint32_t span_bits = Lanes::chunk_bits(span, c);
+          if (span_bits == 0 || local_k > chunk_last[v]) continue;  // no pixel of the chunk replays k
           const V dx = lanes.x[c] - s.mx;
           const V gauss = falloff(s, dx, dy);
           const V raw = s.opacity * gauss;
-          const I hit = (lanes.column[c] >= sp.x0) & (lanes.column[c] <= sp.x1) & (kk <= last[v]) &
-                        (raw >= static_cast<scalar_t>(kAlphaMin));
+          const I hit = lanes.mask(span_bits) & (kk <= last[v]) & (raw >= static_cast<scalar_t>(kAlphaMin));
           const I free = hit & (raw < static_cast<scalar_t>(kAlphaMax));  // alpha not clamped
           // Missed lanes get alpha 0: w = 0, and T and the later sum stay as they are.
           const V alpha = hit ? (raw < static_cast<scalar_t>(kAlphaMax) ? raw : V{} + static_cast<scalar_t>(kAlphaMax))
                               : V{};
-          const V one_minus = 1 - alpha;
-          const V t_prev = trans[v] / one_minus;
+          const V inv_one_minus = 1 / (1 - alpha);
+          const V t_prev = trans[v] * inv_one_minus;
           const V w = alpha * t_prev;
           const V val = s.color[0] * g0[v] + s.color[1] * g1[v] + s.color[2] * g2[v] + s.depth * g3[v] + g_acc[v];
           // dL/dalpha = T_prev v - (sum over later Gaussians of w v) / (1 - alpha), 0 where clamped.
-          const V d_alpha = free ? t_prev * val - later[v] / one_minus : V{};
+          const V d_alpha = free ? t_prev * val - later[v] * inv_one_minus : V{};
           later[v] = hit ? later[v] + w * val : later[v];
           trans[v] = hit ? t_prev : trans[v];
           g_r += w * g0[v];
@@ -745,9 +827,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> project_backward(
   return {g_means, g_quats, g_scales};
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles(const at::Tensor& box, const at::Tensor& depths,
-                                                                     const at::Tensor& visible, int64_t width,
-                                                                     int64_t height, int64_t tile_size) {
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles(
+    const at::Tensor& box, const at::Tensor& depths, const at::Tensor& visible, int64_t width, int64_t height,
+    int64_t tile_size) {
   const TileGrid grid = make_grid(width, height, tile_size);
   const at::Tensor b = box.contiguous(), d = depths.contiguous(), v = visible.contiguous();
   const int64_t n = b.size(0);
@@ -778,62 +860,65 @@ void dispatch(at::ScalarType dtype, int tile_size, F f) {
   }
 }
 
-// Inputs of both compositing passes, made contiguous once.
+// The Gaussians and tile lists both compositing passes read, made contiguous once.
 struct RasterInputs {
-  at::Tensor means2d, conics, opacities, colors, depths, background, box, ids, tile_offsets;
+  at::Tensor means2d, conics, opacities, colors, depths, background, box, order, ids, tile_offsets;
+  TileGrid grid;
   RasterInputs(const at::Tensor& m, const at::Tensor& c, const at::Tensor& o, const at::Tensor& col,
-               const at::Tensor& d, const at::Tensor& bg, const at::Tensor& b, const at::Tensor& i,
-               const at::Tensor& t)
+               const at::Tensor& d, const at::Tensor& bg, const at::Tensor& b, const at::Tensor& ord,
+               const at::Tensor& i, const at::Tensor& t, int64_t width, int64_t height, int64_t tile_size)
       : means2d(m.contiguous()), conics(c.contiguous()), opacities(o.contiguous()), colors(col.contiguous()),
-        depths(d.contiguous()), background(bg.contiguous()), box(b.contiguous()), ids(i.contiguous()),
-        tile_offsets(t.contiguous()) {
+        depths(d.contiguous()), background(bg.contiguous()), box(b.contiguous()), order(ord.contiguous()),
+        ids(i.contiguous()), tile_offsets(t.contiguous()), grid(make_grid(width, height, tile_size)) {
     TORCH_CHECK(colors.size(1) == 3, "colors must be (N, 3)");
   }
   template <typename scalar_t>
   std::vector<Splat<scalar_t>> splats() const {
-    return pack_splats<scalar_t>(means2d.size(0), means2d.const_data_ptr<scalar_t>(),
-                                 conics.const_data_ptr<scalar_t>(), opacities.const_data_ptr<scalar_t>(),
-                                 colors.const_data_ptr<scalar_t>(), depths.const_data_ptr<scalar_t>());
+    return pack_splats<scalar_t>(order, means2d.const_data_ptr<scalar_t>(), conics.const_data_ptr<scalar_t>(),
+                                 opacities.const_data_ptr<scalar_t>(), colors.const_data_ptr<scalar_t>(),
+                                 depths.const_data_ptr<scalar_t>(), box.const_data_ptr<int32_t>());
   }
 };
 
 template <bool kCount>
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> forward_pass(
-    const RasterInputs& in, const TileGrid& grid, std::vector<Counts>* counts) {
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> forward_pass(const RasterInputs& in,
+                                                                                   std::vector<Counts>* counts) {
   const auto opts = in.means2d.options();
-  const int64_t h = grid.height, w = grid.width;
+  const int64_t h = in.grid.height, w = in.grid.width;
   at::Tensor rgb = at::empty({h, w, 3}, opts), alpha = at::empty({h, w}, opts), depth = at::empty({h, w}, opts);
   at::Tensor t_final = at::empty({h, w}, opts), last = at::empty({h, w}, opts.dtype(at::kInt));
-  dispatch(in.means2d.scalar_type(), grid.tile_size, [&](auto tag, auto tile) {
+  dispatch(in.means2d.scalar_type(), in.grid.tile_size, [&](auto tag, auto tile) {
     using scalar_t = decltype(tag);
-    raster_forward_impl<scalar_t, decltype(tile)::value, kCount>(grid, in.splats<scalar_t>(), in.box.const_data_ptr<int32_t>(),
-                                          in.ids.const_data_ptr<int32_t>(), in.tile_offsets.const_data_ptr<int64_t>(),
-                                          in.background.const_data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(),
-                                          alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
-                                          t_final.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), counts);
+    raster_forward_impl<scalar_t, decltype(tile)::value, kCount>(
+        in.grid, in.splats<scalar_t>(), in.ids.const_data_ptr<int32_t>(), in.tile_offsets.const_data_ptr<int64_t>(),
+        in.background.const_data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(),
+        depth.data_ptr<scalar_t>(), t_final.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), counts);
   });
   return {rgb, alpha, depth, t_final, last};
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_forward(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities, const at::Tensor& colors,
-    const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& ids,
-    const at::Tensor& tile_offsets, int64_t width, int64_t height, int64_t tile_size, int64_t threads) {
+    const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& order,
+    const at::Tensor& ids, const at::Tensor& tile_offsets, int64_t width, int64_t height, int64_t tile_size,
+    int64_t threads) {
   set_threads(threads);
-  const RasterInputs in(means2d, conics, opacities, colors, depths, background, box, ids, tile_offsets);
-  return forward_pass<false>(in, make_grid(width, height, tile_size), nullptr);
+  return forward_pass<false>(RasterInputs(means2d, conics, opacities, colors, depths, background, box, order, ids,
+                                          tile_offsets, width, height, tile_size),
+                             nullptr);
 }
 
 // (alpha evaluations, contributing pairs) of the forward pass, summed over tiles.
 std::tuple<int64_t, int64_t> rasterize_counts(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities, const at::Tensor& colors,
-    const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& ids,
-    const at::Tensor& tile_offsets, int64_t width, int64_t height, int64_t tile_size, int64_t threads) {
+    const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& order,
+    const at::Tensor& ids, const at::Tensor& tile_offsets, int64_t width, int64_t height, int64_t tile_size,
+    int64_t threads) {
   set_threads(threads);
-  const RasterInputs in(means2d, conics, opacities, colors, depths, background, box, ids, tile_offsets);
-  const TileGrid grid = make_grid(width, height, tile_size);
-  std::vector<Counts> counts(grid.num_tiles());
-  forward_pass<true>(in, grid, &counts);
+  const RasterInputs in(means2d, conics, opacities, colors, depths, background, box, order, ids, tile_offsets, width,
+                        height, tile_size);
+  std::vector<Counts> counts(in.grid.num_tiles());
+  forward_pass<true>(in, &counts);
   Counts total;
   for (const Counts& c : counts) {
     total.evaluations += c.evaluations;
@@ -844,14 +929,14 @@ std::tuple<int64_t, int64_t> rasterize_counts(
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_backward(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities, const at::Tensor& colors,
-    const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& ids,
-    const at::Tensor& tile_offsets, const at::Tensor& slots, const at::Tensor& gauss_offsets,
+    const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& order,
+    const at::Tensor& ids, const at::Tensor& tile_offsets, const at::Tensor& slots, const at::Tensor& gauss_offsets,
     const at::Tensor& alpha, const at::Tensor& t_final, const at::Tensor& last, const at::Tensor& g_rgb,
     const at::Tensor& g_alpha, const at::Tensor& g_depth, int64_t width, int64_t height, int64_t tile_size,
     int64_t threads) {
   set_threads(threads);
-  const RasterInputs in(means2d, conics, opacities, colors, depths, background, box, ids, tile_offsets);
-  const TileGrid grid = make_grid(width, height, tile_size);
+  const RasterInputs in(means2d, conics, opacities, colors, depths, background, box, order, ids, tile_offsets, width,
+                        height, tile_size);
   const int64_t n = in.means2d.size(0), pairs = in.ids.size(0);
   const auto opts = in.means2d.options();
   at::Tensor g_means2d = at::empty({n, 2}, opts), g_conics = at::empty({n, 3}, opts);
@@ -860,17 +945,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const at::Tensor sl = slots.contiguous(), go = gauss_offsets.contiguous(), a = alpha.contiguous();
   const at::Tensor tf = t_final.contiguous(), la = last.contiguous();
   const at::Tensor gr = g_rgb.contiguous(), ga = g_alpha.contiguous(), gd = g_depth.contiguous();
-  dispatch(in.means2d.scalar_type(), grid.tile_size, [&](auto tag, auto tile) {
+  dispatch(in.means2d.scalar_type(), in.grid.tile_size, [&](auto tag, auto tile) {
     using scalar_t = decltype(tag);
     std::vector<scalar_t> pair_grad(static_cast<size_t>(pairs) * kPairGrad);
-    std::vector<double> tile_bg(3 * static_cast<size_t>(grid.num_tiles()));
-    raster_backward_impl<scalar_t, decltype(tile)::value>(grid, in.splats<scalar_t>(), in.box.const_data_ptr<int32_t>(),
-                                   in.ids.const_data_ptr<int32_t>(), sl.const_data_ptr<int32_t>(),
-                                   in.tile_offsets.const_data_ptr<int64_t>(), in.background.const_data_ptr<scalar_t>(),
-                                   a.const_data_ptr<scalar_t>(), tf.const_data_ptr<scalar_t>(),
-                                   la.const_data_ptr<int32_t>(), gr.const_data_ptr<scalar_t>(),
-                                   ga.const_data_ptr<scalar_t>(), gd.const_data_ptr<scalar_t>(), pair_grad.data(),
-                                   tile_bg.data());
+    std::vector<double> tile_bg(3 * static_cast<size_t>(in.grid.num_tiles()));
+    raster_backward_impl<scalar_t, decltype(tile)::value>(
+        in.grid, in.splats<scalar_t>(), in.ids.const_data_ptr<int32_t>(), sl.const_data_ptr<int32_t>(),
+        in.tile_offsets.const_data_ptr<int64_t>(), in.background.const_data_ptr<scalar_t>(),
+        a.const_data_ptr<scalar_t>(), tf.const_data_ptr<scalar_t>(), la.const_data_ptr<int32_t>(),
+        gr.const_data_ptr<scalar_t>(), ga.const_data_ptr<scalar_t>(), gd.const_data_ptr<scalar_t>(),
+        pair_grad.data(), tile_bg.data());
     // Each Gaussian sums its slots in tile order.
     const int64_t* off = go.const_data_ptr<int64_t>();
     scalar_t* outs[5] = {g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
@@ -891,7 +975,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     scalar_t* gb = g_background.data_ptr<scalar_t>();
     for (int ch = 0; ch < 3; ++ch) {
       double sum = 0.0;
-      for (int t = 0; t < grid.num_tiles(); ++t) sum += tile_bg[3 * t + ch];
+      for (int t = 0; t < in.grid.num_tiles(); ++t) sum += tile_bg[3 * t + ch];
       gb[ch] = static_cast<scalar_t>(sum);
     }
   });
@@ -909,19 +993,20 @@ TORCH_LIBRARY(interactavatar_gs, m) {
         "-> (Tensor, Tensor, Tensor)",
         &project_backward);
   m.def("bin_tiles(Tensor box, Tensor depths, Tensor visible, int width, int height, int tile_size) "
-        "-> (Tensor, Tensor, Tensor, Tensor)",
+        "-> (Tensor, Tensor, Tensor, Tensor, Tensor)",
         &bin_tiles);
   m.def("rasterize_forward(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
-        "Tensor background, Tensor box, Tensor ids, Tensor tile_offsets, int width, int height, int tile_size, "
-        "int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+        "Tensor background, Tensor box, Tensor order, Tensor ids, Tensor tile_offsets, int width, int height, "
+        "int tile_size, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
         &rasterize_forward);
   m.def("rasterize_counts(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
-        "Tensor background, Tensor box, Tensor ids, Tensor tile_offsets, int width, int height, int tile_size, "
-        "int threads) -> (int, int)",
+        "Tensor background, Tensor box, Tensor order, Tensor ids, Tensor tile_offsets, int width, int height, "
+        "int tile_size, int threads) -> (int, int)",
         &rasterize_counts);
   m.def("rasterize_backward(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
-        "Tensor background, Tensor box, Tensor ids, Tensor tile_offsets, Tensor slots, Tensor gauss_offsets, "
-        "Tensor alpha, Tensor t_final, Tensor last, Tensor g_rgb, Tensor g_alpha, Tensor g_depth, int width, "
-        "int height, int tile_size, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
+        "Tensor background, Tensor box, Tensor order, Tensor ids, Tensor tile_offsets, Tensor slots, "
+        "Tensor gauss_offsets, Tensor alpha, Tensor t_final, Tensor last, Tensor g_rgb, Tensor g_alpha, "
+        "Tensor g_depth, int width, int height, int tile_size, int threads) "
+        "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
         &rasterize_backward);
 }
