@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from data_schemas.tables import SchemaError
+from data_schemas.writes import write_failed, write_json
 
 CAPTURE_INDEX = "capture.json"
 CAPTURE_VERSION = 2
@@ -60,7 +61,7 @@ class CaptureIndex:
     def write(self, root: Path) -> None:
         body = {"schema_version": CAPTURE_VERSION, "subject": self.subject, "dataset": self.dataset,
                 "sequences": {k: asdict(v) for k, v in self.sequences.items()}}
-        (root / CAPTURE_INDEX).write_text(json.dumps(body, indent=2, sort_keys=True))
+        write_json(root / CAPTURE_INDEX, body, "capture index")
 
     @classmethod
     def read(cls, root: Path) -> CaptureIndex:
@@ -101,13 +102,16 @@ _FICLONE = 0x40049409  # Linux ioctl: share the source's blocks copy-on-write (b
 def copy_into_capture(src: Path, dst: Path) -> None:
     """Bring a user's file into a capture as an independent copy: a copy-on-write clone where the file system
     has one, else a byte copy. Never a hard link: editing the user's file must not change a published artifact."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    with open(src, "rb") as fin, open(dst, "wb") as fout:
-        try:
-            fcntl.ioctl(fout.fileno(), _FICLONE, fin.fileno())
-            cloned = True
-        except OSError:
-            cloned = False
-    if not cloned:
-        shutil.copyfile(src, dst)
-    shutil.copystat(src, dst)
+    try:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        with open(src, "rb") as fin, open(dst, "wb") as fout:
+            try:
+                fcntl.ioctl(fout.fileno(), _FICLONE, fin.fileno())
+                cloned = True
+            except OSError:
+                cloned = False
+        if not cloned:
+            shutil.copyfile(src, dst)
+        shutil.copystat(src, dst)
+    except OSError as exc:
+        raise write_failed(dst, f"copy of {src}", exc) from exc

@@ -9,6 +9,7 @@ the byte count, a Parquet footer, a video's frame count and first frame.
 from __future__ import annotations
 
 import errno
+import json
 import shutil
 from pathlib import Path
 
@@ -76,3 +77,9 @@ def write_bytes(path: str | Path, data: bytes, what: str) -> None:
         raise write_failed(path, what, exc) from exc
     if size != len(data):
         raise write_failed(path, what, OSError(f"{size} of {len(data)} bytes on disk"))
+
+
+def write_json(path: str | Path, obj: object, what: str) -> None:
+    """``obj`` as indented JSON with sorted keys (the same bytes for the same content), checked like
+    :func:`write_bytes`."""
+    write_bytes(path, json.dumps(obj, indent=2, sort_keys=True).encode(), what)

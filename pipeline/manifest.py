@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from data_schemas.writes import write_json
+
 MANIFEST_NAME = "_manifest.json"
 MANIFEST_VERSION = 1
 _CHUNK = 1 << 20
@@ -76,6 +78,11 @@ class Manifest:
         """One hash standing for all outputs; downstream cache keys depend on it."""
         return sha256_json(self.outputs)
 
+    @property
+    def record_digest(self) -> str:
+        """One hash of the whole manifest (outputs and the run's timings, metrics, date), for stages that show them."""
+        return sha256_json(self.to_json())
+
     def to_json(self) -> dict[str, Any]:
         body: dict[str, Any] = {
             "manifest_version": MANIFEST_VERSION,
@@ -104,7 +111,7 @@ class ManifestError(ValueError):
 
 def write_manifest(stage_dir: Path, manifest: Manifest) -> None:
     """Write the manifest (callers write it last, inside the temporary stage dir)."""
-    (stage_dir / MANIFEST_NAME).write_text(json.dumps(manifest.to_json(), indent=2, sort_keys=True))
+    write_json(stage_dir / MANIFEST_NAME, manifest.to_json(), "manifest")
 
 
 def read_manifest(stage_dir: Path) -> Manifest | None:

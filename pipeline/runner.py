@@ -140,7 +140,7 @@ class Runner:
                     f"stage '{s.name}' reads '{name}', which has no complete artifact in {up_dir}; "
                     f"run it first (e.g. interactavatar subject={self.ws.subject} run.until={name})"
                 )
-            digests[name] = manifest.output_digest
+            digests[name] = _input_digest(s, manifest)
         return digests, rerunning
 
     def _verify(self, name: str) -> Manifest | None:
@@ -181,7 +181,7 @@ class Runner:
                 current = read_manifest(self.ws.stage_dir(name))
             except ManifestError:
                 current = None
-            if current is None or current.output_digest != digest:
+            if current is None or _input_digest(s, current) != digest:
                 raise RuntimeError(f"input '{name}' was replaced while the stage ran (by a run that did not hold "
                                    f"its lock); nothing was published: rerun")
         if d.sources is not None:
@@ -304,6 +304,11 @@ class Runner:
 
     def _log_decision(self, r: StageReport) -> None:
         self.log(f"[{self.ws.subject}] {r.stage:<10} {r.action:<9} {r.reason}")
+
+
+def _input_digest(s: Stage, manifest: Manifest) -> str:
+    """What of an input enters ``s``'s key: its outputs, or its whole manifest if ``s`` shows run records."""
+    return manifest.record_digest if s.reads_manifests else manifest.output_digest
 
 
 def _why_key_changed(manifest: Manifest, version: str, config: dict[str, Any], upstream: dict[str, str],

@@ -10,6 +10,8 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
   cannot change what it writes (``"stage.warmup.checkpoint_every"``): left out of the key;
 - ``sources``: for stages that import user files (a capture folder), a function
   listing them; their content digests enter the cache key (``pipeline.sources``);
+- ``reads_manifests``: the stage shows its inputs' run records (timings, metrics), so
+  their whole manifests enter its key, not only their outputs (the report);
 - ``outputs``: relative paths (files or directories) it must produce;
 - ``version``: bumped by hand whenever the code changes what the stage writes;
 - ``resources``: what it needs (cpu cores, gpus), used by launchers and the report;
@@ -101,6 +103,7 @@ class Stage:
     description: str = ""
     cache_exclude: tuple[str, ...] = ()
     sources: SourceLister | None = None
+    reads_manifests: bool = False
 
     def __post_init__(self) -> None:
         if not self.name or not self.name.replace("_", "").isalnum():
@@ -126,6 +129,7 @@ def stage(
     config_schema: type | None = None,
     cache_exclude: Iterable[str] = (),
     sources: SourceLister | None = None,
+    reads_manifests: bool = False,
 ) -> Callable[[StageFn], Stage]:
     """Decorator that turns ``fn(ctx)`` into a :class:`Stage`; the docstring becomes its description."""
 
@@ -141,6 +145,7 @@ def stage(
             config_schema=config_schema,
             cache_exclude=tuple(cache_exclude),
             sources=sources,
+            reads_manifests=reads_manifests,
             description=(fn.__doc__ or "").strip().splitlines()[0] if fn.__doc__ else "",
         )
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from collections import defaultdict
 from dataclasses import dataclass, fields
 
@@ -16,6 +15,7 @@ from data_schemas.capture import CaptureIndex
 from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
+from data_schemas.writes import write_json
 from pipeline.stage import Resources, StageContext, stage
 from stages.common import load_ground_truth_params, load_provided_params, model_sources, templates
 
@@ -38,7 +38,7 @@ class FitStageConfig:
 
 
 @stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit"),
-       outputs=("train/params.parquet", "fit_report.json"), version="2", resources=Resources(cpus=2),
+       outputs=("train/params.parquet", "fit_report.json"), version="3", resources=Resources(cpus=2),
        config_schema=FitStageConfig, sources=model_sources)
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors."""
@@ -66,8 +66,10 @@ def fit(ctx: StageContext) -> None:
                                   head, hand, conf)
             params = result.params
             entry = {"reprojection_px": {p: float(np.nanmean(v)) for p, v in result.reprojection_px.items()},
-                     "weak_frames": {p: np.flatnonzero(v).tolist() for p, v in result.weak_frames.items()},
-                     "seconds_per_frame_per_view": result.timing.get("total_s", 0.0) / info.num_frames / len(cameras)}
+                     "weak_frames": {p: np.flatnonzero(v).tolist() for p, v in result.weak_frames.items()}}
+            # Timings go to the manifest (its metrics), never into an artifact: a rerun must write the same bytes.
+            ctx.metrics[f"{seq}_fit_ms_per_frame_per_view"] = \
+                1e3 * result.timing.get("total_s", 0.0) / info.num_frames / len(cameras)
         if info.has_ground_truth:
             entry.update(_errors(params, load_ground_truth_params(cap_dir, seq), head, hand))
         write_table(ctx.out_dir / seq / "params.parquet", PARAMS,
@@ -76,7 +78,7 @@ def fit(ctx: StageContext) -> None:
         for key in ("mpjpe_hand_mm", "mpjpe_face_mm"):
             if key in entry:
                 ctx.metrics[f"{seq}_{key}"] = entry[key]
-    (ctx.out_dir / "fit_report.json").write_text(json.dumps(report, indent=2, sort_keys=True))
+    write_json(ctx.out_dir / "fit_report.json", report, "fit report")
 
 
 def _keypoints_by_camera(table: dict, num_frames: int) -> dict[str, dict[str, np.ndarray]]:

@@ -19,6 +19,7 @@ from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.metrics import METRICS, REGIONS, SPLITS
 from data_schemas.images import read_png
 from data_schemas.tables import read_table
+from data_schemas.writes import write_bytes
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
@@ -35,7 +36,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "stage.report"), outputs=("report.html",),
-       version="2", config_schema=ReportConfig)
+       version="2", config_schema=ReportConfig, reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, a contact sheet."""
     cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
@@ -79,7 +80,7 @@ def report(ctx: StageContext) -> None:
     page = "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>" \
            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}" \
            "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}</style>\n" + "\n".join(sections)
-    (ctx.out_dir / "report.html").write_text(page)
+    write_bytes(ctx.out_dir / "report.html", page.encode(), "report")
 
 
 def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, str]:

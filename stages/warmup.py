@@ -14,7 +14,7 @@ from data_schemas.gaussians import BOUND_GAUSSIANS, TRAIN_LOG
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
 from data_schemas.tables import write_table
 from pipeline.stage import Resources, StageContext, stage
-from stages.common import load_meshes, load_views
+from stages.common import load_meshes, load_views, model_sources
 
 
 @dataclass
@@ -61,6 +61,8 @@ class WarmupConfig:
     version="1",
     resources=Resources(cpus=2, gpus=0),
     config_schema=WarmupConfig,
+    cache_exclude=("stage.warmup.checkpoint_every",),  # resuming is bit-for-bit: it cannot change the result
+    sources=model_sources,
 )
 def warmup(ctx: StageContext) -> None:
     """Train static mesh-bound Gaussians on every train camera and train frame."""

@@ -13,17 +13,9 @@ import pytest
 from pipeline.cli import run_app
 from pipeline.manifest import read_manifest, write_manifest
 from pipeline.runner import StageFailed
-from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli
+from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli, wait_for
 
 TOY = [*TOY_OVERRIDES, "run.progress=false"]
-
-
-def _wait_for(predicate, timeout_s: float = 60.0) -> None:
-    deadline = time.time() + timeout_s
-    while not predicate():
-        if time.time() > deadline:
-            raise TimeoutError("condition not met in time")
-        time.sleep(0.05)
 
 
 def test_a_stage_reads_exactly_the_inputs_its_manifest_names_while_another_run_rewrites_them(tmp_path):
@@ -36,7 +28,7 @@ def test_a_stage_reads_exactly_the_inputs_its_manifest_names_while_another_run_r
     reader = subprocess.Popen(cli_command(*base, "run.only=c", "run.force=true", "++stage.c.sleep_s=3"),
                               cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        _wait_for(lambda: any((subject / ".tmp").glob("c-*/parts/half.txt")))  # c has read b once
+        wait_for(lambda: any((subject / ".tmp").glob("c-*/parts/half.txt")))  # c has read b once
         writer = run_cli(*base, "run.only=b", "run.force=true", "stage.b.value=7")
         reader_out, reader_err = reader.communicate(timeout=60)
     finally:
@@ -138,7 +130,7 @@ def test_leftovers_of_a_killed_run_are_cleaned_when_the_stage_is_found_cached(tm
     killed = subprocess.Popen(cli_command(*base, "run.force=true", "run.only=a", "++stage.a.sleep_s=1"),
                               cwd=REPO, env=cli_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        _wait_for(lambda: any((subject / ".tmp").glob("a-*/parts/half.txt")))
+        wait_for(lambda: any((subject / ".tmp").glob("a-*/parts/half.txt")))
         killed.kill()
         killed.wait(timeout=30)
     finally:

@@ -5,20 +5,11 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-import time
 from pathlib import Path
 
-from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli
+from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli, wait_for
 
 TOY = [*TOY_OVERRIDES, "run.progress=false"]
-
-
-def _wait_for(predicate, timeout_s: float = 60.0) -> None:
-    deadline = time.time() + timeout_s
-    while not predicate():
-        if time.time() > deadline:
-            raise TimeoutError("condition not met in time")
-        time.sleep(0.05)
 
 
 def test_sigkill_mid_stage_leaves_nothing_that_looks_complete(tmp_path):
@@ -28,7 +19,7 @@ def test_sigkill_mid_stage_leaves_nothing_that_looks_complete(tmp_path):
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         # Wait until stage a has written half of its output into its temporary dir.
-        _wait_for(lambda: any((out / "synth_a" / ".tmp").glob("a-*/parts/half.txt")))
+        wait_for(lambda: any((out / "synth_a" / ".tmp").glob("a-*/parts/half.txt")))
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
     finally:

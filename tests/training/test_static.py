@@ -53,20 +53,7 @@ def test_killed_run_resumes_from_checkpoint_to_the_same_result(tmp_path, monkeyp
     reference = _model(meshes)
     ref_log = train_static(reference, views, meshes, CFG)
 
-    # Kill the run at step 17 (after the checkpoint of step 10).
-    real_render = static.render_frame
-    calls = {"n": 0}
-
-    def dying_render(*args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] == 17:
-            raise KeyboardInterrupt("killed")
-        return real_render(*args, **kwargs)
-
-    monkeypatch.setattr(static, "render_frame", dying_render)
-    with pytest.raises(KeyboardInterrupt):
-        train_static(_model(meshes), views, meshes, CFG, checkpoint_dir=tmp_path)
-    monkeypatch.setattr(static, "render_frame", real_render)
+    _run_killed_at(17, tmp_path, monkeypatch)  # after the checkpoint of step 10
     assert (tmp_path / static.CHECKPOINT).is_file()
 
     resumed = _model(meshes)
