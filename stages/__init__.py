@@ -6,7 +6,8 @@ from stages.evaluate import evaluate
 from stages.fit import fit
 from stages.frames import frames
 from stages.keypoints import keypoints
+from stages.pbd import pbd
 from stages.report import report
 from stages.warmup import warmup
 
-REGISTRY = StageRegistry([capture, frames, keypoints, fit, warmup, evaluate, report])
+REGISTRY = StageRegistry([capture, frames, keypoints, fit, pbd, warmup, evaluate, report])

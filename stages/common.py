@@ -66,11 +66,28 @@ def contact_frames(capture_dir: Path, sequence: str, num_frames: int) -> np.ndar
     return np.zeros(num_frames, dtype=bool)
 
 
-def load_meshes(fit_dir: Path, sequence: str, cfg: DictConfig) -> MeshSequence:
-    """Posed face + hand meshes of every frame of ``sequence`` from the fit stage's ``params.parquet``."""
+def load_meshes(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path | None) -> MeshSequence:
+    """Posed face + hand meshes of every frame of ``sequence`` from the fit stage's ``params.parquet``,
+    the face deformed by the pbd stage's contact offsets (``pbd_dir``; None: undeformed)."""
     head, hand = templates(cfg.model)
     table = read_table(fit_dir / sequence / "params.parquet", PARAMS)
-    return posed_meshes({k: np.asarray(table[k]) for k in PARAM_COLUMNS}, head, hand)
+    meshes = posed_meshes({k: np.asarray(table[k]) for k in PARAM_COLUMNS}, head, hand)
+    if pbd_dir is not None:
+        offsets = load_face_offsets(pbd_dir, sequence, meshes.vertices.shape[0], head.num_vertices)
+        # posed_meshes concatenates the parts in order, face first: its vertices are the first V
+        meshes.vertices[:, :head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
+    return meshes
+
+
+def load_face_offsets(pbd_dir: Path, sequence: str, num_frames: int, num_vertices: int) -> np.ndarray:
+    """(T, V, 3) contact offsets of the face from the pbd stage's ``deform.parquet``: world frame, metres,
+    *added* to the posed face (DECAF's canonical, subtracted offsets are converted when imported)."""
+    path = pbd_dir / sequence / "deform.parquet"
+    offsets = np.asarray(read_table(path, DEFORM)["offsets"], dtype=np.float64)
+    if offsets.shape != (num_frames, num_vertices * 3):
+        raise SchemaError(f"{path}: offsets of shape {offsets.shape}, expected ({num_frames}, {num_vertices * 3}) "
+                          f"for {num_frames} frames of a {num_vertices}-vertex head; rerun the pbd stage")
+    return offsets.reshape(num_frames, num_vertices, 3)
 
 
 def load_views(capture_dir: Path, frames_dir: Path, sequence: str, split: str) -> ViewSet:

@@ -32,8 +32,8 @@ class EvaluateConfig:
     backend: str
 
 
-@stage("evaluate", inputs=("capture", "frames", "fit", "warmup"), config_keys=("model", "stage.evaluate"),
-       outputs=("metrics.parquet", "grids"), version="2", config_schema=EvaluateConfig,
+@stage("evaluate", inputs=("capture", "frames", "fit", "pbd", "warmup"), config_keys=("model", "stage.evaluate"),
+       outputs=("metrics.parquet", "grids"), version="3", config_schema=EvaluateConfig,
        sources=model_sources)
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion; PSNR/SSIM/LPIPS per region; image grids."""
@@ -44,7 +44,7 @@ def evaluate(ctx: StageContext) -> None:
     (ctx.out_dir / "grids").mkdir()
     for split, (sequence, camera_split) in SPLIT_SOURCES.items():
         views = load_views(cap_dir, frames_dir, sequence, camera_split)
-        meshes = load_meshes(ctx.input_dir("fit"), sequence, ctx.cfg)
+        meshes = load_meshes(ctx.input_dir("fit"), sequence, ctx.cfg, pbd_dir=ctx.input_dir("pbd"))
         model = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
         contact = contact_frames(cap_dir, sequence, views.num_frames)
         pairs = [(t, c) for t in range(views.num_frames) for c in range(views.num_cameras)]

@@ -55,10 +55,10 @@ class WarmupConfig:
 
 @stage(
     "warmup",
-    inputs=("capture", "frames", "fit"),
+    inputs=("capture", "frames", "fit", "pbd"),
     config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup"),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet"),
-    version="1",
+    version="2",
     resources=Resources(cpus=2, gpus=0),
     config_schema=WarmupConfig,
     cache_exclude=("stage.warmup.checkpoint_every",),  # resuming is bit-for-bit: it cannot change the result
@@ -70,7 +70,7 @@ def warmup(ctx: StageContext) -> None:
     torch.manual_seed(conf.seed)
     cap_dir = ctx.input_dir("capture")
     views = load_views(cap_dir, ctx.input_dir("frames"), "train", "train")
-    meshes = load_meshes(ctx.input_dir("fit"), "train", ctx.cfg)
+    meshes = load_meshes(ctx.input_dir("fit"), "train", ctx.cfg, pbd_dir=ctx.input_dir("pbd"))
     canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
     model = BoundGaussians.on_triangles(canonical, meshes.faces, meshes.face_part, int(q.gaussians_per_triangle),
                                         init_opacity=conf.init_opacity, seed=conf.seed)

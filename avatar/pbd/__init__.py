@@ -9,10 +9,13 @@ reference deformation).
 
 from avatar.pbd.convention import world_to_decaf_offsets
 from avatar.pbd.evaluation import VertexErrors, moving_vertex_errors
-from avatar.pbd.solver import FaceTopology, FrameResult, PBDConfig, detect_contacts, solve_frame, solve_sequence
+from avatar.pbd.solver import (
+    FaceTopology, FrameResult, PBDConfig, detect_contacts, single_threaded, solve_frame, solve_sequence,
+)
 from avatar.pbd.stiffness import StiffnessFileError, face_relative_stiffness
 
 __all__ = [
     "FaceTopology", "FrameResult", "PBDConfig", "StiffnessFileError", "VertexErrors", "detect_contacts",
-    "face_relative_stiffness", "moving_vertex_errors", "solve_frame", "solve_sequence", "world_to_decaf_offsets",
+    "face_relative_stiffness", "moving_vertex_errors", "single_threaded", "solve_frame", "solve_sequence",
+    "world_to_decaf_offsets",
 ]

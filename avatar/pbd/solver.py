@@ -20,6 +20,9 @@ are of the same order, so the inertia term acts as part of the tissue's resistan
 
 from __future__ import annotations
 
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -69,7 +72,7 @@ class FaceTopology:
 @dataclass
 class FrameResult:
     """One frame's solve: offsets (V, 3) world metres (added to the posed face), face_contact (V,)
-    bool, hand_contact (Vh,) bool, and the report numbers (lengths in metres)."""
+    bool, hand_contact (Vh,) bool, and the report numbers (lengths in metres, wall time in seconds)."""
 
     offsets: torch.Tensor
     face_contact: torch.Tensor
@@ -80,6 +83,7 @@ class FrameResult:
     free_vertices: int = 0
     penetration_max_m: float = 0.0
     penetration_mean_m: float = 0.0
+    seconds: float = 0.0
 
     @property
     def max_offset_m(self) -> float:
@@ -203,6 +207,7 @@ def solve_frame(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor
         stiffness: (V,) relative attachment stiffness (:mod:`avatar.pbd.stiffness`), >= 0.
         warm: (V, 3) the previous frame's offsets, or None.
     """
+    began = time.perf_counter()
     near, seeds = _penetrating(rest, hand, hand_faces, cfg)
     if seeds.numel() == 0:
         return FrameResult(torch.zeros_like(rest), torch.zeros(rest.shape[0], dtype=torch.bool),
@@ -230,12 +235,25 @@ def solve_frame(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor
         hand_contact=_hand_contact(hand, problem.x, topology.faces, face_contact, cfg),
         near=True, simulated=True, iterations=cfg.iterations, free_vertices=int(free.sum()),
         penetration_max_m=float(depth.max()), penetration_mean_m=float(depth[face_contact[problem.free_idx]].mean()),
+        seconds=time.perf_counter() - began,
     )
+
+
+@contextmanager
+def single_threaded() -> Iterator[None]:
+    """Run torch on one thread inside the block (restored afterwards): the solver's many small tensor
+    ops gain nothing from threads and slow down badly when cores are shared."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def solve_sequence(face: torch.Tensor, hand: torch.Tensor, face_faces: torch.Tensor, hand_faces: torch.Tensor,
                    stiffness: torch.Tensor, cfg: PBDConfig) -> list[FrameResult]:
-    """Solve every frame, each warm-started from the previous frame's offsets.
+    """Solve every frame on one thread, each warm-started from the previous frame's offsets.
 
     Args: face (T, V, 3) and hand (T, Vh, 3) posed meshes (world metres), their faces, the (V,)
     relative attachment stiffness. Raises ValueError naming the first frame whose meshes are not finite.
@@ -245,11 +263,12 @@ def solve_sequence(face: torch.Tensor, hand: torch.Tensor, face_faces: torch.Ten
             if not bool(torch.isfinite(verts).all()):
                 raise ValueError(f"frame {t}: the posed {name} mesh has non-finite vertices (NaN or inf "
                                  f"parameters in this frame); fix or drop the frame's parameters")
-    topology = FaceTopology.build(face_faces)
     results: list[FrameResult] = []
-    warm = None
-    for t in range(face.shape[0]):
-        result = solve_frame(face[t], hand[t], hand_faces, topology, stiffness, cfg, warm)
-        results.append(result)
-        warm = result.offsets if result.simulated else None
+    with single_threaded():
+        topology = FaceTopology.build(face_faces)
+        warm = None
+        for t in range(face.shape[0]):
+            result = solve_frame(face[t], hand[t], hand_faces, topology, stiffness, cfg, warm)
+            results.append(result)
+            warm = result.offsets if result.simulated else None
     return results
