@@ -13,9 +13,11 @@ from avatar.render.gaussians.render import resolve_backend
 from pipeline.monitor import ResourceMonitor
 
 
-def test_torch_backend_is_always_available_and_auto_picks_it_on_cpu() -> None:
+def test_torch_backend_is_always_available_and_auto_picks_a_cpu_backend_on_cpu() -> None:
     assert available_backends()[0] == "torch"
-    assert resolve_backend("auto", torch.zeros(1, 3)) == "torch"
+    compiled = "cpu" if "cpu" in available_backends() else "torch"
+    assert resolve_backend("auto", torch.zeros(1, 3)) == compiled
+    assert resolve_backend("auto", torch.zeros(1, 3, dtype=torch.float16)) == "torch"
     assert resolve_backend("torch", torch.zeros(1, 3)) == "torch"
 
 
