@@ -133,7 +133,7 @@ def bin_tiles(box: Tensor, depths: Tensor, visible: Tensor, width: int, height: 
     """Per-tile, front-to-back lists of the visible Gaussians whose ``box`` (N, 4) meets each tile
     (depth ``depths`` (N,) ascending, ties in index order, as ``tiling.build_tile_lists``)."""
     order, ids, slots, tile_offsets, gauss_offsets = _ops().bin_tiles(box, depths.detach(), visible, width, height,
-                                                                        tile_size)
+                                                                        tile_size, torch.get_num_threads())
     return TileBins(order=order, ids=ids, tile_offsets=tile_offsets, slots=slots, gauss_offsets=gauss_offsets, box=box,
                     tile_size=tile_size, width=width, height=height)
 
