@@ -7,7 +7,11 @@ stiffness ``k = 1 / alpha``, so a zero stiffness is a no-op instead of a divisio
 solution converges to the minimiser of ``sum_c k_c C_c^2 / 2`` (plus a unit-mass inertia term
 about the start positions) whatever the iteration count, which is what makes XPBD stiffness
 independent of the number of iterations. Positions ``x`` (V, 3) and inverse masses ``w`` (V,) are
-updated in place; ``rows`` selects one colour (constraints sharing no vertex).
+updated in place; ``rows`` selects one colour (constraints sharing no vertex) for a Gauss-Seidel step, or every
+constraint for a Jacobi step that adds its corrections to ``out`` instead of ``x``; ``relax``
+(a scalar or one value per projected constraint) scales ``dlam``: 1 is plain XPBD; a Jacobi step
+uses ``omega / n`` with ``n`` the most constraints any of its vertices takes part in, so the summed
+corrections stay stable while multipliers and positions stay consistent (the same fixed point).
 
 Collisions are hard unilateral plane constraints ``n . (x - p) >= 0``, projected without multiplier.
 """
@@ -31,17 +35,19 @@ class EdgeSet:
     stiffness: torch.Tensor
     lam: torch.Tensor
 
-    def project(self, x: torch.Tensor, w: torch.Tensor, rows: torch.Tensor) -> None:
+    def project(self, x: torch.Tensor, w: torch.Tensor, rows: torch.Tensor | slice, relax: float | torch.Tensor = 1.0,
+                out: torch.Tensor | None = None) -> None:
         i, j = self.idx[rows, 0], self.idx[rows, 1]
         d = x[i] - x[j]
         length = d.norm(dim=1)
         n = d / length.clamp_min(1e-12)[:, None]
         k = self.stiffness[rows]
         wi, wj = w[i], w[j]
-        dlam = -(k * (length - self.rest[rows]) + self.lam[rows]) / (k * (wi + wj) + 1.0)
+        dlam = -relax * (k * (length - self.rest[rows]) + self.lam[rows]) / (k * (wi + wj) + 1.0)
         self.lam[rows] += dlam
-        x.index_add_(0, i, (wi * dlam)[:, None] * n)
-        x.index_add_(0, j, -(wj * dlam)[:, None] * n)
+        out = x if out is None else out
+        out.index_add_(0, i, (wi * dlam)[:, None] * n)
+        out.index_add_(0, j, -(wj * dlam)[:, None] * n)
 
     def residual(self, x: torch.Tensor) -> torch.Tensor:
         """(M,) XPBD residual ``k C + lam`` (zero at the solution)."""
@@ -67,13 +73,15 @@ class LinearSet:
         """(M, 3) constraint values C."""
         return (self.a[rows, :, None] * x[self.idx[rows]]).sum(1) - self.b[rows]
 
-    def project(self, x: torch.Tensor, w: torch.Tensor, rows: torch.Tensor | slice) -> None:
+    def project(self, x: torch.Tensor, w: torch.Tensor, rows: torch.Tensor | slice, relax: float | torch.Tensor = 1.0,
+                out: torch.Tensor | None = None) -> None:
         idx, a, k = self.idx[rows], self.a[rows], self.stiffness[rows]
         wa = w[idx] * a  # (M, K)
         denom = k * (wa * a).sum(1) + 1.0
-        dlam = -(k[:, None] * self.value(x, rows) + self.lam[rows]) / denom[:, None]
+        scale = relax[:, None] if isinstance(relax, torch.Tensor) else relax
+        dlam = -scale * (k[:, None] * self.value(x, rows) + self.lam[rows]) / denom[:, None]
         self.lam[rows] += dlam
-        x.index_add_(0, idx.reshape(-1), (wa[..., None] * dlam[:, None, :]).reshape(-1, 3))
+        (x if out is None else out).index_add_(0, idx.reshape(-1), (wa[..., None] * dlam[:, None, :]).reshape(-1, 3))
 
     def residual(self, x: torch.Tensor) -> torch.Tensor:
         """(M,) norm of the XPBD residual ``k C + lam``."""

@@ -82,12 +82,13 @@ def test_colours_share_no_vertex_and_cover_every_constraint(head: Head) -> None:
     assert stencils.shape[0] == unique_edges(head.faces).shape[0]  # closed mesh: every edge is interior
 
 
-def test_residual_decreases_over_the_iterations(head: Head) -> None:
+@pytest.mark.parametrize("method", ["jacobi", "gauss_seidel"])
+def test_residual_decreases_over_the_iterations(head: Head, method: str) -> None:
     cheek = head.centre_of("cheek_left")
     hand, hand_faces = press(head, cheek, 0.004)
     free = (head.vertices - head.vertices[cheek]).norm(dim=1) < 0.03
     problem = FrameProblem(head.vertices, hand, hand_faces, head.topology, head.stiffness, free, head.vertices,
-                           PBDConfig())
+                           PBDConfig(method=method))
     problem.detect()
     residuals = []
     for _ in range(4):
