@@ -1,0 +1,97 @@
+"""Contact deformation (stage pbd): accuracy against the synthetic ground truth, and speed against accuracy.
+
+The ground truth is the generator's closed-form soft-tissue field (avatar/synthetic/soft_tissue.py),
+not PBD. Meshes are posed from the capture's ground-truth parameters, so only the solver is measured.
+Errors are over the vertices that move (in the truth or the solve) in the contact frames, for the
+solver and for zero offsets (the "w/o PBD" baseline) on the same vertices. Wall time is per
+simulated (contact) frame, one torch thread. Prints tables, asserts nothing.
+
+Table 1: both subjects at draft (train + test frames). Table 2: method and sweep count against error
+and time (--subject). Table 3: warm start against cold start at the defaults (--subject).
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from avatar.pbd import PBDConfig, face_relative_stiffness, moving_vertex_errors, solve_sequence
+from avatar.synthetic import SyntheticConfig, generate
+from avatar.templates import procedural_hand, procedural_head
+from avatar.training.posing import posed_keypoints
+
+#: quality=draft frame counts (conf/quality/draft.yaml)
+DRAFT_FRAMES = {"train": 24, "test": 12}
+
+
+def _sequence(subject: str, sequence: str, frames: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    """Posed face (T, V, 3) and hand (T, Vh, 3) and the true offsets (T, V, 3) of one draft sequence
+    (rendered at a token resolution: only the motion and the soft tissue are used)."""
+    cap = generate(SyntheticConfig(subject, sequence, image_size=16, num_frames=frames, supersample=1,
+                                   num_cameras=2))
+    posed = posed_keypoints(cap.params, procedural_head(), procedural_hand())
+    return torch.from_numpy(posed["face_vertices"]), torch.from_numpy(posed["hand_vertices"]), cap.face_offsets
+
+
+def _evaluate(data: list[tuple[torch.Tensor, torch.Tensor, np.ndarray]], cfg: PBDConfig) -> dict[str, float]:
+    """Solve every sequence of ``data``; pooled errors (mm) and mean seconds per simulated frame."""
+    head, hand = procedural_head(), procedural_hand()
+    stiffness, _ = face_relative_stiffness(head.num_vertices, head.inner_distance, None, cfg.reference_thickness_m,
+                                           cfg.stiffness_power)
+    faces, hand_faces = torch.tensor(np.array(head.faces)), torch.tensor(np.array(hand.faces))
+    preds, refs, seconds, penetration = [], [], [], 0.0
+    for face, hand_v, truth in data:
+        results = solve_sequence(face, hand_v, faces, hand_faces, torch.from_numpy(stiffness), cfg)
+        preds.append(np.stack([r.offsets.numpy() for r in results]))
+        refs.append(truth)
+        seconds += [r.seconds for r in results if r.simulated]
+        penetration = max([penetration] + [r.penetration_max_m * 1e3 for r in results])
+    ref = np.concatenate(refs)
+    errors = moving_vertex_errors(np.concatenate(preds), ref, np.abs(ref).reshape(len(ref), -1).max(axis=1) > 0)
+    assert errors is not None
+    return {"mean": errors.mean_mm, "p95": errors.p95_mm, "zero_mean": errors.zero_mean_mm,
+            "zero_p95": errors.zero_p95_mm, "ratio": errors.mean_mm / errors.zero_mean_mm,
+            "s_per_frame": float(np.mean(seconds)), "frames": len(seconds), "penetration": penetration}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--subject", default="synth_a", help="subject of tables 2 and 3")
+    parser.add_argument("--sweeps", default="25,50,100,200,400", help="sweep counts of table 2")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    base = PBDConfig()
+    data = {s: [_sequence(s, seq, n) for seq, n in DRAFT_FRAMES.items()] for s in ("synth_a", "synth_b")}
+
+    print(f"Table 1: accuracy on contact frames at draft ({base.method}, {base.iterations} sweeps)")
+    print("| subject | contact frames | mean error (mm) | p95 (mm) | zero offsets mean (mm) | zero p95 (mm) "
+          "| mean / zero | max residual penetration (mm) | s per contact frame |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for subject, seqs in data.items():
+        r = _evaluate(seqs, base)
+        print(f"| {subject} | {r['frames']} | {r['mean']:.3f} | {r['p95']:.3f} | {r['zero_mean']:.3f} "
+              f"| {r['zero_p95']:.3f} | {r['ratio']:.0%} | {r['penetration']:.3f} | {r['s_per_frame']:.3f} |")
+
+    print(f"\nTable 2: sweeps against error and time ({args.subject}, draft, train + test)")
+    print("| method | sweeps | mean error (mm) | p95 (mm) | mean / zero | s per contact frame |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for method in ("jacobi", "gauss_seidel"):
+        for sweeps in (int(s) for s in args.sweeps.split(",")):
+            r = _evaluate(data[args.subject], replace(base, method=method, iterations=sweeps))
+            print(f"| {method} | {sweeps} | {r['mean']:.3f} | {r['p95']:.3f} | {r['ratio']:.0%} "
+                  f"| {r['s_per_frame']:.3f} |")
+
+    print(f"\nTable 3: warm start ({args.subject}, draft, defaults)")
+    print("| start | mean error (mm) | mean / zero | s per contact frame |")
+    print("| --- | --- | --- | --- |")
+    for warm in (False, True):
+        r = _evaluate(data[args.subject], replace(base, warm_start=warm))
+        print(f"| {'previous frame' if warm else 'undeformed'} | {r['mean']:.3f} | {r['ratio']:.0%} "
+              f"| {r['s_per_frame']:.3f} |")
+
+
+if __name__ == "__main__":
+    main()
