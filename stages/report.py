@@ -25,7 +25,7 @@ from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
 from stages.common import contact_frames
 
-UPSTREAM = ("capture", "frames", "fit", "warmup", "evaluate")
+UPSTREAM = ("capture", "frames", "fit", "pbd", "warmup", "evaluate")
 
 
 @dataclass
@@ -36,7 +36,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "stage.report"), outputs=("report.html",),
-       version="2", config_schema=ReportConfig, reads_manifests=True)  # its Stages table shows timings
+       version="3", config_schema=ReportConfig, reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, a contact sheet."""
     cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
@@ -67,6 +67,8 @@ def report(ctx: StageContext) -> None:
                  np.array2string(c.cam_to_world[:3, 3], precision=3)) for c in cameras]),
         "<h2>Fitted meshes</h2>",
         _fit_section(ctx.input_dir("fit")),
+        "<h2>Contact deformation</h2>",
+        _pbd_section(ctx.input_dir("pbd")),
         "<h2>Image quality (held-out camera and held-out motion)</h2>",
         _metrics_section(ctx.input_dir("evaluate")),
         "<h2>Warm-up training</h2>",
@@ -115,6 +117,26 @@ def _fit_section(fit_dir: Path) -> str:
     table = _table(("sequence", "hand MPJPE mm", "face landmarks mm", "hand vertices mm", "face vertices mm",
                     "hand reprojection px", "face reprojection px", "weakly constrained frames"), rows)
     return f"<p>Parameters: {html.escape(intro)}. Errors against ground truth where the capture has it.</p>{table}"
+
+
+def _pbd_section(pbd_dir: Path) -> str:
+    """Where the face offsets came from and, per sequence, what was simulated and how close to the truth."""
+    report = json.loads((pbd_dir / "pbd_report.json").read_text())
+    rows = []
+    for seq, entry in report["sequences"].items():
+        frames = entry["frames"]
+        simulated = [f for f in frames if f["simulated"]]
+        errors = entry.get("ground_truth_error") or {}
+        rows.append((seq, len(frames), sum(f["near"] for f in frames), len(simulated),
+                     format_value(max((f["penetration_max_mm"] for f in simulated), default=0.0)),
+                     format_value(max(f["max_offset_mm"] for f in frames)),
+                     *(format_value(errors[k]) if k in errors else "-" for k in ("mean_mm", "zero_mean_mm"))))
+    table = _table(("sequence", "frames", "hand near the face", "simulated", "residual penetration mm",
+                    "largest offset mm", "vertex error mm", "zero offsets mm"), rows)
+    stiffness = f", stiffness from {report['stiffness']}" if "stiffness" in report else ""
+    intro = f"Offsets: {report['source']}{stiffness} ({report['frame_convention']})"
+    return (f"<p>{html.escape(intro)}; frames whose hand stays clear of the face are not simulated. Vertex errors "
+            f"over the vertices that move in contact frames, against ground truth where the capture has it.</p>{table}")
 
 
 def _metrics_section(evaluate_dir: Path) -> str:

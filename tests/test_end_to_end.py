@@ -34,6 +34,13 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     for seq in ("train", "test"):  # 96 px views: one pixel is ~3.7 mm at the subject
         assert fit["sequences"][seq]["mpjpe_hand_mm"] < 10.0 and fit["sequences"][seq]["mpjpe_face_mm"] < 5.0, fit
 
+    # Contact deformation: every contact frame simulated, no residual penetration, closer to the
+    # synthetic truth than zero offsets (on meshes fitted to keypoints, not the true ones).
+    pbd = json.loads((subject / "pbd" / "_manifest.json").read_text())["metrics"]
+    assert pbd["simulated_frames"] > 0 and pbd["penetration_max_mm"] < 0.3, pbd
+    assert pbd["gt_vertex_error_mm"] < pbd["zero_offset_error_mm"], pbd
+    assert json.loads((subject / "pbd" / "pbd_report.json").read_text())["source"] == "simulate"
+
     metrics = read_table(subject / "evaluate" / "metrics.parquet", METRICS)
     full = [i for i, r in enumerate(metrics["region"]) if r == "full"]
     psnr = np.asarray(metrics["psnr"])[full]
@@ -44,6 +51,7 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     html = (subject / "report" / "report.html").read_text()
     assert "Image quality" in html and "data:image/png;base64" in html
     assert "Fitted meshes" in html and "fitted to the keypoints of the train views" in html
+    assert "Contact deformation" in html and "Offsets: simulate" in html
 
     # Every stage is deterministic (issue 9, case 3): forcing the whole DAG again writes the same bytes, so
     # content addressing holds. The report alone shows run records (timings), so it is compared by rerunning
