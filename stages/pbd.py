@@ -74,7 +74,10 @@ def pbd(ctx: StageContext) -> None:
     conf = ctx.cfg.stage.pbd
     if conf.source not in SOURCES:
         raise SchemaError(f"stage.pbd.source={conf.source!r}: choose one of {SOURCES}")
-    solver = PBDConfig(**OmegaConf.to_container(conf.solver, resolve=True))
+    try:
+        solver = PBDConfig(**OmegaConf.to_container(conf.solver, resolve=True))
+    except ValueError as exc:
+        raise SchemaError(f"stage.pbd.solver: {exc}") from exc
     cap_dir, fit_dir = ctx.input_dir("capture"), ctx.input_dir("fit")
     index = CaptureIndex.read(cap_dir)
     head, hand = templates(ctx.cfg.model)

@@ -61,6 +61,22 @@ class PBDConfig:
     reference_thickness_m: float = 0.01
     stiffness_power: float = 1.0
 
+    def __post_init__(self) -> None:
+        problems = []
+        if self.method not in METHODS:
+            problems.append(f"method={self.method!r}: choose one of {METHODS}")
+        if not 0.0 < self.relaxation <= 2.0:
+            problems.append(f"relaxation={self.relaxation}: must lie in (0, 2] (larger steps diverge)")
+        if self.iterations < 0 or self.detect_every < 1 or self.final_passes < 0:
+            problems.append("iterations and final_passes must be >= 0, detect_every >= 1")
+        lengths = ("margin_m", "free_radius_m", "clearance_m", "max_depth_m", "contact_tolerance_m",
+                   "reference_thickness_m")
+        stiffnesses = ("edge_stiffness", "bend_stiffness", "attach_stiffness")
+        problems += [f"{k}={getattr(self, k)}: must be > 0" for k in lengths if not getattr(self, k) > 0]
+        problems += [f"{k}={getattr(self, k)}: must be >= 0" for k in stiffnesses if not getattr(self, k) >= 0]
+        if problems:
+            raise ValueError("PBDConfig: " + "; ".join(problems))
+
 
 @dataclass(frozen=True)
 class FaceTopology:
@@ -111,8 +127,6 @@ class FrameProblem:
 
     def __init__(self, rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, topology: FaceTopology,
                  stiffness: torch.Tensor, free: torch.Tensor, start: torch.Tensor, cfg: PBDConfig) -> None:
-        if cfg.method not in METHODS:
-            raise ValueError(f"PBDConfig.method={cfg.method!r}: choose one of {METHODS}")
         self.rest, self.hand, self.hand_faces, self.cfg = rest, hand, hand_faces, cfg
         self.x = torch.where(free[:, None], start, rest).clone()
         self.w = free.to(rest.dtype)

@@ -109,3 +109,10 @@ def test_sequences_single_frame_and_nan(head: Head) -> None:
     hands[2, 5, 1] = float("nan")
     with pytest.raises(ValueError, match="frame 2: the posed hand"):
         solve_sequence(face, hands, head.faces, faces, head.stiffness, CFG)
+
+
+@pytest.mark.parametrize("bad", [{"method": "newton"}, {"relaxation": 6.0}, {"detect_every": 0},
+                                 {"margin_m": 0.0}, {"attach_stiffness": -1.0}])
+def test_bad_settings_are_refused_by_name(bad: dict) -> None:
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        PBDConfig(**bad)
