@@ -3,8 +3,8 @@
 Three steps, as in the 3DGS and gsplat CUDA code: ``_Project`` (EWA projection, its own
 backward), tile binning (not differentiable) and ``_Rasterize`` (front-to-back compositing; its
 backward replays each pixel's list from the back, dividing the transmittance back, and stores
-nothing per (Gaussian, pixel)). Float32 and float64; the image does not depend on the tile size
-or the thread count (``torch.get_num_threads()``), bit for bit.
+nothing per (Gaussian, pixel)). Float32 and float64. Images and gradients do not depend on the
+thread count (``torch.get_num_threads()``), nor images on the tile size, bit for bit.
 """
 
 from __future__ import annotations

@@ -13,7 +13,6 @@
 // on the thread count or the schedule.
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
-#include <ATen/ops/zeros.h>
 #include <torch/library.h>
 #include <omp.h>
 #if defined(__AVX__)
@@ -497,8 +496,9 @@ inline typename Simd<scalar_t>::V exp_neg(typename Simd<scalar_t>::V x) {
   const V r = (x - n * S::kLn2Hi) - n * S::kLn2Lo;
   V p = V{} + S::kTaylorCoef[0];
   for (int k = 1; k <= S::kTaylor; ++k) p = p * r + S::kTaylorCoef[k];
-  const I bits = ((reinterpret_cast<const I&>(t) - S::kRoundBits) + S::kBias) << S::kMantissa;
-  return p * reinterpret_cast<const V&>(bits);
+  // Vector casts between same-size vector types reinterpret the bits.
+  const I bits = (((I)t - S::kRoundBits) + S::kBias) << S::kMantissa;
+  return p * (V)bits;
 }
 
 // A Gaussian's screen-space parameters and pixel box, packed for the pixel loops (one or two
@@ -595,9 +595,9 @@ struct RowLanes {
   static uint32_t bits_of(I mask) {
 #if defined(__AVX__)
     if constexpr (S::kLanes == 8) {
-      return static_cast<uint32_t>(_mm256_movemask_ps(reinterpret_cast<__m256>(mask)));
+      return static_cast<uint32_t>(_mm256_movemask_ps((__m256)mask));
     } else {
-      return static_cast<uint32_t>(_mm256_movemask_pd(reinterpret_cast<__m256d>(mask)));
+      return static_cast<uint32_t>(_mm256_movemask_pd((__m256d)mask));
     }
 #else
     uint32_t out = 0;
