@@ -460,7 +460,7 @@ struct Simd<float> {
   static constexpr float kRound = 12582912.0f;  // 1.5 * 2^23: x + kRound - kRound rounds x to an integer
   static constexpr int32_t kRoundBits = 0x4B400000;
   static constexpr int kMantissa = 23, kBias = 127, kTaylor = 6;
-  static constexpr float kTaylorCoef[kTaylor + 1] = {1.0f / 720, 1.0f / 120, 1.0f / 24, 1.0f / 6, 0.5f, 1.0f, 1.0f};
+  static constexpr float kTaylorCoef[kTaylor + 1] = {1.0f, 1.0f, 0.5f, 1.0f / 6, 1.0f / 24, 1.0f / 120, 1.0f / 720};
   static constexpr float kLn2Hi = 0.693145751953125f, kLn2Lo = 1.4286068203094172e-06f;
 };
 
@@ -473,17 +473,18 @@ struct Simd<double> {
   static constexpr double kRound = 6755399441055744.0;  // 1.5 * 2^52
   static constexpr int64_t kRoundBits = 0x4338000000000000LL;
   static constexpr int kMantissa = 52, kBias = 1023, kTaylor = 12;
-  // 1 / k! for k = 12, 11, ..., 0
-  static constexpr double kTaylorCoef[kTaylor + 1] = {1.0 / 479001600, 1.0 / 39916800, 1.0 / 3628800, 1.0 / 362880,
-                                                      1.0 / 40320, 1.0 / 5040, 1.0 / 720, 1.0 / 120, 1.0 / 24,
-                                                      1.0 / 6, 0.5, 1.0, 1.0};
+  // 1 / k! for k = 0, 1, ..., 12
+  static constexpr double kTaylorCoef[kTaylor + 1] = {1.0,         1.0,          0.5,           1.0 / 6,
+                                                      1.0 / 24,    1.0 / 120,    1.0 / 720,     1.0 / 5040,
+                                                      1.0 / 40320, 1.0 / 362880, 1.0 / 3628800, 1.0 / 39916800,
+                                                      1.0 / 479001600};
   static constexpr double kLn2Hi = 6.93147180369123816490e-01, kLn2Lo = 1.90821492927058770002e-10;
 };
 
 // exp(x) for x <= 0 (x = -q / 2, q >= 0) per lane: x = n ln2 + r with |r| <= ln2 / 2 (n rounded
 // by the 1.5 * 2^mantissa trick), a Taylor polynomial for exp(r) of degree 6 (float, relative
-// error 1.2e-7) or 12 (double, 2e-16) and 2^n written into the exponent bits. Below x = -80 (float) or -700
-// (double) it returns exp of that limit: alpha is far below ALPHA_MIN there, and the limit keeps
+// error 1.2e-7) or 12 (double, 2e-16) and 2^n written into the exponent bits. Below x = -80
+// (float) or -700 (double) it returns exp of that limit: alpha is far below ALPHA_MIN there, and the limit keeps
 // o exp(x) (o >= ALPHA_MIN) clear of subnormal numbers, whose arithmetic is ~100x slower.
 template <typename scalar_t>
 inline typename Simd<scalar_t>::V exp_neg(typename Simd<scalar_t>::V x) {
@@ -494,8 +495,19 @@ inline typename Simd<scalar_t>::V exp_neg(typename Simd<scalar_t>::V x) {
   const V t = x * static_cast<scalar_t>(1.4426950408889634074) + S::kRound;
   const V n = t - S::kRound;
   const V r = (x - n * S::kLn2Hi) - n * S::kLn2Lo;
-  V p = V{} + S::kTaylorCoef[0];
-  for (int k = 1; k <= S::kTaylor; ++k) p = p * r + S::kTaylorCoef[k];
+  // Estrin's scheme: pairs c_2j + c_2j+1 r, then pairs of those with r^2, r^4, ...: a dependency
+  // chain of ~log2(degree) multiply-adds instead of Horner's degree.
+  constexpr int kTerms = S::kTaylor / 2 + 1;
+  V terms[kTerms];
+  for (int j = 0; j < kTerms; ++j) {
+    terms[j] = 2 * j + 1 <= S::kTaylor ? S::kTaylorCoef[2 * j] + S::kTaylorCoef[2 * j + 1] * r
+                                       : V{} + S::kTaylorCoef[2 * j];
+  }
+  V power = r * r;
+  for (int count = kTerms; count > 1; count = (count + 1) / 2, power = power * power) {
+    for (int j = 0; 2 * j < count; ++j) terms[j] = 2 * j + 1 < count ? terms[2 * j] + power * terms[2 * j + 1] : terms[2 * j];
+  }
+  const V p = terms[0];
   // Vector casts between same-size vector types reinterpret the bits.
   const I bits = (((I)t - S::kRoundBits) + S::kBias) << S::kMantissa;
   return p * (V)bits;
