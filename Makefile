@@ -33,7 +33,7 @@ $(STAMP): pyproject.toml
 # Built at install time and whenever its source changes. A failed build is reported (once,
 # not retried until the source, flags, torch or compiler change) and the torch backend is used.
 $(EXT): avatar/render/gaussians/csrc/rasterizer_cpu.cpp | $(STAMP)
-	-$(PY) -m avatar.render.gaussians.extension
+	-$(PY) -c "from avatar.render.gaussians.extension import main; main()"
 
 ## make run: the whole DAG on the built-in synthetic subject (default preset: smoke)
 run: $(STAMP) $(EXT)

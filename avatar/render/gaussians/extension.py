@@ -2,8 +2,8 @@
 
 The extension is a torch C++ extension built with ``torch.utils.cpp_extension.load`` (ninja,
 the host g++, OpenMP from torch's own ``libgomp``) into ``csrc/build/`` next to the sources,
-which git ignores. ``make run`` / ``make test`` build it once at install time
-(``python -m avatar.render.gaussians.extension``); afterwards loading it is a no-op ninja check.
+which git ignores. ``make run`` / ``make test`` build it once at install time (``main``);
+afterwards loading it is a no-op ninja check.
 Editing the source rebuilds it on the next load. A failed build is recorded with the hash of
 what it tried to build, so later processes do not retry the same failing build: they warn once
 (per process) and the ``auto`` backend falls back to ``torch``.
@@ -116,7 +116,3 @@ def main() -> None:
         print(f"compiled CPU rasterizer ready ({time.perf_counter() - start:.0f} s): {BUILD_DIR / NAME}.so")
     else:
         print(f"compiled CPU rasterizer NOT built, the torch backend will be used: {reason}")
-
-
-if __name__ == "__main__":
-    main()
