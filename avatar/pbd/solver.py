@@ -12,8 +12,8 @@ Per frame (:func:`solve_frame`), on the posed, undeformed face ``rest`` (V, 3):
    vertices' constraint counts, Chebyshev-accelerated; the default: 3x cheaper per sweep here) or
    ``gauss_seidel`` (graph-coloured); collision planes are re-detected every ``detect_every`` sweeps. Positions start from ``warm`` (the previous frame's solution) when
    given, multipliers from zero.
-4. ``final_passes`` collision-only passes push any vertex still inside the hand (or closer than
-   the clearance) to the surface, so the residual penetration is bounded by construction.
+4. Up to ``final_passes`` collision-only passes push any vertex still inside the hand to the hand
+   surface plus the clearance, so the residual penetration is bounded by construction.
 
 Stiffnesses are relative to a unit particle mass: XPBD's implicit inertia term ties each free
 vertex to its start position with stiffness 1, small next to the attachments (``attach_stiffness``
@@ -288,7 +288,7 @@ def solve_frame(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor
     _iterate(problem, cfg)
     for _ in range(cfg.final_passes + 1):
         q = problem.detect()
-        if not bool((q.inside | (q.distance < cfg.clearance_m)).any()):
+        if not bool(q.inside.any()):
             break
         problem.collisions.project(problem.x)
     else:
