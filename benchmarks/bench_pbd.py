@@ -62,15 +62,7 @@ def _evaluate(data: list[tuple[torch.Tensor, torch.Tensor, np.ndarray]], cfg: PB
             "penetration": penetration}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--subject", default="synth_a", help="subject of tables 2 and 3")
-    parser.add_argument("--sweeps", default="50,100,300,800", help="sweep counts of table 2")
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-    base = PBDConfig()
-    data = {s: [_sequence(s, seq, n) for seq, n in DRAFT_FRAMES.items()] for s in ("synth_a", "synth_b")}
-
+def _table1(data: dict[str, list], base: PBDConfig) -> None:
     print(f"Table 1: accuracy on contact frames at draft (defaults: {base.method}, Chebyshev rho {base.chebyshev_rho}, "
           f"{base.iterations} sweeps)")
     print("| subject | contact frames | mean error (mm) | p95 (mm) | zero offsets mean (mm) | zero p95 (mm) "
@@ -82,25 +74,48 @@ def main() -> None:
               f"| {r['zero_p95']:.3f} | {r['ratio']:.0%} | {r['penetration']:.3f} | {r['s_per_frame']:.3f} "
               f"| {r['cpu_per_frame']:.3f} |", flush=True)
 
-    print(f"\nTable 2: sweeps against error and time ({args.subject}, draft, train + test)")
+
+def _table2(data: list, base: PBDConfig, subject: str, sweep_counts: list[int]) -> None:
+    print(f"\nTable 2: sweeps against error and time ({subject}, draft, train + test)")
     print("| sweeps | mean error (mm) | p95 (mm) | mean / zero | wall s per contact frame | CPU s per contact frame |")
     print("| --- | --- | --- | --- | --- | --- |")
     methods = {"Jacobi + Chebyshev": {}, "Jacobi": {"chebyshev_rho": 0.0},
                "Gauss-Seidel": {"method": "gauss_seidel", "chebyshev_rho": 0.0}}
     for name, settings in methods.items():
         print(f"| **{name}** | | | | | |")
-        for sweeps in (int(s) for s in args.sweeps.split(",")):
-            r = _evaluate(data[args.subject], replace(base, iterations=sweeps, **settings))
+        for sweeps in sweep_counts:
+            r = _evaluate(data, replace(base, iterations=sweeps, **settings))
             print(f"| {sweeps} | {r['mean']:.3f} | {r['p95']:.3f} | {r['ratio']:.0%} | {r['s_per_frame']:.3f} "
                   f"| {r['cpu_per_frame']:.3f} |", flush=True)
 
-    print(f"\nTable 3: warm start ({args.subject}, draft, defaults)")
+
+def _table3(data: list, base: PBDConfig, subject: str) -> None:
+    print(f"\nTable 3: warm start ({subject}, draft, defaults)")
     print("| start | mean error (mm) | mean / zero | wall s per contact frame | CPU s per contact frame |")
     print("| --- | --- | --- | --- | --- |")
     for warm in (False, True):
-        r = _evaluate(data[args.subject], replace(base, warm_start=warm))
+        r = _evaluate(data, replace(base, warm_start=warm))
         print(f"| {'previous frame' if warm else 'undeformed'} | {r['mean']:.3f} | {r['ratio']:.0%} "
               f"| {r['s_per_frame']:.3f} | {r['cpu_per_frame']:.3f} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--subject", default="synth_a", help="subject of tables 2 and 3")
+    parser.add_argument("--sweeps", default="50,100,300,800", help="sweep counts of table 2")
+    parser.add_argument("--tables", default="1,2,3", help="which tables to print")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    base = PBDConfig()
+    data = {s: [_sequence(s, seq, n) for seq, n in DRAFT_FRAMES.items()] for s in ("synth_a", "synth_b")}
+
+    tables = {int(t) for t in args.tables.split(",")}
+    if 1 in tables:
+        _table1(data, base)
+    if 2 in tables:
+        _table2(data[args.subject], base, args.subject, [int(s) for s in args.sweeps.split(",")])
+    if 3 in tables:
+        _table3(data[args.subject], base, args.subject)
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ class PBDConfig:
     iterations: int = 300
     relaxation: float = 1.0
     chebyshev_rho: float = 0.999
-    detect_every: int = 50
+    detect_every: int = 100
     final_passes: int = 4
     warm_start: bool = False
     margin_m: float = 0.01
