@@ -92,12 +92,12 @@ def pbd(ctx: StageContext) -> None:
         except StiffnessFileError as exc:
             raise SchemaError(f"model.face_stiffness_path: {exc}") from exc
         stiffness = torch.from_numpy(rel)
+    faces, hand_faces = torch.from_numpy(np.array(head.faces)), torch.from_numpy(np.array(hand.faces))
     preds, refs, contacts, seconds = [], [], [], []
     for seq, info in ctx.progress(list(index.sequences.items()), desc="pbd: sequences"):
         table = read_table(fit_dir / seq / "params.parquet", PARAMS)
         posed = posed_keypoints({k: np.asarray(table[k]) for k in PARAM_COLUMNS}, head, hand)
         face, hand_v = torch.from_numpy(posed["face_vertices"]), torch.from_numpy(posed["hand_vertices"])
-        faces, hand_faces = torch.from_numpy(np.array(head.faces)), torch.from_numpy(np.array(hand.faces))
         if stiffness is not None:
             deform = _simulate(face, hand_v, faces, hand_faces, stiffness, solver)
         else:
@@ -120,7 +120,7 @@ def pbd(ctx: StageContext) -> None:
 
 def _simulate(face: torch.Tensor, hand: torch.Tensor, faces: torch.Tensor, hand_faces: torch.Tensor,
               stiffness: torch.Tensor, cfg: PBDConfig) -> _Deformation:
-    """XPBD on every frame (T, V, 3) / (T, Vh, 3), each warm-started from the previous solution."""
+    """XPBD on every frame (T, V, 3) / (T, Vh, 3) (warm-started from the previous one if configured)."""
     results = solve_sequence(face, hand, faces, hand_faces, stiffness, cfg)
     out = _Deformation(np.stack([r.offsets.numpy() for r in results]),
                        np.stack([r.face_contact.numpy() for r in results]),
