@@ -10,8 +10,9 @@ Per frame (:func:`solve_frame`), on the posed, undeformed face ``rest`` (V, 3):
 3. ``iterations`` XPBD sweeps over attachment (per-vertex stiffness), stretch, bending and
    collision constraints, ``method`` ``jacobi`` (every constraint at once, steps scaled by the
    vertices' constraint counts, Chebyshev-accelerated; the default: 3x cheaper per sweep here) or
-   ``gauss_seidel`` (graph-coloured); collision planes are re-detected every ``detect_every`` sweeps. Positions start from ``warm`` (the previous frame's solution) when
-   given, multipliers from zero.
+   ``gauss_seidel`` (graph-coloured); collision planes are re-detected every ``detect_every``
+   sweeps. Positions start from ``warm`` (the previous frame's solution) when given, multipliers
+   from zero.
 4. Up to ``final_passes`` collision-only passes push any vertex still inside the hand to the hand
    surface plus the clearance, so the residual penetration is bounded by construction.
 
@@ -118,6 +119,7 @@ class FrameResult:
 
     @property
     def max_offset_m(self) -> float:
+        """Largest offset length (metres)."""
         return float(self.offsets.norm(dim=1).max()) if self.offsets.numel() else 0.0
 
 

@@ -42,13 +42,13 @@ class Head:
 @pytest.fixture(scope="session")
 def head() -> Head:
     model = procedural_head()
-    verts = torch.tensor(model.v_template)
-    faces = torch.tensor(model.faces)
+    verts = torch.tensor(np.array(model.v_template))
+    faces = torch.tensor(np.array(model.faces))
     mesh = trimesh.Trimesh(model.v_template, model.faces, process=False)
     cfg = PBDConfig()
     stiffness = torch.tensor(relative_stiffness(model.inner_distance, cfg.reference_thickness_m, cfg.stiffness_power))
-    return Head(verts, faces, stiffness, torch.tensor(np.array(mesh.vertex_normals)), {k: np.array(v) for k, v in model.part_labels.items()},
-                FaceTopology.build(faces))
+    regions = {k: np.array(v) for k, v in model.part_labels.items()}
+    return Head(verts, faces, stiffness, torch.tensor(np.array(mesh.vertex_normals)), regions, FaceTopology.build(faces))
 
 
 def sphere(centre: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
