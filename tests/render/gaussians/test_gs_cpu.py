@@ -9,7 +9,9 @@ does not change the gradients either (per-pair gradients are summed in a fixed o
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from types import SimpleNamespace
+from typing import Any
 
 import gs_bruteforce as brute
 import pytest
@@ -41,7 +43,8 @@ def _inputs(scene: Scene) -> list[torch.Tensor]:
     return [*scene.params(), scene.background]
 
 
-def _images_and_grads(render, scene: Scene, **kwargs) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+def _images_and_grads(render: Callable[..., Any], scene: Scene,
+                      **kwargs: Any) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
     """Images (detached) and gradients of a weighted sum of them w.r.t. every input and means2d."""
     inputs = [t.detach().clone().requires_grad_(True) for t in _inputs(scene)]
     out = render(*inputs[:5], scene.K, scene.world_to_cam, scene.width, scene.height, inputs[5], **kwargs)

@@ -7,6 +7,7 @@ control thresholds, Adam), so the comparison is on the result: PSNR within 0.05 
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -47,7 +48,7 @@ def test_toy_warmup_reaches_the_torch_backend_psnr() -> None:
     assert abs(cpu_psnr - torch_psnr) <= PSNR_TOLERANCE_DB, (torch_psnr, cpu_psnr)
 
 
-def _held_out_psnr(subject_dir) -> dict[str, float]:  # noqa: ANN001 - a Path
+def _held_out_psnr(subject_dir: Path) -> dict[str, float]:
     """Mean full-image PSNR per held-out split of a subject's ``evaluate`` stage."""
     metrics = read_table(subject_dir / "evaluate" / "metrics.parquet", METRICS)
     full = np.asarray(metrics["region"]) == "full"
@@ -57,7 +58,7 @@ def _held_out_psnr(subject_dir) -> dict[str, float]:  # noqa: ANN001 - a Path
 
 
 @pytest.mark.slow
-def test_smoke_warmup_reaches_the_torch_backend_held_out_psnr(tmp_path) -> None:  # noqa: ANN001
+def test_smoke_warmup_reaches_the_torch_backend_held_out_psnr(tmp_path: Path) -> None:
     """The DAG at quality=smoke up to evaluate, warm-up and evaluation with each backend (~2 min)."""
     out = tmp_path / "out"
     results = {}
