@@ -13,7 +13,6 @@ manifest's metrics only, so rerunning the stage on the same inputs writes identi
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, provided_p
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
+from data_schemas.writes import write_json
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
 from stages.common import model_files, templates
@@ -114,7 +114,7 @@ def pbd(ctx: StageContext) -> None:
             contacts.append(np.asarray(gt["contact"], bool))
         report["sequences"][seq] = entry
         seconds += deform.seconds
-    (ctx.out_dir / "pbd_report.json").write_text(json.dumps(report, indent=2, sort_keys=True))
+    write_json(ctx.out_dir / "pbd_report.json", report, "PBD report")
     _metrics(ctx, report, preds, refs, contacts, seconds)
 
 
