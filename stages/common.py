@@ -124,7 +124,7 @@ def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussi
     unknown = sorted(set(t["part"]) - set(part_names))
     if unknown:
         raise SchemaError(f"{path}: Gaussians bound to unknown mesh part(s) {unknown}; expected {part_names}")
-    as_tensor = lambda name: torch.as_tensor(np.asarray(t[name]), dtype=torch.float32)  # noqa: E731
+    as_tensor = lambda name: torch.tensor(np.asarray(t[name]), dtype=torch.float32)  # noqa: E731
     return BoundGaussians(
         local_means=as_tensor("local_means"), log_scales=as_tensor("log_scales"), quats=as_tensor("quats"),
         opacity_logits=as_tensor("opacity_logits"), sh_dc=as_tensor("sh_dc"),
