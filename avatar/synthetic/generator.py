@@ -3,8 +3,6 @@ multi-view images, masks and keypoints (:func:`generate`)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +24,7 @@ from avatar.synthetic.shading import BACKGROUND_LINEAR, Channels, ShadowMap, mak
 from avatar.synthetic.soft_tissue import contact_offsets
 from avatar.templates.layers import FLAMELayer, MANOLayer
 from avatar.templates.procedural import procedural_hand, procedural_head
+from avatar.threads import single_threaded
 
 #: Nominal frame rate: frames sample the whole script whatever their number, so
 #: fewer frames mean a faster-moving (time-compressed) performance.
@@ -125,23 +124,9 @@ def _aim_point(subject: _Subject) -> np.ndarray:
     return subject.flame.landmarks(verts)[0].numpy().mean(axis=0) + AIM_OFFSET
 
 
-@contextmanager
-def _single_threaded() -> Iterator[None]:
-    """Run torch on one thread inside the block (restored afterwards): the
-    generator's many small tensor ops gain nothing from threads and slow down
-    by an order of magnitude when cores are oversubscribed; one thread also
-    makes results independent of the machine's core count."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
-
-
 def generate(cfg: SyntheticConfig) -> SyntheticCapture:
     """Render the synthetic capture described by ``cfg`` (deterministic)."""
-    with _single_threaded():
+    with single_threaded():
         return _generate(cfg)
 
 
