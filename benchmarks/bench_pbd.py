@@ -87,6 +87,10 @@ def _table2(data: list, base: PBDConfig, subject: str, sweep_counts: list[int]) 
             r = _evaluate(data, replace(base, iterations=sweeps, **settings))
             print(f"| {sweeps} | {r['mean']:.3f} | {r['p95']:.3f} | {r['ratio']:.0%} | {r['s_per_frame']:.3f} "
                   f"| {r['cpu_per_frame']:.3f} |", flush=True)
+    print("| **Direct (the fixed point the sweeps converge to)** | | | | | |")
+    r = _evaluate(data, replace(base, method="direct"))
+    print(f"| solves: {base.direct_outer} x {base.direct_inner} at most | {r['mean']:.3f} | {r['p95']:.3f} "
+          f"| {r['ratio']:.0%} | {r['s_per_frame']:.3f} | {r['cpu_per_frame']:.3f} |", flush=True)
 
 
 def _table3(data: list, base: PBDConfig, subject: str) -> None:

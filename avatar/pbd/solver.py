@@ -11,7 +11,8 @@ Per frame (:func:`solve_frame`), on the posed, undeformed face ``rest`` (V, 3):
    collision constraints, ``method`` ``jacobi`` (every constraint at once, steps scaled by the
    vertices' constraint counts, Chebyshev-accelerated; the default: 3x cheaper per sweep here) or
    ``gauss_seidel`` (graph-coloured); collision planes are re-detected every ``detect_every``
-   sweeps. Positions start from ``warm`` (the previous frame's solution) when given, multipliers
+   sweeps; or ``direct`` (:mod:`avatar.pbd.direct`): the fixed point those sweeps converge to, by a
+   few sparse solves. Positions start from ``warm`` (the previous frame's solution) when given, multipliers
    from zero.
 4. Up to ``final_passes`` collision-only passes push any vertex still inside the hand to the hand
    surface plus the clearance, so the residual penetration is bounded by construction.
@@ -25,18 +26,18 @@ synthetic capture (README, "Contact deformation (pbd)").
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
 
 from avatar.pbd.collision import HandQuery, closest_on_mesh, query_hand
+from avatar.pbd.direct import solve_direct
 from avatar.pbd.constraints import CollisionSet, EdgeSet, attachment_set, bending_set
 from avatar.pbd.topology import bending_stencils, colour_constraints, unique_edges
+from avatar.threads import single_threaded
 
 
-METHODS = ("gauss_seidel", "jacobi")
+METHODS = ("direct", "gauss_seidel", "jacobi")
 #: Plain sweeps before the Chebyshev extrapolation starts.
 CHEBYSHEV_DELAY = 10
 
@@ -52,6 +53,9 @@ class PBDConfig:
     chebyshev_rho: float = 0.999
     detect_every: int = 100
     final_passes: int = 4
+    direct_outer: int = 6  # method=direct: active-set rounds of collision planes
+    direct_inner: int = 10  # method=direct: local/global solves per round
+    volume_stiffness: float = 0.0  # method=direct: tissue-volume preservation (0: off; it did not help)
     warm_start: bool = False
     margin_m: float = 0.01
     free_radius_m: float = 0.03
@@ -68,16 +72,20 @@ class PBDConfig:
         problems = []
         if self.method not in METHODS:
             problems.append(f"method={self.method!r}: choose one of {METHODS}")
-        if not 0.0 <= self.chebyshev_rho < 1.0 or (self.chebyshev_rho > 0 and self.method != "jacobi"):
+        if not 0.0 <= self.chebyshev_rho < 1.0 or (self.chebyshev_rho > 0 and self.method == "gauss_seidel"):
             problems.append(f"chebyshev_rho={self.chebyshev_rho}: must lie in [0, 1), and be 0 unless method=jacobi "
                             f"(it diverges on Gauss-Seidel)")
         if not 0.0 < self.relaxation <= 2.0:
             problems.append(f"relaxation={self.relaxation}: must lie in (0, 2] (larger steps diverge)")
         if self.iterations < 0 or self.detect_every < 1 or self.final_passes < 0:
             problems.append("iterations and final_passes must be >= 0, detect_every >= 1")
+        if self.direct_outer < 1 or self.direct_inner < 1:
+            problems.append(f"direct_outer={self.direct_outer}, direct_inner={self.direct_inner}: must be >= 1")
+        if self.volume_stiffness > 0 and self.method != "direct":
+            problems.append(f"volume_stiffness={self.volume_stiffness}: only method=direct has the volume term")
         lengths = ("margin_m", "free_radius_m", "clearance_m", "max_depth_m", "contact_tolerance_m",
                    "reference_thickness_m")
-        stiffnesses = ("edge_stiffness", "bend_stiffness", "attach_stiffness")
+        stiffnesses = ("edge_stiffness", "bend_stiffness", "attach_stiffness", "volume_stiffness")
         problems += [f"{k}={getattr(self, k)}: must be > 0" for k in lengths if not getattr(self, k) > 0]
         problems += [f"{k}={getattr(self, k)}: must be >= 0" for k in stiffnesses if not getattr(self, k) >= 0]
         if problems:
@@ -135,6 +143,8 @@ class FrameProblem:
     def __init__(self, rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, topology: FaceTopology,
                  stiffness: torch.Tensor, free: torch.Tensor, start: torch.Tensor, cfg: PBDConfig) -> None:
         self.rest, self.hand, self.hand_faces, self.cfg = rest, hand, hand_faces, cfg
+        self.topology_faces = topology.faces.cpu().numpy()
+        self.stiffness_rel = stiffness
         self.x = torch.where(free[:, None], start, rest).clone()
         self.w = free.to(rest.dtype)
         self.free_idx = torch.nonzero(free).squeeze(1)
@@ -287,7 +297,9 @@ def solve_frame(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor
     free = torch.cdist(rest, rest[seeds]).amin(dim=1) < cfg.free_radius_m
     start = rest if warm is None else rest + warm
     problem = FrameProblem(rest, hand, hand_faces, topology, stiffness, free, start, cfg)
-    _iterate(problem, cfg)
+    iterations = solve_direct(problem) if cfg.method == "direct" else cfg.iterations
+    if cfg.method != "direct":
+        _iterate(problem, cfg)
     for _ in range(cfg.final_passes + 1):
         q = problem.detect()
         if not bool(q.inside.any()):
@@ -302,22 +314,10 @@ def solve_frame(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor
     return FrameResult(
         offsets=problem.x - rest, face_contact=face_contact,
         hand_contact=_hand_contact(hand, problem.x, topology.faces, face_contact, cfg),
-        near=True, simulated=True, iterations=cfg.iterations, free_vertices=int(free.sum()),
+        near=True, simulated=True, iterations=iterations, free_vertices=int(free.sum()),
         penetration_max_m=float(depth.max()), penetration_mean_m=float(depth[face_contact[problem.free_idx]].mean()),
         seconds=time.perf_counter() - began,
     )
-
-
-@contextmanager
-def single_threaded() -> Iterator[None]:
-    """Run torch on one thread inside the block (restored afterwards): the solver's many small tensor
-    ops gain nothing from threads and slow down badly when cores are shared."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def solve_sequence(face: torch.Tensor, hand: torch.Tensor, face_faces: torch.Tensor, hand_faces: torch.Tensor,
