@@ -18,6 +18,9 @@ sparse solves, with the same constraints and stiffnesses (so the same physical m
   round the vertices inside the hand join it with planes re-detected at their current positions,
   and members whose plane pulls instead of pushes leave it; ``direct_outer`` rounds at most (the
   collision-only passes of :func:`avatar.pbd.solver.solve_frame` follow, as for the sweeps);
+* tissue shear coupling (``shear_stiffness``): ``k |d_i - d_j|^2 / 2`` per edge on the displacements
+  ``d = x - rest``, the shear of the soft-tissue layer that carries a dent to the skin around it
+  (stretch and bending alone, being invariant to rigid motion of an edge, barely do);
 * optional tissue-volume preservation (``volume_stiffness`` > 0, :func:`_volume_rows`; off by
   default: it did not help on the synthetic capture, README).
 
@@ -79,6 +82,9 @@ def solve_direct(problem: FrameProblem) -> int:
     add(bend.idx.cpu().numpy(), bend.a.cpu().numpy(), bend.stiffness.cpu().numpy(), bend.b.cpu().numpy())
     edges = problem.edges.idx.cpu().numpy()
     length = problem.edges.rest.cpu().numpy()
+    if cfg.shear_stiffness > 0:  # tissue shear: neighbours' displacements alike, k |d_i - d_j|^2 / 2 per edge
+        add(edges, np.tile([1.0, -1.0], (edges.shape[0], 1)), np.full(edges.shape[0], cfg.shear_stiffness),
+            rest[edges[:, 0]] - rest[edges[:, 1]])
     e0, e1 = add(edges, np.tile([1.0, -1.0], (edges.shape[0], 1)), problem.edges.stiffness.cpu().numpy(),
                  np.zeros((edges.shape[0], 3)))
     r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)

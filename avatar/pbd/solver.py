@@ -7,8 +7,8 @@ Per frame (:func:`solve_frame`), on the posed, undeformed face ``rest`` (V, 3):
    hand: not ``simulated``; either way the offsets are exactly zero.
 2. Only vertices within ``free_radius_m`` of a penetrating vertex move (inverse mass 1); all
    others are pinned where they are (inverse mass 0) and still anchor the constraints they share.
-3. ``iterations`` XPBD sweeps over attachment (per-vertex stiffness), stretch, bending and
-   collision constraints, ``method`` ``jacobi`` (every constraint at once, steps scaled by the
+3. ``iterations`` XPBD sweeps over attachment (per-vertex stiffness), stretch, bending, tissue shear
+   (neighbouring displacements alike) and collision constraints, ``method`` ``jacobi`` (every constraint at once, steps scaled by the
    vertices' constraint counts, Chebyshev-accelerated; the default: 3x cheaper per sweep here) or
    ``gauss_seidel`` (graph-coloured); collision planes are re-detected every ``detect_every``
    sweeps; or ``direct`` (:mod:`avatar.pbd.direct`): the fixed point those sweeps converge to, by a
@@ -32,7 +32,7 @@ import torch
 
 from avatar.pbd.collision import HandQuery, closest_on_mesh, query_hand
 from avatar.pbd.direct import solve_direct
-from avatar.pbd.constraints import CollisionSet, EdgeSet, attachment_set, bending_set
+from avatar.pbd.constraints import CollisionSet, EdgeSet, LinearSet, attachment_set, bending_set
 from avatar.pbd.topology import bending_stencils, colour_constraints, unique_edges
 from avatar.threads import single_threaded
 
@@ -47,7 +47,7 @@ class PBDConfig:
     """Solver settings (lengths in metres; stiffnesses relative to a unit particle mass). Not frozen:
     the pipeline merges ``stage.pbd.solver`` onto it as a structured config."""
 
-    method: str = "jacobi"
+    method: str = "direct"
     iterations: int = 300
     relaxation: float = 1.0
     chebyshev_rho: float = 0.999
@@ -56,6 +56,7 @@ class PBDConfig:
     direct_outer: int = 6  # method=direct: active-set rounds of collision planes
     direct_inner: int = 10  # method=direct: local/global solves per round
     volume_stiffness: float = 0.0  # method=direct: tissue-volume preservation (0: off; it did not help)
+    shear_stiffness: float = 30.0  # tissue shear: couples neighbouring displacements (0: off)
     warm_start: bool = False
     margin_m: float = 0.01
     free_radius_m: float = 0.03
@@ -63,10 +64,10 @@ class PBDConfig:
     max_depth_m: float = 0.02
     contact_tolerance_m: float = 0.001
     edge_stiffness: float = 10.0
-    bend_stiffness: float = 1.0e-3
+    bend_stiffness: float = 3.0e-4
     attach_stiffness: float = 60.0
     reference_thickness_m: float = 0.01
-    stiffness_power: float = 1.0
+    stiffness_power: float = 2.0
 
     def __post_init__(self) -> None:
         problems = []
@@ -85,7 +86,7 @@ class PBDConfig:
             problems.append(f"volume_stiffness={self.volume_stiffness}: only method=direct has the volume term")
         lengths = ("margin_m", "free_radius_m", "clearance_m", "max_depth_m", "contact_tolerance_m",
                    "reference_thickness_m")
-        stiffnesses = ("edge_stiffness", "bend_stiffness", "attach_stiffness", "volume_stiffness")
+        stiffnesses = ("edge_stiffness", "bend_stiffness", "attach_stiffness", "volume_stiffness", "shear_stiffness")
         problems += [f"{k}={getattr(self, k)}: must be > 0" for k in lengths if not getattr(self, k) > 0]
         problems += [f"{k}={getattr(self, k)}: must be >= 0" for k in stiffnesses if not getattr(self, k) >= 0]
         if problems:
@@ -159,13 +160,19 @@ class FrameProblem:
         active_b = free[topology.stencils].any(dim=1)
         self.bend = bending_set(topology.stencils[active_b], rest, cfg.bend_stiffness)
         self.bend_colours = _active(topology.bend_colours, active_b)
+        # tissue shear: k |d_i - d_j|^2 / 2 on the displacements d = x - rest of every active edge
+        self.shear = LinearSet(edges, torch.tensor([1.0, -1.0], dtype=rest.dtype).repeat(edges.shape[0], 1),
+                               rest[edges[:, 0]] - rest[edges[:, 1]],
+                               torch.full((edges.shape[0],), cfg.shear_stiffness, dtype=rest.dtype),
+                               rest.new_zeros(edges.shape[0], 3))
         self.collisions = CollisionSet(self.free_idx[:0], rest[:0], rest[:0])
         # Jacobi: each constraint's step is divided by the most constraints one of its vertices takes part in
         count = self.w.clone()  # one attachment per free vertex
-        for idx in (edges.reshape(-1), self.bend.idx.reshape(-1)):
+        shear_idx = [edges.reshape(-1)] if cfg.shear_stiffness > 0 else []
+        for idx in [edges.reshape(-1), self.bend.idx.reshape(-1)] + shear_idx:
             count.index_add_(0, idx, torch.ones(idx.shape[0], dtype=rest.dtype))
         self.jacobi_relax = [cfg.relaxation / count[c.idx].amax(dim=1).clamp_min(1.0)
-                             for c in (self.attach, self.edges, self.bend)]
+                             for c in (self.attach, self.edges, self.bend, self.shear)]
 
     def detect(self) -> HandQuery:
         """Refresh the collision planes from the free vertices' current positions."""
@@ -178,7 +185,7 @@ class FrameProblem:
         at once from the same positions), then the collision planes."""
         if self.cfg.method == "jacobi":
             dx = torch.zeros_like(self.x)
-            for constraints, relax in zip((self.attach, self.edges, self.bend), self.jacobi_relax):
+            for constraints, relax in zip((self.attach, self.edges, self.bend, self.shear), self.jacobi_relax):
                 constraints.project(self.x, self.w, slice(None), relax, out=dx)
             self.x += dx
         else:
@@ -188,15 +195,19 @@ class FrameProblem:
                 self.edges.project(self.x, self.w, rows, relax)
             for rows in self.bend_colours:
                 self.bend.project(self.x, self.w, rows, relax)
+            if self.cfg.shear_stiffness > 0:
+                for rows in self.edge_colours:
+                    self.shear.project(self.x, self.w, rows, relax)
         self.collisions.project(self.x)
 
     def state(self) -> list[torch.Tensor]:
         """The solver state: positions and every multiplier (updated in place by the sweeps)."""
-        return [self.x, self.attach.lam, self.edges.lam, self.bend.lam]
+        return [self.x, self.attach.lam, self.edges.lam, self.bend.lam, self.shear.lam]
 
     def residual(self) -> float:
         """Largest XPBD residual ``|k C + lam|`` over the compliant constraints (zero at convergence)."""
-        parts = (self.attach.residual(self.x), self.edges.residual(self.x), self.bend.residual(self.x))
+        parts = (self.attach.residual(self.x), self.edges.residual(self.x), self.bend.residual(self.x),
+                 self.shear.residual(self.x))
         return float(torch.cat(parts).abs().max())
 
 
