@@ -10,6 +10,7 @@ import torch
 
 from avatar.metrics import LPIPS, image_metrics
 from avatar.preprocess.crops import label_box
+from avatar.render.gaussians import resolve_backend
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.static import render_frame
 from data_schemas.capture import MASK_LABELS
@@ -41,6 +42,7 @@ def evaluate(ctx: StageContext) -> None:
     cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
     rows: dict[str, list] = {c.name: [] for c in METRICS.columns}
     lpips = LPIPS("alex")
+    ctx.metrics["rasterizer"] = resolve_backend(conf.backend, torch.zeros(0, 3))  # what backend=auto chose here
     (ctx.out_dir / "grids").mkdir()
     for split, (sequence, camera_split) in SPLIT_SOURCES.items():
         views = load_views(cap_dir, frames_dir, sequence, camera_split)

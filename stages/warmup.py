@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from avatar.gaussians.model import BoundGaussians
+from avatar.render.gaussians import resolve_backend
 from avatar.training.static import StaticConfig, colors_from_views, train_static
 from data_schemas.capture import MASK_LABELS
 from data_schemas.gaussians import BOUND_GAUSSIANS, TRAIN_LOG
@@ -98,6 +99,9 @@ def warmup(ctx: StageContext) -> None:
     ctx.metrics["gaussians"] = model.num_gaussians
     ctx.metrics["final_loss"] = log[-1].loss
     ctx.metrics["steps"] = cfg.steps
+    # backend=auto resolves per machine (compiled where it built, else torch; equal to float32 rounding):
+    # the manifest records which one computed this artifact.
+    ctx.metrics["rasterizer"] = resolve_backend(conf.backend, model.local_means)
 
 
 def _write_gaussians(ctx: StageContext, model: BoundGaussians, part_names: tuple[str, ...]) -> None:

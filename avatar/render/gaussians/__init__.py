@@ -8,6 +8,6 @@ sort), ``compositing`` (alpha compositing with a hand-written backward), ``backe
 """
 
 from .output import RenderOutput
-from .render import available_backends, render_gaussians
+from .render import available_backends, render_gaussians, resolve_backend
 
-__all__ = ["RenderOutput", "available_backends", "render_gaussians"]
+__all__ = ["RenderOutput", "available_backends", "render_gaussians", "resolve_backend"]
