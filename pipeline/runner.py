@@ -143,14 +143,18 @@ class Runner:
             digests[name] = _input_digest(s, manifest)
         return digests, rerunning
 
-    def _verify(self, name: str) -> Manifest | None:
-        """The stage's manifest if it and every output on disk are whole (remembered for this run)."""
-        stage_dir = self.ws.stage_dir(name)
+    def _readable_manifest(self, name: str) -> Manifest | None:
+        """The stage's manifest as it is on disk now; ``None`` when missing or untrustworthy."""
         try:
-            manifest = read_manifest(stage_dir)
+            return read_manifest(self.ws.stage_dir(name))
         except ManifestError:
             return None
-        if manifest is None or verify_outputs(stage_dir, manifest, self.registry[name].outputs) is not None:
+
+    def _verify(self, name: str) -> Manifest | None:
+        """The stage's manifest if it and every output on disk are whole (remembered for this run)."""
+        manifest = self._readable_manifest(name)
+        if manifest is None or verify_outputs(self.ws.stage_dir(name), manifest,
+                                              self.registry[name].outputs) is not None:
             return None
         self._verified[name] = manifest
         return manifest
@@ -161,10 +165,7 @@ class Runner:
             known = self._verified.get(name)
             if known is None:
                 continue
-            try:
-                current = read_manifest(self.ws.stage_dir(name))
-            except ManifestError:
-                current = None
+            current = self._readable_manifest(name)
             if current is None or (current.key, current.output_digest) != (known.key, known.output_digest):
                 del self._verified[name]
 
@@ -177,10 +178,7 @@ class Runner:
     def _check_inputs_unchanged(self, s: Stage, d: _Decision) -> None:
         """Raise if an input artifact or source file differs from what the decision recorded."""
         for name, digest in d.upstream.items():
-            try:
-                current = read_manifest(self.ws.stage_dir(name))
-            except ManifestError:
-                current = None
+            current = self._readable_manifest(name)
             if current is None or _input_digest(s, current) != digest:
                 raise RuntimeError(f"input '{name}' was replaced while the stage ran (by a run that did not hold "
                                    f"its lock); nothing was published: rerun")
