@@ -6,8 +6,9 @@ the frame scale k (GaussianAvatars), and only on Gaussians visible in the curren
 
 from __future__ import annotations
 
+import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 
 def scale_regulariser(local_scales: Tensor, visible: Tensor, eps_s: float) -> Tensor:
@@ -33,3 +34,34 @@ def position_regulariser(local_means: Tensor, visible: Tensor, eps_mu: float) ->
     norms = torch.sqrt(local_means[visible].square().sum(-1) + 1e-12)
     excess = torch.relu(norms - eps_mu)
     return excess.square().mean() if excess.numel() else local_means.sum() * 0.0
+
+
+def patch_perceptual_loss(pred: Tensor, gt: Tensor, boxes: list[np.ndarray], lpips: nn.Module,
+                          min_size: int = 32) -> Tensor:
+    """L_patch: the sum over ``boxes`` of the LPIPS distance between the patches of ``pred`` and ``gt``.
+
+    Args:
+        pred, gt: (S, S, 3) images in [0, 1].
+        boxes: (x0, y0, x1, y1) pixel boxes, exclusive end (the hand's box, the overlap of the hand and
+            face boxes); each is grown about its centre to at least ``min_size`` pixels a side (within
+            the image) so the backbone sees enough context.
+        lpips: an :class:`avatar.metrics.LPIPS` (VGG in training, as the paper's perceptual loss).
+    Returns:
+        () loss; 0 (with a graph) when there is no box.
+    """
+    total = pred.sum() * 0.0
+    size_y, size_x = pred.shape[:2]
+    for box in boxes:
+        x0, x1 = _grow(int(box[0]), int(box[2]), min_size, size_x)
+        y0, y1 = _grow(int(box[1]), int(box[3]), min_size, size_y)
+        a = pred[y0:y1, x0:x1].permute(2, 0, 1)
+        b = gt[y0:y1, x0:x1].permute(2, 0, 1)
+        total = total + lpips(a, b, unit_range=True)
+    return total
+
+
+def _grow(lo: int, hi: int, min_size: int, limit: int) -> tuple[int, int]:
+    """[lo, hi) grown about its centre to at least ``min(min_size, limit)``, kept inside [0, limit)."""
+    size = min(max(hi - lo, min_size), limit)
+    start = min(max((lo + hi - size) // 2, 0), limit - size)
+    return start, start + size

@@ -81,6 +81,10 @@ class TableSchema:
     columns: tuple[Column, ...]
     doc: str = ""
 
+    @property
+    def column_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.columns)
+
     def column(self, name: str) -> Column:
         return next(c for c in self.columns if c.name == name)
 

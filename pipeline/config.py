@@ -50,15 +50,28 @@ class QualityConfig:
     supersample: int  # antialiasing samples per pixel side
     gaussians_per_triangle: int
     warmup_steps: int
+    dynamic_steps: int  # stage two (stage dynamic)
+    dynamic_width: int  # units per MLP layer
+    dynamic_hand_depth: int
+    dynamic_interaction_depth: int
+    geometry_feature_dim: int  # PointNet++ feature F
+    pointnet_width: float  # multiplier of the PointNet++ layer widths
+    pointnet_centres: list[int]  # set-abstraction centres of the two levels
 
     @classmethod
     def validate(cls, conf: Any) -> list[str]:
         """Range problems, one line each, keyed relative to ``quality``."""
         limits = {"capture_size": (16, 8192), "image_size": (16, 8192), "num_frames_train": (1, None),
                   "num_frames_test": (1, None), "supersample": (1, 8), "gaussians_per_triangle": (1, 1000),
-                  "warmup_steps": (1, None)}
-        return [problem for key, (low, high) in limits.items()
-                if (problem := _range_problem(key, getattr(conf, key), low, high))]
+                  "warmup_steps": (1, None), "dynamic_steps": (0, None), "dynamic_width": (1, 4096),
+                  "dynamic_hand_depth": (1, 32), "dynamic_interaction_depth": (1, 32),
+                  "geometry_feature_dim": (1, 8192), "pointnet_width": (0.01, 16)}
+        problems = [problem for key, (low, high) in limits.items()
+                    if (problem := _range_problem(key, getattr(conf, key), low, high))]
+        if len(conf.pointnet_centres) != 2 or min(conf.pointnet_centres) < 1:
+            problems.append(f"pointnet_centres={list(conf.pointnet_centres)}: must be two positive counts "
+                            f"(centres of the two set-abstraction levels)")
+        return problems
 
 
 def _range_problem(key: str, value: float, low: float, high: float | None) -> str | None:

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from avatar.dynamic import DynamicAvatar, DynamicModelConfig
 from avatar.gaussians.model import BoundGaussians
 from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
 from avatar.training.data import MeshSequence, ViewSet
@@ -15,12 +18,24 @@ from avatar.training.posing import posed_meshes
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, gt_path, provided_path
 from data_schemas.gaussians import BOUND_GAUSSIANS
+from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.frames import FRAMES_INDEX, crop_mask_path, rgb_path
 from data_schemas.images import read_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
-from data_schemas.tables import SchemaError, read_table
+from data_schemas.tables import SchemaError, read_table, write_table
 from pipeline.sources import SourceFiles
+
+
+class WorldGaussians(Protocol):
+    """Gaussians of one frame in world space: means (N, 3), scales (N, 3), quats (N, 4), opacities (N,),
+    colors (N, 3)."""
+
+    means: torch.Tensor
+    scales: torch.Tensor
+    quats: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
 
 
 
@@ -66,12 +81,26 @@ def contact_frames(capture_dir: Path, sequence: str, num_frames: int) -> np.ndar
     return np.zeros(num_frames, dtype=bool)
 
 
+def load_params(fit_dir: Path, sequence: str) -> dict[str, np.ndarray]:
+    """The fit stage's per-frame FLAME/MANO parameters of ``sequence`` (the columns of ``params.parquet``)."""
+    table = read_table(fit_dir / sequence / "params.parquet", PARAMS)
+    return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
+
+
+def contact_flags(pbd_dir: Path, sequence: str, num_frames: int) -> np.ndarray:
+    """(T,) bool: frames in which the pbd stage found the hand touching the face (``deform.parquet``)."""
+    path = pbd_dir / sequence / "deform.parquet"
+    contact = np.asarray(read_table(path, DEFORM)["contact"], dtype=bool)
+    if contact.shape != (num_frames,):
+        raise SchemaError(f"{path}: {contact.shape[0]} frames, expected {num_frames}; rerun the pbd stage")
+    return contact
+
+
 def load_meshes(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path | None) -> MeshSequence:
     """Posed face + hand meshes of every frame of ``sequence`` from the fit stage's ``params.parquet``,
     the face deformed by the pbd stage's contact offsets (``pbd_dir``; None: undeformed)."""
     head, hand = templates(cfg.model)
-    table = read_table(fit_dir / sequence / "params.parquet", PARAMS)
-    meshes = posed_meshes({k: np.asarray(table[k]) for k in PARAM_COLUMNS}, head, hand)
+    meshes = posed_meshes(load_params(fit_dir, sequence), head, hand)
     if pbd_dir is not None:
         offsets = load_face_offsets(pbd_dir, sequence, meshes.vertices.shape[0], head.num_vertices)
         # posed_meshes concatenates the parts in order, face first: its vertices are the first V
@@ -131,6 +160,48 @@ def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussi
         binding=torch.as_tensor(np.asarray(t["binding"])),
         part=torch.tensor([part_names.index(p) for p in t["part"]]),
     )
+
+
+def load_dynamic(dynamic_dir: Path) -> DynamicAvatar:
+    """The dynamic stage's trained model (``model.json``, ``gaussians.parquet``, ``networks.pt``)."""
+    info = json.loads((dynamic_dir / "model.json").read_text())
+    part_names = tuple(info["part_names"])
+    gaussians = load_gaussians(dynamic_dir, part_names)
+    arch = info["architecture"]
+    cfg = DynamicModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in arch.items()})
+    state = torch.load(dynamic_dir / "networks.pt", weights_only=True)
+    model = DynamicAvatar(gaussians, state["mu_cano"], state["faces"], part_names, int(info["num_face_vertices"]),
+                          info["frame_dims"], cfg)
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.startswith("gaussians.")]
+    if missing or unexpected:
+        raise SchemaError(f"{dynamic_dir / 'networks.pt'}: does not match model.json (missing {missing[:3]}, "
+                          f"unexpected {unexpected[:3]}); rerun the dynamic stage")
+    return model
+
+
+def write_bound_gaussians(path: Path, model: BoundGaussians, part_names: tuple[str, ...]) -> None:
+    """``gaussians.parquet`` of ``model`` (the inverse of :func:`load_gaussians`)."""
+    with torch.no_grad():
+        write_table(path, BOUND_GAUSSIANS, {
+            "binding": model.binding.numpy(),
+            "part": [part_names[i] for i in model.part.tolist()],
+            "local_means": model.local_means.numpy(),
+            "log_scales": model.log_scales.numpy(),
+            "quats": model.quats.numpy(),
+            "opacity_logits": model.opacity_logits.numpy(),
+            "sh_dc": model.sh_dc.numpy(),
+        })
+
+
+def write_frame_ply(path: Path, g: WorldGaussians) -> None:
+    """World-space 3DGS PLY of one frame's Gaussians (``means``, ``scales``, ``quats``, ``opacities``,
+    ``colors`` attributes, e.g. an :class:`avatar.dynamic.DynamicFrame`)."""
+    with torch.no_grad():
+        o = g.opacities.clamp(1e-6, 1 - 1e-6)
+        write_gaussians_ply(path, GaussianCloud.from_rgb(
+            g.means.numpy(), torch.log(g.scales).numpy(), g.quats.numpy(), torch.log(o / (1 - o)).numpy(),
+            g.colors.numpy()))
 
 
 def model_files(cfg: DictConfig) -> list[Path]:

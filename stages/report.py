@@ -15,17 +15,17 @@ import numpy as np
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
 from data_schemas.frames import FRAMES_INDEX, rgb_path
-from data_schemas.gaussians import TRAIN_LOG
+from data_schemas.gaussians import DYNAMIC_TRAIN_LOG, TRAIN_LOG
 from data_schemas.metrics import METRICS, REGIONS, SPLITS
 from data_schemas.images import read_png
-from data_schemas.tables import read_table
+from data_schemas.tables import TableSchema, read_table
 from data_schemas.writes import write_bytes
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
 from stages.common import contact_frames
 
-UPSTREAM = ("capture", "frames", "fit", "pbd", "warmup", "evaluate")
+UPSTREAM = ("capture", "frames", "fit", "pbd", "warmup", "dynamic", "evaluate")
 
 
 @dataclass
@@ -36,7 +36,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "stage.report"), outputs=("report.html",),
-       version="3", config_schema=ReportConfig, reads_manifests=True)  # its Stages table shows timings
+       version="4", config_schema=ReportConfig, reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, a contact sheet."""
     cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
@@ -71,11 +71,17 @@ def report(ctx: StageContext) -> None:
         _pbd_section(ctx.input_dir("pbd")),
         "<h2>Image quality (held-out camera and held-out motion)</h2>",
         _metrics_section(ctx.input_dir("evaluate")),
-        "<h2>Warm-up training</h2>",
-        f'<img alt="loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir("warmup"))}">',
+        "<h2>Training</h2>",
+        "<p>Stage one, the warm-up (static Gaussians, the GaussianAvatars baseline), then stage two, the "
+        "dynamic model (hand MLPs H, interaction MLPs I, PointNet++): " + _dynamic_summary(manifests["dynamic"])
+        + "</p>",
+        f'<img alt="warm-up loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir("warmup"), TRAIN_LOG)}">',
+        f'<img alt="dynamic loss curve" src="data:image/png;base64,'
+        f'{_loss_curve(ctx.input_dir("dynamic"), DYNAMIC_TRAIN_LOG, ("loss", "l1", "dssim", "patch"))}">',
         f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
         f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
-        "<h2>Renders: ground truth | render | error x4</h2>",
+        "<h2>Renders: ground truth | " + " | ".join(_methods(ctx.input_dir("evaluate")))
+        + " | their errors x4</h2>",
         *(f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_png_file(ctx.input_dir('evaluate') / 'grids' / (s + '.png'))}'>"
           for s in SPLITS),
     ]
@@ -157,16 +163,29 @@ def _metrics_section(evaluate_dir: Path) -> str:
     return _table(("method", "split", "region", "images", "PSNR dB", "SSIM", "LPIPS"), rows)
 
 
-def _loss_curve(warmup_dir: Path) -> str:
-    """Base64 PNG of the warm-up loss terms against steps."""
+def _methods(evaluate_dir: Path) -> list[str]:
+    """The evaluated methods in the order of the grid columns."""
+    return list(dict.fromkeys(read_table(evaluate_dir / "metrics.parquet", METRICS)["method"]))
+
+
+def _dynamic_summary(manifest: dict) -> str:
+    """One sentence on the dynamic stage's cost: steps, ms per step, interaction-MLP evaluations."""
+    m = manifest["metrics"]
+    return html.escape(f"{m['steps']} steps at {m['ms_per_step']:.0f} ms each; the interaction MLPs ran in "
+                       f"{m['interaction_steps']} steps on {m['interaction_mlp_evaluations']} Gaussians in all")
+
+
+def _loss_curve(train_dir: Path, schema: TableSchema = TRAIN_LOG, terms: tuple[str, ...] = ("loss", "l1", "dssim")
+                ) -> str:
+    """Base64 PNG of the loss ``terms`` of a stage's ``train_log.parquet`` against steps."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    log = read_table(warmup_dir / "train_log.parquet", TRAIN_LOG)
+    log = read_table(train_dir / "train_log.parquet", schema)
     fig, ax = plt.subplots(figsize=(6, 3), dpi=100)
-    for name in ("loss", "l1", "dssim"):
+    for name in terms:
         ax.plot(log["step"], log[name], label=name)
     ax.set_xlabel("step")
     ax.set_yscale("log")

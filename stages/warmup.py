@@ -11,11 +11,11 @@ from avatar.gaussians.model import BoundGaussians
 from avatar.render.gaussians import resolve_backend
 from avatar.training.static import StaticConfig, colors_from_views, train_static
 from data_schemas.capture import MASK_LABELS
-from data_schemas.gaussians import BOUND_GAUSSIANS, TRAIN_LOG
+from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
 from data_schemas.tables import write_table
 from pipeline.stage import Resources, StageContext, stage
-from stages.common import load_meshes, load_views, model_sources
+from stages.common import load_meshes, load_views, model_sources, write_bound_gaussians
 
 
 @dataclass
@@ -86,7 +86,7 @@ def warmup(ctx: StageContext) -> None:
                        log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
     log = train_static(model, views, meshes, cfg, checkpoint_dir=ctx.scratch_dir,
                        progress=lambda steps: ctx.progress(steps, desc="warmup", total=len(steps)))
-    _write_gaussians(ctx, model, meshes.part_names)
+    write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
     frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
     with torch.no_grad():
         means, scales, quats = model.world(meshes.vertices[frame], meshes.faces)
@@ -103,15 +103,3 @@ def warmup(ctx: StageContext) -> None:
     # the manifest records which one computed this artifact.
     ctx.metrics["rasterizer"] = resolve_backend(conf.backend, model.local_means)
 
-
-def _write_gaussians(ctx: StageContext, model: BoundGaussians, part_names: tuple[str, ...]) -> None:
-    with torch.no_grad():
-        write_table(ctx.out_dir / "gaussians.parquet", BOUND_GAUSSIANS, {
-            "binding": model.binding.numpy(),
-            "part": [part_names[i] for i in model.part.tolist()],
-            "local_means": model.local_means.numpy(),
-            "log_scales": model.log_scales.numpy(),
-            "quats": model.quats.numpy(),
-            "opacity_logits": model.opacity_logits.numpy(),
-            "sh_dc": model.sh_dc.numpy(),
-        })

@@ -70,6 +70,14 @@ def label_box(labels: np.ndarray, label: int) -> np.ndarray | None:
     return np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64)
 
 
+def overlap_box(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+    """Intersection (x0, y0, x1, y1) of two boxes; None when either is None or they do not overlap."""
+    if a is None or b is None:
+        return None
+    box = np.concatenate([np.maximum(a[:2], b[:2]), np.minimum(a[2:], b[2:])])
+    return box if (box[2:] > box[:2]).all() else None
+
+
 def union_box(boxes: list[np.ndarray]) -> np.ndarray:
     """Smallest box containing every box (x0, y0, x1, y1)."""
     stacked = np.stack(boxes)

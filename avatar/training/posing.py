@@ -11,7 +11,7 @@ from avatar.templates import FLAMELayer, LayerOutput, MANOLayer, TemplateModel
 from avatar.training.data import MeshSequence, concat_meshes
 
 
-def _pose(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel, dtype: torch.dtype
+def pose_layers(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel, dtype: torch.dtype
           ) -> tuple[FLAMELayer, LayerOutput, MANOLayer, LayerOutput]:
     """Run the FLAME and MANO layers on every frame of ``params`` (no gradients)."""
     t = {k: torch.tensor(np.asarray(v), dtype=dtype) for k, v in params.items()}
@@ -33,7 +33,7 @@ def posed_meshes(params: Mapping[str, np.ndarray], head: TemplateModel, hand: Te
     Returns:
         A :class:`MeshSequence` with parts ("face", "hand"), float32.
     """
-    _, face, _, hand_out = _pose(params, head, hand, torch.float32)
+    _, face, _, hand_out = pose_layers(params, head, hand, torch.float32)
     return concat_meshes({
         "face": (face.vertices, torch.tensor(head.faces, dtype=torch.long)),
         "hand": (hand_out.vertices, torch.tensor(hand.faces, dtype=torch.long)),
@@ -44,7 +44,7 @@ def posed_keypoints(params: Mapping[str, np.ndarray], head: TemplateModel, hand:
                     ) -> dict[str, np.ndarray]:
     """3D keypoints of every frame: ``hand`` (T, 21, 3) in OpenPose order and ``face`` (T, L, 3)
     landmarks, plus the posed ``hand_vertices`` and ``face_vertices`` (float64, metres)."""
-    flame, face, mano, hand_out = _pose(params, head, hand, torch.float64)
+    flame, face, mano, hand_out = pose_layers(params, head, hand, torch.float64)
     with torch.no_grad():
         return {"hand": mano.keypoints21(hand_out.vertices, hand_out.joints).numpy(),
                 "face": flame.landmarks(face.vertices).numpy(),

@@ -1,0 +1,304 @@
+"""The dynamic InteractAvatar model: warm-up Gaussians plus the hand MLPs H and the interaction MLPs I.
+
+Per frame (paper, Method):
+
+- hand Gaussians: ``d_mu, d_s, d_q = H_geo(gamma(mu_cano), theta_hand)`` and
+  ``d_c, d_o = H_app(gamma(mu_cano), P_i, F, theta_hand, r_hand, r_rel, t_rel)``;
+- face Gaussians within ``d_max`` of the hand: ``d_mu, d_s, d_q, d_c, d_o =
+  I(gamma(mu_cano), gamma(d_j), F, theta_hand, theta_face, psi, t_rel, r_rel)``, applied with the weight
+  ``w_i = (cos(pi d_i / d_max) + 1) / 2`` (``d_i`` the distance of the Gaussian to the nearest hand vertex,
+  0 beyond ``d_max``); I runs only on the Gaussians with ``w_i > 0``, so a frame without the hand near the
+  face costs nothing;
+- ``F``: PointNet++ over one Gaussian per deforming face triangle (``|d_j|`` above a threshold) and per hand
+  triangle, drawn with probability proportional to ``o_i ||s_i||`` (the most probable one at evaluation),
+  in the head frame.
+
+How the deltas enter (the paper's equations, in this project's parameterisation):
+
+- position: ``mu = k R (mu_i + d_mu) + T`` exactly as the paper;
+- scale: the project stores log-scales, and the delta is added to the log:
+  ``s = k exp(log s_i + d_s)``. The paper adds ``d_s`` to the linear scale, which can turn negative;
+  in log space the scale stays positive with no clamp, and to first order ``exp(log s + d) = s + s d``;
+- rotation: ``q = R (q_i + d_q)`` (normalised by the rasterizer), as the paper;
+- colour: ``c = c_i + d_c`` on linear RGB, clamped at 0 like the SH evaluation;
+- opacity: added to the logit, ``o = sigmoid(logit o_i + d_o)``, so it stays in (0, 1);
+- interaction deltas are multiplied by ``w_i`` first.
+
+The output layers start at zero, so before training the model renders exactly the warm-up model. The
+number of Gaussians is fixed in this stage (no density control: the per-Gaussian point features and the
+canonical positions stay aligned with their Gaussians).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from avatar.dynamic.conditioning import FrameConditioning
+from avatar.gaussians.frames import TriangleFrames, place_gaussians, triangle_frames
+from avatar.gaussians.model import SH_C0, BoundGaussians
+from avatar.nets.encoding import encoded_dim, positional_encoding
+from avatar.nets.mlp import DeltaHeads
+from avatar.nets.pointnet2 import PointNet2Encoder
+
+HAND_GEO = {"mu": 3, "s": 3, "q": 4}
+HAND_APP = {"c": 3, "o": 1}
+INTERACTION = {"mu": 3, "s": 3, "q": 4, "c": 3, "o": 1}
+_DISTANCE_CHUNK = 4096
+
+
+@dataclass(frozen=True)
+class DynamicModelConfig:
+    """Architecture of the dynamic model (paper values as defaults; the quality presets shrink them).
+
+    Attributes:
+        hand_mlp / interaction: build H / I (False: the "w/o H" / "w/o I" ablations).
+        hand_width, hand_depth: H's MLPs (paper: 256 units, 4 layers).
+        interaction_width, interaction_depth: I's MLPs (paper: 256 units, 6 layers).
+        position_frequencies: octaves of gamma(mu_cano) (NeRF uses 10 for positions); mu_cano is first
+            normalised per part to the unit ball.
+        offset_frequencies, offset_unit_m: gamma(d_j / offset_unit_m).
+        point_feature_dim: width of P_i (paper: 64).
+        geometry_feature_dim: width of F (paper: 1024).
+        pointnet_centres, pointnet_radii, pointnet_neighbours: the two set-abstraction levels (radii in
+            units of ``pointnet_unit_m``).
+        pointnet_width: multiplier of the classic PointNet++ widths (64-64-128, 128-128-256, 256-512).
+        pointnet_unit_m: metres per PointNet++ unit.
+        d_max: interaction radius (paper: 0.05 m).
+        deform_threshold_m: a face triangle deforms when its mean PBD offset exceeds this.
+    """
+
+    hand_mlp: bool = True
+    interaction: bool = True
+    hand_width: int = 256
+    hand_depth: int = 4
+    interaction_width: int = 256
+    interaction_depth: int = 6
+    position_frequencies: int = 10
+    offset_frequencies: int = 4
+    offset_unit_m: float = 0.01
+    point_feature_dim: int = 64
+    geometry_feature_dim: int = 1024
+    pointnet_centres: tuple[int, int] = (512, 128)
+    pointnet_radii: tuple[float, float] = (0.2, 0.4)
+    pointnet_neighbours: tuple[int, int] = (32, 64)
+    pointnet_width: float = 1.0
+    pointnet_unit_m: float = 0.1
+    d_max: float = 0.05
+    deform_threshold_m: float = 1e-4
+
+    @property
+    def uses_geometry_feature(self) -> bool:
+        return self.hand_mlp or self.interaction
+
+
+@dataclass
+class DynamicFrame:
+    """The Gaussians of one frame, ready to rasterize, plus what the losses and counters need.
+
+    Attributes:
+        means, scales, quats: (N, 3), (N, 3), (N, 4) world space.
+        opacities: (N,) in (0, 1); colors: (N, 3) linear RGB.
+        local_means, local_scales: (N, 3) in the parent frame with the deltas (units of k), for L_mu, L_s.
+        interaction_evaluations: Gaussians that went through I this frame.
+    """
+
+    means: Tensor
+    scales: Tensor
+    quats: Tensor
+    opacities: Tensor
+    colors: Tensor
+    local_means: Tensor
+    local_scales: Tensor
+    interaction_evaluations: int = 0
+
+
+def interaction_weights(distance: Tensor, d_max: float) -> Tensor:
+    """w = (cos(pi d / d_max) + 1) / 2 for d < d_max, else 0 (paper). distance: (N,) metres -> (N,)."""
+    w = 0.5 * (torch.cos(math.pi * distance.clamp(0.0, d_max) / d_max) + 1.0)
+    return torch.where(distance < d_max, w, torch.zeros_like(w))
+
+
+def nearest_distance(points: Tensor, targets: Tensor, reach: float) -> Tensor:
+    """(N,) distance of each of ``points`` (N, 3) to the nearest of ``targets`` (M, 3), exact where it is
+    below ``reach`` and ``inf`` for points outside the targets' bounding box grown by ``reach``."""
+    out = torch.full((points.shape[0],), math.inf, dtype=points.dtype)
+    if targets.shape[0] == 0 or points.shape[0] == 0:
+        return out
+    lo, hi = targets.min(0).values - reach, targets.max(0).values + reach
+    near = ((points >= lo) & (points <= hi)).all(-1).nonzero()[:, 0]
+    for start in range(0, near.shape[0], _DISTANCE_CHUNK):
+        idx = near[start:start + _DISTANCE_CHUNK]
+        out[idx] = torch.cdist(points[idx], targets).min(-1).values
+    return out
+
+
+def _normalise_per_part(points: Tensor, part: Tensor) -> Tensor:
+    """(N, 3) points -> each part centred on its mean and scaled into the unit ball."""
+    out = torch.zeros_like(points)
+    for p in part.unique().tolist():
+        sel = part == p
+        centred = points[sel] - points[sel].mean(0)
+        out[sel] = centred / centred.norm(dim=-1).max().clamp_min(1e-9)
+    return out
+
+
+class DynamicAvatar(nn.Module):
+    """Warm-up Gaussians + point features + H + I + PointNet++ (see the module docstring).
+
+    Args:
+        gaussians: the warm-up model (trained further here).
+        mu_cano: (N, 3) each Gaussian's world position on the canonical frame (see :meth:`from_warmup`).
+        faces: (F, 3) the concatenated faces (face mesh first, then hand).
+        part_names: mesh parts in the order of ``gaussians.part`` (must contain "face" and "hand").
+        num_face_vertices: V_face, the face mesh's vertex count.
+        frame_dims: widths of the conditioning: {"hand_pose", "expression"}.
+        cfg: the architecture.
+        seed: initialisation seed of the point features and the networks.
+    """
+
+    def __init__(self, gaussians: BoundGaussians, mu_cano: Tensor, faces: Tensor, part_names: tuple[str, ...],
+                 num_face_vertices: int, frame_dims: dict[str, int], cfg: DynamicModelConfig, seed: int = 0) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.gaussians = gaussians
+        self.num_face_vertices = num_face_vertices
+        self.face_part, self.hand_part = part_names.index("face"), part_names.index("hand")
+        self.register_buffer("faces", faces.long())
+        self.register_buffer("mu_cano", mu_cano.detach().clone())
+        self.register_buffer("mu_cano_unit", _normalise_per_part(self.mu_cano, gaussians.part))
+        self.register_buffer("hand_index", (gaussians.part == self.hand_part).nonzero()[:, 0])
+        self.register_buffer("face_index", (gaussians.part == self.face_part).nonzero()[:, 0])
+        gen = torch.Generator().manual_seed(seed)
+        with torch.random.fork_rng():
+            torch.manual_seed(seed)
+            self._build_networks(frame_dims, gen)
+
+    @classmethod
+    def from_warmup(cls, gaussians: BoundGaussians, canonical_vertices: Tensor, faces: Tensor,
+                    part_names: tuple[str, ...], num_face_vertices: int, frame_dims: dict[str, int],
+                    cfg: DynamicModelConfig, seed: int = 0) -> DynamicAvatar:
+        """The model at the start of stage two: ``mu_cano`` from the warm-up Gaussians placed on
+        ``canonical_vertices`` (V, 3), the first training frame (paper)."""
+        with torch.no_grad():
+            mu_cano, _, _ = gaussians.world(canonical_vertices, faces)
+        return cls(gaussians, mu_cano, faces, part_names, num_face_vertices, frame_dims, cfg, seed)
+
+    def network_state(self) -> dict[str, Tensor]:
+        """The state dict without the Gaussians' own parameters (stored apart, as a table)."""
+        return {k: v for k, v in self.state_dict().items() if not k.startswith("gaussians.")}
+
+    def _build_networks(self, frame_dims: dict[str, int], gen: torch.Generator) -> None:
+        cfg = self.cfg
+        pe = encoded_dim(3, cfg.position_frequencies)
+        F = cfg.geometry_feature_dim if cfg.uses_geometry_feature else 0
+        hand, expr = frame_dims["hand_pose"], frame_dims["expression"]
+        self.point_features = nn.Parameter(
+            0.01 * torch.randn(self.hand_index.shape[0], cfg.point_feature_dim, generator=gen))  # DeepSDF init
+        self.hand_geo = DeltaHeads(HAND_GEO, pe, hand, cfg.hand_width, cfg.hand_depth) if cfg.hand_mlp else None
+        self.hand_app = DeltaHeads(HAND_APP, pe + cfg.point_feature_dim, F + hand + 6 + 6 + 3, cfg.hand_width,
+                                   cfg.hand_depth) if cfg.hand_mlp else None
+        self.interaction = DeltaHeads(INTERACTION, pe + encoded_dim(3, cfg.offset_frequencies),
+                                      F + hand + 12 + expr + 3 + 6, cfg.interaction_width,
+                                      cfg.interaction_depth) if cfg.interaction else None
+        self.pointnet = PointNet2Encoder(
+            feature_dim=F, centres=cfg.pointnet_centres, radii=cfg.pointnet_radii,
+            neighbours=cfg.pointnet_neighbours, scale=cfg.pointnet_unit_m,
+            width_multiplier=cfg.pointnet_width) if cfg.uses_geometry_feature else None
+
+    # -- per-frame pieces --------------------------------------------------------------------------
+
+    def triangle_offsets(self, cond: FrameConditioning) -> Tensor:
+        """d_j (N_face, 3): mean PBD offset (head frame, metres) of each face Gaussian's parent triangle."""
+        parent = self.faces[self.gaussians.binding[self.face_index]]  # (N_face, 3) vertex ids (< V_face)
+        return cond.face_offsets[parent].mean(1)
+
+    def geometry_points(self, cond: FrameConditioning, means: Tensor, scales: Tensor, opacities: Tensor,
+                        generator: torch.Generator | None) -> Tensor:
+        """PointNet++ input (P, 3), head frame: one Gaussian per deforming face triangle and per hand triangle,
+        drawn with probability proportional to ``o ||s||`` (``generator`` None: the most probable one)."""
+        g = self.gaussians
+        deforming = self.triangle_offsets(cond).norm(dim=-1) > self.cfg.deform_threshold_m
+        candidates = torch.cat([self.face_index[deforming], self.hand_index])
+        if candidates.numel() == 0:
+            return means.new_zeros(0, 3)
+        weight = (opacities[candidates] * scales[candidates].norm(dim=-1)).clamp_min(1e-30)
+        key = weight.log()
+        if generator is not None:  # Gumbel-max: argmax(log w + Gumbel) samples proportional to w
+            u = torch.rand(key.shape, generator=generator, dtype=key.dtype).clamp(1e-12, 1 - 1e-12)
+            key = key - torch.log(-torch.log(u))
+        tri = g.binding[candidates]
+        best = torch.full((self.faces.shape[0],), -math.inf, dtype=key.dtype).scatter_reduce(
+            0, tri, key, "amax")
+        chosen = candidates[key == best[tri]]
+        return cond.to_head(means[chosen])
+
+    def geometry_feature(self, points: Tensor) -> Tensor:
+        """F (geometry_feature_dim,) from PointNet++ over ``points`` (P, 3); a learned vector when P = 0."""
+        return self.pointnet(points)
+
+    # -- the frame ---------------------------------------------------------------------------------
+
+    def forward(self, cond: FrameConditioning, vertices: Tensor,
+                generator: torch.Generator | None = None) -> DynamicFrame:
+        """The Gaussians of one frame.
+
+        Args:
+            cond: the frame's conditioning.
+            vertices: (V, 3) the frame's posed mesh (face with its PBD offsets, then hand).
+            generator: draws the PointNet++ sample (training); None takes the most probable (evaluation).
+        """
+        g = self.gaussians
+        frames = triangle_frames(vertices, self.faces)
+        local_means, log_scales, quats = g.local_means, g.log_scales, g.quats
+        logits, rgb = g.opacity_logits, 0.5 + SH_C0 * g.sh_dc
+        deltas = {name: torch.zeros_like(x) for name, x in
+                  (("mu", local_means), ("s", log_scales), ("q", quats), ("o", logits[:, None]), ("c", rgb))}
+        evaluations = 0
+        feature = None
+        if self.cfg.uses_geometry_feature:
+            with torch.no_grad():
+                means0, scales0, _ = place_gaussians(frames, g.binding, local_means, torch.exp(log_scales), quats)
+                points = self.geometry_points(cond, means0, scales0, torch.sigmoid(logits), generator)
+            feature = self.geometry_feature(points)
+        pe = positional_encoding(self.mu_cano_unit, self.cfg.position_frequencies)
+        if self.hand_geo is not None:
+            idx = self.hand_index
+            geo = self.hand_geo(pe[idx], cond.hand_pose)
+            app = self.hand_app(torch.cat([pe[idx], self.point_features], dim=-1), torch.cat(
+                [feature, cond.hand_pose, cond.hand_rotation, cond.rel_rotation, cond.rel_translation]))
+            for name, value in {**geo, **app}.items():
+                deltas[name] = deltas[name].index_add(0, idx, value)
+        if self.interaction is not None:
+            evaluations = self._interact(cond, frames, vertices, pe, feature, deltas)
+        local_means = local_means + deltas["mu"]
+        local_scales = torch.exp(log_scales + deltas["s"])
+        means, scales, world_quats = place_gaussians(frames, g.binding, local_means, local_scales, quats + deltas["q"])
+        return DynamicFrame(means=means, scales=scales, quats=world_quats,
+                            opacities=torch.sigmoid(logits + deltas["o"][:, 0]),
+                            colors=torch.clamp_min(rgb + deltas["c"], 0.0), local_means=local_means,
+                            local_scales=local_scales, interaction_evaluations=evaluations)
+
+    def _interact(self, cond: FrameConditioning, frames: TriangleFrames, vertices: Tensor, pe: Tensor,
+                  feature: Tensor, deltas: dict[str, Tensor]) -> int:
+        """Add ``w_i I(...)`` of the face Gaussians near the hand to ``deltas``; returns how many ran I."""
+        g = self.gaussians
+        idx = self.face_index
+        with torch.no_grad():
+            means, _, _ = place_gaussians(frames, g.binding[idx], g.local_means[idx], torch.exp(g.log_scales[idx]),
+                                          g.quats[idx])
+            hand_vertices = vertices[self.num_face_vertices:]
+            weight = interaction_weights(nearest_distance(means, hand_vertices, self.cfg.d_max), self.cfg.d_max)
+        active = (weight > 0).nonzero()[:, 0]
+        if active.numel() == 0:
+            return 0
+        offsets = self.triangle_offsets(cond)[active] / self.cfg.offset_unit_m
+        point = torch.cat([pe[idx[active]], positional_encoding(offsets, self.cfg.offset_frequencies)], dim=-1)
+        frame = torch.cat([feature, cond.hand_pose, cond.face_pose, cond.expression, cond.rel_translation,
+                           cond.rel_rotation])
+        for name, value in self.interaction(point, frame).items():
+            deltas[name] = deltas[name].index_add(0, idx[active], weight[active, None] * value)
+        return int(active.numel())

@@ -1,0 +1,217 @@
+"""Stage two of the paper: train H, I, PointNet++, the point features and the Gaussians together.
+
+Loss (paper, Eq. 13): ``(1 - lambda) L1 + lambda D-SSIM + a L_s + b L_mu + c L_patch`` with L_s and L_mu on
+the visible Gaussians' local scales and positions *including their deltas*, and L_patch the LPIPS-VGG
+distance on the hand's box and on the overlap of the hand and face boxes (from the part masks). Adam:
+MLPs (and PointNet++) at 1e-3 and point features at 2.5e-3, both with the 3DGS exponential decay; the
+Gaussians continue at the learning rates the warm-up ended with. Frames with contact are drawn with
+probability ``contact_fraction`` (the paper oversamples them; how much it does not say). Checkpoints
+resume bit for bit, like the warm-up's.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.dynamic.model import DynamicAvatar, DynamicFrame
+from avatar.losses import patch_perceptual_loss, position_regulariser, scale_regulariser
+from avatar.metrics.lpips import LPIPS
+from avatar.metrics.ssim import dssim_loss
+from avatar.preprocess.crops import label_box, overlap_box
+from avatar.render.gaussians import render_gaussians
+from avatar.training.checkpoint import load_checkpoint, save_checkpoint
+from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.schedule import exponential_lr
+
+CHECKPOINT = "dynamic.pt"
+FACE_LABEL, HAND_LABEL = 1, 2  # part labels of the crops' masks (see avatar.training.data.ViewSet)
+
+
+@dataclass(frozen=True)
+class DynamicTrainConfig:
+    """Stage-two hyperparameters (paper values as defaults)."""
+
+    steps: int
+    lambda_dssim: float = 0.2
+    scale_weight: float = 1.0  # a
+    position_weight: float = 0.01  # b
+    patch_weight: float = 0.1  # c
+    eps_s: float = 0.4
+    eps_mu: float = 0.2
+    lr_mlp: float = 1e-3
+    lr_point_features: float = 2.5e-3
+    lr_decay: float = 0.1  # final / initial learning rate of the MLPs and point features
+    lr_position: float = 5e-5  # Gaussians: where the warm-up's schedule ended
+    lr_scale: float = 1.7e-2
+    lr_rotation: float = 1e-3
+    lr_opacity: float = 5e-2
+    lr_color: float = 2.5e-3
+    contact_fraction: float = 0.5
+    patch_min_size: int = 32
+    checkpoint_every: int = 0
+    log_every: int = 10
+    seed: int = 0
+    backend: str = "auto"
+
+
+@dataclass
+class DynamicLogRow:
+    step: int
+    loss: float
+    l1: float
+    dssim: float
+    scale_reg: float
+    position_reg: float
+    patch: float
+    interaction_evaluations: int
+
+
+@dataclass
+class DynamicTrainResult:
+    """The loss log and the cost counters of a run (``seconds``: forward time per component, summed)."""
+
+    log: list[DynamicLogRow]
+    interaction_evaluations: int
+    interaction_steps: int
+    seconds: dict[str, float]
+
+
+Progress = Callable[[Iterable[int]], Iterator[int]]
+_MLP_GROUPS = ("hand_geo", "hand_app", "interaction", "pointnet")
+
+
+def _optimizer(model: DynamicAvatar, cfg: DynamicTrainConfig) -> torch.optim.Adam:
+    g = model.gaussians
+    groups = [
+        {"params": [g.local_means], "lr": cfg.lr_position, "name": "local_means"},
+        {"params": [g.log_scales], "lr": cfg.lr_scale, "name": "log_scales"},
+        {"params": [g.quats], "lr": cfg.lr_rotation, "name": "quats"},
+        {"params": [g.opacity_logits], "lr": cfg.lr_opacity, "name": "opacity_logits"},
+        {"params": [g.sh_dc], "lr": cfg.lr_color, "name": "sh_dc"},
+        {"params": [model.point_features], "lr": cfg.lr_point_features, "name": "point_features"},
+    ]
+    for name in _MLP_GROUPS:
+        module = getattr(model, name)
+        if module is not None:
+            groups.append({"params": list(module.parameters()), "lr": cfg.lr_mlp, "name": name})
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+
+def _set_learning_rates(optimizer: torch.optim.Optimizer, cfg: DynamicTrainConfig, step: int) -> None:
+    for group in optimizer.param_groups:
+        if group["name"] in _MLP_GROUPS:
+            group["lr"] = exponential_lr(step, cfg.lr_mlp, cfg.lr_mlp * cfg.lr_decay, cfg.steps)
+        elif group["name"] == "point_features":
+            group["lr"] = exponential_lr(step, cfg.lr_point_features, cfg.lr_point_features * cfg.lr_decay, cfg.steps)
+
+
+def render_dynamic(model: DynamicAvatar, cond: SequenceConditioning, meshes: MeshSequence, views: ViewSet,
+                   frame: int, camera: int, backend: str = "auto", generator: torch.Generator | None = None
+                   ) -> tuple[object, DynamicFrame]:
+    """(RenderOutput, DynamicFrame) of ``frame`` from view ``camera``."""
+    g = model(cond.frame(frame), meshes.vertices[frame], generator)
+    return rasterize(g, views, camera, backend), g
+
+
+def rasterize(g: DynamicFrame, views: ViewSet, camera: int, backend: str = "auto"):  # noqa: ANN201 - RenderOutput
+    """Render the Gaussians of one frame from view ``camera`` of ``views``."""
+    return render_gaussians(g.means, g.quats, g.scales, g.opacities, g.colors, views.K[camera],
+                            views.world_to_cam[camera], views.size, views.size, views.background, backend=backend)
+
+
+def patch_boxes(labels: np.ndarray) -> list[np.ndarray]:
+    """The boxes L_patch looks at in a crop's part labels (S, S): the hand's, and the overlap of the hand's
+    and the face's (each only where present)."""
+    hand, face = label_box(labels, HAND_LABEL), label_box(labels, FACE_LABEL)
+    return [b for b in (hand, overlap_box(hand, face)) if b is not None]
+
+
+def sample_frame(gen: torch.Generator, num_frames: int, contact: np.ndarray, contact_fraction: float) -> int:
+    """A training frame: with probability ``contact_fraction`` one of the contact frames (if any), else any."""
+    contact_ids = np.flatnonzero(contact)
+    draw = float(torch.rand((), generator=gen))
+    if contact_ids.size and draw < contact_fraction:
+        return int(contact_ids[int(torch.randint(contact_ids.size, (1,), generator=gen))])
+    return int(torch.randint(num_frames, (1,), generator=gen))
+
+
+def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, cond: SequenceConditioning,
+                  contact: np.ndarray, cfg: DynamicTrainConfig, checkpoint_dir: Path | None = None,
+                  progress: Progress = iter, lpips: LPIPS | None = None) -> DynamicTrainResult:
+    """Optimise ``model`` in place for ``cfg.steps`` steps on the frames of ``views``/``meshes``/``cond``.
+
+    Args:
+        contact: (T,) bool, frames with hand-face contact (oversampled).
+        checkpoint_dir: resume from ``dynamic.pt`` there when present; save every ``cfg.checkpoint_every``.
+        lpips: the L_patch network (default LPIPS-VGG with the offline weights).
+    """
+    gen = torch.Generator().manual_seed(cfg.seed)
+    lpips = lpips if lpips is not None else LPIPS("vgg")
+    optimizer = _optimizer(model, cfg)
+    result = DynamicTrainResult([], 0, 0, {"model": 0.0, "render": 0.0, "loss": 0.0, "backward": 0.0})
+    start = 0
+    ckpt_path = checkpoint_dir / CHECKPOINT if checkpoint_dir is not None else None
+    state = load_checkpoint(ckpt_path, _CHECKPOINT_KEYS) if ckpt_path is not None else None
+    if state is not None:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        gen.set_state(state["rng"])
+        start = int(state["step"])
+        result.log = [DynamicLogRow(**r) for r in state["log"]]
+        result.interaction_evaluations, result.interaction_steps = state["interaction"]
+    for step in progress(range(start + 1, cfg.steps + 1)):
+        frame = sample_frame(gen, views.num_frames, contact, cfg.contact_fraction)
+        camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
+        _set_learning_rates(optimizer, cfg, step)
+        t0 = time.perf_counter()
+        g = model(cond.frame(frame), meshes.vertices[frame], gen)
+        t1 = time.perf_counter()
+        out = rasterize(g, views, camera, cfg.backend)
+        t2 = time.perf_counter()
+        terms = _loss_terms(out.rgb, views.image(frame, camera), views.labels[frame, camera].numpy(), g,
+                            out.radii > 0, cfg, lpips)
+        loss = (1 - cfg.lambda_dssim) * terms["l1"] + cfg.lambda_dssim * terms["dssim"] \
+            + cfg.scale_weight * terms["scale_reg"] + cfg.position_weight * terms["position_reg"] \
+            + cfg.patch_weight * terms["patch"]
+        t3 = time.perf_counter()
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        t4 = time.perf_counter()
+        for key, seconds in (("model", t1 - t0), ("render", t2 - t1), ("loss", t3 - t2), ("backward", t4 - t3)):
+            result.seconds[key] += seconds
+        result.interaction_evaluations += g.interaction_evaluations
+        result.interaction_steps += int(g.interaction_evaluations > 0)
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            result.log.append(DynamicLogRow(step, loss.item(), *(terms[k].item() for k in
+                                            ("l1", "dssim", "scale_reg", "position_reg", "patch")),
+                                            g.interaction_evaluations))
+        if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
+            save_checkpoint(ckpt_path, {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                                        "rng": gen.get_state(), "log": [asdict(r) for r in result.log],
+                                        "interaction": (result.interaction_evaluations, result.interaction_steps)})
+    return result
+
+
+_CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction")
+
+
+def _loss_terms(pred: Tensor, gt: Tensor, labels: np.ndarray, g: DynamicFrame, visible: Tensor,
+                cfg: DynamicTrainConfig, lpips: LPIPS) -> dict[str, Tensor]:
+    """The terms of the paper's loss for one rendered crop (pred, gt: (S, S, 3); labels: (S, S))."""
+    return {
+        "l1": (pred - gt).abs().mean(),
+        "dssim": dssim_loss(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]),
+        "scale_reg": scale_regulariser(g.local_scales, visible, cfg.eps_s),
+        "position_reg": position_regulariser(g.local_means, visible, cfg.eps_mu),
+        "patch": patch_perceptual_loss(pred, gt, patch_boxes(labels), lpips, cfg.patch_min_size)
+        if cfg.patch_weight > 0 else pred.sum() * 0.0,
+    }
