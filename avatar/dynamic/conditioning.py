@@ -97,7 +97,7 @@ def sequence_conditioning(params: Mapping[str, np.ndarray], head: TemplateModel,
             ``deform.parquet``), or None for none.
     """
     _, face, _, hand_out = pose_layers(params, head, hand, torch.float32)
-    as_t = lambda name: torch.as_tensor(np.asarray(params[name]), dtype=torch.float32)  # noqa: E731
+    as_t = lambda name: torch.tensor(np.array(params[name]), dtype=torch.float32)  # noqa: E731
     R_head = batch_rodrigues(as_t("flame_global_orient"))
     R_hand = batch_rodrigues(as_t("mano_global_orient"))
     head_origin, wrist = face.joints[:, 0], hand_out.joints[:, 0]

@@ -1,0 +1,206 @@
+"""The dynamic model (stage two) against the static model given the same total number of steps.
+
+For each subject and preset it runs the DAG until ``evaluate`` twice into one outputs folder (everything
+upstream of ``dynamic`` is shared and cached):
+
+1. ``full``: the InteractAvatar model, warm-up W steps then the hand MLPs H, the interaction MLPs I and
+   PointNet++ for D steps;
+2. ``static``: the same stage two with H and I switched off and no patch loss, i.e. the warm-up-only
+   (GaussianAvatars) model trained W + D steps from the same warm-up;
+
+and prints PSNR / SSIM / LPIPS of both on the held-out camera (novel view) and the held-out motion
+(self-reenactment), on the full image and the hand, face and interaction regions, contact and non-contact
+frames apart, with the differences; then the cost: ms per step of stage two against the warm-up's, and a
+split of one stage-two step into PointNet++, MLPs and rendering (forward + backward, medians).
+
+Nothing here is tuned on the held-out camera or motion: the stage's defaults were chosen on the training
+views (see README).
+
+Usage: python benchmarks/bench_dynamic.py [--subjects synth_a synth_b] [--presets draft] [--outputs DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+import torch  # noqa: E402
+from hydra import compose, initialize_config_dir  # noqa: E402
+
+from avatar.dynamic import sequence_conditioning  # noqa: E402
+from avatar.gaussians.frames import place_gaussians, triangle_frames  # noqa: E402
+from avatar.render.gaussians import render_gaussians  # noqa: E402
+from avatar.training.dynamic import rasterize  # noqa: E402
+from data_schemas.deform import DEFORM  # noqa: E402
+from data_schemas.metrics import METRICS, REGIONS  # noqa: E402
+from data_schemas.tables import read_table  # noqa: E402
+from pipeline.config import validate_config  # noqa: E402
+from pipeline.runner import Runner  # noqa: E402
+from pipeline.summary import format_table  # noqa: E402
+from stages import REGISTRY  # noqa: E402
+from stages.common import load_dynamic, load_face_offsets, load_meshes, load_params, load_views, templates  # noqa: E402
+
+VARIANTS = {
+    "full": ["stage.evaluate.dynamic_method=interactavatar"],
+    "static": ["stage.dynamic.hand_mlp=false", "stage.dynamic.interaction=false", "stage.dynamic.patch_weight=0",
+               "stage.evaluate.dynamic_method=static_same_steps"],
+}
+
+
+def compose_cfg(preset: str, subject: str, outputs: Path, extra: list[str]):  # noqa: ANN201 - DictConfig
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=[f"quality={preset}", f"subject={subject}", f"paths.outputs={outputs}",
+                                           "run.until=evaluate", "run.progress=false", "fit.source=ground_truth",
+                                           *extra])
+    return validate_config(cfg, REGISTRY)
+
+
+def run_variant(preset: str, subject: str, outputs: Path, variant: str, keep: Path) -> dict:
+    """Run the DAG for one variant; copy its evaluate metrics and manifests to ``keep``; return them."""
+    cfg = compose_cfg(preset, subject, outputs, VARIANTS[variant])
+    t0 = time.perf_counter()
+    Runner(cfg, REGISTRY, log=lambda _m: None).run()
+    wall = time.perf_counter() - t0
+    root = outputs / subject
+    keep.mkdir(parents=True, exist_ok=True)
+    shutil.copy(root / "evaluate" / "metrics.parquet", keep / f"metrics_{variant}.parquet")
+    shutil.copytree(root / "evaluate" / "grids", keep / f"grids_{variant}", dirs_exist_ok=True)
+    manifests = {s: json.loads((root / s / "_manifest.json").read_text()) for s in ("warmup", "dynamic", "evaluate")}
+    return {"wall_s": wall, "manifests": manifests, "metrics": read_table(keep / f"metrics_{variant}.parquet", METRICS)}
+
+
+def region_rows(full: dict, static: dict) -> list[tuple]:
+    """One row per split x region x contact: both methods' means and the differences."""
+    rows = []
+    a, b = full["metrics"], static["metrics"]
+    for split in ("novel_view", "self_reenact"):
+        for region in REGIONS:
+            for contact in (None, True, False):
+                def mean(t: dict, method: str, metric: str) -> float:
+                    sel = [i for i in range(len(t["frame"])) if t["method"][i] == method and t["split"][i] == split
+                           and t["region"][i] == region and (contact is None or bool(t["contact"][i]) == contact)]
+                    v = np.asarray(t[metric], dtype=np.float64)[sel]
+                    v = v[np.isfinite(v)]
+                    return float(v.mean()) if v.size else float("nan")
+                f = {m: mean(a, "interactavatar", m) for m in ("psnr", "ssim", "lpips")}
+                s = {m: mean(b, "static_same_steps", m) for m in ("psnr", "ssim", "lpips")}
+                w = {m: mean(a, "gaussian_avatars", m) for m in ("psnr", "lpips")}
+                label = "all" if contact is None else ("contact" if contact else "no contact")
+                rows.append((split, region, label, f"{w['psnr']:.2f}", f"{s['psnr']:.2f}", f"{f['psnr']:.2f}",
+                             f"{f['psnr'] - s['psnr']:+.2f}", f"{s['ssim']:.4f}", f"{f['ssim']:.4f}",
+                             f"{w['lpips']:.4f}", f"{s['lpips']:.4f}", f"{f['lpips']:.4f}",
+                             f"{f['lpips'] - s['lpips']:+.4f}"))
+    return rows
+
+
+def _median_ms(fn, repeats: int = 5) -> float:  # noqa: ANN001
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(1000 * (time.perf_counter() - t0))
+    return statistics.median(times)
+
+
+def step_split(preset: str, subject: str, outputs: Path) -> dict[str, float]:
+    """Forward + backward ms of PointNet++, the MLPs (H and I) and rendering on a contact frame of the trained
+    full model, median of 5 each (the same camera and frame for all)."""
+    cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"])
+    root = outputs / subject
+    model = load_dynamic(root / "dynamic")
+    head, hand = templates(cfg.model)
+    views = load_views(root / "capture", root / "frames", "train", "train")
+    meshes = load_meshes(root / "fit", "train", cfg, pbd_dir=root / "pbd")
+    offsets = load_face_offsets(root / "pbd", "train", views.num_frames, head.num_vertices)
+    cond = sequence_conditioning(load_params(root / "fit", "train"), head, hand, torch.from_numpy(offsets))
+    deform = read_table(root / "pbd" / "train" / "deform.parquet", DEFORM)
+    frame = int(np.flatnonzero(deform["contact"])[0]) if np.any(deform["contact"]) else 0
+    c = cond.frame(frame)
+    verts = meshes.vertices[frame]
+
+    def whole() -> None:
+        g = model(c, verts)
+        rasterize(g, views, 0).rgb.sum().backward()
+        model.zero_grad(set_to_none=True)
+
+    def pointnet() -> None:
+        with torch.no_grad():
+            g = model.gaussians
+            m, s, _ = place_gaussians(triangle_frames(verts, model.faces), g.binding, g.local_means,
+                                      torch.exp(g.log_scales), g.quats)
+            pts = model.geometry_points(c, m, s, torch.sigmoid(g.opacity_logits), None)
+        model.geometry_feature(pts).sum().backward()
+        model.zero_grad(set_to_none=True)
+
+    def no_nets() -> None:
+        g = model.gaussians
+        means, scales, quats = g.world(verts, model.faces)
+        render_gaussians(means, quats, scales, g.opacities(), g.colors(), views.K[0], views.world_to_cam[0],
+                         views.size, views.size, views.background).rgb.sum().backward()
+        model.zero_grad(set_to_none=True)
+
+    whole_ms, pointnet_ms, render_ms = _median_ms(whole), _median_ms(pointnet), _median_ms(no_nets)
+    return {"frame": frame, "whole_ms": whole_ms, "pointnet_ms": pointnet_ms, "render_ms": render_ms,
+            "mlp_ms": whole_ms - pointnet_ms - render_ms}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--subjects", nargs="+", default=["synth_a", "synth_b"])
+    parser.add_argument("--presets", nargs="+", default=["draft"])
+    parser.add_argument("--outputs", type=Path, default=None, help="keep artifacts here (default: a temp dir)")
+    args = parser.parse_args()
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    with tempfile.TemporaryDirectory() as tmp:
+        base = args.outputs or Path(tmp)
+        for preset in args.presets:
+            for subject in args.subjects:
+                outputs = base / preset
+                keep = base / "results" / preset / subject
+                load0 = os.getloadavg()[0]
+                full = run_variant(preset, subject, outputs, "full", keep)
+                split = step_split(preset, subject, outputs)
+                static = run_variant(preset, subject, outputs, "static", keep)
+                print(f"\n## {subject} at {preset} (load average {load0:.1f} -> {os.getloadavg()[0]:.1f})\n")
+                steps_w = full["manifests"]["warmup"]["metrics"]["steps"]
+                steps_d = full["manifests"]["dynamic"]["metrics"]["steps"]
+                print(f"warm-up {steps_w} steps, stage two {steps_d} steps; static = warm-up + {steps_d} static "
+                      f"steps (same total {steps_w + steps_d}); warm-up only = the warm-up alone ({steps_w})\n")
+                print(format_table(("split", "region", "frames", "PSNR warm-up only", "PSNR static", "PSNR full",
+                                    "dPSNR", "SSIM static", "SSIM full", "LPIPS warm-up only", "LPIPS static",
+                                    "LPIPS full", "dLPIPS"), region_rows(full, static)))
+                wm = full["manifests"]["warmup"]
+                warm_ms = 1000 * wm["timings"]["wall_s"] / steps_w
+                dm, sm = full["manifests"]["dynamic"]["metrics"], static["manifests"]["dynamic"]["metrics"]
+                print()
+                print(format_table(("cost", "value"), [
+                    ("warm-up ms/step (stage wall / steps, incl. density control)", f"{warm_ms:.0f}"),
+                    ("stage two full ms/step", f"{dm['ms_per_step']:.0f}"),
+                    ("stage two static ms/step", f"{sm['ms_per_step']:.0f}"),
+                    ("  full: model forward / render / loss / backward ms",
+                     " / ".join(f"{dm[k + '_ms_per_step']:.0f}" for k in ("model", "render", "loss", "backward"))),
+                    (f"one step on contact frame {split['frame']}, fwd+bwd: PointNet++ ms", f"{split['pointnet_ms']:.0f}"),
+                    ("  MLPs ms (whole - PointNet++ - render)", f"{split['mlp_ms']:.0f}"),
+                    ("  render ms", f"{split['render_ms']:.0f}"),
+                    ("interaction-MLP evaluations (Gaussians, all steps)", dm["interaction_mlp_evaluations"]),
+                    ("steps with I evaluated", dm["interaction_steps"]),
+                    ("peak RSS MB (dynamic stage process)", f"{dm['peak_rss_mb']:.0f}"),
+                    ("DAG wall s: full / static rerun", f"{full['wall_s']:.0f} / {static['wall_s']:.0f}"),
+                ]))
+                sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
