@@ -157,7 +157,7 @@ def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussi
     return BoundGaussians(
         local_means=as_tensor("local_means"), log_scales=as_tensor("log_scales"), quats=as_tensor("quats"),
         opacity_logits=as_tensor("opacity_logits"), sh_dc=as_tensor("sh_dc"),
-        binding=torch.as_tensor(np.asarray(t["binding"])),
+        binding=torch.tensor(np.array(t["binding"])),
         part=torch.tensor([part_names.index(p) for p in t["part"]]),
     )
 

@@ -136,6 +136,23 @@ def nearest_distance(points: Tensor, targets: Tensor, reach: float) -> Tensor:
     return out
 
 
+def sample_one_per_triangle(weight: Tensor, triangle: Tensor, num_triangles: int,
+                            generator: torch.Generator | None) -> Tensor:
+    """Indices (P,) into ``weight`` (N,): one per triangle present in ``triangle`` (N,), drawn with
+    probability proportional to ``weight`` among that triangle's entries (Gumbel-max: the argmax of
+    ``log w + Gumbel noise``); with ``generator`` None the largest weight of each triangle."""
+    key = weight.clamp_min(1e-30).log()
+    if generator is not None:
+        u = torch.rand(key.shape, generator=generator, dtype=key.dtype).clamp(1e-12, 1 - 1e-12)
+        key = key - torch.log(-torch.log(u))
+    best = torch.full((num_triangles,), -math.inf, dtype=key.dtype).scatter_reduce(0, triangle, key, "amax")
+    winners = (key == best[triangle]).nonzero()[:, 0]
+    # exact ties (measure zero when sampling; equal weights at evaluation): keep the first per triangle
+    first = torch.full((num_triangles,), weight.shape[0], dtype=torch.long).scatter_reduce(
+        0, triangle[winners], winners, "amin")
+    return first[first < weight.shape[0]]
+
+
 def _normalise_per_part(points: Tensor, part: Tensor) -> Tensor:
     """(N, 3) points -> each part centred on its mean and scaled into the unit ball."""
     out = torch.zeros_like(points)
@@ -225,15 +242,8 @@ class DynamicAvatar(nn.Module):
         candidates = torch.cat([self.face_index[deforming], self.hand_index])
         if candidates.numel() == 0:
             return means.new_zeros(0, 3)
-        weight = (opacities[candidates] * scales[candidates].norm(dim=-1)).clamp_min(1e-30)
-        key = weight.log()
-        if generator is not None:  # Gumbel-max: argmax(log w + Gumbel) samples proportional to w
-            u = torch.rand(key.shape, generator=generator, dtype=key.dtype).clamp(1e-12, 1 - 1e-12)
-            key = key - torch.log(-torch.log(u))
-        tri = g.binding[candidates]
-        best = torch.full((self.faces.shape[0],), -math.inf, dtype=key.dtype).scatter_reduce(
-            0, tri, key, "amax")
-        chosen = candidates[key == best[tri]]
+        weight = opacities[candidates] * scales[candidates].norm(dim=-1)
+        chosen = candidates[sample_one_per_triangle(weight, g.binding[candidates], self.faces.shape[0], generator)]
         return cond.to_head(means[chosen])
 
     def geometry_feature(self, points: Tensor) -> Tensor:

@@ -1,0 +1,92 @@
+"""Stage-two training: every part learns, a killed run resumes to the same bits, contact oversampling, L_patch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from avatar.losses import patch_perceptual_loss
+from avatar.metrics.lpips import LPIPS
+from avatar.training.dynamic import DynamicTrainConfig, patch_boxes, rasterize, sample_frame, train_dynamic
+from tests.dynamic.conftest import NEAR, Scene
+
+CONTACT = np.array([True, False])
+
+
+class _Kill(Exception):
+    pass
+
+
+def _cfg(steps: int, **kw) -> DynamicTrainConfig:  # noqa: ANN003
+    return DynamicTrainConfig(steps=steps, backend="auto", patch_min_size=16, log_every=1, **kw)
+
+
+@pytest.fixture(scope="module")
+def lpips() -> LPIPS:
+    return LPIPS("vgg")
+
+
+def test_every_network_the_point_features_and_the_gaussians_receive_gradients(scene: Scene, lpips: LPIPS) -> None:
+    model = scene.model()
+    # two steps move the zero output layers off zero; then every layer upstream of them gets a gradient
+    train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT, _cfg(2, contact_fraction=1.0), lpips=lpips)
+    g = model(scene.cond.frame(NEAR), scene.meshes.vertices[NEAR], torch.Generator().manual_seed(0))
+    out = rasterize(g, scene.views, 0)
+    (out.rgb - scene.views.image(NEAR, 0)).square().mean().backward()
+    missing = [name for name, p in model.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    assert missing == []
+    assert {"point_features", "gaussians.local_means", "gaussians.sh_dc"} <= {n for n, _ in model.named_parameters()}
+    assert any(n.startswith("pointnet.") for n, _ in model.named_parameters())
+
+
+def test_a_killed_run_resumes_to_the_same_result(scene: Scene, tmp_path, lpips: LPIPS) -> None:
+    cfg = _cfg(4, checkpoint_every=2)
+    straight = scene.model()
+    log = train_dynamic(straight, scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips).log
+
+    def killed_after_two(steps):  # noqa: ANN001, ANN202
+        for step in steps:
+            if step == 3:
+                raise _Kill
+            yield step
+
+    resumed = scene.model()
+    with pytest.raises(_Kill):
+        train_dynamic(resumed, scene.views, scene.meshes, scene.cond, CONTACT, cfg, tmp_path, killed_after_two,
+                      lpips=lpips)
+    resumed = scene.model()  # a fresh process: the model starts from the warm-up again
+    result = train_dynamic(resumed, scene.views, scene.meshes, scene.cond, CONTACT, cfg, tmp_path, lpips=lpips)
+    for (name, a), (_, b) in zip(straight.state_dict().items(), resumed.state_dict().items(), strict=True):
+        assert torch.equal(a, b), name
+    assert [r.loss for r in result.log] == [r.loss for r in log]
+
+
+def test_contact_frames_are_oversampled() -> None:
+    gen = torch.Generator().manual_seed(0)
+    contact = np.zeros(10, bool)
+    contact[[2, 7]] = True
+    draws = np.array([sample_frame(gen, 10, contact, 0.5) for _ in range(4000)])
+    share = np.isin(draws, [2, 7]).mean()
+    assert abs(share - (0.5 + 0.5 * 0.2)) < 0.03
+    assert set(np.unique(draws)) == set(range(10))
+    none = np.array([sample_frame(gen, 10, np.zeros(10, bool), 0.5) for _ in range(200)])
+    assert set(np.unique(none)) == set(range(10))  # no contact frame: uniform over all
+
+
+def test_patch_boxes_and_loss(lpips: LPIPS) -> None:
+    labels = np.zeros((40, 40), np.uint8)
+    labels[5:30, 5:30] = 1  # face
+    labels[20:26, 24:36] = 2  # hand, overlapping the face box
+    boxes = patch_boxes(labels)
+    np.testing.assert_array_equal(boxes[0], [24, 20, 36, 26])
+    np.testing.assert_array_equal(boxes[1], [24, 20, 30, 26])
+    gen = torch.Generator().manual_seed(0)
+    pred, gt = torch.rand(40, 40, 3, generator=gen), torch.rand(40, 40, 3, generator=gen)
+    loss = patch_perceptual_loss(pred, gt, boxes, lpips, min_size=16)
+    # each box grows about its centre to 16 px a side, inside the image
+    expected = (lpips(pred[15:31, 22:38].permute(2, 0, 1), gt[15:31, 22:38].permute(2, 0, 1), unit_range=True)
+                + lpips(pred[15:31, 19:35].permute(2, 0, 1), gt[15:31, 19:35].permute(2, 0, 1), unit_range=True))
+    torch.testing.assert_close(loss, expected)
+    assert patch_perceptual_loss(pred, gt, [], lpips) == 0
+    assert patch_boxes(np.ones((8, 8), np.uint8)) == []  # no hand: no patch
