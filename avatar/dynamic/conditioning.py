@@ -34,10 +34,11 @@ def rotation_6d(R: Tensor) -> Tensor:
 
 
 @dataclass
-class FrameConditioning:
-    """The inputs of one frame (float32).
+class Conditioning:
+    """The dynamic model's inputs, float32: one frame, or a sequence with a leading T axis on every field
+    (then :meth:`frame` takes one out).
 
-    Attributes:
+    Attributes (one frame):
         hand_pose: (45,) theta_hand, MANO finger pose, axis-angle radians.
         hand_rotation: (6,) r_hand, the hand's global rotation (6-D).
         face_pose: (12,) theta_face: FLAME neck, jaw, eyes (axis-angle radians).
@@ -59,31 +60,22 @@ class FrameConditioning:
     head_origin: Tensor
     face_offsets: Tensor
 
+    @property
+    def num_frames(self) -> int:
+        """T of a sequence."""
+        return self.hand_pose.shape[0]
+
+    def frame(self, t: int) -> Conditioning:
+        """Frame ``t`` of a sequence."""
+        return Conditioning(**{f.name: getattr(self, f.name)[t] for f in fields(self)})
+
     def to_head(self, points: Tensor) -> Tensor:
-        """World points (N, 3) -> the head frame (N, 3), metres."""
+        """World points (N, 3) -> the head frame (N, 3), metres (one frame)."""
         return (points - self.head_origin) @ self.head_rotation
 
 
-@dataclass
-class SequenceConditioning:
-    """:class:`FrameConditioning` of T frames stacked on a leading axis."""
-
-    hand_pose: Tensor
-    hand_rotation: Tensor
-    face_pose: Tensor
-    expression: Tensor
-    rel_rotation: Tensor
-    rel_translation: Tensor
-    head_rotation: Tensor
-    head_origin: Tensor
-    face_offsets: Tensor
-
-    @property
-    def num_frames(self) -> int:
-        return self.hand_pose.shape[0]
-
-    def frame(self, t: int) -> FrameConditioning:
-        return FrameConditioning(**{f.name: getattr(self, f.name)[t] for f in fields(self)})
+#: Names that say which of the two a signature expects.
+FrameConditioning = SequenceConditioning = Conditioning
 
 
 def sequence_conditioning(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel,

@@ -1,0 +1,58 @@
+"""Export any frame of a trained dynamic avatar as a world-space 3DGS PLY (not a stage: a reader of artifacts).
+
+Usage::
+
+    python -m stages.export_ply --outputs outputs --subject synth_a --sequence test --frame 3 --out frame3.ply
+
+The frame is posed with the fit stage's parameters of ``--sequence`` and the pbd stage's offsets, exactly as
+``evaluate`` renders it; splat viewers open the file directly.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from avatar.dynamic import sequence_conditioning
+from stages.common import (
+    load_dynamic, load_face_offsets, load_meshes, load_params, templates, write_frame_ply,
+)
+
+
+def export_frame(subject_dir: Path, sequence: str, frame: int, out: Path, flame_path: str | None = None,
+                 mano_path: str | None = None) -> None:
+    """Write frame ``frame`` of ``sequence`` of the dynamic model under ``subject_dir`` to ``out``."""
+    cfg = OmegaConf.create({"model": {"flame_path": flame_path, "mano_path": mano_path}})
+    head, hand = templates(cfg.model)
+    fit_dir, pbd_dir = subject_dir / "fit", subject_dir / "pbd"
+    meshes = load_meshes(fit_dir, sequence, cfg, pbd_dir=pbd_dir)
+    num_frames = meshes.vertices.shape[0]
+    if not 0 <= frame < num_frames:
+        raise SystemExit(f"{fit_dir / sequence / 'params.parquet'}: frame {frame} out of range; "
+                         f"sequence '{sequence}' has frames 0..{num_frames - 1}")
+    offsets = load_face_offsets(pbd_dir, sequence, num_frames, head.num_vertices)
+    cond = sequence_conditioning(load_params(fit_dir, sequence), head, hand, torch.from_numpy(offsets))
+    model = load_dynamic(subject_dir / "dynamic")
+    with torch.no_grad():
+        write_frame_ply(out, model(cond.frame(frame), meshes.vertices[frame]))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--outputs", type=Path, default=Path("outputs"))
+    parser.add_argument("--subject", default="synth_a")
+    parser.add_argument("--sequence", default="train")
+    parser.add_argument("--frame", type=int, default=0)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--flame-path", default=None, help="the model.flame_path the run used, if any")
+    parser.add_argument("--mano-path", default=None, help="the model.mano_path the run used, if any")
+    args = parser.parse_args()
+    export_frame(args.outputs / args.subject, args.sequence, args.frame, args.out, args.flame_path, args.mano_path)
+    print(args.out)
+
+
+if __name__ == "__main__":
+    main()
