@@ -13,6 +13,7 @@ from data_schemas.gaussians_ply import read_gaussians_ply
 from data_schemas.metrics import METRICS
 from data_schemas.tables import read_table
 from stages import REGISTRY
+from stages.export_ply import export_frame
 from tests.conftest import run_cli
 
 
@@ -48,6 +49,13 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert {"novel_view", "self_reenact"} == set(metrics["split"])
     cloud = read_gaussians_ply(subject / "warmup" / "gaussians.ply")
     assert len(cloud.means) > 1000 and np.isfinite(cloud.means).all()
+    assert {"gaussian_avatars", "interactavatar"} == set(metrics["method"])
+    dynamic = json.loads((subject / "dynamic" / "_manifest.json").read_text())["metrics"]
+    assert dynamic["steps"] > 0 and dynamic["ms_per_step"] > 0 and dynamic["interaction_mlp_evaluations"] > 0
+    export_frame(subject, "test", 1, tmp_path / "test_1.ply")  # any frame of any sequence, on request
+    exported = read_gaussians_ply(tmp_path / "test_1.ply")
+    assert len(exported.means) == len(read_gaussians_ply(subject / "dynamic" / "ply" / "train_0.ply").means)
+    assert np.isfinite(exported.means).all() and not np.allclose(exported.means, cloud.means)
     html = (subject / "report" / "report.html").read_text()
     assert "Image quality" in html and "data:image/png;base64" in html
     assert "Fitted meshes" in html and "fitted to the keypoints of the train views" in html
