@@ -25,30 +25,27 @@ BOUND_GAUSSIANS = TableSchema(
     ),
 )
 
+#: The loss terms both training stages log.
+_LOSS_COLUMNS = (
+    Column("step", "int32"),
+    Column("loss", "float32"),
+    Column("l1", "float32"),
+    Column("dssim", "float32"),
+    Column("scale_reg", "float32"),
+    Column("position_reg", "float32"),
+)
+
 TRAIN_LOG = TableSchema(
     name="train_log",
     version=1,
-    columns=(
-        Column("step", "int32"),
-        Column("loss", "float32"),
-        Column("l1", "float32"),
-        Column("dssim", "float32"),
-        Column("scale_reg", "float32"),
-        Column("position_reg", "float32"),
-        Column("num_gaussians", "int32"),
-    ),
+    columns=(*_LOSS_COLUMNS, Column("num_gaussians", "int32")),
 )
 
 DYNAMIC_TRAIN_LOG = TableSchema(
     name="dynamic_train_log",
     version=1,
     columns=(
-        Column("step", "int32"),
-        Column("loss", "float32"),
-        Column("l1", "float32"),
-        Column("dssim", "float32"),
-        Column("scale_reg", "float32"),
-        Column("position_reg", "float32"),
+        *_LOSS_COLUMNS,
         Column("patch", "float32", doc="L_patch: LPIPS-VGG over the hand box and the hand-face overlap"),
         Column("interaction_evaluations", "int32", doc="Gaussians that went through the interaction MLPs"),
     ),
