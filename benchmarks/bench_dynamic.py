@@ -17,6 +17,7 @@ Nothing here is tuned on the held-out camera or motion: the stage's defaults wer
 views (see README).
 
 Usage: python benchmarks/bench_dynamic.py [--subjects synth_a synth_b] [--presets draft] [--outputs DIR]
+       [--set stage.dynamic.seed=1 ...]
 """
 
 from __future__ import annotations
@@ -67,9 +68,9 @@ def compose_cfg(preset: str, subject: str, outputs: Path, extra: list[str]):  # 
     return validate_config(cfg, REGISTRY)
 
 
-def run_variant(preset: str, subject: str, outputs: Path, variant: str, keep: Path) -> dict:
+def run_variant(preset: str, subject: str, outputs: Path, variant: str, keep: Path, extra: list[str]) -> dict:
     """Run the DAG for one variant; copy its evaluate metrics and manifests to ``keep``; return them."""
-    cfg = compose_cfg(preset, subject, outputs, VARIANTS[variant])
+    cfg = compose_cfg(preset, subject, outputs, VARIANTS[variant] + extra)
     t0 = time.perf_counter()
     Runner(cfg, REGISTRY, log=lambda _m: None).run()
     wall = time.perf_counter() - t0
@@ -114,10 +115,10 @@ def _median_ms(fn, repeats: int = 5) -> float:  # noqa: ANN001
     return statistics.median(times)
 
 
-def step_split(preset: str, subject: str, outputs: Path) -> dict[str, float]:
+def step_split(preset: str, subject: str, outputs: Path, extra: list[str]) -> dict[str, float]:
     """Forward + backward ms of PointNet++, the MLPs (H and I) and rendering on a contact frame of the trained
     full model, median of 5 each (the same camera and frame for all)."""
-    cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"])
+    cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"] + extra)
     root = outputs / subject
     model = load_dynamic(root / "dynamic")
     head, hand = templates(cfg.model)
@@ -161,6 +162,8 @@ def main() -> None:
     parser.add_argument("--subjects", nargs="+", default=["synth_a", "synth_b"])
     parser.add_argument("--presets", nargs="+", default=["draft"])
     parser.add_argument("--outputs", type=Path, default=None, help="keep artifacts here (default: a temp dir)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="extra config overrides for both variants, e.g. stage.dynamic.seed=1 (noise)")
     args = parser.parse_args()
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     with tempfile.TemporaryDirectory() as tmp:
@@ -170,10 +173,10 @@ def main() -> None:
                 outputs = base / preset
                 keep = base / "results" / preset / subject
                 load0 = os.getloadavg()[0]
-                full = run_variant(preset, subject, outputs, "full", keep)
-                split = step_split(preset, subject, outputs)
-                static = run_variant(preset, subject, outputs, "static", keep)
-                print(f"\n## {subject} at {preset} (load average {load0:.1f} -> {os.getloadavg()[0]:.1f})\n")
+                full = run_variant(preset, subject, outputs, "full", keep, args.set)
+                split = step_split(preset, subject, outputs, args.set)
+                static = run_variant(preset, subject, outputs, "static", keep, args.set)
+                print(f"\n## {subject} at {preset} {' '.join(args.set)} (load average {load0:.1f} -> {os.getloadavg()[0]:.1f})\n")
                 steps_w = full["manifests"]["warmup"]["metrics"]["steps"]
                 steps_d = full["manifests"]["dynamic"]["metrics"]["steps"]
                 print(f"warm-up {steps_w} steps, stage two {steps_d} steps; static = warm-up + {steps_d} static "
