@@ -10,6 +10,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from avatar.metrics.ssim import dssim_loss
+
 
 def scale_regulariser(local_scales: Tensor, visible: Tensor, eps_s: float) -> Tensor:
     """L_s = || ReLU(s - eps_s) ||^2 averaged over visible Gaussians.
@@ -34,6 +36,25 @@ def position_regulariser(local_means: Tensor, visible: Tensor, eps_mu: float) ->
     norms = torch.sqrt(local_means[visible].square().sum(-1) + 1e-12)
     excess = torch.relu(norms - eps_mu)
     return excess.square().mean() if excess.numel() else local_means.sum() * 0.0
+
+
+def reconstruction_terms(pred: Tensor, gt: Tensor, local_scales: Tensor, local_means: Tensor, visible: Tensor,
+                         eps_s: float, eps_mu: float) -> dict[str, Tensor]:
+    """The terms both training stages share: ``l1``, ``dssim`` of a render ``pred`` against ``gt`` (S, S, 3),
+    and ``scale_reg`` / ``position_reg`` (L_s, L_mu) of the visible Gaussians' local scales and means (N, 3)."""
+    return {
+        "l1": (pred - gt).abs().mean(),
+        "dssim": dssim_loss(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]),
+        "scale_reg": scale_regulariser(local_scales, visible, eps_s),
+        "position_reg": position_regulariser(local_means, visible, eps_mu),
+    }
+
+
+def reconstruction_loss(terms: dict[str, Tensor], lambda_dssim: float, scale_weight: float,
+                        position_weight: float) -> Tensor:
+    """``(1 - lambda) L1 + lambda D-SSIM + a L_s + b L_mu`` (paper) from :func:`reconstruction_terms`."""
+    return (1 - lambda_dssim) * terms["l1"] + lambda_dssim * terms["dssim"] + scale_weight * terms["scale_reg"] \
+        + position_weight * terms["position_reg"]
 
 
 def patch_perceptual_loss(pred: Tensor, gt: Tensor, boxes: list[np.ndarray], lpips: nn.Module,

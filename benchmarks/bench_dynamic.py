@@ -40,7 +40,6 @@ sys.path.insert(0, str(REPO))
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 
-from avatar.dynamic import sequence_conditioning  # noqa: E402
 from avatar.gaussians.frames import place_gaussians, triangle_frames  # noqa: E402
 from avatar.render.gaussians import render_gaussians  # noqa: E402
 from avatar.training.dynamic import rasterize  # noqa: E402
@@ -51,7 +50,7 @@ from pipeline.config import validate_config  # noqa: E402
 from pipeline.runner import Runner  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from stages import REGISTRY  # noqa: E402
-from stages.common import load_dynamic, load_face_offsets, load_meshes, load_params, load_views, templates  # noqa: E402
+from stages.common import load_dynamic, load_sequence, load_views  # noqa: E402
 
 VARIANTS = {
     "full": ["stage.evaluate.dynamic_method=interactavatar"],
@@ -121,11 +120,8 @@ def step_split(preset: str, subject: str, outputs: Path, extra: list[str]) -> di
     cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"] + extra)
     root = outputs / subject
     model = load_dynamic(root / "dynamic")
-    head, hand = templates(cfg.model)
     views = load_views(root / "capture", root / "frames", "train", "train")
-    meshes = load_meshes(root / "fit", "train", cfg, pbd_dir=root / "pbd")
-    offsets = load_face_offsets(root / "pbd", "train", views.num_frames, head.num_vertices)
-    cond = sequence_conditioning(load_params(root / "fit", "train"), head, hand, torch.from_numpy(offsets))
+    meshes, cond = load_sequence(root / "fit", "train", cfg, pbd_dir=root / "pbd")
     deform = read_table(root / "pbd" / "train" / "deform.parquet", DEFORM)
     frame = int(np.flatnonzero(deform["contact"])[0]) if np.any(deform["contact"]) else 0
     c = cond.frame(frame)
@@ -199,7 +195,7 @@ def main() -> None:
                     ("  render ms", f"{split['render_ms']:.0f}"),
                     ("interaction-MLP evaluations (Gaussians, all steps)", dm["interaction_mlp_evaluations"]),
                     ("steps with I evaluated", dm["interaction_steps"]),
-                    ("peak RSS MB (dynamic stage process)", f"{dm['peak_rss_mb']:.0f}"),
+                    ("peak MB (dynamic stage)", f"{full['manifests']['dynamic']['peak_memory_mb']:.0f}"),
                     ("DAG wall s: full / static rerun", f"{full['wall_s']:.0f} / {static['wall_s']:.0f}"),
                 ]))
                 sys.stdout.flush()

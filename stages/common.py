@@ -10,7 +10,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from avatar.dynamic import DynamicAvatar, DynamicModelConfig
+from avatar.dynamic import DynamicAvatar, DynamicModelConfig, sequence_conditioning
+from avatar.dynamic.conditioning import Conditioning
 from avatar.gaussians.model import BoundGaussians
 from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
 from avatar.training.data import MeshSequence, ViewSet
@@ -99,13 +100,29 @@ def contact_flags(pbd_dir: Path, sequence: str, num_frames: int) -> np.ndarray:
 def load_meshes(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path | None) -> MeshSequence:
     """Posed face + hand meshes of every frame of ``sequence`` from the fit stage's ``params.parquet``,
     the face deformed by the pbd stage's contact offsets (``pbd_dir``; None: undeformed)."""
+    return _posed_sequence(fit_dir, sequence, cfg, pbd_dir)[0]
+
+
+def load_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path) -> tuple[MeshSequence, Conditioning]:
+    """:func:`load_meshes` and the dynamic model's conditioning of every frame, each artifact read once."""
     head, hand = templates(cfg.model)
-    meshes = posed_meshes(load_params(fit_dir, sequence), head, hand)
-    if pbd_dir is not None:
-        offsets = load_face_offsets(pbd_dir, sequence, meshes.vertices.shape[0], head.num_vertices)
-        # posed_meshes concatenates the parts in order, face first: its vertices are the first V
-        meshes.vertices[:, :head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
-    return meshes
+    meshes, params, offsets = _posed_sequence(fit_dir, sequence, cfg, pbd_dir)
+    return meshes, sequence_conditioning(params, head, hand, torch.from_numpy(offsets))
+
+
+def _posed_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, pbd_dir: Path | None
+                    ) -> tuple[MeshSequence, dict[str, np.ndarray], np.ndarray]:
+    """(meshes with the face offsets added, the parameters, the offsets (T, V_face, 3); zeros without pbd)."""
+    head, hand = templates(cfg.model)
+    params = load_params(fit_dir, sequence)
+    meshes = posed_meshes(params, head, hand)
+    num_frames = meshes.vertices.shape[0]
+    if pbd_dir is None:
+        return meshes, params, np.zeros((num_frames, head.num_vertices, 3))
+    offsets = load_face_offsets(pbd_dir, sequence, num_frames, head.num_vertices)
+    # posed_meshes concatenates the parts in order, face first: its vertices are the first V
+    meshes.vertices[:, :head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
+    return meshes, params, offsets
 
 
 def load_face_offsets(pbd_dir: Path, sequence: str, num_frames: int, num_vertices: int) -> np.ndarray:

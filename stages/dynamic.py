@@ -11,13 +11,12 @@ the frames ``stage.dynamic.ply_frames`` asks for (``ply/train_<frame>.ply``).
 from __future__ import annotations
 
 import io
-import resource
 from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
 
-from avatar.dynamic import DynamicAvatar, DynamicModelConfig, sequence_conditioning
+from avatar.dynamic import DynamicAvatar, DynamicModelConfig
 from avatar.render.gaussians import resolve_backend
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
 from data_schemas.gaussians import DYNAMIC_TRAIN_LOG
@@ -25,7 +24,7 @@ from data_schemas.tables import write_table
 from data_schemas.writes import write_bytes, write_json
 from pipeline.stage import Resources, StageContext, stage
 from stages.common import (
-    contact_flags, load_face_offsets, load_gaussians, load_meshes, load_params, load_views, model_sources, templates,
+    contact_flags, load_gaussians, load_sequence, load_views, model_sources, templates,
     write_bound_gaussians, write_frame_ply,
 )
 
@@ -91,7 +90,7 @@ def model_config(cfg) -> DynamicModelConfig:  # noqa: ANN001 - the run's DictCon
                  "quality.dynamic_interaction_depth", "quality.geometry_feature_dim", "quality.pointnet_width",
                  "quality.pointnet_centres", "model", "stage.dynamic"),
     outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply"),
-    version="1",
+    version="2",
     resources=Resources(cpus=2, gpus=0),
     config_schema=DynamicConfig,
     cache_exclude=("stage.dynamic.checkpoint_every",),  # resuming is bit-for-bit: it cannot change the result
@@ -101,13 +100,10 @@ def dynamic(ctx: StageContext) -> None:
     """Train H, I, PointNet++, the point features and the Gaussians on every train camera and frame."""
     conf, q = ctx.cfg.stage.dynamic, ctx.cfg.quality
     torch.manual_seed(conf.seed)
-    head, hand = templates(ctx.cfg.model)
+    head, _ = templates(ctx.cfg.model)
     fit_dir, pbd_dir = ctx.input_dir("fit"), ctx.input_dir("pbd")
     views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train")
-    meshes = load_meshes(fit_dir, "train", ctx.cfg, pbd_dir=pbd_dir)
-    params = load_params(fit_dir, "train")
-    offsets = load_face_offsets(pbd_dir, "train", meshes.vertices.shape[0], head.num_vertices)
-    cond = sequence_conditioning(params, head, hand, torch.from_numpy(offsets))
+    meshes, cond = load_sequence(fit_dir, "train", ctx.cfg, pbd_dir=pbd_dir)
     gaussians = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
     arch = model_config(ctx.cfg)
     frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
@@ -145,6 +141,5 @@ def dynamic(ctx: StageContext) -> None:
         "interaction_mlp_evaluations": result.interaction_evaluations,
         "interaction_steps": result.interaction_steps,
         "contact_frames": int(contact.sum()),
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "rasterizer": resolve_backend(conf.backend, model.mu_cano),
     })

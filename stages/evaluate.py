@@ -12,7 +12,6 @@ import torch
 from avatar.metrics import LPIPS, image_metrics
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import resolve_backend
-from avatar.dynamic import sequence_conditioning
 from avatar.training.dynamic import render_dynamic
 from avatar.training.static import render_frame
 from data_schemas.capture import MASK_LABELS
@@ -21,8 +20,7 @@ from data_schemas.metrics import METRICS, REGIONS
 from data_schemas.tables import write_table
 from pipeline.stage import StageContext, stage
 from stages.common import (
-    contact_frames, load_dynamic, load_face_offsets, load_gaussians, load_meshes, load_params, load_views,
-    model_sources, templates,
+    contact_frames, load_dynamic, load_gaussians, load_sequence, load_views, model_sources,
 )
 
 #: split name -> (sequence, camera split) it renders
@@ -50,7 +48,6 @@ def evaluate(ctx: StageContext) -> None:
     model; PSNR/SSIM/LPIPS per region; image grids comparing them."""
     conf = ctx.cfg.stage.evaluate
     cap_dir, frames_dir, fit_dir, pbd_dir = (ctx.input_dir(n) for n in ("capture", "frames", "fit", "pbd"))
-    head, hand = templates(ctx.cfg.model)
     rows: dict[str, list] = {c.name: [] for c in METRICS.columns}
     lpips = LPIPS("alex")
     ctx.metrics["rasterizer"] = resolve_backend(conf.backend, torch.zeros(0, 3))  # what backend=auto chose here
@@ -58,10 +55,8 @@ def evaluate(ctx: StageContext) -> None:
     (ctx.out_dir / "grids").mkdir()
     for split, (sequence, camera_split) in SPLIT_SOURCES.items():
         views = load_views(cap_dir, frames_dir, sequence, camera_split)
-        meshes = load_meshes(fit_dir, sequence, ctx.cfg, pbd_dir=pbd_dir)
+        meshes, cond = load_sequence(fit_dir, sequence, ctx.cfg, pbd_dir=pbd_dir)
         static_model = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
-        offsets = load_face_offsets(pbd_dir, sequence, views.num_frames, head.num_vertices)
-        cond = sequence_conditioning(load_params(fit_dir, sequence), head, hand, torch.from_numpy(offsets))
         renderers: dict[str, Renderer] = {
             conf.method: lambda t, c: render_frame(static_model, meshes, views, t, c, conf.backend)[0].rgb,
             conf.dynamic_method: lambda t, c: render_dynamic(dynamic_model, cond, meshes, views, t, c,

@@ -16,25 +16,19 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from avatar.dynamic import sequence_conditioning
-from stages.common import (
-    load_dynamic, load_face_offsets, load_meshes, load_params, templates, write_frame_ply,
-)
+from stages.common import load_dynamic, load_sequence, write_frame_ply
 
 
 def export_frame(subject_dir: Path, sequence: str, frame: int, out: Path, flame_path: str | None = None,
                  mano_path: str | None = None) -> None:
     """Write frame ``frame`` of ``sequence`` of the dynamic model under ``subject_dir`` to ``out``."""
     cfg = OmegaConf.create({"model": {"flame_path": flame_path, "mano_path": mano_path}})
-    head, hand = templates(cfg.model)
-    fit_dir, pbd_dir = subject_dir / "fit", subject_dir / "pbd"
-    meshes = load_meshes(fit_dir, sequence, cfg, pbd_dir=pbd_dir)
+    fit_dir = subject_dir / "fit"
+    meshes, cond = load_sequence(fit_dir, sequence, cfg, pbd_dir=subject_dir / "pbd")
     num_frames = meshes.vertices.shape[0]
     if not 0 <= frame < num_frames:
         raise SystemExit(f"{fit_dir / sequence / 'params.parquet'}: frame {frame} out of range; "
                          f"sequence '{sequence}' has frames 0..{num_frames - 1}")
-    offsets = load_face_offsets(pbd_dir, sequence, num_frames, head.num_vertices)
-    cond = sequence_conditioning(load_params(fit_dir, sequence), head, hand, torch.from_numpy(offsets))
     model = load_dynamic(subject_dir / "dynamic")
     with torch.no_grad():
         write_frame_ply(out, model(cond.frame(frame), meshes.vertices[frame]))

@@ -38,7 +38,7 @@ import torch
 from torch import Tensor, nn
 
 from avatar.dynamic.conditioning import FrameConditioning
-from avatar.gaussians.frames import TriangleFrames, place_gaussians, triangle_frames
+from avatar.gaussians.frames import place_gaussians, triangle_frames
 from avatar.gaussians.model import SH_C0, BoundGaussians
 from avatar.nets.encoding import encoded_dim, positional_encoding
 from avatar.nets.mlp import DeltaHeads
@@ -186,7 +186,9 @@ class DynamicAvatar(nn.Module):
         self.face_part, self.hand_part = part_names.index("face"), part_names.index("hand")
         self.register_buffer("faces", faces.long())
         self.register_buffer("mu_cano", mu_cano.detach().clone())
-        self.register_buffer("mu_cano_unit", _normalise_per_part(self.mu_cano, gaussians.part))
+        # gamma(mu_cano) is fixed in stage two: encoded once, derived again on load (not in the state dict)
+        self.register_buffer("position_code", positional_encoding(
+            _normalise_per_part(self.mu_cano, gaussians.part), cfg.position_frequencies), persistent=False)
         self.register_buffer("hand_index", (gaussians.part == self.hand_part).nonzero()[:, 0])
         self.register_buffer("face_index", (gaussians.part == self.face_part).nonzero()[:, 0])
         gen = torch.Generator().manual_seed(seed)
@@ -269,12 +271,12 @@ class DynamicAvatar(nn.Module):
                   (("mu", local_means), ("s", log_scales), ("q", quats), ("o", logits[:, None]), ("c", rgb))}
         evaluations = 0
         feature = None
-        if self.cfg.uses_geometry_feature:
+        if self.cfg.uses_geometry_feature:  # the Gaussians before any delta: PointNet++ input and w_i
             with torch.no_grad():
                 means0, scales0, _ = place_gaussians(frames, g.binding, local_means, torch.exp(log_scales), quats)
                 points = self.geometry_points(cond, means0, scales0, torch.sigmoid(logits), generator)
             feature = self.geometry_feature(points)
-        pe = positional_encoding(self.mu_cano_unit, self.cfg.position_frequencies)
+        pe = self.position_code
         if self.hand_geo is not None:
             idx = self.hand_index
             geo = self.hand_geo(pe[idx], cond.hand_pose)
@@ -283,7 +285,7 @@ class DynamicAvatar(nn.Module):
             for name, value in {**geo, **app}.items():
                 deltas[name] = deltas[name].index_add(0, idx, value)
         if self.interaction is not None:
-            evaluations = self._interact(cond, frames, vertices, pe, feature, deltas)
+            evaluations = self._interact(cond, means0[self.face_index], vertices, feature, deltas)
         local_means = local_means + deltas["mu"]
         local_scales = torch.exp(log_scales + deltas["s"])
         means, scales, world_quats = place_gaussians(frames, g.binding, local_means, local_scales, quats + deltas["q"])
@@ -292,21 +294,20 @@ class DynamicAvatar(nn.Module):
                             colors=torch.clamp_min(rgb + deltas["c"], 0.0), local_means=local_means,
                             local_scales=local_scales, interaction_evaluations=evaluations)
 
-    def _interact(self, cond: FrameConditioning, frames: TriangleFrames, vertices: Tensor, pe: Tensor,
-                  feature: Tensor, deltas: dict[str, Tensor]) -> int:
-        """Add ``w_i I(...)`` of the face Gaussians near the hand to ``deltas``; returns how many ran I."""
-        g = self.gaussians
+    def _interact(self, cond: FrameConditioning, face_means: Tensor, vertices: Tensor, feature: Tensor,
+                  deltas: dict[str, Tensor]) -> int:
+        """Add ``w_i I(...)`` of the face Gaussians near the hand to ``deltas``; returns how many ran I.
+        ``face_means`` (N_face, 3): the face Gaussians' world means before any delta."""
         idx = self.face_index
         with torch.no_grad():
-            means, _, _ = place_gaussians(frames, g.binding[idx], g.local_means[idx], torch.exp(g.log_scales[idx]),
-                                          g.quats[idx])
             hand_vertices = vertices[self.num_face_vertices:]
-            weight = interaction_weights(nearest_distance(means, hand_vertices, self.cfg.d_max), self.cfg.d_max)
+            weight = interaction_weights(nearest_distance(face_means, hand_vertices, self.cfg.d_max), self.cfg.d_max)
         active = (weight > 0).nonzero()[:, 0]
         if active.numel() == 0:
             return 0
         offsets = self.triangle_offsets(cond)[active] / self.cfg.offset_unit_m
-        point = torch.cat([pe[idx[active]], positional_encoding(offsets, self.cfg.offset_frequencies)], dim=-1)
+        point = torch.cat([self.position_code[idx[active]], positional_encoding(offsets, self.cfg.offset_frequencies)],
+                          dim=-1)
         frame = torch.cat([feature, cond.hand_pose, cond.face_pose, cond.expression, cond.rel_translation,
                            cond.rel_rotation])
         for name, value in self.interaction(point, frame).items():

@@ -22,14 +22,14 @@ from torch import Tensor
 
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.dynamic.model import DynamicAvatar, DynamicFrame
-from avatar.losses import patch_perceptual_loss, position_regulariser, scale_regulariser
+from avatar.losses import patch_perceptual_loss, reconstruction_loss, reconstruction_terms
 from avatar.metrics.lpips import LPIPS
-from avatar.metrics.ssim import dssim_loss
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import render_gaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.schedule import exponential_lr
+from avatar.training.static import gaussian_param_groups
 
 CHECKPOINT = "dynamic.pt"
 FACE_LABEL, HAND_LABEL = 1, 2  # part labels of the crops' masks (see avatar.training.data.ViewSet)
@@ -89,15 +89,9 @@ _MLP_GROUPS = ("hand_geo", "hand_app", "interaction", "pointnet")
 
 
 def _optimizer(model: DynamicAvatar, cfg: DynamicTrainConfig) -> torch.optim.Adam:
-    g = model.gaussians
-    groups = [
-        {"params": [g.local_means], "lr": cfg.lr_position, "name": "local_means"},
-        {"params": [g.log_scales], "lr": cfg.lr_scale, "name": "log_scales"},
-        {"params": [g.quats], "lr": cfg.lr_rotation, "name": "quats"},
-        {"params": [g.opacity_logits], "lr": cfg.lr_opacity, "name": "opacity_logits"},
-        {"params": [g.sh_dc], "lr": cfg.lr_color, "name": "sh_dc"},
-        {"params": [model.point_features], "lr": cfg.lr_point_features, "name": "point_features"},
-    ]
+    groups = gaussian_param_groups(model.gaussians, cfg.lr_position, cfg.lr_scale, cfg.lr_rotation, cfg.lr_opacity,
+                                   cfg.lr_color)
+    groups.append({"params": [model.point_features], "lr": cfg.lr_point_features, "name": "point_features"})
     for name in _MLP_GROUPS:
         module = getattr(model, name)
         if module is not None:
@@ -178,8 +172,7 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         t2 = time.perf_counter()
         terms = _loss_terms(out.rgb, views.image(frame, camera), views.labels[frame, camera].numpy(), g,
                             out.radii > 0, cfg, lpips)
-        loss = (1 - cfg.lambda_dssim) * terms["l1"] + cfg.lambda_dssim * terms["dssim"] \
-            + cfg.scale_weight * terms["scale_reg"] + cfg.position_weight * terms["position_reg"] \
+        loss = reconstruction_loss(terms, cfg.lambda_dssim, cfg.scale_weight, cfg.position_weight) \
             + cfg.patch_weight * terms["patch"]
         t3 = time.perf_counter()
         loss.backward()
@@ -208,10 +201,7 @@ def _loss_terms(pred: Tensor, gt: Tensor, labels: np.ndarray, g: DynamicFrame, v
                 cfg: DynamicTrainConfig, lpips: LPIPS) -> dict[str, Tensor]:
     """The terms of the paper's loss for one rendered crop (pred, gt: (S, S, 3); labels: (S, S))."""
     return {
-        "l1": (pred - gt).abs().mean(),
-        "dssim": dssim_loss(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]),
-        "scale_reg": scale_regulariser(g.local_scales, visible, cfg.eps_s),
-        "position_reg": position_regulariser(g.local_means, visible, cfg.eps_mu),
+        **reconstruction_terms(pred, gt, g.local_scales, g.local_means, visible, cfg.eps_s, cfg.eps_mu),
         "patch": patch_perceptual_loss(pred, gt, patch_boxes(labels), lpips, cfg.patch_min_size)
         if cfg.patch_weight > 0 else pred.sum() * 0.0,
     }

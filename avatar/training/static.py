@@ -17,8 +17,7 @@ from torch import Tensor
 
 from avatar.gaussians.density import DensityConfig, DensityController
 from avatar.gaussians.model import BoundGaussians
-from avatar.losses import position_regulariser, scale_regulariser
-from avatar.metrics.ssim import dssim_loss
+from avatar.losses import reconstruction_loss, reconstruction_terms
 from avatar.render.gaussians import render_gaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import MeshSequence, ViewSet
@@ -81,14 +80,21 @@ class LogRow:
 Progress = Callable[[Iterable[int]], Iterator[int]]
 
 
-def _optimizer(model: BoundGaussians, cfg: StaticConfig) -> torch.optim.Adam:
-    groups = [
-        {"params": [model.local_means], "lr": cfg.lr_position_init, "name": "local_means"},
-        {"params": [model.log_scales], "lr": cfg.lr_scale, "name": "log_scales"},
-        {"params": [model.quats], "lr": cfg.lr_rotation, "name": "quats"},
-        {"params": [model.opacity_logits], "lr": cfg.lr_opacity, "name": "opacity_logits"},
-        {"params": [model.sh_dc], "lr": cfg.lr_color, "name": "sh_dc"},
+def gaussian_param_groups(model: BoundGaussians, lr_position: float, lr_scale: float, lr_rotation: float,
+                          lr_opacity: float, lr_color: float) -> list[dict]:
+    """Adam parameter groups of the Gaussians, one per parameter, named after it."""
+    return [
+        {"params": [model.local_means], "lr": lr_position, "name": "local_means"},
+        {"params": [model.log_scales], "lr": lr_scale, "name": "log_scales"},
+        {"params": [model.quats], "lr": lr_rotation, "name": "quats"},
+        {"params": [model.opacity_logits], "lr": lr_opacity, "name": "opacity_logits"},
+        {"params": [model.sh_dc], "lr": lr_color, "name": "sh_dc"},
     ]
+
+
+def _optimizer(model: BoundGaussians, cfg: StaticConfig) -> torch.optim.Adam:
+    groups = gaussian_param_groups(model, cfg.lr_position_init, cfg.lr_scale, cfg.lr_rotation, cfg.lr_opacity,
+                                   cfg.lr_color)
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
 
@@ -150,22 +156,17 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
             if group["name"] == "local_means":
                 group["lr"] = exponential_lr(step, cfg.lr_position_init, cfg.lr_position_final, cfg.steps)
         out, world_scales = render_frame(model, meshes, views, frame, camera, cfg.backend)
-        gt = views.image(frame, camera)
         visible = out.radii > 0
-        l1 = (out.rgb - gt).abs().mean()
-        dssim = dssim_loss(out.rgb.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None])
-        reg_s = scale_regulariser(torch.exp(model.log_scales), visible, cfg.eps_s)
-        reg_mu = position_regulariser(model.local_means, visible, cfg.eps_mu)
-        loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * dssim + cfg.scale_weight * reg_s \
-            + cfg.position_weight * reg_mu
+        terms = reconstruction_terms(out.rgb, views.image(frame, camera), torch.exp(model.log_scales),
+                                     model.local_means, visible, cfg.eps_s, cfg.eps_mu)
+        loss = reconstruction_loss(terms, cfg.lambda_dssim, cfg.scale_weight, cfg.position_weight)
         loss.backward()
         density.accumulate(out.grad2d_norm(), visible, views.size)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         density.step(step, model, optimizer, world_scales.detach(), extent)
         if step % cfg.log_every == 0 or step == cfg.steps:
-            log.append(LogRow(step, loss.item(), l1.item(), dssim.item(), reg_s.item(), reg_mu.item(),
-                              model.num_gaussians))
+            log.append(LogRow(step, loss.item(), *(terms[k].item() for k in terms), model.num_gaussians))
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
             _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log)
     return log

@@ -199,8 +199,7 @@ def test_extremes_stay_finite(case: str) -> None:
         model = _only(scene, model, keep, cfg)
     if case == "no_hand_visible":
         scene.views.world_to_cam[0, 2, 3] = -5.0  # everything behind the camera
-    for head in [*model.hand_geo.heads.values(), *model.interaction.heads.values()] if model.hand_geo else \
-            list(model.interaction.heads.values()):
+    for head in (*model.hand_geo.heads.values(), *model.interaction.heads.values()):
         nn.init.normal_(head.output.weight, std=0.1)
     g = model(scene.cond.frame(0), scene.meshes.vertices[0], torch.Generator().manual_seed(0))
     out = rasterize(g, scene.views, 0)
