@@ -108,10 +108,10 @@ def _set_learning_rates(optimizer: torch.optim.Optimizer, cfg: DynamicTrainConfi
 
 
 def render_dynamic(model: DynamicAvatar, cond: SequenceConditioning, meshes: MeshSequence, views: ViewSet,
-                   frame: int, camera: int, backend: str = "auto", generator: torch.Generator | None = None
-                   ) -> tuple[object, DynamicFrame]:
-    """(RenderOutput, DynamicFrame) of ``frame`` from view ``camera``."""
-    g = model(cond.frame(frame), meshes.vertices[frame], generator)
+                   frame: int, camera: int, backend: str = "auto") -> tuple[object, DynamicFrame]:
+    """(RenderOutput, DynamicFrame) of ``frame`` from view ``camera``, as evaluated (the most probable
+    PointNet++ sample)."""
+    g = model(cond.frame(frame), meshes.vertices[frame])
     return rasterize(g, views, camera, backend), g
 
 
