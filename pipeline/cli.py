@@ -59,8 +59,8 @@ def run_app(cfg: DictConfig) -> list[StageReport]:
     print(stage_table(reports))
     print()
     print(metrics_table(reports))
-    report_html = runner.ws.root / "report" / "report.html"
-    if report_html.is_file():
+    report_html = runner.artifact_dir("report") / "report.html" if "report" in registry else None
+    if report_html is not None and report_html.is_file():
         print(f"\nreport: {report_html.resolve()}")
     return reports
 

@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from pipeline.registry import RegistryError, StageRegistry
-from pipeline.workspace import subject_problem
+from pipeline.workspace import method_problem, subject_problem
 
 
 class ConfigError(ValueError):
@@ -140,7 +140,18 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
     except RegistryError as exc:
         errors.append(str(exc))
         stages = []
+    if any(s.per_method for s in stages):
+        problem = method_problem(OmegaConf.select(cfg, "method.name", default=None))
+        if problem:
+            errors.append(f"{problem} (stages {', '.join(s.name for s in stages if s.per_method)} keep one "
+                          f"artifact per method)")
     for s in stages:
+        if s.methods_key is not None:
+            methods = OmegaConf.select(cfg, s.methods_key, default=None)
+            if not OmegaConf.is_list(methods) or not methods:
+                errors.append(f"{s.methods_key}: stage '{s.name}' needs a non-empty list of method names")
+            else:
+                errors.extend(p for m in methods if (p := method_problem(m, s.methods_key)))
         for key in s.config_keys:
             if OmegaConf.select(cfg, key, default=_MISSING) is _MISSING:
                 errors.append(f"stage '{s.name}' depends on config key '{key}', which is not set")

@@ -48,13 +48,22 @@ class StageRegistry:
     def topological(self) -> list[Stage]:
         """Stages in dependency order; raises on unknown inputs and cycles."""
         for s in self._stages.values():
-            missing = [i for i in s.inputs if i not in self._stages]
+            missing = [i for i in s.reads if i not in self._stages]
             if missing:
                 raise RegistryError(f"stage '{s.name}' reads unknown stage(s) {missing}")
+            shared = [i for i in s.inputs if self._stages[i].per_method and not s.per_method]
+            if shared:
+                raise RegistryError(f"stage '{s.name}' is shared by every method but reads the per-method "
+                                    f"stage(s) {shared}: declare it per_method, or read them through "
+                                    f"cross_method_inputs")
+            single = [i for i in s.cross_method_inputs if not self._stages[i].per_method]
+            if single:
+                raise RegistryError(f"stage '{s.name}' reads {single} of several methods, but they are shared "
+                                    f"by every method: list them in inputs")
         done: dict[str, Stage] = {}
         pending = list(self._stages.values())
         while pending:
-            ready = [s for s in pending if all(i in done for i in s.inputs)]
+            ready = [s for s in pending if all(i in done for i in s.reads)]
             if not ready:
                 cycle = ", ".join(s.name for s in pending)
                 raise RegistryError(f"the stages {cycle} depend on each other in a cycle")
@@ -66,12 +75,12 @@ class StageRegistry:
     def ancestors(self, name: str) -> set[str]:
         """All stages that ``name`` reads, directly or transitively (excluding itself)."""
         out: set[str] = set()
-        stack = list(self[name].inputs)
+        stack = list(self[name].reads)
         while stack:
             n = stack.pop()
             if n not in out:
                 out.add(n)
-                stack.extend(self[n].inputs)
+                stack.extend(self[n].reads)
         return out
 
     def descendants(self, name: str) -> set[str]:

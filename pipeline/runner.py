@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from pipeline.config import changed_keys, config_subset
 from pipeline.manifest import (
@@ -39,7 +39,7 @@ from pipeline.monitor import ResourceMonitor
 from pipeline.registry import StageRegistry
 from pipeline.sources import changed_sources, hash_sources
 from pipeline.stage import Stage, StageContext
-from pipeline.workspace import Workspace
+from pipeline.workspace import Artifact, LockTimeout, Workspace
 
 Log = Callable[[str], None]
 
@@ -75,7 +75,7 @@ class StageReport:
     """What happened to one stage in this run."""
 
     stage: str
-    action: str  # "run", "cached", "skip", "failed", "would run"
+    action: str  # "run", "cached", "shared" (another method's identical artifact), "skip", "would run"
     reason: str
     wall_s: float = 0.0
     peak_rss_mb: float = 0.0
@@ -102,10 +102,11 @@ class _Decision:
     config: dict[str, Any]
     upstream: dict[str, str]
     sources: dict[str, str] | None
+    inputs: dict[str, Artifact]
 
 
 class Runner:
-    """Runs a registry's stages for one subject.
+    """Runs a registry's stages for one subject (and one method, for the per-method stages).
 
     Args:
         cfg: the whole resolved config (already validated).
@@ -118,56 +119,89 @@ class Runner:
         self.registry = registry
         self.log = log
         self.ws = Workspace(Path(cfg.paths.outputs), cfg.subject)
+        self.method: str | None = OmegaConf.select(cfg, "method.name", default=None)
         self.selection = Selection.from_cfg(cfg.run)
         self.show_progress = bool(cfg.run.get("progress", True))
         self.lock_timeout_s = float(cfg.run.get("lock_timeout_s", 3600.0))
-        # Stages whose artifacts this run has verified or written, so each is hashed once per run.
+        # Artifacts (by id) this run has verified or written, so each is hashed once per run.
         self._verified: dict[str, Manifest] = {}
 
+    # ----------------------------------------------------------------- artifacts
+    def artifact(self, stage: str) -> Artifact:
+        """This run's artifact of ``stage``: its method's own for a per-method stage, else the shared one."""
+        return Artifact(stage, self.method if self.registry[stage].per_method else None)
+
+    def artifact_dir(self, stage: str) -> Path:
+        return self.ws.artifact_dir(self.artifact(stage))
+
+    def _inputs(self, s: Stage, pending: set[str]) -> dict[str, Artifact]:
+        """Upstream key -> artifact of everything ``s`` reads: its inputs under their stage names, and the
+        cross-method inputs as ``stage@method`` for each configured method with a complete artifact (or
+        one this run plans to write)."""
+        out = {name: self.artifact(name) for name in s.inputs}
+        methods = OmegaConf.select(self.cfg, s.methods_key) if s.methods_key else None
+        for name in s.cross_method_inputs:
+            for method in methods or ():
+                a = Artifact(name, str(method))
+                if a.id in pending or self._verified.get(a.id) or self._verify(a):
+                    out[a.id] = a
+        return out
+
+    def _context_inputs(self, s: Stage, inputs: dict[str, Artifact]) -> tuple[dict[str, Path], dict[str, dict[str, Path]]]:
+        """(stage -> dir of the regular inputs, stage -> method -> dir of the cross-method ones)."""
+        regular = {name: self.ws.artifact_dir(inputs[name]) for name in s.inputs}
+        cross: dict[str, dict[str, Path]] = {name: {} for name in s.cross_method_inputs}
+        for key, a in inputs.items():
+            if key not in regular:
+                cross[a.stage][str(a.method)] = self.ws.artifact_dir(a)
+        return regular, cross
+
     # ----------------------------------------------------------------- decisions
-    def _upstream_digests(self, s: Stage, pending: set[str]) -> tuple[dict[str, str], list[str]]:
+    def _upstream_digests(self, s: Stage, inputs: dict[str, Artifact],
+                          pending: set[str]) -> tuple[dict[str, str], list[str]]:
         """Output digest of each input, and the inputs that are planned to rerun (dry runs only)."""
         digests: dict[str, str] = {}
         rerunning: list[str] = []
-        for name in s.inputs:
-            if name in pending:
-                rerunning.append(name)
+        for key, a in inputs.items():
+            if a.id in pending:
+                rerunning.append(key)
                 continue
-            manifest = self._verified.get(name) or self._verify(name)
+            manifest = self._verified.get(a.id) or self._verify(a)
             if manifest is None:
-                up_dir = self.ws.stage_dir(name)
+                up_dir = self.ws.artifact_dir(a)
+                method = f" method={a.method}" if a.method else ""
                 raise MissingUpstream(
-                    f"stage '{s.name}' reads '{name}', which has no complete artifact in {up_dir}; "
-                    f"run it first (e.g. interactavatar subject={self.ws.subject} run.until={name})"
+                    f"stage '{s.name}' reads '{a.id}', which has no complete artifact in {up_dir}; "
+                    f"run it first (e.g. interactavatar subject={self.ws.subject}{method} run.until={a.stage})"
                 )
-            digests[name] = _input_digest(s, manifest)
+            digests[key] = _input_digest(s, manifest)
         return digests, rerunning
 
-    def _readable_manifest(self, name: str) -> Manifest | None:
-        """The stage's manifest as it is on disk now; ``None`` when missing or untrustworthy."""
+    def _readable_manifest(self, a: Artifact) -> Manifest | None:
+        """The artifact's manifest as it is on disk now; ``None`` when missing or untrustworthy."""
         try:
-            return read_manifest(self.ws.stage_dir(name))
+            return read_manifest(self.ws.artifact_dir(a))
         except ManifestError:
             return None
 
-    def _verify(self, name: str) -> Manifest | None:
-        """The stage's manifest if it and every output on disk are whole (remembered for this run)."""
-        manifest = self._readable_manifest(name)
-        if manifest is None or verify_outputs(self.ws.stage_dir(name), manifest,
-                                              self.registry[name].outputs) is not None:
+    def _verify(self, a: Artifact) -> Manifest | None:
+        """The artifact's manifest if it and every output on disk are whole (remembered for this run)."""
+        manifest = self._readable_manifest(a)
+        if manifest is None or verify_outputs(self.ws.artifact_dir(a), manifest,
+                                              self.registry[a.stage].outputs) is not None:
             return None
-        self._verified[name] = manifest
+        self._verified[a.id] = manifest
         return manifest
 
-    def _forget_replaced_inputs(self, s: Stage) -> None:
+    def _forget_replaced_inputs(self, inputs: dict[str, Artifact]) -> None:
         """Drop remembered verifications of inputs that another run replaced since (call under the locks)."""
-        for name in s.inputs:
-            known = self._verified.get(name)
+        for a in inputs.values():
+            known = self._verified.get(a.id)
             if known is None:
                 continue
-            current = self._readable_manifest(name)
+            current = self._readable_manifest(a)
             if current is None or (current.key, current.output_digest) != (known.key, known.output_digest):
-                del self._verified[name]
+                del self._verified[a.id]
 
     def _source_digests(self, s: Stage) -> dict[str, str] | None:
         """Digests of the user files the stage imports, or ``None`` when it declares none."""
@@ -177,10 +211,10 @@ class Runner:
 
     def _check_inputs_unchanged(self, s: Stage, d: _Decision) -> None:
         """Raise if an input artifact or source file differs from what the decision recorded."""
-        for name, digest in d.upstream.items():
-            current = self._readable_manifest(name)
+        for key, digest in d.upstream.items():
+            current = self._readable_manifest(d.inputs[key])
             if current is None or _input_digest(s, current) != digest:
-                raise RuntimeError(f"input '{name}' was replaced while the stage ran (by a run that did not hold "
+                raise RuntimeError(f"input '{key}' was replaced while the stage ran (by a run that did not hold "
                                    f"its lock); nothing was published: rerun")
         if d.sources is not None:
             changed = changed_sources(d.sources, self._source_digests(s) or {})
@@ -189,20 +223,22 @@ class Runner:
                                    f"was published: rerun once they are complete")
 
     def _decide(self, s: Stage, force: bool, pending: set[str]) -> _Decision:
-        upstream, rerunning = self._upstream_digests(s, pending)
+        inputs = self._inputs(s, pending)
+        upstream, rerunning = self._upstream_digests(s, inputs, pending)
         config = config_subset(self.cfg, s.config_keys, s.cache_exclude)
         config["subject"] = self.ws.subject
         sources = self._source_digests(s)
         key = cache_key(s.name, s.version, config, upstream, sources)
 
         def decision(run: bool, reason: str) -> _Decision:
-            return _Decision(run, reason, key, config, upstream, sources)
+            return _Decision(run, reason, key, config, upstream, sources, inputs)
 
         if force:
             return decision(True, "forced")
         if rerunning:
             return decision(True, f"upstream reruns: {', '.join(rerunning)}")
-        stage_dir = self.ws.stage_dir(s.name)
+        a = self.artifact(s.name)
+        stage_dir = self.ws.artifact_dir(a)
         try:
             manifest = read_manifest(stage_dir)
         except ManifestError as exc:
@@ -213,8 +249,21 @@ class Runner:
             return decision(True, _why_key_changed(manifest, s.version, config, upstream, sources))
         problem = verify_outputs(stage_dir, manifest, s.outputs)
         if problem is None:
-            self._verified[s.name] = manifest
+            self._verified[a.id] = manifest
         return decision(problem is not None, problem or "cached")
+
+    def _same_key_elsewhere(self, s: Stage, key: str) -> Artifact | None:
+        """Another method's whole artifact of the per-method stage ``s`` with cache key ``key``: the same
+        content (same stage, code, config subset and inputs), so it is shared instead of recomputed."""
+        if not s.per_method:
+            return None
+        for other in self.ws.method_artifacts(s.name):
+            if other.method == self.method:
+                continue
+            manifest = self._readable_manifest(other)
+            if manifest is not None and manifest.key == key:
+                return other
+        return None
 
     # ----------------------------------------------------------------- running
     def plan(self) -> list[StageReport]:
@@ -228,7 +277,10 @@ class Runner:
                 continue
             d = self._decide(s, self.selection.force, pending)
             if d.run:
-                pending.add(s.name)
+                pending.add(self.artifact(s.name).id)
+                other = None if self.selection.force else self._same_key_elsewhere(s, d.key)
+                if other is not None:
+                    d.reason += f"; shared with method {other.method}"
             reports.append(StageReport(s.name, "would run" if d.run else "cached", d.reason))
             self._log_decision(reports[-1])
         return reports
@@ -245,26 +297,38 @@ class Runner:
         return reports
 
     def _run_one(self, s: Stage) -> StageReport:
-        with self.ws.lock(s.name, s.inputs, self.registry.names(), self.lock_timeout_s):
-            self._forget_replaced_inputs(s)
+        a = self.artifact(s.name)
+        order = self.registry.names()
+        # The cross-method inputs present now; one that appears while waiting for the locks is left to the
+        # next run (the key records exactly what was read).
+        reads = list(self._inputs(s, set()).values())
+        with self.ws.lock(a, reads, order, self.lock_timeout_s):
+            self._forget_replaced_inputs(self._inputs(s, set()))
             d = self._decide(s, self.selection.force, set())
             if not d.run:
-                self.ws.discard_leftovers(s.name)
-                report = StageReport(s.name, "cached", d.reason, metrics=self._verified[s.name].metrics)
+                self.ws.discard_leftovers(a)
+                report = StageReport(s.name, "cached", d.reason, metrics=self._verified[a.id].metrics)
                 self._log_decision(report)
                 return report
+            other = None if self.selection.force else self._same_key_elsewhere(s, d.key)
+            shared = self._share(s, a, other, d) if other is not None else None
+            if shared is not None:
+                return shared
             report = StageReport(s.name, "run", d.reason)
             self._log_decision(report)
-            tmp = self.ws.new_tmp_dir(s.name)
-            scratch = self.ws.scratch_dir(s.name, d.key)
+            tmp = self.ws.new_tmp_dir(a)
+            scratch = self.ws.scratch_dir(a, d.key)
             try:
+                regular, cross = self._context_inputs(s, d.inputs)
                 ctx = StageContext(
                     cfg=self.cfg,
                     subject=self.ws.subject,
                     out_dir=tmp,
-                    inputs={name: self.ws.stage_dir(name) for name in s.inputs},
+                    inputs=regular,
                     scratch_dir=scratch,
                     show_progress=self.show_progress,
+                    method=self.method,
+                    method_inputs=cross,
                 )
                 with ResourceMonitor() as monitor:
                     s.fn(ctx)
@@ -288,9 +352,9 @@ class Runner:
                     sources=d.sources,
                 )
                 write_manifest(tmp, manifest)
-                self.ws.publish(s.name, tmp)
-                self.ws.discard_scratch(s.name)
-                self._verified[s.name] = manifest
+                self.ws.publish(a, tmp)
+                self.ws.discard_scratch(a)
+                self._verified[a.id] = manifest
             except BaseException as exc:
                 shutil.rmtree(tmp, ignore_errors=True)
                 self.ws.discard_empty_scratch(scratch)
@@ -300,8 +364,40 @@ class Runner:
             report.wall_s, report.peak_rss_mb, report.metrics = usage.wall_s, usage.peak_rss_mb, dict(ctx.metrics)
             return report
 
+    def _share(self, s: Stage, a: Artifact, other: Artifact, d: _Decision) -> StageReport | None:
+        """Publish ``other``'s artifact (same cache key) as this method's, by hard links, and its manifest
+        (the run record: key, timings, metrics) with it; ``None`` when ``other`` is being written right now.
+
+        Its read lock is only tried, never waited for: this run already holds locks, and waiting for one out
+        of the DAG order could deadlock with a run that holds it and waits for ours.
+        """
+        tmp = self.ws.new_tmp_dir(a)
+        try:
+            with self.ws.read_lock(other):
+                manifest = self._readable_manifest(other)
+                if manifest is None or manifest.key != d.key or \
+                        verify_outputs(self.ws.artifact_dir(other), manifest, s.outputs) is not None:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    return None
+                self.ws.link_copy(other, tmp)
+            self.ws.publish(a, tmp)
+            self.ws.discard_scratch(a)
+        except LockTimeout:
+            shutil.rmtree(tmp, ignore_errors=True)
+            return None
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        self._verified[a.id] = manifest
+        report = StageReport(s.name, "shared", f"{d.reason}; same key as method {other.method}: its artifact "
+                             f"is shared, not recomputed", metrics=manifest.metrics)
+        self._log_decision(report)
+        return report
+
     def _log_decision(self, r: StageReport) -> None:
-        self.log(f"[{self.ws.subject}] {r.stage:<10} {r.action:<9} {r.reason}")
+        where = f"{self.ws.subject}/{self.method}" if self.method and self.registry[r.stage].per_method \
+            else self.ws.subject
+        self.log(f"[{where}] {r.stage:<10} {r.action:<9} {r.reason}")
 
 
 def _input_digest(s: Stage, manifest: Manifest) -> str:

@@ -16,7 +16,13 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
 - ``version``: bumped by hand whenever the code changes what the stage writes;
 - ``resources``: what it needs (cpu cores, gpus), used by launchers and the report;
 - ``config_schema``: optional dataclass that ``cfg.stage.<name>`` must match
-  (checked, with types, before any stage runs).
+  (checked, with types, before any stage runs);
+- ``per_method``: the output depends on the method (``method=...``), so the runner keeps one artifact
+  per method (``methods/<method>/<name>/``); its per-method inputs are the same method's. Every stage
+  that reads a per-method stage is per-method itself, except through ``cross_method_inputs``;
+- ``cross_method_inputs``, ``methods_key``: per-method stages whose artifacts of *several* methods the
+  stage reads (the comparison): those of every method named by the config list at ``methods_key`` that
+  has a complete artifact; their digests enter the key, so a method evaluated later reruns the stage.
 
 Stages never import each other: they talk only through artifacts.
 """
@@ -70,15 +76,25 @@ class StageContext:
     scratch_dir: Path | None = None
     metrics: dict[str, float | int | str] = field(default_factory=dict)
     show_progress: bool = True
+    method: str | None = None
+    method_inputs: Mapping[str, Mapping[str, Path]] = field(default_factory=dict)
 
     def input_dir(self, stage: str) -> Path:
-        """Artifact directory of a declared upstream stage."""
+        """Artifact directory of a declared upstream stage (of this run's method where it is per-method)."""
         try:
             return self.inputs[stage]
         except KeyError as exc:
             raise KeyError(
                 f"stage reads '{stage}' but does not declare it in inputs={sorted(self.inputs)}"
             ) from exc
+
+    def method_dirs(self, stage: str) -> Mapping[str, Path]:
+        """method name -> complete artifact directory of ``stage``, for a declared cross-method input."""
+        try:
+            return self.method_inputs[stage]
+        except KeyError as exc:
+            raise KeyError(f"stage reads '{stage}' of several methods but does not declare it in "
+                           f"cross_method_inputs={sorted(self.method_inputs)}") from exc
 
     def progress(self, items: Iterable[T], desc: str, total: int | None = None) -> Iterator[T]:
         """Wrap a long loop in a progress bar (a no-op when progress is off)."""
@@ -104,14 +120,24 @@ class Stage:
     cache_exclude: tuple[str, ...] = ()
     sources: SourceLister | None = None
     reads_manifests: bool = False
+    per_method: bool = False
+    cross_method_inputs: tuple[str, ...] = ()
+    methods_key: str | None = None
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        """Every stage this one reads (``inputs`` and ``cross_method_inputs``): its edges in the DAG."""
+        return self.inputs + tuple(n for n in self.cross_method_inputs if n not in self.inputs)
 
     def __post_init__(self) -> None:
         if not self.name or not self.name.replace("_", "").isalnum():
             raise ValueError(f"stage name must be alphanumeric/underscore, got {self.name!r}")
         if not self.outputs:
             raise ValueError(f"stage '{self.name}' declares no outputs")
-        if self.name in self.inputs:
+        if self.name in self.reads:
             raise ValueError(f"stage '{self.name}' lists itself as an input")
+        if bool(self.cross_method_inputs) != (self.methods_key is not None):
+            raise ValueError(f"stage '{self.name}': cross_method_inputs and methods_key go together")
         for key in self.cache_exclude:
             if not any(key.startswith(f"{k}.") for k in self.config_keys):
                 raise ValueError(f"stage '{self.name}': cache_exclude key '{key}' is not below one of its "
@@ -130,6 +156,9 @@ def stage(
     cache_exclude: Iterable[str] = (),
     sources: SourceLister | None = None,
     reads_manifests: bool = False,
+    per_method: bool = False,
+    cross_method_inputs: Iterable[str] = (),
+    methods_key: str | None = None,
 ) -> Callable[[StageFn], Stage]:
     """Decorator that turns ``fn(ctx)`` into a :class:`Stage`; the docstring becomes its description."""
 
@@ -146,6 +175,9 @@ def stage(
             cache_exclude=tuple(cache_exclude),
             sources=sources,
             reads_manifests=reads_manifests,
+            per_method=per_method,
+            cross_method_inputs=tuple(cross_method_inputs),
+            methods_key=methods_key,
             description=(fn.__doc__ or "").strip().splitlines()[0] if fn.__doc__ else "",
         )
 
@@ -157,6 +189,8 @@ def describe(stage_obj: Stage) -> dict[str, Any]:
     return {
         "name": stage_obj.name,
         "inputs": list(stage_obj.inputs),
+        "cross_method_inputs": list(stage_obj.cross_method_inputs),
+        "per_method": stage_obj.per_method,
         "config_keys": list(stage_obj.config_keys),
         "outputs": list(stage_obj.outputs),
         "version": stage_obj.version,

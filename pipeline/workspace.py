@@ -2,12 +2,17 @@
 
 Layout under ``paths.outputs``::
 
-    <outputs>/<subject>/<stage>/            a completed stage (manifest last)
-    <outputs>/<subject>/.tmp/<stage>-<id>/  a stage being written (never read)
-    <outputs>/<subject>/.locks/<stage>.lock one lock per subject and stage: exclusive while the stage is
-                                            decided and written, shared while a stage that reads it runs
-    <outputs>/<subject>/.scratch/<stage>-<key>/  checkpoints of an unfinished stage, kept across
+    <outputs>/<subject>/<stage>/            a completed stage shared by every method (manifest last)
+    <outputs>/<subject>/methods/<method>/<stage>/  a completed stage that depends on the method
+                                            (``Stage.per_method``): one per method, side by side
+    <outputs>/<subject>/.tmp/<artifact>-<id>/  an artifact being written (never read)
+    <outputs>/<subject>/.locks/<artifact>.lock one lock per artifact: exclusive while it is decided and
+                                            written, shared while a stage that reads it runs
+    <outputs>/<subject>/.scratch/<artifact>-<key>/  checkpoints of an unfinished stage, kept across
                                             killed runs with the same cache key, removed on success
+
+``<artifact>`` is the artifact's id: the stage name for a shared stage, ``<stage>@<method>`` for a
+per-method one (:class:`Artifact`).
 
 A stage is written into ``.tmp`` and renamed into place. If a previous version
 exists it is first renamed aside, so at every instant the final path holds
@@ -23,14 +28,17 @@ import shutil
 import uuid
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.locks import LockTimeout, flock_all
+from pipeline.locks import LockTimeout, flock, flock_all
 
-__all__ = ["LockTimeout", "SUBJECT_RULE", "Workspace", "outputs_problem", "subject_problem"]
+__all__ = ["Artifact", "LockTimeout", "METHODS_DIR", "SUBJECT_RULE", "Workspace", "method_problem",
+           "outputs_problem", "subject_problem"]
 
 SUBJECT_RULE = "letters, digits, '-' or '_', starting with a letter or digit"
 _SUBJECT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
+METHODS_DIR = "methods"
 
 
 def subject_problem(subject: object) -> str | None:
@@ -38,6 +46,26 @@ def subject_problem(subject: object) -> str | None:
     if not isinstance(subject, str) or not _SUBJECT.fullmatch(subject):
         return f"subject={subject!r}: use {SUBJECT_RULE}, e.g. subject=synth_a"
     return None
+
+
+def method_problem(method: object, key: str = "method.name") -> str | None:
+    """Why ``method`` cannot name a method folder, or ``None`` when it can."""
+    if not isinstance(method, str) or not _SUBJECT.fullmatch(method):
+        return f"{key}={method!r}: use {SUBJECT_RULE}, e.g. method=interactavatar"
+    return None
+
+
+@dataclass(frozen=True, order=True)
+class Artifact:
+    """One stage's artifact: shared by every method (``method=None``) or one method's own."""
+
+    stage: str
+    method: str | None = None
+
+    @property
+    def id(self) -> str:
+        """``stage`` or ``stage@method``: names its lock, temporary and scratch entries and its upstream key."""
+        return self.stage if self.method is None else f"{self.stage}@{self.method}"
 
 
 def outputs_problem(outputs: str | Path) -> str | None:
@@ -66,66 +94,92 @@ class Workspace:
         self.subject = subject
 
     def stage_dir(self, stage: str) -> Path:
+        """Directory of a stage shared by every method."""
         return self.root / stage
+
+    def artifact_dir(self, artifact: Artifact) -> Path:
+        """Directory of ``artifact``: ``<stage>/``, or ``methods/<method>/<stage>/`` for a method's own."""
+        if artifact.method is None:
+            return self.stage_dir(artifact.stage)
+        return self.root / METHODS_DIR / artifact.method / artifact.stage
+
+    def method_artifacts(self, stage: str) -> list[Artifact]:
+        """Every method's artifact of the per-method ``stage`` that has a directory, by method name."""
+        root = self.root / METHODS_DIR
+        if not root.is_dir():
+            return []
+        return [Artifact(stage, p.name) for p in sorted(root.iterdir()) if (p / stage).is_dir()]
 
     @property
     def _tmp_root(self) -> Path:
         return self.root / ".tmp"
 
     @contextmanager
-    def lock(self, stage: str, reads: Sequence[str], order: Sequence[str], timeout_s: float) -> Iterator[None]:
-        """Write lock on ``stage`` and read locks on the stages it ``reads``, across processes.
+    def lock(self, artifact: Artifact, reads: Sequence[Artifact], order: Sequence[str],
+             timeout_s: float) -> Iterator[None]:
+        """Write lock on ``artifact`` and read locks on the artifacts it ``reads``, across processes.
 
-        While held, no other run can write ``stage`` or replace any of ``reads``; other
+        While held, no other run can write ``artifact`` or replace any of ``reads``; other
         readers of ``reads`` may run alongside. Locks are taken in ``order`` (the DAG's
-        topological order), so runs never deadlock.
+        topological order of stage names; methods of one stage by name), so runs never deadlock.
         """
         lock_dir = self.root / ".locks"
         lock_dir.mkdir(parents=True, exist_ok=True)
-        wanted = {name: True for name in reads} | {stage: False}
-        requests = [(lock_dir / f"{name}.lock", wanted[name], f"stage '{name}' of subject '{self.subject}'")
-                    for name in order if name in wanted]
+        wanted = {a: True for a in reads} | {artifact: False}
+        rank = {name: i for i, name in enumerate(order)}
+        ordered = sorted(wanted, key=lambda a: (rank[a.stage], a.method or ""))
+        requests = [(lock_dir / f"{a.id}.lock", wanted[a], f"stage '{a.id}' of subject '{self.subject}'")
+                    for a in ordered]
         with flock_all(requests, timeout_s):
             yield
 
-    def new_tmp_dir(self, stage: str) -> Path:
-        """A fresh, empty directory for writing ``stage``; call with the stage lock held."""
-        self.discard_stale_tmp(stage)
-        path = self._tmp_root / f"{stage}-{uuid.uuid4().hex[:12]}"
+    @contextmanager
+    def read_lock(self, artifact: Artifact) -> Iterator[None]:
+        """A read lock on ``artifact`` if it is free now, else :class:`LockTimeout` at once (never waits)."""
+        lock_dir = self.root / ".locks"
+        lock_dir.mkdir(parents=True, exist_ok=True)
+        with flock(lock_dir / f"{artifact.id}.lock", shared=True, timeout_s=0.0,
+                   what=f"stage '{artifact.id}' of subject '{self.subject}'"):
+            yield
+
+    def new_tmp_dir(self, artifact: Artifact) -> Path:
+        """A fresh, empty directory for writing ``artifact``; call with its lock held."""
+        self.discard_stale_tmp(artifact)
+        path = self._tmp_root / f"{artifact.id}-{uuid.uuid4().hex[:12]}"
         path.mkdir(parents=True)
         return path
 
-    def discard_stale_tmp(self, stage: str) -> None:
-        """Remove leftovers of killed runs of ``stage`` (safe: the caller holds its lock)."""
+    def discard_stale_tmp(self, artifact: Artifact) -> None:
+        """Remove leftovers of killed runs of ``artifact`` (safe: the caller holds its lock)."""
         if self._tmp_root.is_dir():
-            for p in self._tmp_root.glob(f"{stage}-*"):
+            for p in self._tmp_root.glob(f"{artifact.id}-*"):
                 shutil.rmtree(p, ignore_errors=True)
 
-    def scratch_dir(self, stage: str, key: str) -> Path:
-        """Persistent scratch space (checkpoints) of ``stage`` for one cache ``key``.
+    def scratch_dir(self, artifact: Artifact, key: str) -> Path:
+        """Persistent scratch space (checkpoints) of ``artifact`` for one cache ``key``.
 
         It survives a killed run so the next run with the same key can resume; a
         different key (config or inputs changed) never sees it.
         """
-        path = self.root / ".scratch" / f"{stage}-{key[:16]}"
+        path = self.root / ".scratch" / f"{artifact.id}-{key[:16]}"
         path.mkdir(parents=True, exist_ok=True)
         return path
 
-    def discard_scratch(self, stage: str) -> None:
-        """Remove every scratch dir of ``stage`` (after it was published or found cached; lock held)."""
+    def discard_scratch(self, artifact: Artifact) -> None:
+        """Remove every scratch dir of ``artifact`` (after it was published or found cached; lock held)."""
         root = self.root / ".scratch"
         if root.is_dir():
-            for p in root.glob(f"{stage}-*"):
+            for p in root.glob(f"{artifact.id}-*"):
                 shutil.rmtree(p, ignore_errors=True)
 
-    def discard_leftovers(self, stage: str) -> None:
-        """Remove what killed or failed runs of ``stage`` left behind (temporary dirs, checkpoints).
+    def discard_leftovers(self, artifact: Artifact) -> None:
+        """Remove what killed or failed runs of ``artifact`` left behind (temporary dirs, checkpoints).
 
-        Call with the stage's write lock held and only when the stage is whole: no live
+        Call with the artifact's write lock held and only when it is whole: no live
         run can be writing either, and no later run can resume from them.
         """
-        self.discard_stale_tmp(stage)
-        self.discard_scratch(stage)
+        self.discard_stale_tmp(artifact)
+        self.discard_scratch(artifact)
 
     def discard_empty_scratch(self, scratch: Path) -> None:
         """Remove ``scratch`` if the stage left nothing in it to resume from (after a failure)."""
@@ -134,14 +188,31 @@ class Workspace:
         except OSError:
             pass  # not empty: a checkpoint the next run with the same key resumes from
 
-    def publish(self, stage: str, tmp_dir: Path) -> Path:
-        """Move a completed ``tmp_dir`` to the stage's final path, replacing any old version."""
-        final = self.stage_dir(stage)
+    def publish(self, artifact: Artifact, tmp_dir: Path) -> Path:
+        """Move a completed ``tmp_dir`` to the artifact's final path, replacing any old version."""
+        final = self.artifact_dir(artifact)
+        final.parent.mkdir(parents=True, exist_ok=True)
         aside = None
         if final.exists():
-            aside = self._tmp_root / f"{stage}-old-{uuid.uuid4().hex[:12]}"
+            aside = self._tmp_root / f"{artifact.id}-old-{uuid.uuid4().hex[:12]}"
             os.replace(final, aside)
         os.replace(tmp_dir, final)
         if aside is not None:
             shutil.rmtree(aside, ignore_errors=True)
         return final
+
+    def link_copy(self, source: Artifact, tmp_dir: Path) -> None:
+        """Fill the empty ``tmp_dir`` with hard links to every file of ``source`` (a copy where the file
+        system cannot link). Safe because a published artifact is never written in place: a new version
+        replaces the whole directory."""
+        src = self.artifact_dir(source)
+        for path in sorted(src.rglob("*")):
+            target = tmp_dir / path.relative_to(src)
+            if path.is_dir():
+                target.mkdir(parents=True, exist_ok=True)
+                continue
+            target.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                os.link(path, target)
+            except OSError:
+                shutil.copy2(path, target)

@@ -1,0 +1,97 @@
+"""Per-method artifacts: methods side by side under one subject, sharing what they have in common."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import run_app
+from pipeline.config import ConfigError
+from pipeline.registry import RegistryError, StageRegistry
+from pipeline.stage import StageContext, stage
+from tests.conftest import compose_cfg
+
+
+@pytest.fixture
+def method_cfg(tmp_path: Path):
+    def make(method: str, p_value: int = 1, *extra: str):
+        return compose_cfg(["pipeline.stages_module=tests.toy_methods", "stage=[]", "+stage.a.value=1",
+                            "+stage.cmp.methods=[m1,m2,m3]", f"method.name={method}", f"+method.p_value={p_value}",
+                            f"paths.outputs={tmp_path / 'out'}", "run.progress=false", *extra])
+    return make
+
+
+def actions(reports) -> dict[str, str]:
+    return {r.stage: r.action for r in reports}
+
+
+def test_methods_live_side_by_side_and_share_identical_artifacts(method_cfg, tmp_path):
+    root = tmp_path / "out" / "synth_a"
+    first = run_app(method_cfg("m1"))
+    assert actions(first) == {"a": "run", "p": "run", "q": "run", "cmp": "run"}
+    assert (root / "methods" / "m1" / "q" / "q.txt").read_text() == "a=1\np=1\nq=m1\n"
+    assert (root / "cmp" / "cmp.txt").read_text() == "m1: a=1\np=1\nq=m1\n"
+
+    second = run_app(method_cfg("m2"))  # same p_value: p is m1's, shared by hard links, not recomputed
+    assert actions(second) == {"a": "cached", "p": "shared", "q": "run", "cmp": "run"}
+    assert "same key as method m1" in {r.stage: r.reason for r in second}["p"]
+    m1_p, m2_p = (root / "methods" / m / "p" / "p.txt" for m in ("m1", "m2"))
+    assert os.path.samefile(m1_p, m2_p)
+    assert {r.stage: r.reason for r in second}["cmp"] == "upstream changed: q@m2"
+    assert (root / "cmp" / "cmp.txt").read_text().count("q=") == 2
+
+    third = run_app(method_cfg("m3", 5))  # another p_value: its own p
+    assert actions(third) == {"a": "cached", "p": "run", "q": "run", "cmp": "run"}
+    assert (root / "methods" / "m3" / "q" / "q.txt").read_text() == "a=1\np=5\nq=m3\n"
+
+    again = run_app(method_cfg("m1"))  # adding methods recomputed nothing of m1
+    assert actions(again) == {"a": "cached", "p": "cached", "q": "cached", "cmp": "cached"}
+    assert again[-1].metrics["methods"] == 3
+
+
+def test_a_method_s_change_reruns_only_that_method(method_cfg, tmp_path):
+    run_app(method_cfg("m1"))
+    run_app(method_cfg("m2"))
+    changed = run_app(method_cfg("m2", 7))
+    assert actions(changed) == {"a": "cached", "p": "run", "q": "run", "cmp": "run"}
+    assert actions(run_app(method_cfg("m1"))) == {"a": "cached", "p": "cached", "q": "cached", "cmp": "cached"}
+
+
+def test_forced_per_method_stage_is_recomputed_not_shared(method_cfg, tmp_path):
+    run_app(method_cfg("m1"))
+    forced = run_app(method_cfg("m2", 1, "run.force=true", "run.only=p"))
+    assert actions(forced) == {"p": "run"}
+    root = tmp_path / "out" / "synth_a" / "methods"
+    assert not os.path.samefile(root / "m1" / "p" / "p.txt", root / "m2" / "p" / "p.txt")
+
+
+def test_dry_run_names_the_method_it_would_share_with(method_cfg):
+    run_app(method_cfg("m1"))
+    plan = run_app(method_cfg("m2", 1, "run.dry=true"))
+    reasons = {r.stage: r.reason for r in plan}
+    assert "shared with method m1" in reasons["p"]
+    assert reasons["cmp"] == "upstream reruns: q@m2"
+
+
+def test_bad_method_names_are_refused(method_cfg):
+    with pytest.raises(ConfigError, match="method.name='../x'"):
+        run_app(method_cfg("'../x'"))
+    with pytest.raises(ConfigError, match="stage.cmp.methods"):
+        run_app(method_cfg("m1", 1, "stage.cmp.methods=[m1,'a b']"))
+
+
+def _noop(ctx: StageContext) -> None:
+    """Does nothing."""
+
+
+def test_a_shared_stage_cannot_read_a_per_method_one_directly():
+    per = stage("per", outputs=("x",), per_method=True)(_noop)
+    shared = stage("shared", inputs=("per",), outputs=("y",))(_noop)
+    with pytest.raises(RegistryError, match="per_method"):
+        StageRegistry([per, shared]).topological()
+    plain = stage("plain", outputs=("x",))(_noop)
+    cross = stage("cross", outputs=("y",), cross_method_inputs=("plain",), methods_key="k")(_noop)
+    with pytest.raises(RegistryError, match="shared by every method"):
+        StageRegistry([plain, cross]).topological()

@@ -1,0 +1,47 @@
+"""Test-only DAG with per-method stages: a -> p -> q, and cmp reading q of several methods.
+
+- ``a`` is shared by every method;
+- ``p`` is per-method and depends on ``method.p_value`` only, so methods with the same value have the same
+  ``p`` (the runner shares it instead of recomputing);
+- ``q`` is per-method and depends on ``method.name`` (every method its own);
+- ``cmp`` is shared and reads ``q`` of the methods listed in ``stage.cmp.methods`` that exist.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.registry import StageRegistry
+from pipeline.stage import StageContext, stage
+
+
+@stage("a", config_keys=("stage.a",), outputs=("a.txt",))
+def a(ctx: StageContext) -> None:
+    """Shared root."""
+    (ctx.out_dir / "a.txt").write_text(f"a={ctx.cfg.stage.a.value}\n")
+
+
+@stage("p", inputs=("a",), config_keys=("method.p_value",), outputs=("p.txt",), per_method=True)
+def p(ctx: StageContext) -> None:
+    """Per-method stage that only some method keys change."""
+    text = (ctx.input_dir("a") / "a.txt").read_text()
+    (ctx.out_dir / "p.txt").write_text(f"{text}p={ctx.cfg.method.p_value}\n")
+
+
+@stage("q", inputs=("p",), config_keys=("method.name",), outputs=("q.txt",), per_method=True)
+def q(ctx: StageContext) -> None:
+    """Per-method stage of every method its own."""
+    text = (ctx.input_dir("p") / "p.txt").read_text()
+    (ctx.out_dir / "q.txt").write_text(f"{text}q={ctx.method}\n")
+
+
+@stage("cmp", config_keys=("stage.cmp",), outputs=("cmp.txt",), cross_method_inputs=("q",),
+       methods_key="stage.cmp.methods")
+def cmp(ctx: StageContext) -> None:
+    """Shared stage reading every listed method's q."""
+    dirs = ctx.method_dirs("q")
+    (ctx.out_dir / "cmp.txt").write_text("".join(f"{m}: {Path(d, 'q.txt').read_text()}" for m, d in sorted(dirs.items())))
+    ctx.metrics["methods"] = len(dirs)
+
+
+REGISTRY = StageRegistry([a, p, q, cmp])
