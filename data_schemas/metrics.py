@@ -1,4 +1,5 @@
-"""``metrics.parquet``: image quality per method, split, camera, frame and region.
+"""``metrics.parquet``: image quality per method, split, camera, frame and region; ``comparison.parquet``:
+the methods side by side.
 
 ``split``: ``novel_view`` (held-out camera, train motion) or ``self_reenact``
 (train cameras, held-out test motion). ``region``: ``full``, ``hand``, ``face``,
@@ -7,6 +8,8 @@ the region is absent from the ground-truth frame.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 from data_schemas.tables import Column, TableSchema
 
@@ -27,3 +30,33 @@ METRICS = TableSchema(
 )
 SPLITS = ("novel_view", "self_reenact")
 REGIONS = ("full", "hand", "face", "interaction")
+#: split -> (sequence it renders, camera split it renders from)
+SPLIT_SOURCES = {"novel_view": ("train", "test"), "self_reenact": ("test", "train")}
+#: the frames a comparison row averages over
+CONTACT_GROUPS = ("all", "contact", "no_contact")
+
+COMPARISON = TableSchema(
+    name="comparison",
+    version=1,
+    columns=(
+        Column("method", "string"),
+        Column("label", "string", doc="the method's name in the paper's tables, e.g. 'w/o I'"),
+        Column("split", "string"),
+        Column("region", "string"),
+        Column("contact", "string", doc="frames averaged: 'all', 'contact' or 'no_contact'"),
+        Column("images", "int32", doc="images where the region is present"),
+        Column("psnr", "float32", unit="dB", finite=False),
+        Column("ssim", "float32", finite=False),
+        Column("lpips", "float32", finite=False),
+        Column("train_steps", "int32", doc="warm-up plus stage-two optimisation steps"),
+        Column("train_wall_s", "float32", unit="s", doc="warm-up plus stage-two wall time (a shared warm-up "
+                                                          "counts in full for each method that starts from it)"),
+        Column("gaussians", "int64", doc="Gaussians of the trained model"),
+    ),
+)
+
+
+def showcase_path(evaluate_dir: Path, split: str, frame: int, camera_id: str) -> Path:
+    """Where stage evaluate keeps its render of one showcase (frame, camera) of ``split`` (the same frames
+    for every method: the comparison's image rows)."""
+    return evaluate_dir / "renders" / split / f"{frame:05d}_{camera_id}.png"

@@ -2,6 +2,7 @@
 
 from pipeline.registry import StageRegistry
 from stages.capture import capture
+from stages.compare import compare
 from stages.dynamic import dynamic
 from stages.evaluate import evaluate
 from stages.fit import fit
@@ -11,4 +12,4 @@ from stages.pbd import pbd
 from stages.report import report
 from stages.warmup import warmup
 
-REGISTRY = StageRegistry([capture, frames, keypoints, fit, pbd, warmup, dynamic, evaluate, report])
+REGISTRY = StageRegistry([capture, frames, keypoints, fit, pbd, warmup, dynamic, evaluate, compare, report])

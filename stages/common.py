@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
@@ -11,8 +12,10 @@ import torch
 from omegaconf import DictConfig
 
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig, sequence_conditioning
-from avatar.dynamic.conditioning import Conditioning
+from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.gaussians.model import BoundGaussians
+from avatar.splatting import EmbeddedGaussians
+from avatar.training.splatting import SplattingConfig
 from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.posing import posed_meshes
@@ -24,6 +27,7 @@ from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.frames import FRAMES_INDEX, crop_mask_path, rgb_path
 from data_schemas.images import read_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
+from data_schemas.splatting import EMBEDDED_GAUSSIANS
 from data_schemas.tables import SchemaError, read_table, write_table
 from pipeline.sources import SourceFiles
 
@@ -103,7 +107,14 @@ def load_meshes(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path 
     return _posed_sequence(fit_dir, sequence, cfg, pbd_dir)[0]
 
 
-def load_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path) -> tuple[MeshSequence, Conditioning]:
+def applied_deformation(cfg: DictConfig, pbd_dir: Path) -> Path | None:
+    """``pbd_dir`` when the method deforms the face with the pbd stage's offsets (``method.pbd``), else
+    ``None``: the "w/o PBD" ablation and the baselines pose undeformed meshes and give I ``d_j = 0``."""
+    return pbd_dir if bool(cfg.method.pbd) else None
+
+
+def load_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path | None
+                  ) -> tuple[MeshSequence, Conditioning]:
     """:func:`load_meshes` and the dynamic model's conditioning of every frame, each artifact read once."""
     head, hand = templates(cfg.model)
     meshes, params, offsets = _posed_sequence(fit_dir, sequence, cfg, pbd_dir)
@@ -177,6 +188,95 @@ def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussi
         binding=torch.tensor(np.array(t["binding"])),
         part=torch.tensor([part_names.index(p) for p in t["part"]]),
     )
+
+
+REPRESENTATIONS = ("bound", "embedded")
+
+
+def representation(cfg: DictConfig) -> str:
+    """``method.representation``: ``bound`` (GaussianAvatars' binding; InteractAvatar) or ``embedded``
+    (SplattingAvatar)."""
+    value = str(cfg.method.representation)
+    if value not in REPRESENTATIONS:
+        raise ValueError(f"method.representation={value}: use one of {', '.join(REPRESENTATIONS)}")
+    return value
+
+
+def splatting_config(cfg: DictConfig, steps: int, schedule: DictConfig, *, densify: bool) -> SplattingConfig:
+    """SplattingAvatar's training settings: its recipe (``splatting.*``), the stage's schedule, seed and
+    rasterizer (``schedule``: ``stage.warmup`` or ``stage.dynamic``); ``densify=False`` for stage two."""
+    recipe, warm = cfg.splatting, cfg.stage.warmup
+    return SplattingConfig(
+        steps=steps, lambda_mse=float(recipe.lambda_mse), lambda_lpips=float(recipe.lambda_lpips),
+        scale_weight=float(recipe.scale_weight), walk_every=int(recipe.walk_every),
+        densify_until=float(warm.densify_until) if densify else 0.0,
+        opacity_reset_interval=float(warm.opacity_reset_interval), max_gaussians=int(warm.max_gaussians),
+        checkpoint_every=int(schedule.checkpoint_every), log_every=int(schedule.log_every),
+        seed=int(schedule.seed), backend=str(schedule.backend))
+
+
+@dataclass
+class PosedGaussians:
+    """World-space Gaussians of one frame (a :class:`WorldGaussians`)."""
+
+    means: torch.Tensor
+    scales: torch.Tensor
+    quats: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+
+
+TrainedModel = DynamicAvatar | EmbeddedGaussians
+
+
+def load_trained(dynamic_dir: Path) -> TrainedModel:
+    """The method's final model from the dynamic stage: mesh-bound (with or without the MLPs) or, for
+    ``method.representation=embedded``, SplattingAvatar's embedded Gaussians (``model.json`` says which)."""
+    info = json.loads((dynamic_dir / "model.json").read_text())
+    if info.get("representation", "bound") == "embedded":
+        state = torch.load(dynamic_dir / "networks.pt", weights_only=True)
+        return load_embedded_gaussians(dynamic_dir, tuple(info["part_names"]), state["canonical_vertices"],
+                                       state["faces"])
+    return load_dynamic(dynamic_dir)
+
+
+def posed_gaussians(model: TrainedModel, cond: SequenceConditioning, vertices: torch.Tensor,
+                    frame: int) -> WorldGaussians:
+    """The model's Gaussians on frame ``frame`` of a sequence (``vertices`` (V, 3) its posed meshes), as
+    evaluated (the dynamic model's most probable PointNet++ sample)."""
+    if isinstance(model, EmbeddedGaussians):
+        means, scales, quats = model.world(vertices, model.mesh.faces)
+        return PosedGaussians(means, scales, quats, model.opacities(), model.colors())
+    return model(cond.frame(frame), vertices)
+
+
+def write_embedded_gaussians(path: Path, model: EmbeddedGaussians, part_names: tuple[str, ...]) -> None:
+    """``gaussians.parquet`` of SplattingAvatar's embedded Gaussians (:data:`EMBEDDED_GAUSSIANS`)."""
+    state = model.state_tensors()
+    write_table(path, EMBEDDED_GAUSSIANS, {
+        **{k: state[k].numpy() for k in ("triangle", "barycentric", "displacement", "log_scales", "quats",
+                                         "opacity_logits", "sh_dc")},
+        "part": [part_names[i] for i in state["part"].tolist()],
+    })
+
+
+def load_embedded_gaussians(stage_dir: Path, part_names: tuple[str, ...], canonical_vertices: torch.Tensor,
+                            faces: torch.Tensor) -> EmbeddedGaussians:
+    """The embedded Gaussians of ``gaussians.parquet`` on the canonical mesh (``canonical_vertices`` (V, 3),
+    ``faces`` (F, 3))."""
+    path = stage_dir / "gaussians.parquet"
+    t = read_table(path, EMBEDDED_GAUSSIANS)
+    unknown = sorted(set(t["part"]) - set(part_names))
+    if unknown:
+        raise SchemaError(f"{path}: Gaussians on unknown mesh part(s) {unknown}; expected {part_names}")
+    state = {k: torch.tensor(np.asarray(t[k]), dtype=torch.float32) for k in
+             ("barycentric", "displacement", "log_scales", "quats", "opacity_logits", "sh_dc")}
+    state["triangle"] = torch.tensor(np.asarray(t["triangle"]))
+    state["part"] = torch.tensor([part_names.index(p) for p in t["part"]])
+    try:
+        return EmbeddedGaussians.from_state_tensors(state, canonical_vertices.float(), faces)
+    except ValueError as exc:
+        raise SchemaError(f"{path}: {exc}; rerun the stage that wrote it") from exc
 
 
 def load_dynamic(dynamic_dir: Path) -> DynamicAvatar:

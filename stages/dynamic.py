@@ -11,6 +11,7 @@ the frames ``stage.dynamic.ply_frames`` asks for (``ply/train_<frame>.ply``).
 from __future__ import annotations
 
 import io
+import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -18,13 +19,18 @@ import torch
 
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig
 from avatar.render.gaussians import resolve_backend
+from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
+from avatar.training.splatting import train_splatting
 from data_schemas.gaussians import DYNAMIC_TRAIN_LOG
+from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import write_table
 from data_schemas.writes import write_bytes, write_json
 from pipeline.stage import Resources, StageContext, stage
 from stages.common import (
-    contact_flags, load_gaussians, load_sequence, load_views, model_sources, templates,
+    TrainedModel, applied_deformation, contact_flags, load_embedded_gaussians, posed_gaussians, representation,
+    splatting_config, write_embedded_gaussians, load_gaussians, load_sequence, load_views, model_sources, templates,
     write_bound_gaussians, write_frame_ply,
 )
 
@@ -88,22 +94,75 @@ def model_config(cfg) -> DynamicModelConfig:  # noqa: ANN001 - the run's DictCon
     inputs=("capture", "frames", "fit", "pbd", "warmup"),
     config_keys=("quality.dynamic_steps", "quality.dynamic_width", "quality.dynamic_hand_depth",
                  "quality.dynamic_interaction_depth", "quality.geometry_feature_dim", "quality.pointnet_width",
-                 "quality.pointnet_centres", "model", "stage.dynamic"),
+                 "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
+                 "splatting", "stage.warmup"),  # SplattingAvatar's recipe and schedule
     outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply"),
-    version="2",
+    version="3",
+    per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=DynamicConfig,
-    cache_exclude=("stage.dynamic.checkpoint_every",),  # resuming is bit-for-bit: it cannot change the result
+    cache_exclude=("stage.dynamic.checkpoint_every", "stage.warmup.checkpoint_every"),  # resuming is bit-for-bit: it cannot change the result
     sources=model_sources,
 )
 def dynamic(ctx: StageContext) -> None:
-    """Train H, I, PointNet++, the point features and the Gaussians on every train camera and frame."""
-    conf, q = ctx.cfg.stage.dynamic, ctx.cfg.quality
+    """Stage two on every train camera and frame: H, I, PointNet++, the point features and the Gaussians
+    (the ablations and GaussianAvatars: what of it the method keeps), or SplattingAvatar trained on."""
+    conf = ctx.cfg.stage.dynamic
     torch.manual_seed(conf.seed)
-    head, _ = templates(ctx.cfg.model)
     fit_dir, pbd_dir = ctx.input_dir("fit"), ctx.input_dir("pbd")
     views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train")
-    meshes, cond = load_sequence(fit_dir, "train", ctx.cfg, pbd_dir=pbd_dir)
+    meshes, cond = load_sequence(fit_dir, "train", ctx.cfg, pbd_dir=applied_deformation(ctx.cfg, pbd_dir))
+    if representation(ctx.cfg) == "embedded":
+        _train_embedded(ctx, views, meshes, cond)
+    else:
+        _train_bound(ctx, views, meshes, cond)
+
+
+def _train_embedded(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: SequenceConditioning) -> None:
+    """SplattingAvatar continued from its warm-up for ``quality.dynamic_steps`` (no density control; walking
+    goes on), so it trains as many steps as every other method. ``networks.pt`` holds its canonical mesh."""
+    conf, q = ctx.cfg.stage.dynamic, ctx.cfg.quality
+    if conf.hand_mlp or conf.interaction:
+        raise ValueError("method.representation=embedded (SplattingAvatar) has no hand or interaction MLPs: set "
+                         "stage.dynamic.hand_mlp=false and stage.dynamic.interaction=false (method=splatting_avatar "
+                         "does)")
+    canonical = meshes.vertices[0]
+    model = load_embedded_gaussians(ctx.input_dir("warmup"), meshes.part_names, canonical, meshes.faces)
+    steps = int(q.dynamic_steps)
+    start = time.perf_counter()
+    log = train_splatting(model, views, meshes, splatting_config(ctx.cfg, steps, conf, densify=False),
+                          checkpoint_dir=ctx.scratch_dir,
+                          progress=lambda s: ctx.progress(s, desc="dynamic", total=len(s)))
+    write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
+    buffer = io.BytesIO()
+    torch.save({"canonical_vertices": canonical.float(), "faces": meshes.faces}, buffer)
+    write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "SplattingAvatar's canonical mesh")
+    write_json(ctx.out_dir / "model.json", {"representation": "embedded", "part_names": list(meshes.part_names),
+                                            "num_gaussians": model.num_gaussians}, "the embedded model")
+    _write_plys(ctx, model, cond, meshes, views.num_frames)
+    write_table(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG,
+                {name: np.array([getattr(r, name) for r in log]) for name in SPLATTING_TRAIN_LOG.column_names})
+    ctx.metrics.update({"steps": steps, "gaussians": model.num_gaussians,
+                        "ms_per_step": 1000 * (time.perf_counter() - start) / max(steps, 1),
+                        "final_loss": log[-1].loss if log else float("nan"),
+                        "walked": sum(r.walked for r in log),
+                        "rasterizer": resolve_backend(conf.backend, canonical)})
+
+
+def _write_plys(ctx: StageContext, model: TrainedModel, cond: SequenceConditioning, meshes: MeshSequence,
+                num_frames: int) -> None:
+    """World-space 3DGS PLYs of the train frames ``stage.dynamic.ply_frames`` asks for (``ply/train_<frame>.ply``)."""
+    (ctx.out_dir / "ply").mkdir()
+    with torch.no_grad():
+        for frame in sorted({min(max(int(f), 0), num_frames - 1) for f in ctx.cfg.stage.dynamic.ply_frames}):
+            write_frame_ply(ctx.out_dir / "ply" / f"train_{frame}.ply",
+                            posed_gaussians(model, cond, meshes.vertices[frame], frame))
+
+
+def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: SequenceConditioning) -> None:
+    """The InteractAvatar model (or what of it the method keeps) on top of the warm-up's bound Gaussians."""
+    conf, q = ctx.cfg.stage.dynamic, ctx.cfg.quality
+    head, _ = templates(ctx.cfg.model)
     gaussians = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
     arch = model_config(ctx.cfg)
     frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
@@ -115,7 +174,7 @@ def dynamic(ctx: StageContext) -> None:
         lr_mlp=conf.lr_mlp, lr_point_features=conf.lr_point_features, lr_decay=conf.lr_decay,
         contact_fraction=conf.contact_fraction, patch_min_size=conf.patch_min_size,
         checkpoint_every=conf.checkpoint_every, log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
-    contact = contact_flags(pbd_dir, "train", views.num_frames)
+    contact = contact_flags(ctx.input_dir("pbd"), "train", views.num_frames)
     result = train_dynamic(model, views, meshes, cond, contact, train_cfg, checkpoint_dir=ctx.scratch_dir,
                            progress=lambda steps: ctx.progress(steps, desc="dynamic", total=len(steps)))
     write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model.gaussians, meshes.part_names)
@@ -125,10 +184,7 @@ def dynamic(ctx: StageContext) -> None:
     write_json(ctx.out_dir / "model.json", {"architecture": asdict(model.cfg), "part_names": list(meshes.part_names),
                                             "num_face_vertices": head.num_vertices, "frame_dims": frame_dims,
                                             "num_gaussians": model.gaussians.num_gaussians}, "the dynamic model")
-    (ctx.out_dir / "ply").mkdir()
-    with torch.no_grad():
-        for frame in sorted({min(max(int(f), 0), views.num_frames - 1) for f in conf.ply_frames}):
-            write_frame_ply(ctx.out_dir / "ply" / f"train_{frame}.ply", model(cond.frame(frame), meshes.vertices[frame]))
+    _write_plys(ctx, model, cond, meshes, views.num_frames)
     log = result.log
     write_table(ctx.out_dir / "train_log.parquet", DYNAMIC_TRAIN_LOG,
                 {name: np.array([getattr(r, name) for r in log]) for name in DYNAMIC_TRAIN_LOG.column_names})

@@ -18,6 +18,7 @@ from data_schemas.frames import FRAMES_INDEX, rgb_path
 from data_schemas.gaussians import DYNAMIC_TRAIN_LOG, TRAIN_LOG
 from data_schemas.metrics import METRICS, REGIONS, SPLITS
 from data_schemas.images import read_png
+from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import TableSchema, read_table
 from data_schemas.writes import write_bytes
 from pipeline.manifest import MANIFEST_NAME
@@ -25,7 +26,7 @@ from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
 from stages.common import contact_frames
 
-UPSTREAM = ("capture", "frames", "fit", "pbd", "warmup", "dynamic", "evaluate")
+UPSTREAM = ("capture", "frames", "fit", "pbd", "warmup", "dynamic", "evaluate", "compare")
 
 
 @dataclass
@@ -35,10 +36,12 @@ class ReportConfig:
     thumbnail_px: int
 
 
-@stage("report", inputs=UPSTREAM, config_keys=("quality.name", "stage.report"), outputs=("report.html",),
-       version="4", config_schema=ReportConfig, reads_manifests=True)  # its Stages table shows timings
+@stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
+       outputs=("report.html",), version="5", config_schema=ReportConfig, per_method=True,
+       reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
-    """Write report.html: what was captured and modeled, per-stage timings and metrics, a contact sheet."""
+    """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
+    side, a contact sheet."""
     cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
     index = CaptureIndex.read(cap_dir)
     cameras = read_cameras(cap_dir / "cameras.parquet")
@@ -50,7 +53,8 @@ def report(ctx: StageContext) -> None:
     hand_share = float(np.mean(frames_index["hand_visible"]))
     sections = [
         f"<h1>InteractAvatar report: {html.escape(ctx.subject)}</h1>",
-        f"<p>dataset <b>{html.escape(index.dataset)}</b>, quality preset <b>{html.escape(ctx.cfg.quality.name)}</b>, "
+        f"<p>method <b>{html.escape(str(ctx.cfg.method.label))}</b> ({html.escape(str(ctx.method))}), "
+        f"dataset <b>{html.escape(index.dataset)}</b>, quality preset <b>{html.escape(ctx.cfg.quality.name)}</b>, "
         f"{len(cameras)} cameras, sequences: "
         + ", ".join(f"{k} ({v.num_frames} frames, {v.width}x{v.height})" for k, v in index.sequences.items()) + "</p>",
         "<h2>What the scene contains</h2>",
@@ -71,17 +75,17 @@ def report(ctx: StageContext) -> None:
         _pbd_section(ctx.input_dir("pbd")),
         "<h2>Image quality (held-out camera and held-out motion)</h2>",
         _metrics_section(ctx.input_dir("evaluate")),
+        "<h2>Methods side by side</h2>",
+        _comparison_section(ctx.input_dir("compare")),
         "<h2>Training</h2>",
-        "<p>Stage one, the warm-up (static Gaussians, the GaussianAvatars baseline), then stage two, the "
-        "dynamic model (hand MLPs H, interaction MLPs I, PointNet++): " + _dynamic_summary(manifests["dynamic"])
-        + "</p>",
-        f'<img alt="warm-up loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir("warmup"), TRAIN_LOG)}">',
-        f'<img alt="dynamic loss curve" src="data:image/png;base64,'
-        f'{_loss_curve(ctx.input_dir("dynamic"), DYNAMIC_TRAIN_LOG, ("loss", "l1", "dssim", "patch"))}">',
+        "<p>Stage one, the warm-up, then stage two (for InteractAvatar and its ablations the hand MLPs H, the "
+        "interaction MLPs I and PointNet++; for the baselines the same Gaussians trained on): "
+        + _dynamic_summary(manifests["dynamic"]) + "</p>",
+        *(f'<img alt="{name} loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir(name), *curve)}">'
+          for name, curve in _loss_logs(str(ctx.cfg.method.representation)).items()),
         f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
         f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
-        "<h2>Renders: ground truth | " + " | ".join(_methods(ctx.input_dir("evaluate")))
-        + " | their errors x4</h2>",
+        f"<h2>Renders: ground truth | {html.escape(str(ctx.cfg.method.label))} | its error x4</h2>",
         *(f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_png_file(ctx.input_dir('evaluate') / 'grids' / (s + '.png'))}'>"
           for s in SPLITS),
     ]
@@ -163,16 +167,35 @@ def _metrics_section(evaluate_dir: Path) -> str:
     return _table(("method", "split", "region", "images", "PSNR dB", "SSIM", "LPIPS"), rows)
 
 
-def _methods(evaluate_dir: Path) -> list[str]:
-    """The evaluated methods in the order of the grid columns."""
-    return list(dict.fromkeys(read_table(evaluate_dir / "metrics.parquet", METRICS)["method"]))
+def _comparison_section(compare_dir: Path) -> str:
+    """The compare stage's tables, notes and image rows."""
+    tables = json.loads((compare_dir / "tables.json").read_text())
+    parts = []
+    for table in tables["tables"]:
+        parts += [f"<h3>{html.escape(table['title'])}</h3>", _table(tuple(table["headers"]), table["rows"])]
+    parts.append("<ul>" + "".join(f"<li>{html.escape(note)}</li>" for note in tables["notes"]) + "</ul>")
+    for figure in sorted((compare_dir / "figures").glob("*.png")):
+        parts.append(f"<h3>{html.escape(figure.stem.replace('_', ' '))}: ground truth, then each method</h3>"
+                     f"<img alt='{html.escape(figure.stem)}' src='data:image/png;base64,{_png_file(figure)}'>")
+    return "\n".join(parts)
 
 
 def _dynamic_summary(manifest: dict) -> str:
     """One sentence on the dynamic stage's cost: steps, ms per step, interaction-MLP evaluations."""
     m = manifest["metrics"]
+    if "interaction_steps" not in m:  # SplattingAvatar: no MLPs
+        return html.escape(f"{m['steps']} steps at {m['ms_per_step']:.0f} ms each, {m.get('walked', 0)} triangle "
+                           f"changes by walking")
     return html.escape(f"{m['steps']} steps at {m['ms_per_step']:.0f} ms each; the interaction MLPs ran in "
                        f"{m['interaction_steps']} steps on {m['interaction_mlp_evaluations']} Gaussians in all")
+
+
+def _loss_logs(representation: str) -> dict[str, tuple[TableSchema, tuple[str, ...]]]:
+    """stage -> (schema of its train_log.parquet, terms plotted) for the method's representation."""
+    if representation == "embedded":
+        splat = (SPLATTING_TRAIN_LOG, ("loss", "l1", "dssim", "mse"))
+        return {"warmup": splat, "dynamic": splat}
+    return {"warmup": (TRAIN_LOG, ("loss", "l1", "dssim")), "dynamic": (DYNAMIC_TRAIN_LOG, ("loss", "l1", "dssim", "patch"))}
 
 
 def _loss_curve(train_dir: Path, schema: TableSchema = TRAIN_LOG, terms: tuple[str, ...] = ("loss", "l1", "dssim")

@@ -8,14 +8,20 @@ import numpy as np
 import torch
 
 from avatar.gaussians.model import BoundGaussians
+from avatar.splatting import EmbeddedGaussians
 from avatar.render.gaussians import resolve_backend
+from avatar.training.splatting import train_splatting
 from avatar.training.static import StaticConfig, colors_from_views, train_static
 from data_schemas.capture import MASK_LABELS
 from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
+from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import write_table
 from pipeline.stage import Resources, StageContext, stage
-from stages.common import load_meshes, load_views, model_sources, write_bound_gaussians
+from stages.common import (
+    applied_deformation, load_meshes, load_views, model_sources, representation, splatting_config,
+    write_bound_gaussians, write_embedded_gaussians,
+)
 
 
 @dataclass
@@ -57,49 +63,60 @@ class WarmupConfig:
 @stage(
     "warmup",
     inputs=("capture", "frames", "fit", "pbd"),
-    config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup"),
+    config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup",
+                 "method.representation", "method.pbd", "splatting"),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet"),
-    version="2",
+    version="3",
+    per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=WarmupConfig,
     cache_exclude=("stage.warmup.checkpoint_every",),  # resuming is bit-for-bit: it cannot change the result
     sources=model_sources,
 )
 def warmup(ctx: StageContext) -> None:
-    """Train static mesh-bound Gaussians on every train camera and train frame."""
+    """Stage one on every train camera and train frame: static Gaussians bound to the triangles (GaussianAvatars,
+    InteractAvatar's warm-up) or, for method.representation=embedded, SplattingAvatar's embedded Gaussians."""
     conf, q = ctx.cfg.stage.warmup, ctx.cfg.quality
     torch.manual_seed(conf.seed)
     cap_dir = ctx.input_dir("capture")
     views = load_views(cap_dir, ctx.input_dir("frames"), "train", "train")
-    meshes = load_meshes(ctx.input_dir("fit"), "train", ctx.cfg, pbd_dir=ctx.input_dir("pbd"))
+    meshes = load_meshes(ctx.input_dir("fit"), "train", ctx.cfg,
+                         pbd_dir=applied_deformation(ctx.cfg, ctx.input_dir("pbd")))
     canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
-    model = BoundGaussians.on_triangles(canonical, meshes.faces, meshes.face_part, int(q.gaussians_per_triangle),
-                                        init_opacity=conf.init_opacity, seed=conf.seed)
+    embedded = representation(ctx.cfg) == "embedded"
+    kind = EmbeddedGaussians if embedded else BoundGaussians
+    model = kind.on_triangles(canonical, meshes.faces, meshes.face_part, int(q.gaussians_per_triangle),
+                              init_opacity=conf.init_opacity, seed=conf.seed)
     with torch.no_grad():
         means, _, _ = model.world(canonical, meshes.faces)
     part_label = torch.tensor([MASK_LABELS[name] for name in meshes.part_names])[model.part]
     model.set_colors(colors_from_views(means, part_label, views, frame=0))
-    cfg = StaticConfig(steps=int(q.warmup_steps), lambda_dssim=conf.lambda_dssim, scale_weight=conf.scale_weight,
-                       position_weight=conf.position_weight, eps_s=conf.eps_s, eps_mu=conf.eps_mu,
-                       densify_until=conf.densify_until,
-                       opacity_reset_interval=conf.opacity_reset_interval, max_gaussians=conf.max_gaussians, checkpoint_every=conf.checkpoint_every,
-                       log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
-    log = train_static(model, views, meshes, cfg, checkpoint_dir=ctx.scratch_dir,
-                       progress=lambda steps: ctx.progress(steps, desc="warmup", total=len(steps)))
-    write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
+    progress = lambda steps: ctx.progress(steps, desc="warmup", total=len(steps))  # noqa: E731
+    if embedded:
+        splat_cfg = splatting_config(ctx.cfg, int(q.warmup_steps), conf, densify=True)
+        log = train_splatting(model, views, meshes, splat_cfg, checkpoint_dir=ctx.scratch_dir, progress=progress)
+        write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
+        write_table(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG,
+                    {name: np.array([getattr(r, name) for r in log]) for name in SPLATTING_TRAIN_LOG.column_names})
+    else:
+        cfg = StaticConfig(steps=int(q.warmup_steps), lambda_dssim=conf.lambda_dssim, scale_weight=conf.scale_weight,
+                           position_weight=conf.position_weight, eps_s=conf.eps_s, eps_mu=conf.eps_mu,
+                           densify_until=conf.densify_until, opacity_reset_interval=conf.opacity_reset_interval,
+                           max_gaussians=conf.max_gaussians, checkpoint_every=conf.checkpoint_every,
+                           log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
+        log = train_static(model, views, meshes, cfg, checkpoint_dir=ctx.scratch_dir, progress=progress)
+        write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
+        write_table(ctx.out_dir / "train_log.parquet", TRAIN_LOG,
+                    {name: np.array([getattr(r, name) for r in log]) for name in TRAIN_LOG.column_names})
     frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
     with torch.no_grad():
         means, scales, quats = model.world(meshes.vertices[frame], meshes.faces)
         cloud = GaussianCloud.from_rgb(means.numpy(), torch.log(scales).numpy(), quats.numpy(),
                                        model.opacity_logits.numpy(), model.colors().numpy())
     write_gaussians_ply(ctx.out_dir / "gaussians.ply", cloud)
-    write_table(ctx.out_dir / "train_log.parquet", TRAIN_LOG,
-                {name: np.array([getattr(r, name) for r in log]) for name in
-                 ("step", "loss", "l1", "dssim", "scale_reg", "position_reg", "num_gaussians")})
     ctx.metrics["gaussians"] = model.num_gaussians
     ctx.metrics["final_loss"] = log[-1].loss
-    ctx.metrics["steps"] = cfg.steps
+    ctx.metrics["steps"] = int(q.warmup_steps)
     # backend=auto resolves per machine (compiled where it built, else torch; equal to float32 rounding):
     # the manifest records which one computed this artifact.
-    ctx.metrics["rasterizer"] = resolve_backend(conf.backend, model.local_means)
-
+    ctx.metrics["rasterizer"] = resolve_backend(conf.backend, means)

@@ -6,15 +6,25 @@ This is the CI smoke run of the product: never skipped, never marked slow.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 
 from data_schemas.gaussians_ply import read_gaussians_ply
-from data_schemas.metrics import METRICS
+from data_schemas.metrics import COMPARISON, METRICS
 from data_schemas.tables import read_table
 from stages import REGISTRY
 from stages.export_ply import export_frame
 from tests.conftest import run_cli
+
+
+def stage_dir(subject: Path, name: str, method: str = "interactavatar") -> Path:
+    """Where stage ``name`` of ``method`` lives (per-method stages under methods/<method>/)."""
+    return subject / "methods" / method / name if REGISTRY[name].per_method else subject / name
+
+
+def log_prefix(name: str, method: str = "interactavatar") -> str:
+    return f"[synth_a/{method}] {name:<10}" if REGISTRY[name].per_method else f"[synth_a] {name:<10}"
 
 
 def test_whole_dag_runs_then_is_fully_cached(tmp_path):
@@ -23,12 +33,12 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     subject = out / "synth_a"
     for s in REGISTRY:
-        manifest = json.loads((subject / s.name / "_manifest.json").read_text())
+        manifest = json.loads((stage_dir(subject, s.name) / "_manifest.json").read_text())
         assert manifest["stage"] == s.name and manifest["outputs"], s.name
-        assert f"[synth_a] {s.name:<10} run" in first.stdout
+        assert f"{log_prefix(s.name)} run" in first.stdout
     # The metrics table and the report path end the output.
     assert "novel_view_psnr" in first.stdout and "self_reenact_lpips" in first.stdout
-    assert f"report: {(subject / 'report' / 'report.html').resolve()}" in first.stdout
+    assert f"report: {(stage_dir(subject, 'report') / 'report.html').resolve()}" in first.stdout
 
     fit = json.loads((subject / "fit" / "fit_report.json").read_text())
     assert fit["source"] == "fitted"  # the avatar stands on meshes fitted to detected keypoints
@@ -42,44 +52,66 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert pbd["gt_vertex_error_mm"] < pbd["zero_offset_error_mm"], pbd
     assert json.loads((subject / "pbd" / "pbd_report.json").read_text())["source"] == "simulate"
 
-    metrics = read_table(subject / "evaluate" / "metrics.parquet", METRICS)
+    metrics = read_table(stage_dir(subject, "evaluate") / "metrics.parquet", METRICS)
     full = [i for i, r in enumerate(metrics["region"]) if r == "full"]
     psnr = np.asarray(metrics["psnr"])[full]
     assert np.isfinite(psnr).all() and psnr.mean() > 15.0, psnr  # a trained avatar, not noise
     assert {"novel_view", "self_reenact"} == set(metrics["split"])
-    cloud = read_gaussians_ply(subject / "warmup" / "gaussians.ply")
+    cloud = read_gaussians_ply(stage_dir(subject, "warmup") / "gaussians.ply")
     assert len(cloud.means) > 1000 and np.isfinite(cloud.means).all()
-    assert {"gaussian_avatars", "interactavatar"} == set(metrics["method"])
-    dynamic = json.loads((subject / "dynamic" / "_manifest.json").read_text())["metrics"]
+    assert {"interactavatar"} == set(metrics["method"])
+    dynamic = json.loads((stage_dir(subject, "dynamic") / "_manifest.json").read_text())["metrics"]
     assert dynamic["steps"] > 0 and dynamic["ms_per_step"] > 0 and dynamic["interaction_mlp_evaluations"] > 0
     export_frame(subject, "test", 1, tmp_path / "test_1.ply")  # any frame of any sequence, on request
     exported = read_gaussians_ply(tmp_path / "test_1.ply")
-    assert len(exported.means) == len(read_gaussians_ply(subject / "dynamic" / "ply" / "train_0.ply").means)
+    assert len(exported.means) == len(read_gaussians_ply(stage_dir(subject, "dynamic") / "ply" / "train_0.ply").means)
     assert np.isfinite(exported.means).all() and not np.allclose(exported.means, cloud.means)
-    html = (subject / "report" / "report.html").read_text()
+    html = (stage_dir(subject, "report") / "report.html").read_text()
     assert "Image quality" in html and "data:image/png;base64" in html
     assert "Fitted meshes" in html and "fitted to the keypoints of the train views" in html
     assert "Contact deformation" in html and "Offsets: simulate" in html
 
     # Every stage is deterministic (issue 9, case 3): forcing the whole DAG again writes the same bytes, so
-    # content addressing holds. The report alone shows run records (timings), so it is compared by rerunning
-    # it by itself on the same inputs.
-    digests = lambda: {s.name: json.loads((subject / s.name / "_manifest.json").read_text())["outputs"]  # noqa: E731
+    # content addressing holds. The comparison and the report show run records (timings), so they are compared
+    # by rerunning them by themselves on the same inputs.
+    with_records = {s.name for s in REGISTRY if s.reads_manifests}
+    assert with_records == {"compare", "report"}
+    digests = lambda: {s.name: json.loads((stage_dir(subject, s.name) / "_manifest.json").read_text())["outputs"]  # noqa: E731
                        for s in REGISTRY}
     before = digests()
     forced = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.force=true")
     assert forced.returncode == 0, forced.stderr[-3000:]
     after = digests()
     for s in REGISTRY:
-        if s.name != "report":
+        if s.name not in with_records:
             changed = sorted(k for k in set(before[s.name]) | set(after[s.name])
                              if before[s.name].get(k) != after[s.name].get(k))
             assert not changed, f"stage {s.name} is not deterministic: {changed}"
-    report_only = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=report",
-                          "run.force=true")
-    assert report_only.returncode == 0 and digests()["report"] == after["report"]
+    alone = lambda name: run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false",  # noqa: E731
+                                 f"run.only={name}", "run.force=true").returncode
+    assert alone("compare") == 0 and digests()["compare"] == after["compare"]
+    assert alone("report") == 0 and (report := digests()["report"]) and alone("report") == 0
+    assert digests()["report"] == report
 
     second = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false")
     assert second.returncode == 0, second.stderr[-3000:]
     for s in REGISTRY:
-        assert f"[synth_a] {s.name:<10} cached" in second.stdout
+        assert f"{log_prefix(s.name)} cached" in second.stdout
+
+    # Methods side by side: a baseline and an ablation in one multirun. The ablation starts from the full
+    # model's warm-up (same cache key: shared, not retrained); the baseline poses undeformed meshes, so it
+    # trains its own. Then the comparison holds all three, trained for the same number of steps.
+    multi = run_cli("-m", f"paths.outputs={out}", "quality=smoke", "run.progress=false",
+                    "method=gaussian_avatars,no_patch")
+    assert multi.returncode == 0, multi.stdout[-3000:] + multi.stderr[-3000:]
+    assert f"{log_prefix('warmup', 'no_patch')} shared" in multi.stdout
+    assert f"{log_prefix('warmup', 'gaussian_avatars')} run" in multi.stdout
+    assert "[synth_a] capture    cached" in multi.stdout and "[synth_a] pbd        cached" in multi.stdout
+    comparison = read_table(subject / "compare" / "comparison.parquet", COMPARISON)
+    assert set(comparison["method"]) == {"interactavatar", "gaussian_avatars", "no_patch"}
+    assert len(set(comparison["train_steps"])) == 1
+    tables = (subject / "compare" / "tables.md").read_text()
+    assert "Table 1" in tables and "GaussianAvatars" in tables and "w/o L_patch" in tables
+    assert "Not evaluated yet: splatting_avatar, no_hand_mlp, no_interaction, no_pbd" in tables
+    assert sorted(p.name for p in (subject / "compare" / "figures").glob("*.png"))
+    assert "Methods side by side" in (stage_dir(subject, "report", "no_patch") / "report.html").read_text()

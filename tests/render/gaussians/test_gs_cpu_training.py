@@ -50,8 +50,8 @@ def test_toy_warmup_reaches_the_torch_backend_psnr() -> None:
 
 def _held_out_psnr(subject_dir: Path) -> dict[str, float]:
     """Mean full-image PSNR of the warm-up model per held-out split of a subject's ``evaluate`` stage."""
-    metrics = read_table(subject_dir / "evaluate" / "metrics.parquet", METRICS)
-    full = (np.asarray(metrics["region"]) == "full") & (np.asarray(metrics["method"]) == "gaussian_avatars")
+    metrics = read_table(subject_dir / "methods" / "gaussian_avatars" / "evaluate" / "metrics.parquet", METRICS)
+    full = np.asarray(metrics["region"]) == "full"
     splits = np.asarray(metrics["split"])
     psnrs = np.asarray(metrics["psnr"], dtype=np.float64)
     return {s: float(psnrs[full & (splits == s)].mean()) for s in sorted(set(splits[full]))}
@@ -65,7 +65,8 @@ def test_smoke_warmup_reaches_the_torch_backend_held_out_psnr(tmp_path: Path) ->
     for backend in ("torch", "cpu"):
         run = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.until=evaluate",
                       f"stage.warmup.backend={backend}", f"stage.evaluate.backend={backend}",
-                      f"stage.dynamic.backend={backend}", "quality.dynamic_steps=0")  # the warm-up alone
+                      f"stage.dynamic.backend={backend}", "quality.dynamic_steps=0",  # the warm-up alone
+                      "method=gaussian_avatars")
         assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
         results[backend] = _held_out_psnr(out / "synth_a")
     assert set(results["cpu"]) == {"novel_view", "self_reenact"}

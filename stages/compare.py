@@ -1,0 +1,268 @@
+"""Stage ``compare``: the methods side by side (the paper's Tables 1 and 2 and its image rows on this capture).
+
+Reads, for every method of ``stage.compare.methods`` that has been trained and evaluated on this subject
+(``interactavatar -m method=...``), its ``evaluate`` metrics and renders and its ``warmup``/``dynamic`` run
+records, and writes
+
+- ``comparison.parquet`` (:data:`data_schemas.metrics.COMPARISON`): mean PSNR / SSIM / LPIPS per method,
+  split, region and frame group (all, contact, no contact), with training steps, wall time and Gaussians;
+- ``tables.json`` and ``tables.md``: Table 1 (baselines against the full model), Table 2 (ablations, per
+  region), the paper's numbers beside ours, the training budget of every method (the fairness check) and
+  the comparison's cost;
+- ``figures/<split>_<hand|interaction>.png``: the ground truth and every method on the same contact frames,
+  cropped to the hand box and to the hand-face overlap box (the paper's Figures 4, 5 and 7).
+
+Listed methods that have not been evaluated yet are named in ``tables.md`` with the command that adds them;
+the stage reruns when one appears (its digest enters the cache key).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from avatar.preprocess.crops import label_box, overlap_box
+from data_schemas.capture import MASK_LABELS
+from data_schemas.frames import crop_mask_path, rgb_path
+from data_schemas.images import read_png, write_png
+from data_schemas.metrics import COMPARISON, CONTACT_GROUPS, METRICS, REGIONS, SPLIT_SOURCES, showcase_path
+from data_schemas.tables import read_table, write_table
+from data_schemas.writes import write_bytes, write_json
+from pipeline.manifest import MANIFEST_NAME
+from pipeline.stage import StageContext, stage
+
+#: InteractAvatar (ICCV 2025) on DECAF at 512x512, full images: Table 1 and Table 2 (novel view only; the
+#: paper gives no numbers for "w/o PBD" and "w/o L_patch", only images). method -> split -> (PSNR, SSIM, LPIPS)
+PAPER = {
+    "splatting_avatar": {"novel_view": (25.90, 0.9135, 0.0584), "self_reenact": (26.18, 0.9326, 0.0546)},
+    "gaussian_avatars": {"novel_view": (26.71, 0.9324, 0.0542), "self_reenact": (25.51, 0.9393, 0.0578)},
+    "interactavatar": {"novel_view": (29.85, 0.9335, 0.0338), "self_reenact": (28.17, 0.9356, 0.0396)},
+    "no_hand_mlp": {"novel_view": (26.97, 0.9359, 0.0574)},
+    "no_interaction": {"novel_view": (28.23, 0.9389, 0.0467)},
+}
+BASELINES = ("splatting_avatar", "gaussian_avatars", "interactavatar")  # Table 1, in the paper's order
+ABLATIONS = ("interactavatar", "no_hand_mlp", "no_interaction", "no_pbd", "no_patch")  # Table 2
+SHARED_STAGES = ("capture", "frames", "fit", "pbd")
+METRIC_NAMES = ("psnr", "ssim", "lpips")
+
+
+@dataclass
+class CompareConfig:
+    """Types of ``stage.compare`` (values in conf/stage/compare.yaml)."""
+
+    methods: list[str]
+    crop_px: int
+
+
+@dataclass
+class MethodRun:
+    """What the comparison reads of one method: its metrics table and run records."""
+
+    name: str
+    label: str
+    evaluate_dir: Path
+    metrics: dict[str, np.ndarray]
+    manifests: dict[str, dict[str, Any]]  # warmup, dynamic, evaluate
+
+    @property
+    def train_steps(self) -> int:
+        return int(self.manifests["warmup"]["metrics"]["steps"]) + int(self.manifests["dynamic"]["metrics"]["steps"])
+
+    @property
+    def train_wall_s(self) -> float:
+        return sum(float(self.manifests[s]["timings"]["wall_s"]) for s in ("warmup", "dynamic"))
+
+    @property
+    def gaussians(self) -> int:
+        return int(self.manifests["dynamic"]["metrics"]["gaussians"])
+
+
+@stage("compare", inputs=("capture", "frames", "fit", "pbd"), config_keys=("stage.compare",),
+       outputs=("comparison.parquet", "tables.json", "tables.md", "figures"), config_schema=CompareConfig,
+       cross_method_inputs=("warmup", "dynamic", "evaluate"), methods_key="stage.compare.methods",
+       reads_manifests=True)  # it reports the methods' wall times
+def compare(ctx: StageContext) -> None:
+    """Tables 1 and 2 and the image rows of the paper for every evaluated method of stage.compare.methods."""
+    conf = ctx.cfg.stage.compare
+    listed = [str(m) for m in conf.methods]
+    dirs = {stage: ctx.method_dirs(stage) for stage in ("warmup", "dynamic", "evaluate")}
+    runs = [_read_run(m, {stage: dirs[stage][m] for stage in dirs}) for m in listed
+            if all(m in dirs[stage] for stage in dirs)]
+    missing = [m for m in listed if m not in {r.name for r in runs}]
+    rows = _comparison_rows(runs)
+    write_table(ctx.out_dir / "comparison.parquet", COMPARISON,
+                {c.name: (rows[c.name] if c.kind == "string" else np.asarray(rows[c.name])) for c in COMPARISON.columns})
+    shared = {name: _manifest(ctx.input_dir(name)) for name in SHARED_STAGES}
+    cost = _cost(runs, shared)
+    tables = _tables(runs, rows, missing, cost)
+    write_json(ctx.out_dir / "tables.json", tables, "the comparison tables")
+    write_bytes(ctx.out_dir / "tables.md", _markdown(tables).encode(), "the comparison tables")
+    (ctx.out_dir / "figures").mkdir()
+    for split, (sequence, _) in SPLIT_SOURCES.items():
+        for crop in ("hand", "interaction"):
+            figure = _figure(runs, ctx.input_dir("frames"), split, sequence, crop, int(conf.crop_px))
+            if figure is not None:
+                write_png(ctx.out_dir / "figures" / f"{split}_{crop}.png", figure)
+    ctx.metrics.update({"methods_compared": len(runs), "methods_missing": ",".join(missing) or "-",
+                        "same_train_steps": int(len({r.train_steps for r in runs}) <= 1), **cost})
+
+
+def _manifest(stage_dir: Path) -> dict[str, Any]:
+    return json.loads((stage_dir / MANIFEST_NAME).read_text())
+
+
+def _read_run(method: str, dirs: dict[str, Path]) -> MethodRun:
+    manifests = {stage: _manifest(d) for stage, d in dirs.items()}
+    label = manifests["evaluate"]["config"]["method"].get("label", method)
+    table = read_table(dirs["evaluate"] / "metrics.parquet", METRICS)
+    return MethodRun(method, str(label), dirs["evaluate"], {k: np.asarray(v) for k, v in table.items()}, manifests)
+
+
+def _comparison_rows(runs: list[MethodRun]) -> dict[str, list]:
+    """Columns of ``comparison.parquet``: one row per method, split, region and frame group with images."""
+    rows: dict[str, list] = {c.name: [] for c in COMPARISON.columns}
+    for run in runs:
+        t = run.metrics
+        for split in SPLIT_SOURCES:
+            for region in REGIONS:
+                for group in CONTACT_GROUPS:
+                    sel = (t["split"] == split) & (t["region"] == region)
+                    if group != "all":
+                        sel &= t["contact"] == (group == "contact")
+                    values = {m: np.where(np.isinf(t[m][sel]), np.nan, t[m][sel]).astype(np.float64)
+                              for m in METRIC_NAMES}
+                    images = int(np.isfinite(values["ssim"]).sum())
+                    if images == 0:
+                        continue
+                    for key, value in (("method", run.name), ("label", run.label), ("split", split),
+                                       ("region", region), ("contact", group), ("images", images),
+                                       *((m, float(np.nanmean(values[m]))) for m in METRIC_NAMES),
+                                       ("train_steps", run.train_steps), ("train_wall_s", run.train_wall_s),
+                                       ("gaussians", run.gaussians)):
+                        rows[key].append(value)
+    return rows
+
+
+def _lookup(rows: dict[str, list], method: str, split: str, region: str, group: str = "all") -> dict[str, float]:
+    for i in range(len(rows["method"])):
+        if (rows["method"][i], rows["split"][i], rows["region"][i], rows["contact"][i]) == (method, split, region, group):
+            return {m: rows[m][i] for m in METRIC_NAMES}
+    return {m: float("nan") for m in METRIC_NAMES}
+
+
+def _cost(runs: list[MethodRun], shared: dict[str, dict[str, Any]]) -> dict[str, float]:
+    """Wall time of the comparison as computed (shared stages and identical warm-ups once) and as it would be
+    with every method computed from scratch."""
+    shared_s = sum(float(m["timings"]["wall_s"]) for m in shared.values())
+    warmups = {r.manifests["warmup"]["key"]: float(r.manifests["warmup"]["timings"]["wall_s"]) for r in runs}
+    own = sum(float(r.manifests[s]["timings"]["wall_s"]) for r in runs for s in ("dynamic", "evaluate"))
+    every = sum(float(r.manifests["warmup"]["timings"]["wall_s"]) for r in runs)
+    return {"total_wall_s": shared_s + sum(warmups.values()) + own, "warmups_trained": len(warmups),
+            "unshared_wall_s": len(runs) * shared_s + every + own}
+
+
+def _fmt(value: float, digits: int) -> str:
+    return "-" if not np.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _metric_cells(values: dict[str, float]) -> list[str]:
+    return [_fmt(values["psnr"], 2), _fmt(values["ssim"], 4), _fmt(values["lpips"], 4)]
+
+
+def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[str], cost: dict[str, float]
+            ) -> dict[str, Any]:
+    """The comparison as titled tables (headers, rows of strings) plus notes, for tables.md and the report."""
+    present = {r.name: r for r in runs}
+    paper_cells = lambda m, split: _metric_cells(dict(zip(METRIC_NAMES, PAPER[m][split]))) \
+        if split in PAPER.get(m, {}) else ["-"] * 3  # noqa: E731
+    table1 = [[split, present[m].label, *_metric_cells(_lookup(rows, m, split, "full")), *paper_cells(m, split)]
+              for split in SPLIT_SOURCES for m in BASELINES if m in present]
+    table2 = [[split, present[m].label,
+               *(_fmt(_lookup(rows, m, split, region)["psnr"], 2) for region in ("full", "hand", "interaction")),
+               *(_fmt(_lookup(rows, m, split, region)["lpips"], 4) for region in ("full", "hand", "interaction")),
+               _fmt(_lookup(rows, m, split, "interaction", "contact")["psnr"], 2), *paper_cells(m, split)]
+              for split in SPLIT_SOURCES for m in ABLATIONS if m in present]
+    budget = [[r.label, str(r.train_steps), f"{r.train_wall_s:.0f}", str(r.gaussians)] for r in runs]
+    steps = {r.train_steps for r in runs}
+    notes = [
+        "Full images, mean over every frame of the split; PSNR in dB. Novel view: the held-out camera on the "
+        "training motion; self-reenactment: the training cameras on the held-out motion.",
+        ("Every method trained the same number of optimisation steps (warm-up plus stage two: "
+         f"{next(iter(steps))}) on the same frames and views." if len(steps) == 1 else
+         f"The methods trained different numbers of steps ({sorted(steps)}): the comparison is not fair."),
+        "Paper: InteractAvatar (ICCV 2025) on DECAF at 512x512; it gives no numbers for w/o PBD and w/o L_patch.",
+        f"Cost: {cost['total_wall_s']:.0f} s of stage wall time as computed (shared stages once, "
+        f"{cost['warmups_trained']:.0f} distinct warm-ups), against {cost['unshared_wall_s']:.0f} s with every "
+        f"method computed from scratch.",
+    ]
+    if missing:
+        notes.append(f"Not evaluated yet: {', '.join(missing)}. Add them with "
+                     f"`interactavatar -m method={','.join(missing)}` (same subject and preset), then "
+                     f"`interactavatar run.only=compare`, or run `make compare`.")
+    return {"tables": [
+        {"title": "Table 1: baselines against the full model (full image)",
+         "headers": ["split", "method", "PSNR", "SSIM", "LPIPS", "paper PSNR", "paper SSIM", "paper LPIPS"],
+         "rows": table1},
+        {"title": "Table 2: ablations per region (PSNR dB, then LPIPS)",
+         "headers": ["split", "method", "PSNR full", "PSNR hand", "PSNR interaction", "LPIPS full", "LPIPS hand",
+                     "LPIPS interaction", "PSNR interaction (contact frames)", "paper PSNR", "paper SSIM",
+                     "paper LPIPS"],
+         "rows": table2},
+        {"title": "Training budget", "headers": ["method", "steps", "train wall s", "Gaussians"], "rows": budget},
+    ], "notes": notes, "missing": missing}
+
+
+def _markdown(tables: dict[str, Any]) -> str:
+    out = ["# Methods side by side", ""]
+    for table in tables["tables"]:
+        out += [f"## {table['title']}", "", "| " + " | ".join(table["headers"]) + " |",
+                "|" + "---|" * len(table["headers"])]
+        out += ["| " + " | ".join(row) + " |" for row in table["rows"]]
+        out.append("")
+    out += [f"- {note}" for note in tables["notes"]]
+    return "\n".join(out) + "\n"
+
+
+def _figure(runs: list[MethodRun], frames_dir: Path, split: str, sequence: str, crop: str, px: int
+            ) -> np.ndarray | None:
+    """Rows of showcase frames, columns ground truth then each method, cropped to the hand box or the
+    hand-face overlap box of the ground truth's labels; ``None`` when no frame has that box."""
+    if not runs:
+        return None
+    render_dir = runs[0].evaluate_dir / "renders" / split
+    rows = []
+    for path in sorted(render_dir.glob("*.png")):
+        frame_text, camera_id = path.stem.split("_", 1)
+        frame = int(frame_text)
+        labels = read_png(crop_mask_path(frames_dir, sequence, camera_id, frame), 1)
+        hand = label_box(labels, MASK_LABELS["hand"])
+        box = hand if crop == "hand" else overlap_box(hand, label_box(labels, MASK_LABELS["face"]))
+        if box is None:
+            continue
+        images = [read_png(rgb_path(frames_dir, sequence, camera_id, frame), 3)]
+        images += [read_png(showcase_path(r.evaluate_dir, split, frame, camera_id), 3) for r in runs]
+        rows.append(np.concatenate([_crop(image, box, px) for image in images], axis=1))
+    if not rows:
+        return None
+    header = np.full((18, rows[0].shape[1], 3), 255, np.uint8)
+    for i, name in enumerate(["ground truth"] + [r.label for r in runs]):
+        cv2.putText(header, name[:16], (i * px + 2, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([header, *rows], axis=0)
+
+
+def _crop(image: np.ndarray, box: np.ndarray, px: int) -> np.ndarray:
+    """The square around ``box`` (x0, y0, x1, y1) of ``image`` (S, S, 3), resized to (px, px, 3)."""
+    size = image.shape[0]
+    x0, y0, x1, y1 = box
+    side = max(x1 - x0, y1 - y0, 8.0)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    lo_x = int(np.clip(round(cx - side / 2), 0, max(size - side, 0)))
+    lo_y = int(np.clip(round(cy - side / 2), 0, max(size - side, 0)))
+    side_px = int(min(round(side), size))
+    patch = image[lo_y:lo_y + side_px, lo_x:lo_x + side_px]
+    return cv2.resize(patch, (px, px), interpolation=cv2.INTER_AREA if side_px > px else cv2.INTER_NEAREST)
