@@ -98,20 +98,28 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     for s in REGISTRY:
         assert f"{log_prefix(s.name)} cached" in second.stdout
 
-    # Methods side by side: a baseline and an ablation in one multirun. The ablation starts from the full
-    # model's warm-up (same cache key: shared, not retrained); the baseline poses undeformed meshes, so it
-    # trains its own. Then the comparison holds all three, trained for the same number of steps.
+    # Methods side by side: the two baselines and an ablation in one multirun. The ablation starts from the
+    # full model's warm-up (same cache key: shared, not retrained); GaussianAvatars poses undeformed meshes
+    # and SplattingAvatar embeds its Gaussians, so each trains its own. Then the comparison holds all four,
+    # trained for the same number of steps.
     multi = run_cli("-m", f"paths.outputs={out}", "quality=smoke", "run.progress=false",
-                    "method=gaussian_avatars,no_patch")
+                    "method=gaussian_avatars,no_patch,splatting_avatar")
     assert multi.returncode == 0, multi.stdout[-3000:] + multi.stderr[-3000:]
     assert f"{log_prefix('warmup', 'no_patch')} shared" in multi.stdout
     assert f"{log_prefix('warmup', 'gaussian_avatars')} run" in multi.stdout
+    assert f"{log_prefix('warmup', 'splatting_avatar')} run" in multi.stdout
     assert "[synth_a] capture    cached" in multi.stdout and "[synth_a] pbd        cached" in multi.stdout
     comparison = read_table(subject / "compare" / "comparison.parquet", COMPARISON)
-    assert set(comparison["method"]) == {"interactavatar", "gaussian_avatars", "no_patch"}
+    assert set(comparison["method"]) == {"interactavatar", "gaussian_avatars", "no_patch", "splatting_avatar"}
+    splatting_psnr = np.asarray(comparison["psnr"])[(np.asarray(comparison["method"]) == "splatting_avatar")
+                                                    & (np.asarray(comparison["region"]) == "full")]
+    assert np.isfinite(splatting_psnr).all() and splatting_psnr.min() > 15.0, splatting_psnr
+    export_frame(subject, "test", 1, tmp_path / "splatting_1.ply", method="splatting_avatar")
+    assert np.isfinite(read_gaussians_ply(tmp_path / "splatting_1.ply").means).all()
     assert len(set(comparison["train_steps"])) == 1
     tables = (subject / "compare" / "tables.md").read_text()
-    assert "Table 1" in tables and "GaussianAvatars" in tables and "w/o L_patch" in tables
-    assert "Not evaluated yet: splatting_avatar, no_hand_mlp, no_interaction, no_pbd" in tables
+    assert "Table 1" in tables and "GaussianAvatars" in tables and "SplattingAvatar" in tables
+    assert "w/o L_patch" in tables
+    assert "Not evaluated yet: no_hand_mlp, no_interaction, no_pbd" in tables
     assert sorted(p.name for p in (subject / "compare" / "figures").glob("*.png"))
     assert "Methods side by side" in (stage_dir(subject, "report", "no_patch") / "report.html").read_text()

@@ -1,0 +1,101 @@
+"""The comparison's arithmetic against brute force: frame groups, showcase frames, crops, cost."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from data_schemas.metrics import CONTACT_GROUPS
+from stages.compare import MethodRun, _comparison_rows, _cost, _crop, _lookup, _tables
+from stages.evaluate import showcase_pairs
+
+
+def _run(name: str, warmup_key: str = "k0", seed: int = 0) -> MethodRun:
+    """A method with metrics of 2 splits x 4 regions x 2 cameras x 5 frames, frames 1 and 3 with contact,
+    the hand region absent (NaN) in frame 0 and one infinite PSNR (a perfect image)."""
+    rng = np.random.default_rng(seed)
+    rows = [(split, region, cam, frame) for split in ("novel_view", "self_reenact")
+            for region in ("full", "hand", "face", "interaction") for cam in ("c0", "c1") for frame in range(5)]
+    split, region, cam, frame = (np.array(col) for col in zip(*rows))
+    psnr, ssim, lpips = rng.uniform(20, 30, len(rows)), rng.uniform(0.8, 0.9, len(rows)), rng.uniform(0, 0.1, len(rows))
+    absent = (region == "hand") & (frame == 0)
+    psnr[absent] = ssim[absent] = lpips[absent] = np.nan
+    psnr[(region == "face") & (frame == 2) & (cam == "c1")] = np.inf
+    metrics = {"method": np.full(len(rows), name), "split": split, "region": region, "camera_id": cam,
+               "frame": frame, "contact": np.isin(frame, [1, 3]), "psnr": psnr, "ssim": ssim, "lpips": lpips}
+    manifests = {"warmup": {"key": warmup_key, "metrics": {"steps": 20}, "timings": {"wall_s": 10.0}},
+                 "dynamic": {"metrics": {"steps": 10, "gaussians": 123}, "timings": {"wall_s": 5.0}},
+                 "evaluate": {"timings": {"wall_s": 2.0}}}
+    return MethodRun(name, name.upper(), Path("/nonexistent"), metrics, manifests)
+
+
+def test_rows_are_the_means_of_their_group_ignoring_absent_regions_and_perfect_images():
+    runs = [_run("interactavatar"), _run("gaussian_avatars", seed=1)]
+    rows = _comparison_rows(runs)
+    for run in runs:
+        t = run.metrics
+        for split in ("novel_view", "self_reenact"):
+            for region in ("full", "hand", "face", "interaction"):
+                for group in CONTACT_GROUPS:
+                    sel = (t["split"] == split) & (t["region"] == region)
+                    if group != "all":
+                        sel &= t["contact"] == (group == "contact")
+                    psnr = t["psnr"][sel]
+                    expected = np.mean(psnr[np.isfinite(psnr)])
+                    got = _lookup(rows, run.name, split, region, group)
+                    assert got["psnr"] == pytest.approx(expected, rel=1e-12)
+                    assert got["lpips"] == pytest.approx(np.nanmean(t["lpips"][sel]), rel=1e-12)
+    hand_all = [i for i in range(len(rows["method"])) if rows["method"][i] == "interactavatar"
+                and rows["split"][i] == "novel_view" and rows["region"][i] == "hand" and rows["contact"][i] == "all"]
+    assert [rows["images"][i] for i in hand_all] == [8]  # 10 images, frame 0 has no hand in either camera
+    assert set(rows["train_steps"]) == {30} and set(rows["gaussians"]) == {123}
+
+
+def test_a_group_without_images_has_no_row():
+    run = _run("interactavatar")
+    run.metrics["contact"][:] = False
+    rows = _comparison_rows([run])
+    assert "contact" not in set(rows["contact"]) and {"all", "no_contact"} == set(rows["contact"])
+
+
+def test_shared_warmups_count_once_in_the_cost():
+    runs = [_run("a", "k0"), _run("b", "k0"), _run("c", "k1")]
+    shared = {"capture": {"timings": {"wall_s": 100.0}}}
+    cost = _cost(runs, shared)
+    assert cost["warmups_trained"] == 2
+    assert cost["total_wall_s"] == pytest.approx(100 + 2 * 10 + 3 * (5 + 2))
+    assert cost["unshared_wall_s"] == pytest.approx(3 * 100 + 3 * 10 + 3 * (5 + 2))
+
+
+def test_tables_say_whether_the_budget_was_the_same_and_what_is_missing():
+    same = _tables([_run("interactavatar"), _run("gaussian_avatars")],
+                   _comparison_rows([_run("interactavatar"), _run("gaussian_avatars")]), ["no_pbd"],
+                   {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0})
+    assert any("same number of optimisation steps" in n for n in same["notes"])
+    assert any("method=no_pbd" in n for n in same["notes"])
+    table1 = same["tables"][0]
+    assert [row[1] for row in table1["rows"]] == ["GAUSSIAN_AVATARS", "INTERACTAVATAR"] * 2  # the paper's order
+    assert table1["rows"][1][5] == "29.85"  # the paper's novel-view PSNR beside ours
+    other = _run("no_patch")
+    other.manifests["dynamic"]["metrics"]["steps"] = 11
+    unfair = _tables([_run("interactavatar"), other], _comparison_rows([_run("interactavatar"), other]), [],
+                     {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0})
+    assert any("not fair" in n for n in unfair["notes"])
+
+
+def test_showcase_frames_spread_over_the_contact_frames_and_fall_back_to_all():
+    contact = np.array([0, 1, 1, 0, 1, 1, 1], dtype=bool)
+    assert showcase_pairs(contact, 3) == [(1, 0), (4, 0), (6, 0)]
+    assert showcase_pairs(contact, 10) == [(f, 0) for f in (1, 2, 4, 5, 6)]
+    assert showcase_pairs(np.zeros(4, dtype=bool), 2) == [(0, 0), (3, 0)]
+    assert showcase_pairs(contact, 0) == []
+
+
+def test_crops_stay_inside_the_image_and_keep_its_pixels():
+    image = np.arange(64 * 64 * 3, dtype=np.uint8).reshape(64, 64, 3)
+    inside = _crop(image, np.array([10.0, 20.0, 26.0, 36.0]), 16)  # a 16 px box: no resampling
+    np.testing.assert_array_equal(inside, image[20:36, 10:26])
+    edge = _crop(image, np.array([60.0, 0.0, 64.0, 2.0]), 16)  # at the corner: shifted inside, at least 8 px
+    np.testing.assert_array_equal(edge, np.repeat(np.repeat(image[0:8, 56:64], 2, 0), 2, 1))
