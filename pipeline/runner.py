@@ -25,7 +25,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.config import changed_keys, config_subset
+from pipeline.config import ConfigError, changed_keys, config_subset
 from pipeline.manifest import (
     Manifest,
     ManifestError,
@@ -39,7 +39,7 @@ from pipeline.monitor import ResourceMonitor
 from pipeline.registry import StageRegistry
 from pipeline.sources import changed_sources, hash_sources
 from pipeline.stage import Stage, StageContext
-from pipeline.workspace import Artifact, LockTimeout, Workspace
+from pipeline.workspace import Artifact, LockTimeout, Workspace, subject_problem
 
 Log = Callable[[str], None]
 
@@ -143,18 +143,29 @@ class Runner:
         for name in s.cross_method_inputs:
             for method in methods or ():
                 a = Artifact(name, str(method))
-                if a.id in pending or self._verified.get(a.id) or self._verify(a):
-                    out[a.id] = a
+                if a.key in pending or self._verified.get(a.key) or self._verify(a):
+                    out[a.key] = a
+        other = s.input_subject(self.cfg) if s.input_subject is not None else None
+        if other is not None and other != self.ws.subject:
+            problem = subject_problem(other)
+            if problem:
+                raise ConfigError(f"stage '{s.name}' reads another subject: {problem}")
+            out.update({a.key: a for a in (Artifact(name, None, other) for name in s.subject_inputs)})
         return out
 
-    def _context_inputs(self, s: Stage, inputs: dict[str, Artifact]) -> tuple[dict[str, Path], dict[str, dict[str, Path]]]:
-        """(stage -> dir of the regular inputs, stage -> method -> dir of the cross-method ones)."""
+    def _context_inputs(self, s: Stage, inputs: dict[str, Artifact]
+                        ) -> tuple[dict[str, Path], dict[str, dict[str, Path]], dict[str, Path]]:
+        """(stage -> dir of the regular inputs, stage -> method -> dir of the cross-method ones,
+        stage -> dir of the other subject's)."""
         regular = {name: self.ws.artifact_dir(inputs[name]) for name in s.inputs}
         cross: dict[str, dict[str, Path]] = {name: {} for name in s.cross_method_inputs}
+        other: dict[str, Path] = {}
         for key, a in inputs.items():
-            if key not in regular:
+            if a.subject is not None:
+                other[a.stage] = self.ws.artifact_dir(a)
+            elif key not in regular:
                 cross[a.stage][str(a.method)] = self.ws.artifact_dir(a)
-        return regular, cross
+        return regular, cross, other
 
     # ----------------------------------------------------------------- decisions
     def _upstream_digests(self, s: Stage, inputs: dict[str, Artifact],
@@ -163,16 +174,17 @@ class Runner:
         digests: dict[str, str] = {}
         rerunning: list[str] = []
         for key, a in inputs.items():
-            if a.id in pending:
+            if a.key in pending:
                 rerunning.append(key)
                 continue
-            manifest = self._verified.get(a.id) or self._verify(a)
+            manifest = self._verified.get(a.key) or self._verify(a)
             if manifest is None:
                 up_dir = self.ws.artifact_dir(a)
                 method = f" method={a.method}" if a.method else ""
                 raise MissingUpstream(
-                    f"stage '{s.name}' reads '{a.id}', which has no complete artifact in {up_dir}; "
-                    f"run it first (e.g. interactavatar subject={self.ws.subject}{method} run.until={a.stage})"
+                    f"stage '{s.name}' reads '{a.key}', which has no complete artifact in {up_dir}; "
+                    f"run it first (e.g. interactavatar subject={a.subject or self.ws.subject}{method} "
+                    f"run.until={a.stage})"
                 )
             digests[key] = _input_digest(s, manifest)
         return digests, rerunning
@@ -190,18 +202,18 @@ class Runner:
         if manifest is None or verify_outputs(self.ws.artifact_dir(a), manifest,
                                               self.registry[a.stage].outputs) is not None:
             return None
-        self._verified[a.id] = manifest
+        self._verified[a.key] = manifest
         return manifest
 
     def _forget_replaced_inputs(self, inputs: dict[str, Artifact]) -> None:
         """Drop remembered verifications of inputs that another run replaced since (call under the locks)."""
         for a in inputs.values():
-            known = self._verified.get(a.id)
+            known = self._verified.get(a.key)
             if known is None:
                 continue
             current = self._readable_manifest(a)
             if current is None or (current.key, current.output_digest) != (known.key, known.output_digest):
-                del self._verified[a.id]
+                del self._verified[a.key]
 
     def _source_digests(self, s: Stage) -> dict[str, str] | None:
         """Digests of the user files the stage imports, or ``None`` when it declares none."""
@@ -249,7 +261,7 @@ class Runner:
             return decision(True, _why_key_changed(manifest, s.version, config, upstream, sources))
         problem = verify_outputs(stage_dir, manifest, s.outputs)
         if problem is None:
-            self._verified[a.id] = manifest
+            self._verified[a.key] = manifest
         return decision(problem is not None, problem or "cached")
 
     def _same_key_elsewhere(self, s: Stage, key: str) -> Artifact | None:
@@ -277,7 +289,7 @@ class Runner:
                 continue
             d = self._decide(s, self.selection.force, pending)
             if d.run:
-                pending.add(self.artifact(s.name).id)
+                pending.add(self.artifact(s.name).key)
                 other = None if self.selection.force else self._same_key_elsewhere(s, d.key)
                 if other is not None:
                     d.reason += f"; shared with method {other.method}"
@@ -307,7 +319,7 @@ class Runner:
             d = self._decide(s, self.selection.force, set())
             if not d.run:
                 self.ws.discard_leftovers(a)
-                report = StageReport(s.name, "cached", d.reason, metrics=self._verified[a.id].metrics)
+                report = StageReport(s.name, "cached", d.reason, metrics=self._verified[a.key].metrics)
                 self._log_decision(report)
                 return report
             other = None if self.selection.force else self._same_key_elsewhere(s, d.key)
@@ -319,7 +331,7 @@ class Runner:
             tmp = self.ws.new_tmp_dir(a)
             scratch = self.ws.scratch_dir(a, d.key)
             try:
-                regular, cross = self._context_inputs(s, d.inputs)
+                regular, cross, other_subject = self._context_inputs(s, d.inputs)
                 ctx = StageContext(
                     cfg=self.cfg,
                     subject=self.ws.subject,
@@ -329,6 +341,7 @@ class Runner:
                     show_progress=self.show_progress,
                     method=self.method,
                     method_inputs=cross,
+                    subject_inputs=other_subject,
                 )
                 with ResourceMonitor() as monitor:
                     s.fn(ctx)
@@ -354,7 +367,7 @@ class Runner:
                 write_manifest(tmp, manifest)
                 self.ws.publish(a, tmp)
                 self.ws.discard_scratch(a)
-                self._verified[a.id] = manifest
+                self._verified[a.key] = manifest
             except BaseException as exc:
                 shutil.rmtree(tmp, ignore_errors=True)
                 self.ws.discard_empty_scratch(scratch)
@@ -388,7 +401,7 @@ class Runner:
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        self._verified[a.id] = manifest
+        self._verified[a.key] = manifest
         report = StageReport(s.name, "shared", f"{d.reason}; same key as method {other.method}: its artifact "
                              f"is shared, not recomputed", metrics=manifest.metrics)
         self._log_decision(report)

@@ -22,7 +22,10 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
   that reads a per-method stage is per-method itself, except through ``cross_method_inputs``;
 - ``cross_method_inputs``, ``methods_key``: per-method stages whose artifacts of *several* methods the
   stage reads (the comparison): those of every method named by the config list at ``methods_key`` that
-  has a complete artifact; their digests enter the key, so a method evaluated later reruns the stage.
+  has a complete artifact; their digests enter the key, so a method evaluated later reruns the stage;
+- ``subject_inputs``, ``input_subject``: shared stages of *another subject* of the same outputs folder
+  that the stage reads (a reenactment's driver ``fit``) when ``input_subject(cfg)`` names one (``None``:
+  none this time); their digests enter the key like any input's, so re-fitting the driver reruns it.
 
 Stages never import each other: they talk only through artifacts.
 """
@@ -78,6 +81,7 @@ class StageContext:
     show_progress: bool = True
     method: str | None = None
     method_inputs: Mapping[str, Mapping[str, Path]] = field(default_factory=dict)
+    subject_inputs: Mapping[str, Path] = field(default_factory=dict)
 
     def input_dir(self, stage: str) -> Path:
         """Artifact directory of a declared upstream stage (of this run's method where it is per-method)."""
@@ -87,6 +91,14 @@ class StageContext:
             raise KeyError(
                 f"stage reads '{stage}' but does not declare it in inputs={sorted(self.inputs)}"
             ) from exc
+
+    def subject_input_dir(self, stage: str) -> Path:
+        """Artifact directory of a declared ``subject_inputs`` stage of the other subject ``input_subject`` names."""
+        try:
+            return self.subject_inputs[stage]
+        except KeyError as exc:
+            raise KeyError(f"stage reads '{stage}' of another subject, but input_subject names none for this "
+                           f"config or the stage does not declare it in subject_inputs") from exc
 
     def method_dirs(self, stage: str) -> Mapping[str, Path]:
         """method name -> complete artifact directory of ``stage``, for a declared cross-method input."""
@@ -102,6 +114,7 @@ class StageContext:
 
 
 StageFn = Callable[[StageContext], None]
+SubjectChooser = Callable[[DictConfig], "str | None"]
 
 
 @dataclass(frozen=True)
@@ -123,11 +136,14 @@ class Stage:
     per_method: bool = False
     cross_method_inputs: tuple[str, ...] = ()
     methods_key: str | None = None
+    subject_inputs: tuple[str, ...] = ()
+    input_subject: SubjectChooser | None = None
 
     @property
     def reads(self) -> tuple[str, ...]:
-        """Every stage this one reads (``inputs`` and ``cross_method_inputs``): its edges in the DAG."""
-        return self.inputs + tuple(n for n in self.cross_method_inputs if n not in self.inputs)
+        """Every stage this one reads (``inputs``, ``cross_method_inputs``, ``subject_inputs``): its DAG edges."""
+        extra = (*self.cross_method_inputs, *self.subject_inputs)
+        return self.inputs + tuple(dict.fromkeys(n for n in extra if n not in self.inputs))
 
     def __post_init__(self) -> None:
         if not self.name or not self.name.replace("_", "").isalnum():
@@ -138,6 +154,8 @@ class Stage:
             raise ValueError(f"stage '{self.name}' lists itself as an input")
         if bool(self.cross_method_inputs) != (self.methods_key is not None):
             raise ValueError(f"stage '{self.name}': cross_method_inputs and methods_key go together")
+        if bool(self.subject_inputs) != (self.input_subject is not None):
+            raise ValueError(f"stage '{self.name}': subject_inputs and input_subject go together")
         for key in self.cache_exclude:
             if not any(key.startswith(f"{k}.") for k in self.config_keys):
                 raise ValueError(f"stage '{self.name}': cache_exclude key '{key}' is not below one of its "
@@ -159,6 +177,8 @@ def stage(
     per_method: bool = False,
     cross_method_inputs: Iterable[str] = (),
     methods_key: str | None = None,
+    subject_inputs: Iterable[str] = (),
+    input_subject: SubjectChooser | None = None,
 ) -> Callable[[StageFn], Stage]:
     """Decorator that turns ``fn(ctx)`` into a :class:`Stage`; the docstring becomes its description."""
 
@@ -178,6 +198,8 @@ def stage(
             per_method=per_method,
             cross_method_inputs=tuple(cross_method_inputs),
             methods_key=methods_key,
+            subject_inputs=tuple(subject_inputs),
+            input_subject=input_subject,
             description=(fn.__doc__ or "").strip().splitlines()[0] if fn.__doc__ else "",
         )
 

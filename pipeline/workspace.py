@@ -57,15 +57,22 @@ def method_problem(method: object, key: str = "method.name") -> str | None:
 
 @dataclass(frozen=True, order=True)
 class Artifact:
-    """One stage's artifact: shared by every method (``method=None``) or one method's own."""
+    """One stage's artifact: shared by every method (``method=None``) or one method's own; of the run's
+    subject (``subject=None``) or of another subject in the same outputs folder (a driver's ``fit``)."""
 
     stage: str
     method: str | None = None
+    subject: str | None = None
 
     @property
     def id(self) -> str:
-        """``stage`` or ``stage@method``: names its lock, temporary and scratch entries and its upstream key."""
+        """``stage`` or ``stage@method``: names its lock, temporary and scratch entries in its subject."""
         return self.stage if self.method is None else f"{self.stage}@{self.method}"
+
+    @property
+    def key(self) -> str:
+        """How a reader's manifest names it among its inputs: ``id``, or ``subject:id`` for another subject."""
+        return self.id if self.subject is None else f"{self.subject}:{self.id}"
 
 
 def outputs_problem(outputs: str | Path) -> str | None:
@@ -98,10 +105,15 @@ class Workspace:
         return self.root / stage
 
     def artifact_dir(self, artifact: Artifact) -> Path:
-        """Directory of ``artifact``: ``<stage>/``, or ``methods/<method>/<stage>/`` for a method's own."""
+        """Directory of ``artifact``: ``<stage>/``, or ``methods/<method>/<stage>/`` for a method's own (under
+        its subject's folder when it names another subject)."""
+        root = self._subject_root(artifact)
         if artifact.method is None:
-            return self.stage_dir(artifact.stage)
-        return self.root / METHODS_DIR / artifact.method / artifact.stage
+            return root / artifact.stage
+        return root / METHODS_DIR / artifact.method / artifact.stage
+
+    def _subject_root(self, artifact: Artifact) -> Path:
+        return self.root if artifact.subject in (None, self.subject) else self.root.parent / artifact.subject
 
     def method_artifacts(self, stage: str) -> list[Artifact]:
         """Every method's artifact of the per-method ``stage`` that has a directory, by method name."""
@@ -121,24 +133,26 @@ class Workspace:
 
         While held, no other run can write ``artifact`` or replace any of ``reads``; other
         readers of ``reads`` may run alongside. Locks are taken in ``order`` (the DAG's
-        topological order of stage names; methods of one stage by name), so runs never deadlock.
+        topological order of stage names; then by subject and method), so runs never deadlock, also when
+        they read each other's subjects.
         """
-        lock_dir = self.root / ".locks"
-        lock_dir.mkdir(parents=True, exist_ok=True)
         wanted = {a: True for a in reads} | {artifact: False}
         rank = {name: i for i, name in enumerate(order)}
-        ordered = sorted(wanted, key=lambda a: (rank[a.stage], a.method or ""))
-        requests = [(lock_dir / f"{a.id}.lock", wanted[a], f"stage '{a.id}' of subject '{self.subject}'")
+        ordered = sorted(wanted, key=lambda a: (rank[a.stage], a.subject or self.subject, a.method or ""))
+        requests = [(self._lock_path(a), wanted[a], f"stage '{a.id}' of subject '{a.subject or self.subject}'")
                     for a in ordered]
         with flock_all(requests, timeout_s):
             yield
 
+    def _lock_path(self, artifact: Artifact) -> Path:
+        lock_dir = self._subject_root(artifact) / ".locks"
+        lock_dir.mkdir(parents=True, exist_ok=True)
+        return lock_dir / f"{artifact.id}.lock"
+
     @contextmanager
     def read_lock(self, artifact: Artifact) -> Iterator[None]:
         """A read lock on ``artifact`` if it is free now, else :class:`LockTimeout` at once (never waits)."""
-        lock_dir = self.root / ".locks"
-        lock_dir.mkdir(parents=True, exist_ok=True)
-        with flock(lock_dir / f"{artifact.id}.lock", shared=True, timeout_s=0.0,
+        with flock(self._lock_path(artifact), shared=True, timeout_s=0.0,
                    what=f"stage '{artifact.id}' of subject '{self.subject}'"):
             yield
 
