@@ -9,11 +9,12 @@ from typing import Protocol
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig, sequence_conditioning
 from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.gaussians.model import BoundGaussians
+from avatar.pbd import PBDConfig, StiffnessFileError, face_relative_stiffness
 from avatar.splatting import EmbeddedGaussians
 from avatar.training.splatting import SplattingConfig
 from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
@@ -324,6 +325,33 @@ def write_frame_ply(path: Path, g: WorldGaussians) -> None:
 def model_files(cfg: DictConfig) -> list[Path]:
     """The official FLAME/MANO files the config names (``model.*_path``), for source hashing."""
     return [Path(p).resolve() for p in (cfg.model.flame_path, cfg.model.mano_path) if p and Path(p).is_file()]
+
+
+def pbd_solver_config(cfg: DictConfig) -> PBDConfig:
+    """The XPBD solver's settings of ``stage.pbd.solver`` (one clear error when out of range)."""
+    try:
+        return PBDConfig(**OmegaConf.to_container(cfg.stage.pbd.solver, resolve=True))
+    except ValueError as exc:
+        raise SchemaError(f"stage.pbd.solver: {exc}") from exc
+
+
+def face_stiffness(cfg: DictConfig, head: TemplateModel, solver: PBDConfig) -> tuple[torch.Tensor, str]:
+    """(V,) relative attachment stiffness of the face and where it came from (``model.face_stiffness_path``,
+    the template's skin-to-skull distance, or a uniform estimate)."""
+    try:
+        rel, source = face_relative_stiffness(head.num_vertices, head.inner_distance,
+                                              cfg.model.get("face_stiffness_path"), solver.reference_thickness_m,
+                                              solver.stiffness_power)
+    except StiffnessFileError as exc:
+        raise SchemaError(f"model.face_stiffness_path: {exc}") from exc
+    return torch.from_numpy(rel), source
+
+
+def contact_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG001 - the SourceLister signature
+    """Source lister of stages that simulate contact: the official model files and the face stiffness file."""
+    stiffness = cfg.model.get("face_stiffness_path")
+    extra = [Path(stiffness).resolve()] if stiffness and Path(stiffness).is_file() else []
+    return SourceFiles(Path("/"), tuple(model_files(cfg) + extra))
 
 
 def model_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG001 - the SourceLister signature

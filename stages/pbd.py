@@ -13,16 +13,14 @@ manifest's metrics only, so rerunning the stage on the same inputs writes identi
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
 
 from avatar.pbd import (
-    PBDConfig, StiffnessFileError, detect_contacts, face_relative_stiffness, moving_vertex_errors, single_threaded,
-    solve_sequence,
+    PBDConfig, SequenceDeformation, detect_contacts, moving_vertex_errors, simulate_sequence, single_threaded,
 )
 from avatar.templates import TemplateModel
 from avatar.training.posing import posed_keypoints
@@ -31,9 +29,8 @@ from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
-from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
-from stages.common import model_files, templates
+from stages.common import contact_sources, face_stiffness, pbd_solver_config, templates
 
 SOURCES = ("simulate", "ground_truth", "provided", "none")
 
@@ -47,37 +44,15 @@ class PBDStageConfig:
     solver: PBDConfig
 
 
-@dataclass
-class _Deformation:
-    """One sequence: offsets (T, V, 3) metres, face (T, V) and hand (T, Vh) contact flags, one report
-    row per frame, and the wall time (s) of each simulated frame."""
-
-    offsets: np.ndarray
-    face_contact: np.ndarray
-    hand_contact: np.ndarray
-    frames: list[dict] = field(default_factory=list)
-    seconds: list[float] = field(default_factory=list)
-
-
-def _sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG001 - the SourceLister signature
-    """The official model files and the face stiffness file: replacing one reruns the stage."""
-    stiffness = cfg.model.get("face_stiffness_path")
-    extra = [Path(stiffness).resolve()] if stiffness and Path(stiffness).is_file() else []
-    return SourceFiles(Path("/"), tuple(model_files(cfg) + extra))
-
-
 @stage("pbd", inputs=("capture", "fit"), config_keys=("model", "stage.pbd"),
        outputs=("train/deform.parquet", "train/contacts.parquet", "pbd_report.json"), version="1",
-       config_schema=PBDStageConfig, sources=_sources)
+       config_schema=PBDStageConfig, sources=contact_sources)
 def pbd(ctx: StageContext) -> None:
     """Face offsets and contact flags per frame from stage.pbd.source; pbd_report.json."""
     conf = ctx.cfg.stage.pbd
     if conf.source not in SOURCES:
         raise SchemaError(f"stage.pbd.source={conf.source!r}: choose one of {SOURCES}")
-    try:
-        solver = PBDConfig(**OmegaConf.to_container(conf.solver, resolve=True))
-    except ValueError as exc:
-        raise SchemaError(f"stage.pbd.solver: {exc}") from exc
+    solver = pbd_solver_config(ctx.cfg)
     cap_dir, fit_dir = ctx.input_dir("capture"), ctx.input_dir("fit")
     index = CaptureIndex.read(cap_dir)
     head, hand = templates(ctx.cfg.model)
@@ -85,13 +60,7 @@ def pbd(ctx: StageContext) -> None:
     report: dict = {"source": conf.source, "frame_convention": "world-frame offsets added to the posed face",
                     "sequences": {}}
     if conf.source == "simulate":
-        path = ctx.cfg.model.get("face_stiffness_path")
-        try:
-            rel, report["stiffness"] = face_relative_stiffness(head.num_vertices, head.inner_distance, path,
-                                                               solver.reference_thickness_m, solver.stiffness_power)
-        except StiffnessFileError as exc:
-            raise SchemaError(f"model.face_stiffness_path: {exc}") from exc
-        stiffness = torch.from_numpy(rel)
+        stiffness, report["stiffness"] = face_stiffness(ctx.cfg, head, solver)
     faces, hand_faces = torch.from_numpy(np.array(head.faces)), torch.from_numpy(np.array(hand.faces))
     preds, refs, contacts, seconds = [], [], [], []
     for seq, info in ctx.progress(list(index.sequences.items()), desc="pbd: sequences"):
@@ -99,7 +68,7 @@ def pbd(ctx: StageContext) -> None:
         posed = posed_keypoints({k: np.asarray(table[k]) for k in PARAM_COLUMNS}, head, hand)
         face, hand_v = torch.from_numpy(posed["face_vertices"]), torch.from_numpy(posed["hand_vertices"])
         if stiffness is not None:
-            deform = _simulate(face, hand_v, faces, hand_faces, stiffness, solver)
+            deform = simulate_sequence(face, hand_v, faces, hand_faces, stiffness, solver)
         else:
             deform = _from_source(conf.source, cap_dir, seq, info, face, hand_v, faces, hand_faces, head, solver)
         _write(ctx.out_dir / seq, deform)
@@ -118,25 +87,8 @@ def pbd(ctx: StageContext) -> None:
     _metrics(ctx, report, preds, refs, contacts, seconds)
 
 
-def _simulate(face: torch.Tensor, hand: torch.Tensor, faces: torch.Tensor, hand_faces: torch.Tensor,
-              stiffness: torch.Tensor, cfg: PBDConfig) -> _Deformation:
-    """XPBD on every frame (T, V, 3) / (T, Vh, 3) (warm-started from the previous one if configured)."""
-    results = solve_sequence(face, hand, faces, hand_faces, stiffness, cfg)
-    out = _Deformation(np.stack([r.offsets.numpy() for r in results]),
-                       np.stack([r.face_contact.numpy() for r in results]),
-                       np.stack([r.hand_contact.numpy() for r in results]),
-                       seconds=[r.seconds for r in results if r.simulated])
-    out.frames = [{
-        "frame": t, "near": r.near, "simulated": r.simulated, "iterations": r.iterations,
-        "free_vertices": r.free_vertices, "contact_vertices": int(r.face_contact.sum()),
-        "penetration_max_mm": r.penetration_max_m * 1e3, "penetration_mean_mm": r.penetration_mean_m * 1e3,
-        "max_offset_mm": r.max_offset_m * 1e3,
-    } for t, r in enumerate(results)]
-    return out
-
-
 def _from_source(source: str, cap_dir: Path, seq: str, info: SequenceInfo, face: torch.Tensor, hand: torch.Tensor,
-                 faces: torch.Tensor, hand_faces: torch.Tensor, head: TemplateModel, cfg: PBDConfig) -> _Deformation:
+                 faces: torch.Tensor, hand_faces: torch.Tensor, head: TemplateModel, cfg: PBDConfig) -> SequenceDeformation:
     """Offsets from the ground truth, the dataset, or zeros; contact flags detected on the undeformed
     meshes (or the dataset's own contacts for ``provided``, when it ships them)."""
     T, V = face.shape[:2]
@@ -162,14 +114,14 @@ def _from_source(source: str, cap_dir: Path, seq: str, info: SequenceInfo, face:
     if source == "provided" and info.has_provided("contacts"):
         shipped = read_table(provided_path(cap_dir, seq, "contacts"), CONTACTS)
         face_contact, hand_contact = np.asarray(shipped["face"]) > 0.5, np.asarray(shipped["hand"]) > 0.5
-    out = _Deformation(offsets, face_contact, hand_contact)
+    out = SequenceDeformation(offsets, face_contact, hand_contact)
     out.frames = [{"frame": t, "near": bool(face_contact[t].any()), "simulated": False, "iterations": 0,
                    "contact_vertices": int(face_contact[t].sum()),
                    "max_offset_mm": float(np.linalg.norm(offsets[t], axis=1).max()) * 1e3} for t in range(T)]
     return out
 
 
-def _write(seq_dir: Path, deform: _Deformation) -> None:
+def _write(seq_dir: Path, deform: SequenceDeformation) -> None:
     """deform.parquet and contacts.parquet of one sequence."""
     T = deform.offsets.shape[0]
     contact = deform.face_contact.any(axis=1) | (np.abs(deform.offsets).reshape(T, -1).max(axis=1) > 0)

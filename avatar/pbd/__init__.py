@@ -2,7 +2,7 @@
 
 ``solver`` (per-frame XPBD solve, sequences with warm start), ``constraints`` (stretch, bending,
 attachment, collision projections), ``collision`` (closest points and inside test on the hand),
-``topology`` (edges, bending stencils, colouring), ``stiffness`` (per-vertex stiffness from tissue
+``sequence`` (a sequence with per-frame report rows), ``topology`` (edges, bending stencils, colouring), ``stiffness`` (per-vertex stiffness from tissue
 thickness), ``convention`` (world vs DECAF canonical offsets), ``evaluation`` (errors against a
 reference deformation).
 """
@@ -12,10 +12,12 @@ from avatar.pbd.evaluation import VertexErrors, moving_vertex_errors
 from avatar.pbd.solver import (
     FaceTopology, FrameResult, PBDConfig, detect_contacts, single_threaded, solve_frame, solve_sequence,
 )
+from avatar.pbd.sequence import SequenceDeformation, simulate_sequence
 from avatar.pbd.stiffness import StiffnessFileError, face_relative_stiffness
 
 __all__ = [
-    "FaceTopology", "FrameResult", "PBDConfig", "StiffnessFileError", "VertexErrors", "detect_contacts",
-    "face_relative_stiffness", "moving_vertex_errors", "single_threaded", "solve_frame", "solve_sequence",
+    "FaceTopology", "FrameResult", "PBDConfig", "SequenceDeformation", "StiffnessFileError", "VertexErrors",
+    "detect_contacts", "face_relative_stiffness", "moving_vertex_errors", "simulate_sequence", "single_threaded",
+    "solve_frame", "solve_sequence",
     "world_to_decaf_offsets",
 ]
