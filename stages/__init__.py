@@ -9,7 +9,8 @@ from stages.fit import fit
 from stages.frames import frames
 from stages.keypoints import keypoints
 from stages.pbd import pbd
+from stages.reenact import reenact
 from stages.report import report
 from stages.warmup import warmup
 
-REGISTRY = StageRegistry([capture, frames, keypoints, fit, pbd, warmup, dynamic, evaluate, compare, report])
+REGISTRY = StageRegistry([capture, frames, keypoints, fit, pbd, warmup, dynamic, evaluate, compare, reenact, report])

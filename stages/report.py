@@ -26,7 +26,7 @@ from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
 from stages.common import contact_frames
 
-UPSTREAM = ("capture", "frames", "fit", "pbd", "warmup", "dynamic", "evaluate", "compare")
+UPSTREAM = ("capture", "frames", "fit", "pbd", "warmup", "dynamic", "evaluate", "compare", "reenact")
 
 
 @dataclass
@@ -37,7 +37,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="5", config_schema=ReportConfig, per_method=True,
+       outputs=("report.html",), version="6", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -75,6 +75,8 @@ def report(ctx: StageContext) -> None:
         _pbd_section(ctx.input_dir("pbd")),
         "<h2>Image quality (held-out camera and held-out motion)</h2>",
         _metrics_section(ctx.input_dir("evaluate")),
+        "<h2>Reenactment</h2>",
+        _reenact_section(ctx.input_dir("reenact")),
         "<h2>Methods side by side</h2>",
         _comparison_section(ctx.input_dir("compare")),
         "<h2>Training</h2>",
@@ -86,7 +88,7 @@ def report(ctx: StageContext) -> None:
         f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
         f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
         f"<h2>Renders: ground truth | {html.escape(str(ctx.cfg.method.label))} | its error x4</h2>",
-        *(f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_png_file(ctx.input_dir('evaluate') / 'grids' / (s + '.png'))}'>"
+        *(f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_base64_file(ctx.input_dir('evaluate') / 'grids' / (s + '.png'))}'>"
           for s in SPLITS),
     ]
     page = "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>" \
@@ -167,6 +169,25 @@ def _metrics_section(evaluate_dir: Path) -> str:
     return _table(("method", "split", "region", "images", "PSNR dB", "SSIM", "LPIPS"), rows)
 
 
+def _reenact_section(reenact_dir: Path) -> str:
+    """Who drove the avatar, the contact it made, the render speed, and the videos (playable in the page)."""
+    info = json.loads((reenact_dir / "reenact_report.json").read_text())
+    metrics = json.loads((reenact_dir / MANIFEST_NAME).read_text())["metrics"]
+    simulated = [f for f in info["pbd"]["frames"] if f["simulated"]]
+    worst = max((f["penetration_max_mm"] for f in simulated), default=0.0)
+    text = (f"Driver: {info['driver']}, {info['frames']} frames, head-size ratio {info['head_scale']:.3f}; contact "
+            + (f"simulated on {len(simulated)} frames (worst residual penetration {worst:.2f} mm)"
+               if info["pbd"]["simulated"] else "not simulated (the method has no PBD)")
+            + f"; {metrics['frames_per_second']:.1f} frames per second at {metrics['image_size']} px "
+              f"(model {metrics['model_ms_per_frame']:.0f} ms per frame, rasterizer "
+              f"{metrics['render_ms_per_view']:.0f} ms per view).")
+    videos = "".join(
+        f"<figure style='display:inline-block;margin:4px'><video controls autoplay loop muted playsinline "
+        f"src='data:video/mp4;base64,{_base64_file(path)}'></video><figcaption>{html.escape(path.stem)}</figcaption>"
+        f"</figure>" for path in sorted((reenact_dir / "videos").glob("*.mp4")))
+    return f"<p>{html.escape(text)}</p>{videos}"
+
+
 def _comparison_section(compare_dir: Path) -> str:
     """The compare stage's tables, notes and image rows."""
     tables = json.loads((compare_dir / "tables.json").read_text())
@@ -176,7 +197,7 @@ def _comparison_section(compare_dir: Path) -> str:
     parts.append("<ul>" + "".join(f"<li>{html.escape(note)}</li>" for note in tables["notes"]) + "</ul>")
     for figure in sorted((compare_dir / "figures").glob("*.png")):
         parts.append(f"<h3>{html.escape(figure.stem.replace('_', ' '))}: ground truth, then each method</h3>"
-                     f"<img alt='{html.escape(figure.stem)}' src='data:image/png;base64,{_png_file(figure)}'>")
+                     f"<img alt='{html.escape(figure.stem)}' src='data:image/png;base64,{_base64_file(figure)}'>")
     return "\n".join(parts)
 
 
@@ -220,7 +241,8 @@ def _loss_curve(train_dir: Path, schema: TableSchema = TRAIN_LOG, terms: tuple[s
     return base64.b64encode(buf.getvalue()).decode()
 
 
-def _png_file(path: Path) -> str:
+def _base64_file(path: Path) -> str:
+    """Base64 of a file (a PNG or a video) for a data URI."""
     return base64.b64encode(path.read_bytes()).decode()
 
 

@@ -6,13 +6,17 @@ This is the CI smoke run of the product: never skipped, never marked slow.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from data_schemas.gaussians_ply import read_gaussians_ply
 from data_schemas.metrics import COMPARISON, METRICS
 from data_schemas.tables import read_table
+from data_schemas.web_video import read_web_video
 from stages import REGISTRY
 from stages.export_ply import export_frame
 from tests.conftest import run_cli
@@ -66,6 +70,33 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     exported = read_gaussians_ply(tmp_path / "test_1.ply")
     assert len(exported.means) == len(read_gaussians_ply(stage_dir(subject, "dynamic") / "ply" / "train_0.ply").means)
     assert np.isfinite(exported.means).all() and not np.allclose(exported.means, cloud.means)
+    reenacted = json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text())["metrics"]
+    assert reenacted["frames"] == len(set(metrics["frame"][np.asarray(metrics["split"]) == "self_reenact"]))
+    videos = sorted(p.name for p in (stage_dir(subject, "reenact") / "videos").glob("*.mp4"))
+    assert "orbit.mp4" in videos and len(videos) == reenacted["views"]
+    assert read_web_video(stage_dir(subject, "reenact") / "videos" / "orbit.mp4")[1] == "h264"
+
+    # Reenactment driven by a parameter file: its own held-out motion goes through the motion transfer
+    # (head-size ratio 1 up to the train and test fits' slightly different shapes); a file with NaN
+    # parameters is one clear error and changes nothing.
+    driver = tmp_path / "driver.parquet"
+    shutil.copy(subject / "fit" / "test" / "params.parquet", driver)
+    by_file = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact",
+                      f"reenact.driver={driver}")
+    assert by_file.returncode == 0, by_file.stdout[-3000:] + by_file.stderr[-3000:]
+    manifest = json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text())
+    assert abs(manifest["metrics"]["head_scale"] - 1.0) < 0.02 and manifest["sources"]
+    table = pq.read_table(driver)
+    columns = table.to_pydict()
+    columns["mano_hand_pose"][1][0] = float("nan")
+    pq.write_table(pa.Table.from_pydict(columns, schema=table.schema), driver)
+    bad = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact",
+                  f"reenact.driver={driver}")
+    assert bad.returncode == 1 and str(driver) in bad.stderr and "contains NaN" in bad.stderr, bad.stderr
+    assert json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text()) == manifest
+    restored = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact")
+    assert restored.returncode == 0, restored.stderr[-3000:]
+
     html = (stage_dir(subject, "report") / "report.html").read_text()
     assert "Image quality" in html and "data:image/png;base64" in html
     assert "Fitted meshes" in html and "fitted to the keypoints of the train views" in html

@@ -1,0 +1,223 @@
+"""Stage ``reenact``: drive the method's trained avatar with a parameter sequence and make it watchable.
+
+``reenact.driver``: ``self`` (the subject's own held-out ``reenact.sequence``, normally ``test``), another
+subject of the same outputs folder (its ``fit`` of that sequence becomes an input: re-fitting the driver
+reruns this stage) or a ``params.parquet`` file (its content digest enters the cache key). Another actor's
+motion is transferred onto the target (:func:`avatar.reenact.transfer_motion`: the target keeps its shape
+and place, the hand keeps the driver's hand-to-head transform scaled by the head sizes); then contact is
+simulated on the target's face with the pbd stage's solver and settings (when the method uses PBD) and the
+model renders every frame, its interaction module on the simulated offsets.
+
+Writes ``videos/<camera_id>.mp4`` (the chosen capture cameras, cropped to the performance) and
+``videos/orbit.mp4`` (one turn around the head over the sequence), H.264 MP4 that plays in a browser;
+``frames/<view>/<frame>.png``; ``ply/<frame>.ply`` (world-space 3DGS, any splat viewer);
+``params.parquet`` (the driving parameters as applied), ``deform.parquet`` (the simulated offsets) and
+``reenact_report.json`` (driver, head-size ratio, per-frame residual penetration, render timings).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from avatar.pbd import simulate_sequence
+from avatar.reenact import MotionTransferError, transfer_motion
+from avatar.reenact.cameras import framed_intrinsics, orbit, orbit_intrinsics
+from avatar.render.gaussians import render_gaussians, resolve_backend
+from avatar.templates.lbs import batch_rodrigues
+from avatar.training.posing import posed_keypoints, posed_meshes
+from avatar.dynamic import sequence_conditioning
+from data_schemas.cameras import read_cameras
+from data_schemas.capture import CaptureIndex
+from data_schemas.deform import DEFORM
+from data_schemas.images import write_png
+from data_schemas.params import PARAM_COLUMNS, PARAMS
+from data_schemas.tables import SchemaError, read_table, write_table
+from data_schemas.web_video import write_web_video
+from data_schemas.writes import write_json
+from pipeline.sources import SourceFiles
+from pipeline.stage import StageContext, stage
+from stages.common import (
+    contact_sources, face_stiffness, load_params, load_trained, pbd_solver_config, posed_gaussians, templates,
+    write_frame_ply,
+)
+
+
+@dataclass
+class ReenactConfig:
+    """Types of ``stage.reenact`` (values in conf/stage/reenact.yaml)."""
+
+    cameras: list[str]
+    orbit: bool
+    margin: float
+    image_size: int
+    background: list[float]
+    fps: float
+    ply: bool
+    backend: str
+
+
+def driver_subject(cfg: DictConfig) -> str | None:
+    """The other subject ``reenact.driver`` names, or ``None`` (``self`` or a file)."""
+    driver = str(cfg.reenact.driver)
+    return None if driver == "self" or _is_file(driver) else driver
+
+
+def _is_file(driver: str) -> bool:
+    return driver.endswith(".parquet") or "/" in driver
+
+
+def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
+    """The contact model's files, and the driver's parameter file when ``reenact.driver`` names one."""
+    files = contact_sources(cfg, subject)
+    driver = str(cfg.reenact.driver)
+    if not _is_file(driver):
+        return files
+    path = Path(driver).resolve()
+    if not path.is_file():
+        raise SchemaError(f"reenact.driver={driver}: no such file; give a params.parquet (the fit stage's "
+                          f"schema), 'self', or a subject of this outputs folder")
+    return SourceFiles(Path("/"), (*files.files, path))
+
+
+@stage("reenact", inputs=("capture", "fit", "dynamic"),
+       config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
+       outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
+       config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",), input_subject=driver_subject,
+       sources=_sources)
+def reenact(ctx: StageContext) -> None:
+    """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
+    conf, cfg = ctx.cfg.stage.reenact, ctx.cfg
+    head, hand = templates(cfg.model)
+    params, driver_label, scale = _driving_params(ctx)
+    posed = posed_keypoints(params, head, hand)
+    face_v, hand_v = torch.from_numpy(posed["face_vertices"]), torch.from_numpy(posed["hand_vertices"])
+    T = face_v.shape[0]
+    faces, hand_faces = torch.tensor(np.array(head.faces)), torch.tensor(np.array(hand.faces))
+    if bool(cfg.method.pbd):
+        solver = pbd_solver_config(cfg)
+        stiffness, stiffness_source = face_stiffness(cfg, head, solver)
+        deform = simulate_sequence(face_v, hand_v, faces, hand_faces, stiffness, solver)
+        offsets, pbd_frames = deform.offsets, deform.frames
+    else:
+        offsets, pbd_frames, stiffness_source = np.zeros(face_v.shape), [], None
+    meshes = posed_meshes(params, head, hand)
+    meshes.vertices[:, :head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
+    cond = sequence_conditioning(params, head, hand, torch.from_numpy(offsets))
+    model = load_trained(ctx.input_dir("dynamic"))
+    size = int(conf.image_size) or int(cfg.quality.image_size)
+    views = _views(ctx, meshes.vertices.numpy().reshape(-1, 3), params, size)
+    background = torch.tensor(list(conf.background), dtype=torch.float32)
+    rendered: dict[str, list[np.ndarray]] = {name: [] for name in views}
+    model_s, render_s = 0.0, 0.0
+    if conf.ply:
+        (ctx.out_dir / "ply").mkdir()
+    for t in ctx.progress(range(T), desc="reenact", total=T):
+        with torch.no_grad():
+            start = time.perf_counter()
+            g = posed_gaussians(model, cond, meshes.vertices[t], t)
+            model_s += time.perf_counter() - start
+            for name, (K, w2c) in views.items():
+                start = time.perf_counter()
+                out = render_gaussians(g.means, g.quats, g.scales, g.opacities, g.colors,
+                                       torch.tensor(K[t], dtype=torch.float32),
+                                       torch.tensor(w2c[t], dtype=torch.float32), size, size, background,
+                                       backend=conf.backend)
+                render_s += time.perf_counter() - start
+                rendered[name].append((out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+            if conf.ply:
+                write_frame_ply(ctx.out_dir / "ply" / f"{t:05d}.ply", g)
+    fps = float(conf.fps) or _capture_fps(ctx.input_dir("capture"))
+    for name, images in rendered.items():
+        write_web_video(ctx.out_dir / "videos" / f"{name}.mp4", images, fps)
+        for t, image in enumerate(images):
+            write_png(ctx.out_dir / "frames" / name / f"{t:05d}.png", image)
+    if not conf.ply:
+        (ctx.out_dir / "ply").mkdir()
+    write_table(ctx.out_dir / "params.parquet", PARAMS, {"frame": np.arange(T), **params})
+    contact = np.abs(offsets).reshape(T, -1).max(axis=1) > 0
+    write_table(ctx.out_dir / "deform.parquet", DEFORM,
+                {"frame": np.arange(T), "contact": contact, "offsets": offsets.reshape(T, -1)})
+    timings = {"model_ms_per_frame": 1000 * model_s / T, "render_ms_per_view": 1000 * render_s / (T * len(views)),
+               "image_size": size}
+    timings["frames_per_second"] = 1000 / (timings["model_ms_per_frame"] + timings["render_ms_per_view"])
+    simulated = [f for f in pbd_frames if f["simulated"]]
+    write_json(ctx.out_dir / "reenact_report.json", {
+        "driver": driver_label, "sequence": str(cfg.reenact.sequence), "frames": T, "head_scale": scale,
+        "views": {name: {"K": K.tolist(), "world_to_cam": w2c.tolist()} for name, (K, w2c) in views.items()},
+        "views_note": "per frame: K (T, 3, 3) and world_to_cam (T, 4, 4)",
+        "pbd": {"simulated": bool(cfg.method.pbd), "stiffness": stiffness_source, "frames": pbd_frames},
+        "video_fps": fps}, "reenactment report")
+    ctx.metrics.update({
+        "frames": T, "views": len(views), "head_scale": scale, "contact_frames": int(contact.sum()),
+        "simulated_frames": len(simulated),
+        "penetration_max_mm": max((f["penetration_max_mm"] for f in simulated), default=0.0),
+        **timings, "rasterizer": resolve_backend(conf.backend, meshes.vertices),
+    })
+
+
+def _driving_params(ctx: StageContext) -> tuple[dict[str, np.ndarray], str, float]:
+    """(parameters of every output frame, where they came from, head-size ratio target / driver)."""
+    cfg = ctx.cfg
+    driver, sequence = str(cfg.reenact.driver), str(cfg.reenact.sequence)
+    if driver == "self":
+        return load_params(ctx.input_dir("fit"), sequence), f"self ({sequence})", 1.0
+    if _is_file(driver):
+        path = Path(driver)
+        table = read_table(path, PARAMS)
+        source, params = str(path), {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
+    else:
+        path = ctx.subject_input_dir("fit") / sequence / "params.parquet"
+        if not path.is_file():
+            raise SchemaError(f"{path}: the driver '{driver}' has no fitted sequence '{sequence}'; choose "
+                              f"reenact.sequence among its sequences")
+        source, params = f"{driver} ({sequence})", load_params(ctx.subject_input_dir("fit"), sequence)
+    head, hand = templates(cfg.model)
+    try:
+        transferred, scale = transfer_motion(load_params(ctx.input_dir("fit"), "train"), params, head, hand)
+    except MotionTransferError as exc:
+        raise SchemaError(f"{path}: cannot drive subject '{ctx.subject}': {exc}") from exc
+    return transferred, source, scale
+
+
+def _views(ctx: StageContext, points: np.ndarray, params: dict[str, np.ndarray], size: int
+           ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """name -> (K (T, 3, 3), world_to_cam (T, 4, 4)) per frame: the chosen capture cameras, cropped to
+    ``points`` (all frames' vertices), and the orbit around them (one turn over the T frames)."""
+    conf = ctx.cfg.stage.reenact
+    path = ctx.input_dir("capture") / "cameras.parquet"
+    cameras = read_cameras(path)
+    by_id = {c.camera_id: c for c in cameras}
+    wanted = list(conf.cameras) or [c.camera_id for c in cameras if c.split == "test"] + \
+        [next(c.camera_id for c in cameras if c.split == "train")]
+    unknown = [c for c in wanted if c not in by_id]
+    if unknown:
+        raise SchemaError(f"stage.reenact.cameras: {unknown} are not cameras of {path}; choose among {sorted(by_id)}")
+    T = len(params["flame_global_orient"])
+    views = {}
+    for camera_id in wanted:
+        cam = by_id[camera_id]
+        try:
+            K = framed_intrinsics(cam.K, cam.world_to_cam, points, size, float(conf.margin))
+        except ValueError as exc:
+            raise SchemaError(f"stage.reenact.cameras: camera '{camera_id}' of {path}: {exc}") from exc
+        views[camera_id] = (np.repeat(K[None], T, 0), np.repeat(cam.world_to_cam[None], T, 0))
+    if conf.orbit:
+        centre = points.mean(0)
+        radius = float(np.linalg.norm(points - centre, axis=1).max()) * (1 + float(conf.margin))
+        head_rotation = batch_rodrigues(torch.tensor(np.asarray(params["flame_global_orient"][:1], np.float64)))
+        up = head_rotation[0].numpy()[:, 1]  # the head's up axis on the first frame
+        eye = by_id[wanted[0]].cam_to_world[:3, 3]
+        K = orbit_intrinsics(float(np.linalg.norm(eye - centre)), radius, size)
+        views["orbit"] = (np.repeat(K[None], T, 0), np.stack(orbit(eye, centre, up, T)))
+    return views
+
+
+def _capture_fps(capture_dir: Path) -> float:
+    """The capture's frame rate (its first sequence's)."""
+    return float(next(iter(CaptureIndex.read(capture_dir).sequences.values())).frame_rate)
