@@ -78,6 +78,12 @@ class CaptureIndex:
             raise SchemaError(f"{path}: missing or malformed capture index ({exc})") from exc
 
 
+def cross_sequence(performer: str) -> str:
+    """Name of the synthetic sequence in which the subject performs ``performer``'s held-out motion (the
+    ground truth of cross-actor reenactment driven by ``performer``)."""
+    return f"cross_{performer}"
+
+
 def video_path(root: Path, sequence: str, camera_id: str) -> Path:
     return root / sequence / "videos" / f"{camera_id}.mp4"
 

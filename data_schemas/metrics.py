@@ -1,8 +1,9 @@
 """``metrics.parquet``: image quality per method, split, camera, frame and region; ``comparison.parquet``:
 the methods side by side.
 
-``split``: ``novel_view`` (held-out camera, train motion) or ``self_reenact``
-(train cameras, held-out test motion). ``region``: ``full``, ``hand``, ``face``,
+``split``: ``novel_view`` (held-out camera, train motion), ``self_reenact``
+(train cameras, held-out test motion) or ``cross_reenact`` (train cameras, another subject's held-out
+motion transferred onto this one, against the synthetic ground truth of this identity performing it). ``region``: ``full``, ``hand``, ``face``,
 ``interaction`` (the overlap of the hand and face boxes). A metric is NaN where
 the region is absent from the ground-truth frame.
 """
@@ -28,7 +29,7 @@ METRICS = TableSchema(
         Column("lpips", "float32", finite=False),
     ),
 )
-SPLITS = ("novel_view", "self_reenact")
+SPLITS = ("novel_view", "self_reenact", "cross_reenact")  # cross_reenact: when reenact.driver names another subject
 REGIONS = ("full", "hand", "face", "interaction")
 #: split -> (sequence it renders, camera split it renders from)
 SPLIT_SOURCES = {"novel_view": ("train", "test"), "self_reenact": ("test", "train")}

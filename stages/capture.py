@@ -10,7 +10,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig
 
-from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, copy_into_capture, mask_path, video_path
+from data_schemas.capture import (
+    CaptureIndex, SequenceInfo, copy_into_capture, cross_sequence, gt_path, mask_path, video_path,
+)
 from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.deform import DEFORM
 from data_schemas.images import read_png, write_png
@@ -34,6 +36,7 @@ class CaptureConfig:
 
     num_cameras: int
     default_frame_rate: float
+    cross_reenactment: bool
 
 
 def capture_sources(cfg: DictConfig, subject: str) -> SourceFiles:
@@ -61,7 +64,7 @@ def _files_below(folder: Path) -> tuple[Path, ...]:
     config_keys=("dataset", "quality.capture_size", "quality.num_frames_train", "quality.num_frames_test",
                  "quality.supersample", "stage.capture"),
     outputs=("cameras.parquet", "capture.json"),
-    version="3",
+    version="4",
     resources=Resources(cpus=2),
     config_schema=CaptureConfig,
     sources=capture_sources,
@@ -98,12 +101,18 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
         raise SchemaError(f"subject={ctx.subject!r} is not in the synthetic dataset; "
                           f"choose one of {list(ctx.cfg.dataset.subjects)}")
     frames_per_sequence = {"train": q.num_frames_train, "test": q.num_frames_test}
+    # name -> (script, performer): the two sequences, and with stage.capture.cross_reenactment this identity
+    # performing every other subject's held-out motion (the ground truth of cross-actor reenactment)
+    plan = {seq: (seq, None) for seq in SEQUENCES}
+    if conf.cross_reenactment:
+        plan |= {cross_sequence(other): ("test", other) for other in ctx.cfg.dataset.subjects if other != ctx.subject}
     sequences: dict[str, SequenceInfo] = {}
     cameras: list[Camera] | None = None
-    for seq in ctx.progress(SEQUENCES, desc="capture: generating sequences"):
-        cap = generate(SyntheticConfig(subject=ctx.subject, sequence=seq, image_size=int(q.capture_size),
-                                       num_frames=int(frames_per_sequence[seq]), supersample=int(q.supersample),
-                                       seed=int(ctx.cfg.dataset.seed), num_cameras=int(conf.num_cameras)))
+    for seq, (script, performer) in ctx.progress(list(plan.items()), desc="capture: generating sequences"):
+        cap = generate(SyntheticConfig(subject=ctx.subject, sequence=script, image_size=int(q.capture_size),
+                                       num_frames=int(frames_per_sequence[script]), supersample=int(q.supersample),
+                                       seed=int(ctx.cfg.dataset.seed), num_cameras=int(conf.num_cameras),
+                                       performer=performer))
         cams = cap.cameras
         cameras = cameras or cams
         _write_synthetic_sequence(ctx.out_dir, seq, cap)

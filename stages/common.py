@@ -14,12 +14,13 @@ from omegaconf import DictConfig, OmegaConf
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig, sequence_conditioning
 from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.gaussians.model import BoundGaussians
-from avatar.pbd import PBDConfig, StiffnessFileError, face_relative_stiffness
+from avatar.pbd import PBDConfig, StiffnessFileError, face_relative_stiffness, simulate_sequence
+from avatar.reenact import MotionTransferError, transfer_motion
 from avatar.splatting import EmbeddedGaussians
 from avatar.training.splatting import SplattingConfig
 from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
 from avatar.training.data import MeshSequence, ViewSet
-from avatar.training.posing import posed_meshes
+from avatar.training.posing import posed_keypoints, posed_meshes
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, gt_path, provided_path
 from data_schemas.gaussians import BOUND_GAUSSIANS
@@ -189,6 +190,63 @@ def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussi
         binding=torch.tensor(np.array(t["binding"])),
         part=torch.tensor([part_names.index(p) for p in t["part"]]),
     )
+
+
+def driver_subject(cfg: DictConfig) -> str | None:
+    """The other subject ``reenact.driver`` names, or ``None`` (``self`` or a parameter file)."""
+    driver = str(cfg.reenact.driver)
+    return None if driver == "self" or is_parameter_file(driver) else driver
+
+
+def is_parameter_file(driver: str) -> bool:
+    """Whether ``reenact.driver`` names a ``params.parquet`` file rather than ``self`` or a subject."""
+    return driver.endswith(".parquet") or "/" in driver
+
+
+@dataclass
+class DrivenSequence:
+    """A parameter sequence on the target's avatar: the meshes (face deformed by the simulated contact), the
+    model's conditioning, the offsets (T, V, 3), the pbd rows per frame (empty without PBD), the head-size
+    ratio target / driver and where the face stiffness came from (None without PBD)."""
+
+    params: dict[str, np.ndarray]
+    meshes: MeshSequence
+    cond: SequenceConditioning
+    offsets: np.ndarray
+    pbd_frames: list[dict]
+    head_scale: float
+    stiffness_source: str | None
+
+
+def drive(cfg: DictConfig, params: dict[str, np.ndarray], head_scale: float = 1.0) -> DrivenSequence:
+    """Pose ``params`` (already on the target's identity) and, for methods with ``method.pbd``, simulate the
+    contact on the face with the pbd stage's solver, settings and stiffness, as the pbd stage does."""
+    head, hand = templates(cfg.model)
+    posed = posed_keypoints(params, head, hand)
+    face_v, hand_v = torch.from_numpy(posed["face_vertices"]), torch.from_numpy(posed["hand_vertices"])
+    if bool(cfg.method.pbd):
+        solver = pbd_solver_config(cfg)
+        stiffness, stiffness_source = face_stiffness(cfg, head, solver)
+        deform = simulate_sequence(face_v, hand_v, torch.tensor(np.array(head.faces)),
+                                   torch.tensor(np.array(hand.faces)), stiffness, solver)
+        offsets, frames = deform.offsets, deform.frames
+    else:
+        offsets, frames, stiffness_source = np.zeros(face_v.shape), [], None
+    meshes = posed_meshes(params, head, hand)
+    meshes.vertices[:, :head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
+    cond = sequence_conditioning(params, head, hand, torch.from_numpy(offsets))
+    return DrivenSequence(params, meshes, cond, offsets, frames, head_scale, stiffness_source)
+
+
+def transferred_params(cfg: DictConfig, target_fit_dir: Path, driver: dict[str, np.ndarray], source: Path
+                       ) -> tuple[dict[str, np.ndarray], float]:
+    """The driver's motion on the target whose fit is ``target_fit_dir`` (its train sequence's identity) and
+    the head-size ratio; one error naming ``source`` when the driver cannot drive it."""
+    head, hand = templates(cfg.model)
+    try:
+        return transfer_motion(load_params(target_fit_dir, "train"), driver, head, hand)
+    except MotionTransferError as exc:
+        raise SchemaError(f"{source}: cannot drive the avatar: {exc}") from exc
 
 
 REPRESENTATIONS = ("bound", "embedded")

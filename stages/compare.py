@@ -30,7 +30,7 @@ from avatar.preprocess.crops import label_box, overlap_box
 from data_schemas.capture import MASK_LABELS
 from data_schemas.frames import crop_mask_path, rgb_path
 from data_schemas.images import read_png, write_png
-from data_schemas.metrics import COMPARISON, CONTACT_GROUPS, METRICS, REGIONS, SPLIT_SOURCES, showcase_path
+from data_schemas.metrics import COMPARISON, CONTACT_GROUPS, METRICS, REGIONS, SPLIT_SOURCES, SPLITS, showcase_path
 from data_schemas.tables import read_table, write_table
 from data_schemas.writes import write_bytes, write_json
 from pipeline.manifest import MANIFEST_NAME
@@ -103,13 +103,22 @@ def compare(ctx: StageContext) -> None:
     write_json(ctx.out_dir / "tables.json", tables, "the comparison tables")
     write_bytes(ctx.out_dir / "tables.md", _markdown(tables).encode(), "the comparison tables")
     (ctx.out_dir / "figures").mkdir()
-    for split, (sequence, _) in SPLIT_SOURCES.items():
+    for split, sequence in _split_sequences(runs).items():
         for crop in ("hand", "interaction"):
             figure = _figure(runs, ctx.input_dir("frames"), split, sequence, crop, int(conf.crop_px))
             if figure is not None:
                 write_png(ctx.out_dir / "figures" / f"{split}_{crop}.png", figure)
     ctx.metrics.update({"methods_compared": len(runs), "methods_missing": ",".join(missing) or "-",
                         "same_train_steps": int(len({r.train_steps for r in runs}) <= 1), **cost})
+
+
+def _split_sequences(runs: list[MethodRun]) -> dict[str, str]:
+    """split -> the capture sequence it renders, from the first method's ``splits.json`` (the fixed two splits
+    for evaluations written before it existed)."""
+    path = runs[0].evaluate_dir / "splits.json" if runs else None
+    if path is not None and path.is_file():
+        return json.loads(path.read_text())
+    return {split: sequence for split, (sequence, _) in SPLIT_SOURCES.items()}
 
 
 def _manifest(stage_dir: Path) -> dict[str, Any]:
@@ -128,7 +137,7 @@ def _comparison_rows(runs: list[MethodRun]) -> dict[str, list]:
     rows: dict[str, list] = {c.name: [] for c in COMPARISON.columns}
     for run in runs:
         t = run.metrics
-        for split in SPLIT_SOURCES:
+        for split in SPLITS:
             for region in REGIONS:
                 for group in CONTACT_GROUPS:
                     sel = (t["split"] == split) & (t["region"] == region)
@@ -180,18 +189,21 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[str], co
     present = {r.name: r for r in runs}
     paper_cells = lambda m, split: _metric_cells(dict(zip(METRIC_NAMES, PAPER[m][split]))) \
         if split in PAPER.get(m, {}) else ["-"] * 3  # noqa: E731
+    splits = [s for s in SPLITS if s in set(rows["split"])]
     table1 = [[split, present[m].label, *_metric_cells(_lookup(rows, m, split, "full")), *paper_cells(m, split)]
-              for split in SPLIT_SOURCES for m in BASELINES if m in present]
+              for split in splits for m in BASELINES if m in present]
     table2 = [[split, present[m].label,
                *(_fmt(_lookup(rows, m, split, region)["psnr"], 2) for region in ("full", "hand", "interaction")),
                *(_fmt(_lookup(rows, m, split, region)["lpips"], 4) for region in ("full", "hand", "interaction")),
                _fmt(_lookup(rows, m, split, "interaction", "contact")["psnr"], 2), *paper_cells(m, split)]
-              for split in SPLIT_SOURCES for m in ABLATIONS if m in present]
+              for split in splits for m in ABLATIONS if m in present]
     budget = [[r.label, str(r.train_steps), f"{r.train_wall_s:.0f}", str(r.gaussians)] for r in runs]
     steps = {r.train_steps for r in runs}
     notes = [
         "Full images, mean over every frame of the split; PSNR in dB. Novel view: the held-out camera on the "
-        "training motion; self-reenactment: the training cameras on the held-out motion.",
+        "training motion; self-reenactment: the training cameras on the held-out motion; cross-reenactment "
+        "(when reenact.driver names another subject): the training cameras on that subject's held-out motion "
+        "transferred onto this one, against the synthetic ground truth of this identity performing it.",
         ("Every method trained the same number of optimisation steps (warm-up plus stage two: "
          f"{next(iter(steps))}) on the same frames and views." if len(steps) == 1 else
          f"The methods trained different numbers of steps ({sorted(steps)}): the comparison is not fair."),

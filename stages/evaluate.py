@@ -13,13 +13,17 @@ from avatar.metrics import LPIPS, image_metrics
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import resolve_backend
 from avatar.training.dynamic import rasterize
-from data_schemas.capture import MASK_LABELS
+from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.training.data import MeshSequence
+from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
 from data_schemas.images import write_png
 from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, showcase_path
-from data_schemas.tables import write_table
+from data_schemas.tables import SchemaError, write_table
+from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
 from stages.common import (
-    applied_deformation, contact_frames, load_sequence, load_trained, load_views, model_sources, posed_gaussians,
+    applied_deformation, contact_frames, contact_sources, drive, driver_subject, load_params, load_sequence,
+    load_trained, load_views, posed_gaussians, transferred_params,
 )
 
 
@@ -37,22 +41,26 @@ Renderer = Callable[[int, int], torch.Tensor]
 
 
 @stage("evaluate", inputs=("capture", "frames", "fit", "pbd", "dynamic"),
-       config_keys=("model", "method", "stage.evaluate"), outputs=("metrics.parquet", "grids", "renders"),
-       version="5", config_schema=EvaluateConfig, sources=model_sources, per_method=True)
+       config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
+       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="6", config_schema=EvaluateConfig,
+       sources=contact_sources, per_method=True, subject_inputs=("fit",), input_subject=driver_subject)
 def evaluate(ctx: StageContext) -> None:
-    """Render the held-out camera and the held-out motion with the method's trained model; PSNR/SSIM/LPIPS
-    per region; image grids; the renders of the showcase contact frames (the comparison's image rows)."""
+    """Render the held-out camera and the held-out motion (and, when reenact.driver names another subject
+    whose motion the capture has this identity perform, that cross-actor reenactment) with the method's
+    trained model; PSNR/SSIM/LPIPS per region; image grids; the renders of the showcase contact frames."""
     conf, method = ctx.cfg.stage.evaluate, str(ctx.cfg.method.name)
-    cap_dir, frames_dir, fit_dir = (ctx.input_dir(n) for n in ("capture", "frames", "fit"))
-    pbd_dir = applied_deformation(ctx.cfg, ctx.input_dir("pbd"))
+    cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
     rows: dict[str, list] = {c.name: [] for c in METRICS.columns}
     lpips = LPIPS("alex")
     ctx.metrics["rasterizer"] = resolve_backend(conf.backend, torch.zeros(0, 3))  # what backend=auto chose here
     model = load_trained(ctx.input_dir("dynamic"))
     (ctx.out_dir / "grids").mkdir()
-    for split, (sequence, camera_split) in SPLIT_SOURCES.items():
+    splits = _splits(ctx)
+    write_json(ctx.out_dir / "splits.json", {split: sequence for split, (sequence, _) in splits.items()},
+               "the sequence each split renders")
+    for split, (sequence, camera_split) in splits.items():
         views = load_views(cap_dir, frames_dir, sequence, camera_split)
-        meshes, cond = load_sequence(fit_dir, sequence, ctx.cfg, pbd_dir=pbd_dir)
+        meshes, cond = _split_sequence(ctx, split, sequence, views.num_frames)
         render: Renderer = lambda t, c: rasterize(posed_gaussians(model, cond, meshes.vertices[t], t), views, c,  # noqa: E731
                                                   conf.backend).rgb
         contact = contact_frames(cap_dir, sequence, views.num_frames)
@@ -80,6 +88,39 @@ def evaluate(ctx: StageContext) -> None:
     ctx.metrics.update(_summary(rows))
 
 
+def _splits(ctx: StageContext) -> dict[str, tuple[str, str]]:
+    """split -> (sequence, camera split): novel view and self-reenactment, and cross-actor reenactment when
+    ``reenact.driver`` names another subject and the capture holds its ground truth."""
+    splits = dict(SPLIT_SOURCES)
+    driver = driver_subject(ctx.cfg)
+    if driver is not None:
+        sequence = cross_sequence(driver)
+        if sequence in CaptureIndex.read(ctx.input_dir("capture")).sequences:
+            splits["cross_reenact"] = (sequence, "train")
+        ctx.metrics["cross_reenact"] = sequence if "cross_reenact" in splits else "no ground truth in the capture"
+    return splits
+
+
+def _split_sequence(ctx: StageContext, split: str, sequence: str, num_frames: int
+                    ) -> tuple[MeshSequence, SequenceConditioning]:
+    """The meshes and conditioning a split renders: the fit of its sequence (with the pbd stage's offsets when
+    the method uses them), or for cross-actor reenactment the driver's motion transferred onto this subject
+    with its contact simulated, exactly as stage reenact does."""
+    if split != "cross_reenact":
+        pbd_dir = applied_deformation(ctx.cfg, ctx.input_dir("pbd"))
+        return load_sequence(ctx.input_dir("fit"), sequence, ctx.cfg, pbd_dir=pbd_dir)
+    driver_sequence = str(ctx.cfg.reenact.sequence)
+    path = ctx.subject_input_dir("fit") / driver_sequence / "params.parquet"
+    params = load_params(ctx.subject_input_dir("fit"), driver_sequence)
+    if len(params["flame_global_orient"]) != num_frames:
+        raise SchemaError(f"{path}: {len(params['flame_global_orient'])} frames, but the ground truth "
+                          f"'{sequence}' of the capture has {num_frames}; fit the driver at the same preset")
+    transferred, scale = transferred_params(ctx.cfg, ctx.input_dir("fit"), params, path)
+    driven = drive(ctx.cfg, transferred, scale)
+    ctx.metrics["cross_reenact_head_scale"] = scale
+    return driven.meshes, driven.cond
+
+
 def showcase_pairs(contact: np.ndarray, count: int) -> list[tuple[int, int]]:
     """(frame, camera index 0) of up to ``count`` frames spread evenly over the contact frames (over all frames
     when none has contact): the same for every method, so their renders line up in the comparison."""
@@ -91,7 +132,7 @@ def showcase_pairs(contact: np.ndarray, count: int) -> list[tuple[int, int]]:
 def _summary(rows: dict[str, list]) -> dict[str, float]:
     """Mean full-image metrics per split (and PSNR over the frames without contact)."""
     out = {}
-    for split in SPLIT_SOURCES:
+    for split in dict.fromkeys(rows["split"]):
         full = [i for i, (s, r) in enumerate(zip(rows["split"], rows["region"])) if s == split and r == "full"]
         for metric in ("psnr", "ssim", "lpips"):
             out[f"{split}_{metric}"] = float(np.nanmean([rows[metric][i] for i in full]))

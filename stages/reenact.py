@@ -25,13 +25,9 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from avatar.pbd import simulate_sequence
-from avatar.reenact import MotionTransferError, transfer_motion
 from avatar.reenact.cameras import framed_intrinsics, orbit, orbit_intrinsics
 from avatar.render.gaussians import render_gaussians, resolve_backend
 from avatar.templates.lbs import batch_rodrigues
-from avatar.training.posing import posed_keypoints, posed_meshes
-from avatar.dynamic import sequence_conditioning
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
 from data_schemas.deform import DEFORM
@@ -43,8 +39,8 @@ from data_schemas.writes import write_json
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
 from stages.common import (
-    contact_sources, face_stiffness, load_params, load_trained, pbd_solver_config, posed_gaussians, templates,
-    write_frame_ply,
+    contact_sources, drive, driver_subject, is_parameter_file, load_params, load_trained, posed_gaussians,
+    transferred_params, write_frame_ply,
 )
 
 
@@ -62,21 +58,11 @@ class ReenactConfig:
     backend: str
 
 
-def driver_subject(cfg: DictConfig) -> str | None:
-    """The other subject ``reenact.driver`` names, or ``None`` (``self`` or a file)."""
-    driver = str(cfg.reenact.driver)
-    return None if driver == "self" or _is_file(driver) else driver
-
-
-def _is_file(driver: str) -> bool:
-    return driver.endswith(".parquet") or "/" in driver
-
-
 def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
     """The contact model's files, and the driver's parameter file when ``reenact.driver`` names one."""
     files = contact_sources(cfg, subject)
     driver = str(cfg.reenact.driver)
-    if not _is_file(driver):
+    if not is_parameter_file(driver):
         return files
     path = Path(driver).resolve()
     if not path.is_file():
@@ -93,22 +79,10 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
     conf, cfg = ctx.cfg.stage.reenact, ctx.cfg
-    head, hand = templates(cfg.model)
     params, driver_label, scale = _driving_params(ctx)
-    posed = posed_keypoints(params, head, hand)
-    face_v, hand_v = torch.from_numpy(posed["face_vertices"]), torch.from_numpy(posed["hand_vertices"])
-    T = face_v.shape[0]
-    faces, hand_faces = torch.tensor(np.array(head.faces)), torch.tensor(np.array(hand.faces))
-    if bool(cfg.method.pbd):
-        solver = pbd_solver_config(cfg)
-        stiffness, stiffness_source = face_stiffness(cfg, head, solver)
-        deform = simulate_sequence(face_v, hand_v, faces, hand_faces, stiffness, solver)
-        offsets, pbd_frames = deform.offsets, deform.frames
-    else:
-        offsets, pbd_frames, stiffness_source = np.zeros(face_v.shape), [], None
-    meshes = posed_meshes(params, head, hand)
-    meshes.vertices[:, :head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
-    cond = sequence_conditioning(params, head, hand, torch.from_numpy(offsets))
+    driven = drive(cfg, params, scale)
+    meshes, cond, offsets, pbd_frames = driven.meshes, driven.cond, driven.offsets, driven.pbd_frames
+    T = offsets.shape[0]
     model = load_trained(ctx.input_dir("dynamic"))
     size = int(conf.image_size) or int(cfg.quality.image_size)
     views = _views(ctx, meshes.vertices.numpy().reshape(-1, 3), params, size)
@@ -151,7 +125,7 @@ def reenact(ctx: StageContext) -> None:
         "driver": driver_label, "sequence": str(cfg.reenact.sequence), "frames": T, "head_scale": scale,
         "views": {name: {"K": K.tolist(), "world_to_cam": w2c.tolist()} for name, (K, w2c) in views.items()},
         "views_note": "per frame: K (T, 3, 3) and world_to_cam (T, 4, 4)",
-        "pbd": {"simulated": bool(cfg.method.pbd), "stiffness": stiffness_source, "frames": pbd_frames},
+        "pbd": {"simulated": bool(cfg.method.pbd), "stiffness": driven.stiffness_source, "frames": pbd_frames},
         "video_fps": fps}, "reenactment report")
     ctx.metrics.update({
         "frames": T, "views": len(views), "head_scale": scale, "contact_frames": int(contact.sum()),
@@ -162,27 +136,22 @@ def reenact(ctx: StageContext) -> None:
 
 
 def _driving_params(ctx: StageContext) -> tuple[dict[str, np.ndarray], str, float]:
-    """(parameters of every output frame, where they came from, head-size ratio target / driver)."""
-    cfg = ctx.cfg
-    driver, sequence = str(cfg.reenact.driver), str(cfg.reenact.sequence)
+    """(parameters of every output frame on the target, where they came from, head-size ratio target / driver)."""
+    driver, sequence = str(ctx.cfg.reenact.driver), str(ctx.cfg.reenact.sequence)
     if driver == "self":
         return load_params(ctx.input_dir("fit"), sequence), f"self ({sequence})", 1.0
-    if _is_file(driver):
+    if is_parameter_file(driver):
         path = Path(driver)
         table = read_table(path, PARAMS)
-        source, params = str(path), {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
+        params, label = {k: np.asarray(table[k]) for k in PARAM_COLUMNS}, str(path)
     else:
         path = ctx.subject_input_dir("fit") / sequence / "params.parquet"
         if not path.is_file():
             raise SchemaError(f"{path}: the driver '{driver}' has no fitted sequence '{sequence}'; choose "
                               f"reenact.sequence among its sequences")
-        source, params = f"{driver} ({sequence})", load_params(ctx.subject_input_dir("fit"), sequence)
-    head, hand = templates(cfg.model)
-    try:
-        transferred, scale = transfer_motion(load_params(ctx.input_dir("fit"), "train"), params, head, hand)
-    except MotionTransferError as exc:
-        raise SchemaError(f"{path}: cannot drive subject '{ctx.subject}': {exc}") from exc
-    return transferred, source, scale
+        params, label = load_params(ctx.subject_input_dir("fit"), sequence), f"{driver} ({sequence})"
+    transferred, scale = transferred_params(ctx.cfg, ctx.input_dir("fit"), params, path)
+    return transferred, label, scale
 
 
 def _views(ctx: StageContext, points: np.ndarray, params: dict[str, np.ndarray], size: int

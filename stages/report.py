@@ -89,7 +89,7 @@ def report(ctx: StageContext) -> None:
         f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
         f"<h2>Renders: ground truth | {html.escape(str(ctx.cfg.method.label))} | its error x4</h2>",
         *(f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_base64_file(ctx.input_dir('evaluate') / 'grids' / (s + '.png'))}'>"
-          for s in SPLITS),
+          for s in SPLITS if (ctx.input_dir('evaluate') / 'grids' / (s + '.png')).is_file()),
     ]
     page = "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>" \
            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}" \

@@ -154,3 +154,19 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert "Not evaluated yet: no_hand_mlp, no_interaction, no_pbd" in tables
     assert sorted(p.name for p in (subject / "compare" / "figures").glob("*.png"))
     assert "Methods side by side" in (stage_dir(subject, "report", "no_patch") / "report.html").read_text()
+
+    # Cross-actor reenactment: synth_b (fitted in the same outputs folder) drives synth_a. The driver's fit is
+    # an input of evaluate and reenact; evaluate measures it against the capture's ground truth of synth_a
+    # performing synth_b's held-out motion.
+    driver_fit = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "subject=synth_b",
+                         "run.until=fit")
+    assert driver_fit.returncode == 0, driver_fit.stderr[-3000:]
+    crossed = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "reenact.driver=synth_b",
+                      "run.from=evaluate")
+    assert crossed.returncode == 0, crossed.stdout[-3000:] + crossed.stderr[-3000:]
+    assert "upstream changed: synth_b:fit" in crossed.stdout
+    metrics = read_table(stage_dir(subject, "evaluate") / "metrics.parquet", METRICS)
+    cross = (np.asarray(metrics["split"]) == "cross_reenact") & (np.asarray(metrics["region"]) == "full")
+    assert cross.sum() > 0 and np.asarray(metrics["psnr"])[cross].mean() > 15.0
+    reenacted = json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text())["metrics"]
+    assert reenacted["head_scale"] != 1.0 and reenacted["frames"] > 0

@@ -25,6 +25,10 @@ class SyntheticConfig:
         supersample: antialiasing samples per pixel along each axis.
         seed: varies the small random perturbations of the motion.
         num_cameras: cameras in the rig; one of them is the held-out 'test' view.
+        performer: whose performance of the sequence's script (its random perturbations) the subject acts
+            out; None: the subject's own. Another subject gives the ground truth of cross-actor
+            reenactment: this identity performing the other's motion, the hand placed on this face as the
+            script says.
     """
 
     subject: str
@@ -34,10 +38,13 @@ class SyntheticConfig:
     supersample: int = 3
     seed: int = 0
     num_cameras: int = 8
+    performer: str | None = None
 
     def __post_init__(self) -> None:
         if self.subject not in SUBJECTS:
             raise ValueError(f"subject must be one of {SUBJECTS}, got {self.subject!r}")
+        if self.performer is not None and self.performer not in SUBJECTS:
+            raise ValueError(f"performer must be one of {SUBJECTS} or None, got {self.performer!r}")
         if self.sequence not in SEQUENCES:
             raise ValueError(f"sequence must be one of {SEQUENCES}, got {self.sequence!r}")
         if self.image_size < 8 or self.num_frames < 1 or self.supersample < 1:

@@ -132,7 +132,8 @@ def generate(cfg: SyntheticConfig) -> SyntheticCapture:
 
 def _generate(cfg: SyntheticConfig) -> SyntheticCapture:
     subject = _subject(cfg.subject)
-    rng = np.random.default_rng([cfg.seed, SUBJECTS.index(cfg.subject), SEQUENCES.index(cfg.sequence)])
+    performer = cfg.performer or cfg.subject
+    rng = np.random.default_rng([cfg.seed, SUBJECTS.index(performer), SEQUENCES.index(cfg.sequence)])
     script = jitter(SCRIPTS[cfg.sequence], rng)
     perf = perform(script, frame_times(cfg.num_frames), subject.identity, subject.flame, subject.mano,
                    FaceAnchors.build(subject.flame))
