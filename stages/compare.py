@@ -113,12 +113,14 @@ def compare(ctx: StageContext) -> None:
 
 
 def _split_sequences(runs: list[MethodRun]) -> dict[str, str]:
-    """split -> the capture sequence it renders, from the first method's ``splits.json`` (the fixed two splits
-    for evaluations written before it existed)."""
-    path = runs[0].evaluate_dir / "splits.json" if runs else None
-    if path is not None and path.is_file():
-        return json.loads(path.read_text())
-    return {split: sequence for split, (sequence, _) in SPLIT_SOURCES.items()}
+    """split -> the capture sequence it renders, from the methods' ``splits.json`` (the fixed two splits for
+    evaluations written before it existed)."""
+    out = {split: sequence for split, (sequence, _) in SPLIT_SOURCES.items()}
+    for run in runs:
+        path = run.evaluate_dir / "splits.json"
+        if path.is_file():
+            out |= json.loads(path.read_text())
+    return out
 
 
 def _manifest(stage_dir: Path) -> dict[str, Any]:
@@ -212,6 +214,13 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[str], co
         f"{cost['warmups_trained']:.0f} distinct warm-ups), against {cost['unshared_wall_s']:.0f} s with every "
         f"method computed from scratch.",
     ]
+    crossed = {r.label: r.manifests["evaluate"]["config"].get("reenact", {}).get("driver", "self") for r in runs
+               if "cross_reenact" in set(r.metrics["split"])}
+    if crossed:
+        drivers = set(crossed.values())
+        notes.append(f"Cross-reenactment driven by {', '.join(sorted(drivers))} ({', '.join(crossed)})"
+                     + ("" if len(drivers) == 1 else ": different drivers, the rows are not comparable") + "; "
+                     "methods evaluated without another subject as reenact.driver have no cross_reenact rows.")
     if missing:
         notes.append(f"Not evaluated yet: {', '.join(missing)}. Add them with "
                      f"`interactavatar -m method={','.join(missing)}` (same subject and preset), then "
@@ -242,8 +251,9 @@ def _markdown(tables: dict[str, Any]) -> str:
 
 def _figure(runs: list[MethodRun], frames_dir: Path, split: str, sequence: str, crop: str, px: int
             ) -> np.ndarray | None:
-    """Rows of showcase frames, columns ground truth then each method, cropped to the hand box or the
-    hand-face overlap box of the ground truth's labels; ``None`` when no frame has that box."""
+    """Rows of showcase frames, columns ground truth then each method that rendered ``split``, cropped to the
+    hand box or the hand-face overlap box of the ground truth's labels; ``None`` when no frame has that box."""
+    runs = [r for r in runs if (r.evaluate_dir / "renders" / split).is_dir()]
     if not runs:
         return None
     render_dir = runs[0].evaluate_dir / "renders" / split
