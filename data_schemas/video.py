@@ -37,11 +37,7 @@ def write_video_stream(path: str | Path, frames: Iterable[np.ndarray], fps: floa
     writer, size, count = None, None, 0
     try:
         for frame in frames:
-            frame = np.asarray(frame)
-            if frame.ndim != 3 or frame.shape[-1] != 3 or frame.dtype != np.uint8 or \
-                    (size is not None and frame.shape[:2] != size):
-                raise SchemaError(f"{path}: frame {count} is {frame.shape} {frame.dtype}; expected "
-                                  f"{size or '(H, W)'} x 3 uint8 like the first frame")
+            frame = checked_frame(path, frame, count, size)
             if writer is None:
                 size = frame.shape[:2]
                 writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*FOURCC), float(fps), (size[1], size[0]))
@@ -56,6 +52,17 @@ def write_video_stream(path: str | Path, frames: Iterable[np.ndarray], fps: floa
         raise SchemaError(f"{path}: no frames to write")
     _check_written(path, count)
     return count
+
+
+def checked_frame(path: Path, frame: np.ndarray, index: int, size: tuple[int, int] | None) -> np.ndarray:
+    """``frame`` as an array if it is (H, W, 3) uint8 RGB of the first frame's ``size`` (None: any), else
+    one error naming the video ``path`` and the frame ``index``."""
+    frame = np.asarray(frame)
+    if frame.ndim != 3 or frame.shape[-1] != 3 or frame.dtype != np.uint8 or \
+            (size is not None and frame.shape[:2] != size):
+        raise SchemaError(f"{path}: frame {index} is {frame.shape} {frame.dtype}; expected "
+                          f"{size or '(H, W)'} x 3 uint8 like the first frame")
+    return frame
 
 
 def _check_written(path: Path, count: int) -> None:

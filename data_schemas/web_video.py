@@ -18,6 +18,7 @@ import av
 import numpy as np
 
 from data_schemas.tables import SchemaError
+from data_schemas.video import checked_frame
 
 CODEC = "libx264"
 CRF = 18  # visually lossless for renders; the player needs nothing special
@@ -38,11 +39,7 @@ def write_web_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) 
         with av.open(str(tmp), mode="w", options={"movflags": "+faststart"}) as container:
             stream = None
             for frame in frames:
-                frame = np.asarray(frame)
-                if frame.ndim != 3 or frame.shape[-1] != 3 or frame.dtype != np.uint8 or \
-                        (size is not None and frame.shape[:2] != size):
-                    raise SchemaError(f"{path}: frame {count} is {frame.shape} {frame.dtype}; expected "
-                                      f"{size or '(H, W)'} x 3 uint8 like the first frame")
+                frame = checked_frame(path, frame, count, size)
                 if stream is None:
                     size = frame.shape[:2]
                     stream = container.add_stream(CODEC, rate=Fraction(fps).limit_denominator(1001))
