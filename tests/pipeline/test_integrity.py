@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import subprocess
-import time
 from pathlib import Path
 
 import pytest

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-from pathlib import Path
 
 from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli, wait_for
 
