@@ -9,7 +9,10 @@ simulated on the target's face with the pbd stage's solver and settings (when th
 model renders every frame, its interaction module on the simulated offsets.
 
 Writes ``videos/<camera_id>.mp4`` (the chosen capture cameras, cropped to the performance) and
-``videos/orbit.mp4`` (one turn around the head over the sequence), H.264 MP4 that plays in a browser;
+``videos/orbit.mp4`` (one turn around the head over the sequence), H.264 MP4 that plays in a browser; where
+the capture holds this identity performing the driving motion (``self``: the held-out sequence; another
+subject: the synthetic ``cross_<driver>`` sequence), also ``videos/<camera_id>_gt.mp4`` (that ground truth
+through the same crop) and ``videos/<camera_id>_vs_gt.mp4`` (reenacted | ground truth, always in step);
 ``frames/<view>/<frame>.png``; ``ply/<frame>.ply`` (world-space 3DGS, any splat viewer);
 ``params.parquet`` (the driving parameters as applied), ``deform.parquet`` (the simulated offsets) and
 ``reenact_report.json`` (driver, head-size ratio, per-frame residual penetration, render timings).
@@ -25,15 +28,16 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from avatar.reenact.cameras import framed_intrinsics, orbit, orbit_intrinsics
+from avatar.reenact.cameras import framed_intrinsics, orbit, orbit_intrinsics, reframe
 from avatar.render.gaussians import render_gaussians, resolve_backend
 from avatar.templates.lbs import batch_rodrigues
 from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex
+from data_schemas.capture import CaptureIndex, cross_sequence, mask_path, video_path
 from data_schemas.deform import DEFORM
-from data_schemas.images import write_png
+from data_schemas.images import read_png, write_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
+from data_schemas.video import iter_video
 from data_schemas.web_video import write_web_video
 from data_schemas.writes import write_json
 from pipeline.sources import SourceFiles
@@ -74,8 +78,8 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
 @stage("reenact", inputs=("capture", "fit", "dynamic"),
        config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
        outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
-       config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",), input_subject=driver_subject,
-       sources=_sources)
+       version="2", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
+       input_subject=driver_subject, sources=_sources)
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
     conf, cfg = ctx.cfg.stage.reenact, ctx.cfg
@@ -113,6 +117,12 @@ def reenact(ctx: StageContext) -> None:
             write_png(ctx.out_dir / "frames" / name / f"{t:05d}.png", image)
     if not conf.ply:
         (ctx.out_dir / "ply").mkdir()
+    truth_sequence, truth_note = _ground_truth_sequence(ctx, T)
+    truth_cameras = [] if truth_sequence is None else [name for name in views if name != "orbit"]
+    for name in truth_cameras:
+        truth = _write_ground_truth(ctx, truth_sequence, name, views[name][0], size, background, fps)
+        write_web_video(ctx.out_dir / "videos" / f"{name}_vs_gt.mp4",
+                        (np.concatenate([ours, gt], axis=1) for ours, gt in zip(rendered[name], truth)), fps)
     write_table(ctx.out_dir / "params.parquet", PARAMS, {"frame": np.arange(T), **params})
     contact = np.abs(offsets).reshape(T, -1).max(axis=1) > 0
     write_table(ctx.out_dir / "deform.parquet", DEFORM,
@@ -126,10 +136,11 @@ def reenact(ctx: StageContext) -> None:
         "views": {name: {"K": K.tolist(), "world_to_cam": w2c.tolist()} for name, (K, w2c) in views.items()},
         "views_note": "per frame: K (T, 3, 3) and world_to_cam (T, 4, 4)",
         "pbd": {"simulated": bool(cfg.method.pbd), "stiffness": driven.stiffness_source, "frames": pbd_frames},
+        "ground_truth": {"sequence": truth_sequence, "cameras": truth_cameras, "note": truth_note},
         "video_fps": fps}, "reenactment report")
     ctx.metrics.update({
         "frames": T, "views": len(views), "head_scale": scale, "contact_frames": int(contact.sum()),
-        "simulated_frames": len(simulated),
+        "simulated_frames": len(simulated), "ground_truth_videos": len(truth_cameras),
         "penetration_max_mm": max((f["penetration_max_mm"] for f in simulated), default=0.0),
         **timings, "rasterizer": resolve_backend(conf.backend, meshes.vertices),
     })
@@ -185,6 +196,42 @@ def _views(ctx: StageContext, points: np.ndarray, params: dict[str, np.ndarray],
         K = orbit_intrinsics(float(np.linalg.norm(eye - centre)), radius, size)
         views["orbit"] = (np.repeat(K[None], T, 0), np.stack(orbit(eye, centre, up, T)))
     return views
+
+
+def _ground_truth_sequence(ctx: StageContext, num_frames: int) -> tuple[str | None, str]:
+    """(the capture sequence that shows this identity performing the driving motion, or None; why)."""
+    driver = str(ctx.cfg.reenact.driver)
+    if is_parameter_file(driver):
+        return None, "driven by a parameter file: no capture of this identity performing it"
+    sequence = str(ctx.cfg.reenact.sequence) if driver == "self" else cross_sequence(driver)
+    info = CaptureIndex.read(ctx.input_dir("capture")).sequences.get(sequence)
+    if info is None:
+        return None, f"the capture has no sequence '{sequence}' (synthetic captures render it with " \
+                     f"stage.capture.cross_reenactment=true)"
+    if info.num_frames != num_frames:
+        return None, f"the capture's '{sequence}' has {info.num_frames} frames, the driving motion {num_frames}"
+    return sequence, f"the capture's '{sequence}' through the same crops"
+
+
+def _write_ground_truth(ctx: StageContext, sequence: str, camera_id: str, K: np.ndarray, size: int,
+                        background: torch.Tensor, fps: float) -> list[np.ndarray]:
+    """Write ``videos/<camera_id>_gt.mp4``: the capture's ``sequence`` from camera ``camera_id`` reframed to
+    the reenactment's per-frame intrinsics ``K`` (T, 3, 3) at ``size`` px, put on the reenactment's
+    background where the capture has masks; return its frames (size, size, 3) uint8."""
+    capture_dir = ctx.input_dir("capture")
+    cameras = {c.camera_id: c for c in read_cameras(capture_dir / "cameras.parquet")}
+    fill = background.numpy() * 255
+    frames = []
+    for t, image in enumerate(iter_video(video_path(capture_dir, sequence, camera_id))):
+        truth = reframe(image, cameras[camera_id].K, K[t], size, tuple(fill.tolist())).astype(np.float32)
+        mask = mask_path(capture_dir, sequence, camera_id, t)
+        if mask.is_file():
+            alpha = reframe((read_png(mask, 1) > 0).astype(np.float32), cameras[camera_id].K, K[t], size,
+                            (0.0,))[..., None]
+            truth = truth * alpha + fill * (1 - alpha)
+        frames.append((truth + 0.5).clip(0, 255).astype(np.uint8))
+    write_web_video(ctx.out_dir / "videos" / f"{camera_id}_gt.mp4", frames, fps)
+    return frames
 
 
 def _capture_fps(capture_dir: Path) -> float:

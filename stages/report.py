@@ -37,7 +37,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="6", config_schema=ReportConfig, per_method=True,
+       outputs=("report.html",), version="7", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -181,10 +181,19 @@ def _reenact_section(reenact_dir: Path) -> str:
             + f"; {metrics['frames_per_second']:.1f} frames per second at {metrics['image_size']} px "
               f"(model {metrics['model_ms_per_frame']:.0f} ms per frame, rasterizer "
               f"{metrics['render_ms_per_view']:.0f} ms per view).")
+    truth = info["ground_truth"]
+    text += (f" Beside the ground truth ({truth['sequence']}) on camera(s) {', '.join(truth['cameras'])}."
+             if truth["cameras"] else f" No ground truth to show: {truth['note']}.")
+    shown = []  # per view: reenacted | ground truth where the capture has it, else the reenactment alone
+    for path in sorted((reenact_dir / "videos").glob("*.mp4")):
+        if path.stem.endswith(("_gt", "_vs_gt")):
+            continue
+        paired = path.with_name(f"{path.stem}_vs_gt.mp4")
+        shown.append((paired, f"{path.stem}: reenacted | ground truth") if paired.is_file() else (path, path.stem))
     videos = "".join(
         f"<figure style='display:inline-block;margin:4px'><video controls autoplay loop muted playsinline "
-        f"src='data:video/mp4;base64,{_base64_file(path)}'></video><figcaption>{html.escape(path.stem)}</figcaption>"
-        f"</figure>" for path in sorted((reenact_dir / "videos").glob("*.mp4")))
+        f"src='data:video/mp4;base64,{_base64_file(path)}'></video><figcaption>{html.escape(caption)}</figcaption>"
+        f"</figure>" for path, caption in shown)
     return f"<p>{html.escape(text)}</p>{videos}"
 
 

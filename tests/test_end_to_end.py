@@ -14,6 +14,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from data_schemas.gaussians_ply import read_gaussians_ply
+from data_schemas.images import read_png
 from data_schemas.metrics import COMPARISON, METRICS
 from data_schemas.tables import read_table
 from data_schemas.web_video import read_web_video
@@ -73,7 +74,21 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     reenacted = json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text())["metrics"]
     assert reenacted["frames"] == len(set(metrics["frame"][np.asarray(metrics["split"]) == "self_reenact"]))
     videos = sorted(p.name for p in (stage_dir(subject, "reenact") / "videos").glob("*.mp4"))
-    assert "orbit.mp4" in videos and len(videos) == reenacted["views"]
+    ours = [v for v in videos if not v.endswith("_gt.mp4")]
+    assert "orbit.mp4" in ours and len(ours) == reenacted["views"]
+    # The held-out motion's ground truth beside every capture camera's reenactment, through the same crop:
+    # the pair agrees better than with the render shifted by 2 px either way or taken at another time.
+    assert reenacted["ground_truth_videos"] == reenacted["views"] - 1
+    camera = ours[0].removesuffix(".mp4")
+    assert {f"{camera}_gt.mp4", f"{camera}_vs_gt.mp4"} <= set(videos)
+    truth = read_web_video(stage_dir(subject, "reenact") / "videos" / f"{camera}_gt.mp4")[0].astype(float)
+    frames = sorted((stage_dir(subject, "reenact") / "frames" / camera).glob("*.png"))
+    rendered = np.stack([read_png(p, 3) for p in frames]).astype(float)
+    assert truth.shape == rendered.shape
+    misplaced = [np.roll(rendered, shift, axis) for shift in (-2, 2) for axis in (1, 2)]
+    misplaced.append(np.roll(rendered, len(rendered) // 2, axis=0))
+    error = np.abs(truth - rendered).mean()
+    assert all(error < np.abs(truth - other).mean() for other in misplaced), error
     assert read_web_video(stage_dir(subject, "reenact") / "videos" / "orbit.mp4")[1] == "h264"
 
     # Reenactment driven by a parameter file: its own held-out motion goes through the motion transfer
@@ -86,6 +101,7 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert by_file.returncode == 0, by_file.stdout[-3000:] + by_file.stderr[-3000:]
     manifest = json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text())
     assert abs(manifest["metrics"]["head_scale"] - 1.0) < 0.02 and manifest["sources"]
+    assert manifest["metrics"]["ground_truth_videos"] == 0  # a parameter file has no capture of it
     table = pq.read_table(driver)
     columns = table.to_pydict()
     columns["mano_hand_pose"][1][0] = float("nan")
@@ -169,3 +185,4 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert cross.sum() > 0 and np.asarray(metrics["psnr"])[cross].mean() > 15.0
     reenacted = json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text())["metrics"]
     assert reenacted["head_scale"] != 1.0 and reenacted["frames"] > 0
+    assert reenacted["ground_truth_videos"] == reenacted["views"] - 1  # the capture's cross_synth_b beside

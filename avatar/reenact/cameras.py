@@ -6,6 +6,7 @@ OpenCV conventions: ``world_to_cam`` (4, 4) maps world points to camera axes x r
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from avatar.preprocess.crops import square_crop
@@ -58,3 +59,14 @@ def orbit_intrinsics(distance: float, radius: float, size: int) -> np.ndarray:
     focal = 0.5 * size * distance / radius
     centre = (size - 1) / 2
     return np.array([[focal, 0.0, centre], [0.0, focal, centre], [0.0, 0.0, 1.0]])
+
+
+def reframe(image: np.ndarray, K_from: np.ndarray, K_to: np.ndarray, size: int,
+            background: tuple[float, float, float] = (255.0, 255.0, 255.0)) -> np.ndarray:
+    """A ``size`` px square view (size, size, C) of ``image`` (H, W, C) as the same camera with intrinsics
+    ``K_to`` instead of ``K_from`` (both (3, 3), no skew) would see it: pixel x' = K_to K_from^-1 x, an affine
+    map, resampled bilinearly; pixels outside the source get ``background``. Used to put a capture's ground
+    truth beside a render made with :func:`framed_intrinsics`."""
+    affine = (K_to @ np.linalg.inv(K_from))[:2]
+    return cv2.warpAffine(image, affine, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=background)

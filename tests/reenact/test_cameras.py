@@ -53,3 +53,24 @@ def test_framed_intrinsics_keep_every_point_inside_the_crop():
     assert span.max() == pytest.approx(128 / 1.2, rel=0.02)  # the larger side fills the crop but the margin
     with pytest.raises(ValueError, match="behind"):
         framed_intrinsics(K, w2c, points - [0.0, 0.0, 3.0], 128)
+
+
+def test_reframe_moves_a_projected_point_to_where_the_new_intrinsics_put_it():
+    """A bright pixel at a point's projection under K_from lands at its projection under K_to."""
+    from avatar.reenact.cameras import reframe
+
+    K_from = np.array([[300.0, 0, 100.0], [0, 300.0, 80.0], [0, 0, 1]])
+    w2c = np.eye(4)
+    point = np.array([[0.02, -0.03, 1.0]])
+    u, v = np.round(_project(K_from, w2c, point)[0]).astype(int)
+    image = np.zeros((160, 200, 3), np.uint8)
+    image[v, u] = 255
+    # a crop around the point, magnified 2x: K_to = S K_from with a shift; use the exact pixel centre
+    K_to = np.array([[600.0, 0, 2 * 100.0 - 2 * u + 32], [0, 600.0, 2 * 80.0 - 2 * v + 32], [0, 0, 1]])
+    out = reframe(image, K_from, K_to, 64, background=(0.0, 0.0, 0.0))
+    assert out.shape == (64, 64, 3)
+    peak = np.unravel_index(out[..., 0].argmax(), out.shape[:2])
+    assert peak == (32, 32) and out[32, 32, 0] == 255
+    np.testing.assert_array_equal(reframe(image, K_from, K_from, 64, (0.0, 0.0, 0.0)), image[:64, :64])
+    outside = reframe(image, K_from, K_to - np.array([[0, 0, 5000.0], [0, 0, 0], [0, 0, 0]]), 16)
+    assert (outside == 255).all()  # nothing of the source in view: the background
