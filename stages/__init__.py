@@ -11,6 +11,7 @@ from stages.keypoints import keypoints
 from stages.pbd import pbd
 from stages.reenact import reenact
 from stages.report import report
+from stages.scene import scene
 from stages.warmup import warmup
 
-REGISTRY = StageRegistry([capture, frames, keypoints, fit, pbd, warmup, dynamic, evaluate, compare, reenact, report])
+REGISTRY = StageRegistry([capture, frames, keypoints, fit, scene, pbd, warmup, dynamic, evaluate, compare, reenact, report])

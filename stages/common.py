@@ -16,13 +16,16 @@ from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.gaussians.model import BoundGaussians
 from avatar.pbd import PBDConfig, StiffnessFileError, face_relative_stiffness, simulate_sequence
 from avatar.reenact import MotionTransferError, transfer_motion
+from avatar.scene import SceneDecision
 from avatar.splatting import EmbeddedGaussians
 from avatar.training.splatting import SplattingConfig
 from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.posing import posed_keypoints, posed_meshes
+from avatar.training.validation import FlatStop, ValidationConfig, Validator
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, gt_path, provided_path
+from data_schemas.curve import CURVE
 from data_schemas.gaussians import BOUND_GAUSSIANS
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
 from data_schemas.deform import CONTACTS, DEFORM
@@ -32,6 +35,7 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.splatting import EMBEDDED_GAUSSIANS
 from data_schemas.tables import SchemaError, read_table, write_table
 from pipeline.sources import SourceFiles
+from pipeline.stage import StageContext
 
 
 class WorldGaussians(Protocol):
@@ -275,6 +279,42 @@ def splatting_config(cfg: DictConfig, steps: int, schedule: DictConfig, *, densi
 
 
 @dataclass
+class FlatStopSchema:
+    """Types of ``stage.<warmup|dynamic>.validation.stop_when_flat``."""
+
+    enabled: bool
+    min_gain_db: float
+    window: int
+
+
+@dataclass
+class ValidationSchema:
+    """Types of ``stage.<warmup|dynamic>.validation`` (README, "Quality during training")."""
+
+    every: int
+    frames: int
+    stop_when_flat: FlatStopSchema
+
+
+def validation_config(conf: DictConfig) -> ValidationConfig:
+    """The training loops' :class:`ValidationConfig` of a ``stage.<warmup|dynamic>.validation`` block."""
+    stop = conf.stop_when_flat
+    return ValidationConfig(int(conf.every), int(conf.frames),
+                            FlatStop(bool(stop.enabled), float(stop.min_gain_db), int(stop.window)))
+
+
+def validation_problems(conf: DictConfig) -> list[str]:
+    """Range problems of a stage section's ``validation`` block, keyed relative to the section."""
+    return [f"validation.{problem}" for problem in validation_config(conf.validation).problems()]
+
+
+def record_validation(ctx: StageContext, validator: Validator) -> None:
+    """Write ``curve.parquet`` (no rows without validation) and the validation metrics of the manifest."""
+    write_table(ctx.out_dir / "curve.parquet", CURVE, validator.table())
+    ctx.metrics.update(validator.metrics())
+
+
+@dataclass
 class PosedGaussians:
     """World-space Gaussians of one frame (a :class:`WorldGaussians`)."""
 
@@ -415,3 +455,10 @@ def contact_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG0
 def model_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG001 - the SourceLister signature
     """Source lister of stages that pose the official models: a replaced model file reruns them."""
     return SourceFiles(Path("/"), tuple(model_files(cfg)))
+
+
+def load_scene(scene_dir: Path) -> SceneDecision:
+    """The scene stage's decisions (``scene.json``): what the downstream stages model, and why."""
+    info = json.loads((scene_dir / "scene.json").read_text())
+    return SceneDecision(bool(info["model_hand"]), bool(info["model_pbd"]), bool(info["model_interaction"]),
+                         dict(info["why"]))

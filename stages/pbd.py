@@ -2,7 +2,9 @@
 
 ``stage.pbd.source``: ``simulate`` (the XPBD solver of :mod:`avatar.pbd`), ``ground_truth`` (the
 synthetic capture's own deformation), ``provided`` (the dataset's, e.g. DECAF's ``deforms.npy``
-as the capture adapter imported it) or ``none`` (zero offsets: the "w/o PBD" ablation).
+as the capture adapter imported it) or ``none`` (zero offsets: the "w/o PBD" ablation). When the scene
+stage decides against PBD (no hand, or no contact in any training frame), every source gives zero offsets
+and no contact, nothing is simulated, and the report says why.
 
 Writes per sequence ``deform.parquet`` (world-frame offsets *added* to the posed face; see
 :mod:`avatar.pbd.convention`) and ``contacts.parquet`` (per-vertex contact flags), and
@@ -30,7 +32,7 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
-from stages.common import contact_sources, face_stiffness, pbd_solver_config, templates
+from stages.common import contact_sources, face_stiffness, load_scene, pbd_solver_config, templates
 
 SOURCES = ("simulate", "ground_truth", "provided", "none")
 
@@ -44,8 +46,8 @@ class PBDStageConfig:
     solver: PBDConfig
 
 
-@stage("pbd", inputs=("capture", "fit"), config_keys=("model", "stage.pbd"),
-       outputs=("train/deform.parquet", "train/contacts.parquet", "pbd_report.json"), version="1",
+@stage("pbd", inputs=("capture", "fit", "scene"), config_keys=("model", "stage.pbd"),
+       outputs=("train/deform.parquet", "train/contacts.parquet", "pbd_report.json"), version="2",
        config_schema=PBDStageConfig, sources=contact_sources)
 def pbd(ctx: StageContext) -> None:
     """Face offsets and contact flags per frame from stage.pbd.source; pbd_report.json."""
@@ -59,7 +61,10 @@ def pbd(ctx: StageContext) -> None:
     stiffness = None
     report: dict = {"source": conf.source, "frame_convention": "world-frame offsets added to the posed face",
                     "sequences": {}}
-    if conf.source == "simulate":
+    scene = load_scene(ctx.input_dir("scene"))
+    if not scene.model_pbd:
+        report["skipped"] = f"scene analysis: {scene.why['model_pbd']}"
+    elif conf.source == "simulate":
         stiffness, report["stiffness"] = face_stiffness(ctx.cfg, head, solver)
     faces, hand_faces = torch.from_numpy(np.array(head.faces)), torch.from_numpy(np.array(hand.faces))
     preds, refs, contacts, seconds = [], [], [], []
@@ -67,7 +72,9 @@ def pbd(ctx: StageContext) -> None:
         table = read_table(fit_dir / seq / "params.parquet", PARAMS)
         posed = posed_keypoints({k: np.asarray(table[k]) for k in PARAM_COLUMNS}, head, hand)
         face, hand_v = torch.from_numpy(posed["face_vertices"]), torch.from_numpy(posed["hand_vertices"])
-        if stiffness is not None:
+        if not scene.model_pbd:
+            deform = _skipped(face.shape[0], face.shape[1], hand_v.shape[1])
+        elif stiffness is not None:
             deform = simulate_sequence(face, hand_v, faces, hand_faces, stiffness, solver)
         else:
             deform = _from_source(conf.source, cap_dir, seq, info, face, hand_v, faces, hand_faces, head, solver)
@@ -118,6 +125,14 @@ def _from_source(source: str, cap_dir: Path, seq: str, info: SequenceInfo, face:
     out.frames = [{"frame": t, "near": bool(face_contact[t].any()), "simulated": False, "iterations": 0,
                    "contact_vertices": int(face_contact[t].sum()),
                    "max_offset_mm": float(np.linalg.norm(offsets[t], axis=1).max()) * 1e3} for t in range(T)]
+    return out
+
+
+def _skipped(T: int, V: int, Vh: int) -> SequenceDeformation:
+    """Zero offsets and no contact for T frames (V face, Vh hand vertices): PBD not modelled."""
+    out = SequenceDeformation(np.zeros((T, V, 3)), np.zeros((T, V), bool), np.zeros((T, Vh), bool))
+    out.frames = [{"frame": t, "near": False, "simulated": False, "iterations": 0, "contact_vertices": 0,
+                   "max_offset_mm": 0.0} for t in range(T)]
     return out
 
 

@@ -26,7 +26,7 @@ from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
 from stages.common import contact_frames
 
-UPSTREAM = ("capture", "frames", "fit", "pbd", "warmup", "dynamic", "evaluate", "compare", "reenact")
+UPSTREAM = ("capture", "frames", "fit", "scene", "pbd", "warmup", "dynamic", "evaluate", "compare", "reenact")
 
 
 @dataclass
@@ -37,7 +37,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="7", config_schema=ReportConfig, per_method=True,
+       outputs=("report.html",), version="8", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -60,6 +60,8 @@ def report(ctx: StageContext) -> None:
         "<h2>What the scene contains</h2>",
         f"<p>The hand is visible in {100 * hand_share:.0f}% of the crops.</p>",
         _contact_summary(cap_dir, index),
+        "<h2>What was modelled, and why</h2>",
+        _scene_section(ctx.input_dir("scene"), manifests),
         "<h2>Stages</h2>",
         _table(("stage", "wall s", "peak MB", "metrics", "written"),
                [(n, f"{m['timings']['wall_s']:.2f}", f"{m['peak_memory_mb']:.0f}",
@@ -95,6 +97,20 @@ def report(ctx: StageContext) -> None:
            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}" \
            "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}</style>\n" + "\n".join(sections)
     write_bytes(ctx.out_dir / "report.html", page.encode(), "report")
+
+
+def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
+    """The scene stage's decisions with their reasons, and the work they left out."""
+    info = json.loads((scene_dir / "scene.json").read_text())
+    rows = [(name.removeprefix("model_"), "yes" if info[name] else "no", info["why"][name])
+            for name in ("model_hand", "model_pbd", "model_interaction")]
+    dynamic = manifests["dynamic"]["metrics"]
+    work = (f"PBD simulated {manifests['pbd']['metrics'].get('simulated_frames', 0)} frames; the interaction MLPs "
+            f"ran {dynamic.get('interaction_mlp_evaluations', 0)} Gaussian evaluations in training; "
+            f"{len(info['deforming_triangles'])} of {info['face_triangles']} face triangles lie within d_max = "
+            f"{info['d_max_m'] * 100:g} cm of the hand in some training contact frame (the only ones the interaction "
+            f"module and PBD can reach). Decided on the '{info['decided_on']}' sequence; stage.scene.* overrides.")
+    return _table(("modelled", "", "why"), rows) + f"<p>{html.escape(work)}</p>"
 
 
 def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, str]:

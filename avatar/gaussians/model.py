@@ -50,8 +50,9 @@ class BoundGaussians(nn.Module):
 
     @classmethod
     def on_triangles(cls, vertices: Tensor, faces: Tensor, face_part: Tensor, per_triangle: int,
-                     init_opacity: float = 0.1, init_rgb: float = 0.5, seed: int = 0) -> BoundGaussians:
-        """``per_triangle`` Gaussians spread over every triangle of the rest mesh.
+                     init_opacity: float = 0.1, init_rgb: float = 0.5, seed: int = 0,
+                     populate: Tensor | None = None) -> BoundGaussians:
+        """``per_triangle`` Gaussians spread over every triangle of the rest mesh (or of ``populate``).
 
         Args:
             vertices: (V, 3) rest-pose vertices of all meshes concatenated.
@@ -60,6 +61,8 @@ class BoundGaussians(nn.Module):
             per_triangle: Gaussians per triangle (paper: 20); the first sits at the centroid, the
                 others uniformly at random over the triangle; isotropic scales of 0.6 k / sqrt(per_triangle)
                 so that together they cover it.
+            populate: (F,) bool, the triangles that get Gaussians (e.g. only the face's when the scene has
+                no hand); None: all. The others stay empty, and density control never fills them.
         """
         if per_triangle < 1:
             raise ValueError(f"per_triangle must be >= 1, got {per_triangle}")
@@ -75,13 +78,14 @@ class BoundGaussians(nn.Module):
         points = torch.einsum("fkc,fcd->fkd", bary, vertices[faces])  # (F, K, 3)
         local = torch.einsum("fdj,fkd->fkj", frames.rotation, points - frames.origin[:, None])
         local = local / frames.scale[:, None, None]
-        binding = torch.arange(F).repeat_interleave(per_triangle)
-        n = F * per_triangle
+        chosen = torch.arange(F) if populate is None else torch.nonzero(populate.cpu()).flatten()
+        binding = chosen.repeat_interleave(per_triangle)
+        n = len(chosen) * per_triangle
         log_scale = math.log(0.6 / math.sqrt(per_triangle))
         quats = torch.zeros(n, 4, dtype=vertices.dtype)
         quats[:, 0] = 1.0
         return cls(
-            local_means=local.reshape(n, 3).clone(),
+            local_means=local[chosen].reshape(n, 3).clone(),
             log_scales=torch.full((n, 3), log_scale, dtype=vertices.dtype),
             quats=quats,
             opacity_logits=inverse_sigmoid(torch.full((n,), init_opacity, dtype=vertices.dtype)),

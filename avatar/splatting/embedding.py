@@ -193,7 +193,8 @@ class EmbeddedGaussians(nn.Module):
 
     @classmethod
     def on_triangles(cls, canonical_vertices: Tensor, faces: Tensor, face_part: Tensor, per_triangle: int,
-                     init_opacity: float = 0.1, seed: int = 0, init_rgb: float = 0.5) -> EmbeddedGaussians:
+                     init_opacity: float = 0.1, seed: int = 0, init_rgb: float = 0.5,
+                     populate: Tensor | None = None) -> EmbeddedGaussians:
         """``per_triangle`` Gaussians on every face of the canonical mesh.
 
         Args:
@@ -202,6 +203,8 @@ class EmbeddedGaussians(nn.Module):
             per_triangle: Gaussians per face; the first at the centroid, the others uniform over it.
             init_opacity: initial opacity, strictly between 0 and 1.
             seed: seed of the barycentric sampling.
+            populate: (F,) bool, the faces that get Gaussians; None: all. (Walking can later carry a
+                Gaussian onto an empty face of the same part.)
         """
         if per_triangle < 1:
             raise ValueError(f"per_triangle must be >= 1, got {per_triangle}")
@@ -213,14 +216,15 @@ class EmbeddedGaussians(nn.Module):
         exponential = -torch.log(torch.rand(num_faces, per_triangle, 3, generator=gen, dtype=dtype).clamp_min(1e-12))
         bary = exponential / exponential.sum(-1, keepdim=True)  # Dirichlet(1, 1, 1): uniform on the face
         bary[:, 0] = 1.0 / 3.0
-        triangle = torch.arange(num_faces).repeat_interleave(per_triangle)
-        n = num_faces * per_triangle
+        chosen = torch.arange(num_faces) if populate is None else torch.nonzero(populate.cpu()).flatten()
+        triangle = chosen.repeat_interleave(per_triangle)
+        n = len(chosen) * per_triangle
         area = mesh.areas.cpu().clamp_min(_MIN_INIT_AREA * float(mesh.areas.mean()))
         log_scale = 0.5 * torch.log(2.0 * area / (math.pi * per_triangle))
         quats = torch.zeros(n, 4, dtype=dtype)
         quats[:, 0] = 1.0
         device = canonical_vertices.device
-        model = cls(mesh, triangle, face_part.long().cpu()[triangle], bary.reshape(n, 3)[:, :2],
+        model = cls(mesh, triangle, face_part.long().cpu()[triangle], bary[chosen].reshape(n, 3)[:, :2],
                     torch.zeros(n, dtype=dtype), log_scale[triangle, None].expand(n, 3).to(dtype), quats,
                     inverse_sigmoid(torch.full((n,), init_opacity, dtype=dtype)),
                     torch.full((n, 3), (init_rgb - 0.5) / SH_C0, dtype=dtype))
