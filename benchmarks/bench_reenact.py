@@ -31,7 +31,7 @@ from avatar.render.gaussians import render_gaussians, resolve_backend  # noqa: E
 from pipeline.config import validate_config  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from stages import REGISTRY  # noqa: E402
-from stages.common import drive, load_params, load_trained, posed_gaussians  # noqa: E402
+from stages.common import drive, load_params, load_scene, load_trained, posed_gaussians  # noqa: E402
 
 
 def main() -> None:
@@ -51,7 +51,7 @@ def main() -> None:
                                                            f"paths.outputs={args.outputs}"]), REGISTRY)
     root = args.outputs / args.subject
     model = load_trained(root / "methods" / args.method / "dynamic")
-    driven = drive(cfg, load_params(root / "fit", "test"))
+    driven = drive(cfg, load_params(root / "fit", "test"), load_scene(root / "scene"))
     vertices = driven.meshes.vertices
     points = vertices.reshape(-1, 3).numpy()
     centre = points.mean(0)

@@ -222,13 +222,15 @@ class DrivenSequence:
     stiffness_source: str | None
 
 
-def drive(cfg: DictConfig, params: dict[str, np.ndarray], head_scale: float = 1.0) -> DrivenSequence:
-    """Pose ``params`` (already on the target's identity) and, for methods with ``method.pbd``, simulate the
-    contact on the face with the pbd stage's solver, settings and stiffness, as the pbd stage does."""
+def drive(cfg: DictConfig, params: dict[str, np.ndarray], scene: SceneDecision, head_scale: float = 1.0
+          ) -> DrivenSequence:
+    """Pose ``params`` (already on the target's identity) and, for methods with ``method.pbd`` on a scene
+    whose analysis models PBD, simulate the contact on the face with the pbd stage's solver, settings and
+    stiffness, as the pbd stage does."""
     head, hand = templates(cfg.model)
     posed = posed_keypoints(params, head, hand)
     face_v, hand_v = torch.from_numpy(posed["face_vertices"]), torch.from_numpy(posed["hand_vertices"])
-    if bool(cfg.method.pbd):
+    if bool(cfg.method.pbd) and scene.model_pbd:
         solver = pbd_solver_config(cfg)
         stiffness, stiffness_source = face_stiffness(cfg, head, solver)
         deform = simulate_sequence(face_v, hand_v, torch.tensor(np.array(head.faces)),

@@ -22,8 +22,8 @@ from data_schemas.tables import SchemaError, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
 from stages.common import (
-    applied_deformation, contact_frames, contact_sources, drive, driver_subject, load_params, load_sequence,
-    load_trained, load_views, posed_gaussians, transferred_params,
+    applied_deformation, contact_frames, contact_sources, drive, driver_subject, load_params, load_scene,
+    load_sequence, load_trained, load_views, posed_gaussians, transferred_params,
 )
 
 
@@ -40,7 +40,7 @@ class EvaluateConfig:
 Renderer = Callable[[int, int], torch.Tensor]
 
 
-@stage("evaluate", inputs=("capture", "frames", "fit", "pbd", "dynamic"),
+@stage("evaluate", inputs=("capture", "frames", "fit", "scene", "pbd", "dynamic"),
        config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
        outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="6", config_schema=EvaluateConfig,
        sources=contact_sources, per_method=True, subject_inputs=("fit",), input_subject=driver_subject)
@@ -116,7 +116,7 @@ def _split_sequence(ctx: StageContext, split: str, sequence: str, num_frames: in
         raise SchemaError(f"{path}: {len(params['flame_global_orient'])} frames, but the ground truth "
                           f"'{sequence}' of the capture has {num_frames}; fit the driver at the same preset")
     transferred, scale = transferred_params(ctx.cfg, ctx.input_dir("fit"), params, path)
-    driven = drive(ctx.cfg, transferred, scale)
+    driven = drive(ctx.cfg, transferred, load_scene(ctx.input_dir("scene")), scale)
     ctx.metrics["cross_reenact_head_scale"] = scale
     return driven.meshes, driven.cond
 

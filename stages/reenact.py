@@ -43,8 +43,8 @@ from data_schemas.writes import write_json
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
 from stages.common import (
-    contact_sources, drive, driver_subject, is_parameter_file, load_params, load_trained, posed_gaussians,
-    transferred_params, write_frame_ply,
+    contact_sources, drive, driver_subject, is_parameter_file, load_params, load_scene, load_trained,
+    posed_gaussians, transferred_params, write_frame_ply,
 )
 
 
@@ -75,7 +75,7 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
     return SourceFiles(Path("/"), (*files.files, path))
 
 
-@stage("reenact", inputs=("capture", "fit", "dynamic"),
+@stage("reenact", inputs=("capture", "fit", "scene", "dynamic"),
        config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
        outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
        version="2", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
@@ -84,7 +84,7 @@ def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
     conf, cfg = ctx.cfg.stage.reenact, ctx.cfg
     params, driver_label, scale = _driving_params(ctx)
-    driven = drive(cfg, params, scale)
+    driven = drive(cfg, params, load_scene(ctx.input_dir("scene")), scale)
     meshes, cond, offsets, pbd_frames = driven.meshes, driven.cond, driven.offsets, driven.pbd_frames
     T = offsets.shape[0]
     model = load_trained(ctx.input_dir("dynamic"))
