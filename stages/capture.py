@@ -64,7 +64,7 @@ def _files_below(folder: Path) -> tuple[Path, ...]:
     config_keys=("dataset", "quality.capture_size", "quality.num_frames_train", "quality.num_frames_test",
                  "quality.supersample", "stage.capture"),
     outputs=("cameras.parquet", "capture.json"),
-    version="4",
+    version="5",
     resources=Resources(cpus=2),
     config_schema=CaptureConfig,
     sources=capture_sources,
@@ -102,7 +102,8 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
                           f"choose one of {list(ctx.cfg.dataset.subjects)}")
     frames_per_sequence = {"train": q.num_frames_train, "test": q.num_frames_test}
     # name -> (script, performer): the two sequences, and with stage.capture.cross_reenactment this identity
-    # performing every other subject's held-out motion (the ground truth of cross-actor reenactment)
+    # performing every other subject's held-out motion (the ground truth of cross-actor reenactment); every
+    # sequence stages dataset.scene
     plan = {seq: (seq, None) for seq in SEQUENCES}
     if conf.cross_reenactment:
         plan |= {cross_sequence(other): ("test", other) for other in ctx.cfg.dataset.subjects if other != ctx.subject}
@@ -112,7 +113,7 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
         cap = generate(SyntheticConfig(subject=ctx.subject, sequence=script, image_size=int(q.capture_size),
                                        num_frames=int(frames_per_sequence[script]), supersample=int(q.supersample),
                                        seed=int(ctx.cfg.dataset.seed), num_cameras=int(conf.num_cameras),
-                                       performer=performer))
+                                       performer=performer, scene=str(ctx.cfg.dataset.scene)))
         cams = cap.cameras
         cameras = cameras or cams
         _write_synthetic_sequence(ctx.out_dir, seq, cap)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections import defaultdict
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -20,6 +20,11 @@ from pipeline.stage import Resources, StageContext, stage
 from stages.common import load_ground_truth_params, load_provided_params, model_sources, templates
 
 SOURCES = ("ground_truth", "provided", "fitted")
+#: fit.source=fitted, a sequence without any hand keypoint in the train views (a capture without a hand, e.g. the
+#: synthetic face_only scene; fit_report.json: "hand_fitted": false) gets a placeholder hand, not a fit: MANO's
+#: mean shape in its flat rest pose, unrotated, this far (metres) below the fitted head's translation (world -y):
+#: finite, and far from the face, so that no later stage finds it touching the face.
+ABSENT_HAND_DROP_M = 2.0
 
 
 @dataclass
@@ -38,10 +43,11 @@ class FitStageConfig:
 
 
 @stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit"),
-       outputs=("train/params.parquet", "fit_report.json"), version="3", resources=Resources(cpus=2),
+       outputs=("train/params.parquet", "fit_report.json"), version="4", resources=Resources(cpus=2),
        config_schema=FitStageConfig, sources=model_sources)
 def fit(ctx: StageContext) -> None:
-    """Write params.parquet per sequence from fit.source, and fit_report.json with the errors."""
+    """Write params.parquet per sequence from fit.source, and fit_report.json with the errors and, per sequence,
+    whether the hand was fitted (false: no hand keypoint to fit, see :data:`ABSENT_HAND_DROP_M`)."""
     source = ctx.cfg.fit.source
     if source not in SOURCES:
         raise SchemaError(f"fit.source={source!r}: choose one of {SOURCES}")
@@ -52,6 +58,7 @@ def fit(ctx: StageContext) -> None:
     conf = FitConfig(**{f.name: getattr(ctx.cfg.stage.fit, f.name) for f in fields(FitStageConfig)})
     report: dict[str, dict] = {"source": source, "sequences": {}}
     for seq, info in ctx.progress(list(index.sequences.items()), desc="fit: sequences"):
+        hand_fitted = True
         if source == "ground_truth":
             params = load_ground_truth_params(cap_dir, seq)
             entry: dict = {}
@@ -62,16 +69,23 @@ def fit(ctx: StageContext) -> None:
             kp = _keypoints_by_camera(read_table(ctx.input_dir("keypoints") / seq / "keypoints.parquet", KEYPOINTS),
                                       info.num_frames)
             # Only the train views: the held-out camera's detections would leak the novel view into the fit.
-            result = fit_sequence({c.camera_id: kp[c.camera_id] for c in cameras if c.camera_id in kp}, cameras,
-                                  head, hand, conf)
-            params = result.params
-            entry = {"reprojection_px": {p: float(np.nanmean(v)) for p, v in result.reprojection_px.items()},
+            train_kp = {c.camera_id: kp[c.camera_id] for c in cameras if c.camera_id in kp}
+            hand_fitted = _sees_hand(train_kp)
+            # Without any hand keypoint the hand stays where its initialisation puts it, inside the head, and the
+            # interpenetration term pushes the face: fit the face alone, then write the placeholder hand.
+            result = fit_sequence(train_kp, cameras, head, hand,
+                                  conf if hand_fitted else replace(conf, penetration_mm=0.0))
+            params = result.params if hand_fitted else _placeholder_hand(result.params)
+            entry = {"reprojection_px": {p: float(np.nanmean(v)) for p, v in result.reprojection_px.items()
+                                         if np.isfinite(v).any()},
                      "weak_frames": {p: np.flatnonzero(v).tolist() for p, v in result.weak_frames.items()}}
             # Timings go to the manifest (its metrics), never into an artifact: a rerun must write the same bytes.
             ctx.metrics[f"{seq}_fit_ms_per_frame_per_view"] = \
                 1e3 * result.timing.get("total_s", 0.0) / info.num_frames / len(cameras)
+        entry["hand_fitted"] = hand_fitted
         if info.has_ground_truth:
-            entry.update(_errors(params, load_ground_truth_params(cap_dir, seq), head, hand))
+            errors = _errors(params, load_ground_truth_params(cap_dir, seq), head, hand)
+            entry.update({k: v for k, v in errors.items() if hand_fitted or "hand" not in k})
         write_table(ctx.out_dir / seq / "params.parquet", PARAMS,
                     {"frame": np.arange(info.num_frames), **{k: params[k] for k in PARAM_COLUMNS}})
         report["sequences"][seq] = entry
@@ -90,6 +104,19 @@ def _keypoints_by_camera(table: dict, num_frames: int) -> dict[str, dict[str, np
             out[cam][part] = np.zeros((num_frames, len(rows), 3))
         out[cam][part][int(frame)] = rows
     return dict(out)
+
+
+def _sees_hand(keypoints: dict[str, dict[str, np.ndarray]]) -> bool:
+    """Whether any view of ``keypoints`` (camera_id -> part -> (T, K, 3) rows of (u, v, confidence)) holds a
+    hand keypoint with non-zero confidence."""
+    return any((views["hand"][..., 2] > 0).any() for views in keypoints.values() if "hand" in views)
+
+
+def _placeholder_hand(params: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``params`` (column -> (T, D)) with the MANO columns replaced by the placeholder hand of a sequence
+    without hand keypoints (see :data:`ABSENT_HAND_DROP_M`)."""
+    rest = {k: np.zeros_like(params[k]) for k in ("mano_shape", "mano_hand_pose", "mano_global_orient")}
+    return {**params, **rest, "mano_transl": params["flame_transl"] - np.array([0.0, ABSENT_HAND_DROP_M, 0.0])}
 
 
 def _errors(params: dict, gt: dict, head, hand) -> dict[str, float]:  # noqa: ANN001 - TemplateModel

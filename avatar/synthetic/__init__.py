@@ -3,7 +3,7 @@ with ground truth (FLAME/MANO parameters, soft-tissue offsets, contact,
 keypoints, masks). A pure library: :func:`generate` returns arrays in memory.
 """
 
-from avatar.synthetic.capture import SyntheticCapture, SyntheticConfig
+from avatar.synthetic.capture import SCENES, SyntheticCapture, SyntheticConfig
 from avatar.synthetic.generator import generate
 
-__all__ = ["SyntheticCapture", "SyntheticConfig", "generate"]
+__all__ = ["SCENES", "SyntheticCapture", "SyntheticConfig", "generate"]

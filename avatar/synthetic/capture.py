@@ -10,6 +10,8 @@ from data_schemas.cameras import Camera
 
 SUBJECTS = ("synth_a", "synth_b")
 SEQUENCES = ("train", "test")
+#: What the capture shows (see :attr:`SyntheticConfig.scene`).
+SCENES = ("interaction", "no_contact", "face_only")
 
 
 @dataclass(frozen=True)
@@ -29,6 +31,13 @@ class SyntheticConfig:
             out; None: the subject's own. Another subject gives the ground truth of cross-actor
             reenactment: this identity performing the other's motion, the hand placed on this face as the
             script says.
+        scene: what the capture shows, one of :data:`SCENES`. "interaction": the hand touches and dents the
+            face. "no_contact": the same head motion and hand articulation, the hand held near the face
+            (more than 0.06 m from it, beyond the paper's interaction radius of 0.05 m) and never touching
+            it. "face_only": no hand in view; the ground-truth MANO parameters still follow the script's
+            articulation but place the hand 2 m below the head, outside every camera (finite values, as
+            the params schema wants every column). Both leave the face undeformed (zero face_offsets, no
+            contact). See :func:`avatar.synthetic.motion.stage_scene`.
     """
 
     subject: str
@@ -39,8 +48,11 @@ class SyntheticConfig:
     seed: int = 0
     num_cameras: int = 8
     performer: str | None = None
+    scene: str = "interaction"
 
     def __post_init__(self) -> None:
+        if self.scene not in SCENES:
+            raise ValueError(f"scene must be one of {SCENES}, got {self.scene!r}")
         if self.subject not in SUBJECTS:
             raise ValueError(f"subject must be one of {SUBJECTS}, got {self.subject!r}")
         if self.performer is not None and self.performer not in SUBJECTS:

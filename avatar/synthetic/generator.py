@@ -17,7 +17,7 @@ from avatar.synthetic.geometry import vertex_normals
 from avatar.synthetic.hand_pose import HandFrame
 from avatar.synthetic.identity import Identity, make_identity
 from avatar.synthetic.keypoints import FACE_SELF_TOLERANCE_M, HAND_SELF_TOLERANCE_M, project_keypoints
-from avatar.synthetic.motion import SCRIPTS, frame_times, jitter
+from avatar.synthetic.motion import SCRIPTS, frame_times, jitter, stage_scene
 from avatar.synthetic.performance import Performance, perform
 from avatar.synthetic.rig import make_rig, mesh_raster_camera
 from avatar.synthetic.shading import BACKGROUND_LINEAR, Channels, ShadowMap, make_shader, srgb_encode
@@ -134,7 +134,7 @@ def _generate(cfg: SyntheticConfig) -> SyntheticCapture:
     subject = _subject(cfg.subject)
     performer = cfg.performer or cfg.subject
     rng = np.random.default_rng([cfg.seed, SUBJECTS.index(performer), SEQUENCES.index(cfg.sequence)])
-    script = jitter(SCRIPTS[cfg.sequence], rng)
+    script = stage_scene(jitter(SCRIPTS[cfg.sequence], rng), cfg.scene)
     perf = perform(script, frame_times(cfg.num_frames), subject.identity, subject.flame, subject.mano,
                    FaceAnchors.build(subject.flame))
     offsets = _soft_tissue(subject, perf)

@@ -12,6 +12,9 @@ a finger direction and tilt in the head frame, and articulation. The seeded
 variation jitters times, angles, stand-offs and articulation slightly; it never
 changes which keys are contacts.
 
+:func:`stage_scene` restages a script for the captures without interaction
+(the hand held off the face, or out of view).
+
 Head frame: the FLAME frame before global rotation (x: subject's left, y: up,
 z: forward). The hand is a right hand; it works on the subject's right (-x).
 """
@@ -185,3 +188,31 @@ def jitter(script: Script, rng: np.random.Generator) -> Script:
         for k in script.hand
     )
     return Script(head=head, hand=hand)
+
+
+#: no_contact scene: every hand key's stand-off is raised to at least this (metres), measured from the hand's
+#: first point along the anchor normal. Between keys the blended placement swings the hand up to ~0.035 m
+#: closer (jaw -> chin of the train script), so the hand stays > 0.06 m from the face, beyond the paper's
+#: interaction radius d_max = 0.05 m, and within ~0.11 m of it while the script holds it at the face.
+CLEARANCE_M = 0.11
+#: face_only scene: every hand key's placement is shifted this far in the head frame (metres: 2 m below the
+#: head), far outside every camera of the rig (and the key light's shadow map) whatever the head pose.
+OUT_OF_VIEW_SHIFT_M = (0.0, -2.0, 0.0)
+
+
+def stage_scene(script: Script, scene: str) -> Script:
+    """The script as staged for ``scene`` (one of :data:`avatar.synthetic.capture.SCENES`).
+
+    ``interaction`` returns the script itself. ``no_contact`` keeps the head track and the hand's
+    articulation and orientation and holds the hand off the face: each key's contact point becomes the
+    hand's extreme point along the anchor normal (so the hand's size and tilt are accounted for, not just a
+    fingertip's position) and its stand-off at least :data:`CLEARANCE_M`. ``face_only`` keeps the
+    articulation and moves every hand key by :data:`OUT_OF_VIEW_SHIFT_M`, out of view (finite parameters).
+    """
+    if scene == "no_contact":
+        hand = tuple(replace(k, contact="extreme", standoff_m=max(k.standoff_m, CLEARANCE_M)) for k in script.hand)
+    elif scene == "face_only":
+        hand = tuple(replace(k, shift_m=OUT_OF_VIEW_SHIFT_M) for k in script.hand)
+    else:
+        return script
+    return replace(script, hand=hand)
