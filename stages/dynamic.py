@@ -23,6 +23,7 @@ from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
 from avatar.training.splatting import train_splatting
+from avatar.training.validation import Validator
 from data_schemas.gaussians import DYNAMIC_TRAIN_LOG
 from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import write_table
@@ -32,6 +33,7 @@ from stages.common import (
     TrainedModel, applied_deformation, contact_flags, load_embedded_gaussians, posed_gaussians, representation,
     splatting_config, write_embedded_gaussians, load_gaussians, load_sequence, load_views, model_sources, templates,
     write_bound_gaussians, write_frame_ply,
+    ValidationSchema, record_validation, validation_config, validation_problems,
 )
 
 
@@ -62,6 +64,7 @@ class DynamicConfig:
     ply_frames: list[int]
     backend: str
     seed: int
+    validation: ValidationSchema
 
     @classmethod
     def validate(cls, conf: object) -> list[str]:
@@ -73,7 +76,7 @@ class DynamicConfig:
         d_max = float(conf.d_max)  # type: ignore[attr-defined]
         if not d_max > 0.0:
             problems.append(f"d_max={d_max:g}: must be positive (metres; the paper uses 0.05)")
-        return problems
+        return problems + validation_problems(conf)
 
 
 def model_config(cfg) -> DynamicModelConfig:  # noqa: ANN001 - the run's DictConfig
@@ -96,8 +99,8 @@ def model_config(cfg) -> DynamicModelConfig:  # noqa: ANN001 - the run's DictCon
                  "quality.dynamic_interaction_depth", "quality.geometry_feature_dim", "quality.pointnet_width",
                  "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
                  "splatting", "stage.warmup"),  # SplattingAvatar's recipe and schedule
-    outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply"),
-    version="3",
+    outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet"),
+    version="4",
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=DynamicConfig,
@@ -106,7 +109,9 @@ def model_config(cfg) -> DynamicModelConfig:  # noqa: ANN001 - the run's DictCon
 )
 def dynamic(ctx: StageContext) -> None:
     """Stage two on every train camera and frame: H, I, PointNet++, the point features and the Gaussians
-    (the ablations and GaussianAvatars: what of it the method keeps), or SplattingAvatar trained on."""
+    (the ablations and GaussianAvatars: what of it the method keeps), or SplattingAvatar trained on. With
+    ``stage.dynamic.validation.every`` > 0 it withholds ``validation.frames`` train frames, validates on them and
+    may stop early (``curve.parquet``; README, "Quality during training")."""
     conf = ctx.cfg.stage.dynamic
     torch.manual_seed(conf.seed)
     fit_dir, pbd_dir = ctx.input_dir("fit"), ctx.input_dir("pbd")
@@ -128,11 +133,12 @@ def _train_embedded(ctx: StageContext, views: ViewSet, meshes: MeshSequence, con
                          "does)")
     canonical = meshes.vertices[0]
     model = load_embedded_gaussians(ctx.input_dir("warmup"), meshes.part_names, canonical, meshes.faces)
-    steps = int(q.dynamic_steps)
+    validator = Validator(validation_config(conf.validation), views)
     start = time.perf_counter()
-    log = train_splatting(model, views, meshes, splatting_config(ctx.cfg, steps, conf, densify=False),
+    log = train_splatting(model, views, meshes, splatting_config(ctx.cfg, int(q.dynamic_steps), conf, densify=False),
                           checkpoint_dir=ctx.scratch_dir,
-                          progress=lambda s: ctx.progress(s, desc="dynamic", total=len(s)))
+                          progress=lambda s: ctx.progress(s, desc="dynamic", total=len(s)), validator=validator)
+    steps = validator.end  # steps run
     write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
     buffer = io.BytesIO()
     torch.save({"canonical_vertices": canonical.float(), "faces": meshes.faces}, buffer)
@@ -142,8 +148,9 @@ def _train_embedded(ctx: StageContext, views: ViewSet, meshes: MeshSequence, con
     _write_plys(ctx, model, cond, meshes, views.num_frames)
     write_table(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG,
                 {name: np.array([getattr(r, name) for r in log]) for name in SPLATTING_TRAIN_LOG.column_names})
+    record_validation(ctx, validator)
     ctx.metrics.update({"steps": steps, "gaussians": model.num_gaussians,
-                        "ms_per_step": 1000 * (time.perf_counter() - start) / max(steps, 1),
+                        "ms_per_step": 1000 * (time.perf_counter() - start - validator.validation_s) / max(steps, 1),
                         "final_loss": log[-1].loss if log else float("nan"),
                         "walked": sum(r.walked for r in log),
                         "rasterizer": resolve_backend(conf.backend, canonical)})
@@ -175,8 +182,10 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
         contact_fraction=conf.contact_fraction, patch_min_size=conf.patch_min_size,
         checkpoint_every=conf.checkpoint_every, log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
     contact = contact_flags(ctx.input_dir("pbd"), "train", views.num_frames)
+    validator = Validator(validation_config(conf.validation), views)
     result = train_dynamic(model, views, meshes, cond, contact, train_cfg, checkpoint_dir=ctx.scratch_dir,
-                           progress=lambda steps: ctx.progress(steps, desc="dynamic", total=len(steps)))
+                           progress=lambda steps: ctx.progress(steps, desc="dynamic", total=len(steps)),
+                           validator=validator)
     write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model.gaussians, meshes.part_names)
     buffer = io.BytesIO()
     torch.save(model.network_state(), buffer)
@@ -188,9 +197,10 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
     log = result.log
     write_table(ctx.out_dir / "train_log.parquet", DYNAMIC_TRAIN_LOG,
                 {name: np.array([getattr(r, name) for r in log]) for name in DYNAMIC_TRAIN_LOG.column_names})
-    steps = max(int(q.dynamic_steps), 1)
+    record_validation(ctx, validator)
+    steps = max(validator.end, 1)
     ctx.metrics.update({
-        "steps": int(q.dynamic_steps), "gaussians": model.gaussians.num_gaussians,
+        "steps": validator.end, "gaussians": model.gaussians.num_gaussians,
         "final_loss": log[-1].loss if log else float("nan"),
         "ms_per_step": 1000 * sum(result.seconds.values()) / steps,
         **{f"{k}_ms_per_step": 1000 * v / steps for k, v in result.seconds.items()},

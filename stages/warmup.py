@@ -12,6 +12,7 @@ from avatar.splatting import EmbeddedGaussians
 from avatar.render.gaussians import resolve_backend
 from avatar.training.splatting import train_splatting
 from avatar.training.static import StaticConfig, colors_from_views, train_static
+from avatar.training.validation import Validator
 from data_schemas.capture import MASK_LABELS
 from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
@@ -21,6 +22,7 @@ from pipeline.stage import Resources, StageContext, stage
 from stages.common import (
     applied_deformation, load_meshes, load_views, model_sources, representation, splatting_config,
     write_bound_gaussians, write_embedded_gaussians,
+    ValidationSchema, record_validation, validation_config, validation_problems,
 )
 
 
@@ -42,6 +44,7 @@ class WarmupConfig:
     ply_frame: int
     backend: str
     seed: int
+    validation: ValidationSchema
 
     def __post_init__(self) -> None:
         problems = self.validate(self)
@@ -57,7 +60,7 @@ class WarmupConfig:
         if not 0.0 < opacity < 1.0:  # also refuses NaN
             problems.append(f"init_opacity={opacity:g}: must lie strictly between 0 and 1 (the opacity logit is "
                             f"infinite at 0 and 1); use e.g. 0.1, the 3DGS default")
-        return problems
+        return problems + validation_problems(conf)
 
 
 @stage(
@@ -65,8 +68,8 @@ class WarmupConfig:
     inputs=("capture", "frames", "fit", "pbd"),
     config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup",
                  "method.representation", "method.pbd", "splatting"),
-    outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet"),
-    version="3",
+    outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet"),
+    version="4",
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=WarmupConfig,
@@ -75,7 +78,9 @@ class WarmupConfig:
 )
 def warmup(ctx: StageContext) -> None:
     """Stage one on every train camera and train frame: static Gaussians bound to the triangles (GaussianAvatars,
-    InteractAvatar's warm-up) or, for method.representation=embedded, SplattingAvatar's embedded Gaussians."""
+    InteractAvatar's warm-up) or, for method.representation=embedded, SplattingAvatar's embedded Gaussians.
+    With ``stage.warmup.validation.every`` > 0 it withholds ``validation.frames`` train frames, validates on them
+    and may stop early (``curve.parquet``; README, "Quality during training")."""
     conf, q = ctx.cfg.stage.warmup, ctx.cfg.quality
     torch.manual_seed(conf.seed)
     cap_dir = ctx.input_dir("capture")
@@ -92,9 +97,11 @@ def warmup(ctx: StageContext) -> None:
     part_label = torch.tensor([MASK_LABELS[name] for name in meshes.part_names])[model.part]
     model.set_colors(colors_from_views(means, part_label, views, frame=0))
     progress = lambda steps: ctx.progress(steps, desc="warmup", total=len(steps))  # noqa: E731
+    validator = Validator(validation_config(conf.validation), views)
     if embedded:
         splat_cfg = splatting_config(ctx.cfg, int(q.warmup_steps), conf, densify=True)
-        log = train_splatting(model, views, meshes, splat_cfg, checkpoint_dir=ctx.scratch_dir, progress=progress)
+        log = train_splatting(model, views, meshes, splat_cfg, checkpoint_dir=ctx.scratch_dir, progress=progress,
+                              validator=validator)
         write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
         write_table(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG,
                     {name: np.array([getattr(r, name) for r in log]) for name in SPLATTING_TRAIN_LOG.column_names})
@@ -104,7 +111,8 @@ def warmup(ctx: StageContext) -> None:
                            densify_until=conf.densify_until, opacity_reset_interval=conf.opacity_reset_interval,
                            max_gaussians=conf.max_gaussians, checkpoint_every=conf.checkpoint_every,
                            log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
-        log = train_static(model, views, meshes, cfg, checkpoint_dir=ctx.scratch_dir, progress=progress)
+        log = train_static(model, views, meshes, cfg, checkpoint_dir=ctx.scratch_dir, progress=progress,
+                           validator=validator)
         write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
         write_table(ctx.out_dir / "train_log.parquet", TRAIN_LOG,
                     {name: np.array([getattr(r, name) for r in log]) for name in TRAIN_LOG.column_names})
@@ -116,7 +124,8 @@ def warmup(ctx: StageContext) -> None:
     write_gaussians_ply(ctx.out_dir / "gaussians.ply", cloud)
     ctx.metrics["gaussians"] = model.num_gaussians
     ctx.metrics["final_loss"] = log[-1].loss
-    ctx.metrics["steps"] = int(q.warmup_steps)
+    record_validation(ctx, validator)
+    ctx.metrics["steps"] = validator.end  # steps run
     # backend=auto resolves per machine (compiled where it built, else torch; equal to float32 rounding):
     # the manifest records which one computed this artifact.
     ctx.metrics["rasterizer"] = resolve_backend(conf.backend, means)

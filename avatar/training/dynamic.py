@@ -30,6 +30,7 @@ from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.schedule import exponential_lr
 from avatar.training.static import gaussian_param_groups
+from avatar.training.validation import ValidationConfig, Validator, draw_frame
 
 CHECKPOINT = "dynamic.pt"
 FACE_LABEL, HAND_LABEL = 1, 2  # part labels of the crops' masks (see avatar.training.data.ViewSet)
@@ -128,26 +129,31 @@ def patch_boxes(labels: np.ndarray) -> list[np.ndarray]:
     return [b for b in (hand, overlap_box(hand, face)) if b is not None]
 
 
-def sample_frame(gen: torch.Generator, num_frames: int, contact: np.ndarray, contact_fraction: float) -> int:
-    """A training frame: with probability ``contact_fraction`` one of the contact frames (if any), else any."""
-    contact_ids = np.flatnonzero(contact)
+def sample_frame(gen: torch.Generator, frames: np.ndarray, contact: np.ndarray, contact_fraction: float) -> int:
+    """One of the training frames ``frames`` (K,): with probability ``contact_fraction`` one of those with
+    contact (``contact``: (T,) bool over the whole sequence), if any, else any of them."""
+    contact_ids = frames[contact[frames]]
     draw = float(torch.rand((), generator=gen))
     if contact_ids.size and draw < contact_fraction:
-        return int(contact_ids[int(torch.randint(contact_ids.size, (1,), generator=gen))])
-    return int(torch.randint(num_frames, (1,), generator=gen))
+        return draw_frame(gen, contact_ids)
+    return draw_frame(gen, frames)
 
 
 def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, cond: SequenceConditioning,
                   contact: np.ndarray, cfg: DynamicTrainConfig, checkpoint_dir: Path | None = None,
-                  progress: Progress = iter, lpips: LPIPS | None = None) -> DynamicTrainResult:
-    """Optimise ``model`` in place for ``cfg.steps`` steps on the frames of ``views``/``meshes``/``cond``.
+                  progress: Progress = iter, lpips: LPIPS | None = None,
+                  validator: Validator | None = None) -> DynamicTrainResult:
+    """Optimise ``model`` in place for ``cfg.steps`` steps (fewer when ``validator`` stops it) on the frames of
+    ``views``/``meshes``/``cond`` that ``validator`` leaves to training (default: no validation, every frame).
 
     Args:
         contact: (T,) bool, frames with hand-face contact (oversampled).
         checkpoint_dir: resume from ``dynamic.pt`` there when present; save every ``cfg.checkpoint_every``.
         lpips: the L_patch network (default LPIPS-VGG with the offline weights).
+        validator: validates the model as evaluated (:func:`render_dynamic`) on its withheld frames.
     """
     gen = torch.Generator().manual_seed(cfg.seed)
+    validator = validator if validator is not None else Validator(ValidationConfig(), views)
     lpips = lpips if lpips is not None else LPIPS("vgg")
     optimizer = _optimizer(model, cfg)
     result = DynamicTrainResult([], 0, 0, {"model": 0.0, "render": 0.0, "loss": 0.0, "backward": 0.0})
@@ -161,8 +167,14 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         start = int(state["step"])
         result.log = [DynamicLogRow(**r) for r in state["log"]]
         result.interaction_evaluations, result.interaction_steps = state["interaction"]
-    for step in progress(range(start + 1, cfg.steps + 1)):
-        frame = sample_frame(gen, views.num_frames, contact, cfg.contact_fraction)
+        validator.load_state(state["validation"])
+
+    def render(frame: int) -> Tensor:  # as evaluated: the most probable PointNet++ sample, posed once
+        g = model(cond.frame(frame), meshes.vertices[frame])
+        return torch.stack([rasterize(g, views, c, cfg.backend).rgb for c in range(views.num_cameras)])
+
+    for step in progress(validator.begin(start, cfg.steps, 0, render)):
+        frame = sample_frame(gen, validator.train_frames, contact, cfg.contact_fraction)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         _set_learning_rates(optimizer, cfg, step)
         t0 = time.perf_counter()
@@ -183,18 +195,22 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
             result.seconds[key] += seconds
         result.interaction_evaluations += g.interaction_evaluations
         result.interaction_steps += int(g.interaction_evaluations > 0)
-        if step % cfg.log_every == 0 or step == cfg.steps:
+        stop = validator.after_step(step, render)
+        if step % cfg.log_every == 0 or step == validator.end:
             result.log.append(DynamicLogRow(step, loss.item(), *(terms[k].item() for k in
                                             ("l1", "dssim", "scale_reg", "position_reg", "patch")),
                                             g.interaction_evaluations))
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
             save_checkpoint(ckpt_path, {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                                         "rng": gen.get_state(), "log": [asdict(r) for r in result.log],
-                                        "interaction": (result.interaction_evaluations, result.interaction_steps)})
+                                        "interaction": (result.interaction_evaluations, result.interaction_steps),
+                                        "validation": validator.state()})
+        if stop:
+            break
     return result
 
 
-_CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction")
+_CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction", "validation")
 
 
 def _loss_terms(pred: Tensor, gt: Tensor, labels: np.ndarray, g: DynamicFrame, visible: Tensor,

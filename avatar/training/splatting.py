@@ -49,6 +49,7 @@ from avatar.splatting.embedding import EmbeddedGaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.schedule import exponential_lr, scaled_interval
+from avatar.training.validation import ValidationConfig, Validator
 
 CHECKPOINT = "splatting.pt"
 _POSITION_GROUPS = ("barycentric", "displacement")
@@ -188,14 +189,18 @@ def _walk(model: EmbeddedGaussians, optimizer: torch.optim.Optimizer, max_hops: 
 
 
 def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequence, cfg: SplattingConfig,
-                    checkpoint_dir: Path | None = None, progress: Progress = iter) -> list[LogRow]:
-    """Optimise ``model`` in place for ``cfg.steps`` steps; returns the loss log.
+                    checkpoint_dir: Path | None = None, progress: Progress = iter,
+                    validator: Validator | None = None) -> list[LogRow]:
+    """Optimise ``model`` in place for ``cfg.steps`` steps (fewer when ``validator`` stops it, which looks at
+    the validations after density control); returns the loss log.
 
-    With ``checkpoint_dir`` it resumes from ``splatting.pt`` there when present (the model is resized
-    to match) and writes one every ``cfg.checkpoint_every`` steps.
+    Draws frames from those ``validator`` leaves to training (default: no validation, every frame). With
+    ``checkpoint_dir`` it resumes from ``splatting.pt`` there when present (the model is resized to match)
+    and writes one every ``cfg.checkpoint_every`` steps.
     """
     device = model.barycentric.device
     gen = torch.Generator().manual_seed(cfg.seed)
+    validator = validator if validator is not None else Validator(ValidationConfig(), views)
     density = EmbeddedDensityController(cfg.density(), model.num_gaussians, seed=cfg.seed, device=device)
     lpips = LPIPS(cfg.lpips_net).to(device) if cfg.lambda_lpips > 0 else None
     extent = cfg.scene_extent if cfg.scene_extent > 0 else meshes.extent()
@@ -212,8 +217,14 @@ def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequen
         density.load_state(state["density"])
         gen.set_state(state["rng"])
         start, walked, log = int(state["step"]), int(state["walked"]), [LogRow(**r) for r in state["log"]]
-    for step in progress(range(start + 1, cfg.steps + 1)):
-        frame = int(torch.randint(views.num_frames, (1,), generator=gen))
+        validator.load_state(state["validation"])
+
+    def render(frame: int) -> Tensor:
+        return torch.stack([render_splatting(model, meshes, views, frame, c, cfg.backend)[0].rgb
+                            for c in range(views.num_cameras)])
+
+    for step in progress(validator.begin(start, cfg.steps, density.cfg.densify_until, render)):
+        frame = validator.sample_frame(gen)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         _set_position_lr(optimizer, step, cfg)
         out, world_scales = render_splatting(model, meshes, views, frame, camera, cfg.backend)
@@ -226,7 +237,8 @@ def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequen
         walked += density.step(step, model, optimizer, extent)["walked"]
         if cfg.walk_every > 0 and step % cfg.walk_every == 0:
             walked += _walk(model, optimizer, cfg.max_hops)
-        if step % cfg.log_every == 0 or step == cfg.steps:
+        stop = validator.after_step(step, render)
+        if step % cfg.log_every == 0 or step == validator.end:
             log.append(LogRow(step, loss.item(), *(terms[k].item() for k in _LOGGED_TERMS), model.num_gaussians,
                               walked))
             walked = 0
@@ -234,9 +246,11 @@ def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequen
             save_checkpoint(ckpt_path, {
                 "step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                 "density": density.state(), "rng": gen.get_state(), "walked": walked,
-                "log": [asdict(r) for r in log]})
+                "log": [asdict(r) for r in log], "validation": validator.state()})
+        if stop:
+            break
     return log
 
 
 _LOGGED_TERMS = ("l1", "dssim", "mse", "lpips", "scale_reg")
-_CHECKPOINT_KEYS = ("step", "model", "optimizer", "density", "rng", "walked", "log")
+_CHECKPOINT_KEYS = ("step", "model", "optimizer", "density", "rng", "walked", "log", "validation")

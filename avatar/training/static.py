@@ -22,6 +22,7 @@ from avatar.render.gaussians import render_gaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.schedule import exponential_lr, scaled_interval
+from avatar.training.validation import ValidationConfig, Validator
 
 CHECKPOINT = "warmup.pt"
 UNKNOWN_PART_LABEL = 3  # keyed foreground whose part is unknown (see data_schemas.frames)
@@ -131,13 +132,17 @@ def colors_from_views(means: Tensor, part_labels: Tensor, views: ViewSet, frame:
 
 
 def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cfg: StaticConfig,
-                 checkpoint_dir: Path | None = None, progress: Progress = iter) -> list[LogRow]:
-    """Optimise ``model`` in place for ``cfg.steps`` steps; returns the loss log.
+                 checkpoint_dir: Path | None = None, progress: Progress = iter,
+                 validator: Validator | None = None) -> list[LogRow]:
+    """Optimise ``model`` in place for ``cfg.steps`` steps (fewer when ``validator`` stops it); returns the
+    loss log.
 
-    Samples one (frame, camera) pair per step uniformly. With ``checkpoint_dir`` it
-    resumes from ``warmup.pt`` there when present (the model is resized to match).
+    Samples one (frame, camera) pair per step uniformly over the frames ``validator`` leaves to training
+    (default: no validation, every frame). With ``checkpoint_dir`` it resumes from ``warmup.pt`` there when
+    present (the model is resized to match). The stop rule looks at the validations after density control.
     """
     gen = torch.Generator().manual_seed(cfg.seed)
+    validator = validator if validator is not None else Validator(ValidationConfig(), views)
     optimizer = _optimizer(model, cfg)
     density = DensityController(cfg.density(), model.num_gaussians, seed=cfg.seed)
     extent = meshes.extent()
@@ -149,8 +154,14 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
         start, log = _restore(state, model, density, gen)
         optimizer = _optimizer(model, cfg)
         optimizer.load_state_dict(state["optimizer"])
-    for step in progress(range(start + 1, cfg.steps + 1)):
-        frame = int(torch.randint(views.num_frames, (1,), generator=gen))
+        validator.load_state(state["validation"])
+
+    def render(frame: int) -> Tensor:
+        return torch.stack([render_frame(model, meshes, views, frame, c, cfg.backend)[0].rgb
+                            for c in range(views.num_cameras)])
+
+    for step in progress(validator.begin(start, cfg.steps, density.cfg.densify_until, render)):
+        frame = validator.sample_frame(gen)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         for group in optimizer.param_groups:
             if group["name"] == "local_means":
@@ -165,22 +176,27 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         density.step(step, model, optimizer, world_scales.detach(), extent)
-        if step % cfg.log_every == 0 or step == cfg.steps:
+        stop = validator.after_step(step, render)
+        if step % cfg.log_every == 0 or step == validator.end:
             log.append(LogRow(step, loss.item(), *(terms[k].item() for k in terms), model.num_gaussians))
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-            _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log)
+            _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log, validator)
+        if stop:
+            break
     return log
 
 
-_CHECKPOINT_KEYS = ("step", "model", "optimizer", "grad_sum", "count", "rng", "density_rng", "log")
+_CHECKPOINT_KEYS = ("step", "model", "optimizer", "grad_sum", "count", "rng", "density_rng", "log", "validation")
 
 
 def _save_checkpoint(path: Path, step: int, model: BoundGaussians, optimizer: torch.optim.Optimizer,
-                     density: DensityController, gen: torch.Generator, log: list[LogRow]) -> None:
+                     density: DensityController, gen: torch.Generator, log: list[LogRow],
+                     validator: Validator) -> None:
     """Everything needed to resume bit for bit (verified on load: :mod:`avatar.training.checkpoint`)."""
     save_checkpoint(path, {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                            "grad_sum": density.grad_sum, "count": density.count, "rng": gen.get_state(),
-                           "density_rng": density.generator.get_state(), "log": [asdict(r) for r in log]})
+                           "density_rng": density.generator.get_state(), "log": [asdict(r) for r in log],
+                           "validation": validator.state()})
 
 
 def _restore(state: dict, model: BoundGaussians, density: DensityController,

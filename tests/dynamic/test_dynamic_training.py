@@ -66,11 +66,11 @@ def test_contact_frames_are_oversampled() -> None:
     gen = torch.Generator().manual_seed(0)
     contact = np.zeros(10, bool)
     contact[[2, 7]] = True
-    draws = np.array([sample_frame(gen, 10, contact, 0.5) for _ in range(4000)])
+    draws = np.array([sample_frame(gen, np.arange(10), contact, 0.5) for _ in range(4000)])
     share = np.isin(draws, [2, 7]).mean()
     assert abs(share - (0.5 + 0.5 * 0.2)) < 0.03
     assert set(np.unique(draws)) == set(range(10))
-    none = np.array([sample_frame(gen, 10, np.zeros(10, bool), 0.5) for _ in range(200)])
+    none = np.array([sample_frame(gen, np.arange(10), np.zeros(10, bool), 0.5) for _ in range(200)])
     assert set(np.unique(none)) == set(range(10))  # no contact frame: uniform over all
 
 
