@@ -215,7 +215,7 @@ class Validator:
         self.train_s, self.validation_s = float(state["train_s"]), float(state["validation_s"])
 
     def table(self) -> dict[str, np.ndarray]:
-        """The curve as the columns of ``curve.parquet`` (data_schemas.training.CURVE)."""
+        """The curve as the columns of ``curve.parquet`` (``data_schemas.curve.CURVE``)."""
         return {"step": np.array([p.step for p in self.curve], dtype=np.int64),
                 "wall_s": np.array([p.wall_s for p in self.curve], dtype=np.float64),
                 "psnr": np.array([p.psnr for p in self.curve], dtype=np.float64)}
