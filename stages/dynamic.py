@@ -19,6 +19,7 @@ import torch
 
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig
 from avatar.render.gaussians import resolve_backend
+from avatar.scene import SceneDecision
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
@@ -31,8 +32,8 @@ from data_schemas.writes import write_bytes, write_json
 from pipeline.stage import Resources, StageContext, stage
 from stages.common import (
     TrainedModel, applied_deformation, contact_flags, load_embedded_gaussians, posed_gaussians, representation,
-    splatting_config, write_embedded_gaussians, load_gaussians, load_sequence, load_views, model_sources, templates,
-    write_bound_gaussians, write_frame_ply,
+    splatting_config, write_embedded_gaussians, load_gaussians, load_scene, load_sequence, load_views, model_sources,
+    templates, write_bound_gaussians, write_frame_ply,
     ValidationSchema, record_validation, validation_config, validation_problems,
 )
 
@@ -79,11 +80,13 @@ class DynamicConfig:
         return problems + validation_problems(conf)
 
 
-def model_config(cfg) -> DynamicModelConfig:  # noqa: ANN001 - the run's DictConfig
-    """The architecture from ``quality.*`` and ``stage.dynamic.*``."""
+def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN001 - the run's DictConfig
+    """The architecture from ``quality.*`` and ``stage.dynamic.*``; the hand and interaction MLPs only where
+    the scene analysis models the hand and the contact."""
     q, conf = cfg.quality, cfg.stage.dynamic
     return DynamicModelConfig(
-        hand_mlp=bool(conf.hand_mlp), interaction=bool(conf.interaction), hand_width=int(q.dynamic_width),
+        hand_mlp=bool(conf.hand_mlp) and scene.model_hand, interaction=bool(conf.interaction) and scene.model_interaction,
+        hand_width=int(q.dynamic_width),
         hand_depth=int(q.dynamic_hand_depth), interaction_width=int(q.dynamic_width),
         interaction_depth=int(q.dynamic_interaction_depth), position_frequencies=int(conf.position_frequencies),
         offset_frequencies=int(conf.offset_frequencies), point_feature_dim=int(conf.point_feature_dim),
@@ -94,7 +97,7 @@ def model_config(cfg) -> DynamicModelConfig:  # noqa: ANN001 - the run's DictCon
 
 @stage(
     "dynamic",
-    inputs=("capture", "frames", "fit", "pbd", "warmup"),
+    inputs=("capture", "frames", "fit", "scene", "pbd", "warmup"),
     config_keys=("quality.dynamic_steps", "quality.dynamic_width", "quality.dynamic_hand_depth",
                  "quality.dynamic_interaction_depth", "quality.geometry_feature_dim", "quality.pointnet_width",
                  "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
@@ -171,7 +174,7 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
     conf, q = ctx.cfg.stage.dynamic, ctx.cfg.quality
     head, _ = templates(ctx.cfg.model)
     gaussians = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
-    arch = model_config(ctx.cfg)
+    arch = model_config(ctx.cfg, load_scene(ctx.input_dir("scene")))
     frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
     model = DynamicAvatar.from_warmup(gaussians, meshes.vertices[0], meshes.faces, meshes.part_names,
                                       head.num_vertices, frame_dims, arch, seed=conf.seed)

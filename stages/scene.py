@@ -39,11 +39,11 @@ class SceneConfig:
     min_views: int
     min_hand_fraction: float
 
-    def __post_init__(self) -> None:
-        for name in DECISIONS:  # YAML reads true/false as booleans: keep the words
-            setattr(self, name, str(getattr(self, name)).lower())
-            if getattr(self, name) not in ("auto", "true", "false"):
-                raise ValueError(f"{name}={getattr(self, name)!r}: choose auto, true or false")
+    @classmethod
+    def validate(cls, conf: object) -> list[str]:
+        """One line per decision that is not auto, true or false (YAML reads true/false as booleans)."""
+        return [f"{name}={getattr(conf, name)!r}: choose auto, true or false" for name in DECISIONS
+                if str(getattr(conf, name)).lower() not in ("auto", "true", "false")]
 
 
 @stage("scene", inputs=("capture", "frames", "fit"), config_keys=("model", "stage.scene", "stage.dynamic.d_max"),
@@ -65,7 +65,7 @@ def scene(ctx: StageContext) -> None:
         counts = np.array([views.get((seq, t), 0) for t in range(len(distances))])
         facts[seq] = scene_facts(counts, distances, int(conf.min_views), d_max)
     train = facts[DECIDED_ON]
-    decision = decide(train, float(conf.min_hand_fraction), {name: str(conf[name]) for name in DECISIONS})
+    decision = decide(train, float(conf.min_hand_fraction), {name: str(conf[name]).lower() for name in DECISIONS})
     triangles = deforming_triangles(train.near_vertices, np.asarray(head.faces))
     _write_frames(ctx, facts)
     write_json(ctx.out_dir / "scene.json", {

@@ -20,7 +20,7 @@ from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import write_table
 from pipeline.stage import Resources, StageContext, stage
 from stages.common import (
-    applied_deformation, load_meshes, load_views, model_sources, representation, splatting_config,
+    applied_deformation, load_meshes, load_scene, load_views, model_sources, representation, splatting_config,
     write_bound_gaussians, write_embedded_gaussians,
     ValidationSchema, record_validation, validation_config, validation_problems,
 )
@@ -65,7 +65,7 @@ class WarmupConfig:
 
 @stage(
     "warmup",
-    inputs=("capture", "frames", "fit", "pbd"),
+    inputs=("capture", "frames", "fit", "scene", "pbd"),
     config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup",
                  "method.representation", "method.pbd", "splatting"),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet"),
@@ -90,8 +90,11 @@ def warmup(ctx: StageContext) -> None:
     canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
     embedded = representation(ctx.cfg) == "embedded"
     kind = EmbeddedGaussians if embedded else BoundGaussians
+    populate = None  # every triangle; without a hand in the scene, only the face's (a face-only avatar)
+    if not load_scene(ctx.input_dir("scene")).model_hand:
+        populate = meshes.face_part != meshes.part_names.index("hand")
     model = kind.on_triangles(canonical, meshes.faces, meshes.face_part, int(q.gaussians_per_triangle),
-                              init_opacity=conf.init_opacity, seed=conf.seed)
+                              init_opacity=conf.init_opacity, seed=conf.seed, populate=populate)
     with torch.no_grad():
         means, _, _ = model.world(canonical, meshes.faces)
     part_label = torch.tensor([MASK_LABELS[name] for name in meshes.part_names])[model.part]
