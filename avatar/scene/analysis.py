@@ -108,6 +108,8 @@ def decide(facts: SceneFacts, min_hand_fraction: float, overrides: dict[str, str
     touching = model_hand and contact_frames > 0
     if not model_hand:
         why = "no hand modelled: no contact to simulate or learn"
+    elif not hand_frames:
+        why = "the hand is never in view: no contact seen"
     elif contact_frames:
         why = f"hand within d_max of the face in {contact_frames} of {T} frames"
     else:

@@ -55,3 +55,8 @@ def test_deforming_triangles_are_those_touching_a_near_vertex():
     near = np.array([[True, False, False, False, False], [False, False, False, False, False]])
     faces = np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4], [0, 3, 4]])
     np.testing.assert_array_equal(deforming_triangles(near, faces), [True, False, False, True])
+
+
+def test_a_hand_forced_on_that_is_never_seen_has_no_contact_to_model():
+    forced = decide(_facts([0, 0], [0.0, 0.0]), 0.05, {**AUTO, "model_hand": "true"})
+    assert forced.model_hand and not forced.model_pbd and "never in view" in forced.why["model_pbd"]
