@@ -14,9 +14,10 @@ import numpy as np
 
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
+from data_schemas.curve import CURVE
 from data_schemas.frames import FRAMES_INDEX, rgb_path
 from data_schemas.gaussians import DYNAMIC_TRAIN_LOG, TRAIN_LOG
-from data_schemas.metrics import METRICS, REGIONS, SPLITS
+from data_schemas.metrics import COMPARISON, METRICS, REGIONS, SPLITS
 from data_schemas.images import read_png
 from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import TableSchema, read_table
@@ -37,7 +38,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="8", config_schema=ReportConfig, per_method=True,
+       outputs=("report.html",), version="9", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -87,6 +88,7 @@ def report(ctx: StageContext) -> None:
         + _dynamic_summary(manifests["dynamic"]) + "</p>",
         *(f'<img alt="{name} loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir(name), *curve)}">'
           for name, curve in _loss_logs(str(ctx.cfg.method.representation)).items()),
+        _validation_section(ctx.input_dir("warmup"), ctx.input_dir("dynamic")),
         f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
         f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
         f"<h2>Renders: ground truth | {html.escape(str(ctx.cfg.method.label))} | its error x4</h2>",
@@ -220,6 +222,7 @@ def _comparison_section(compare_dir: Path) -> str:
     for table in tables["tables"]:
         parts += [f"<h3>{html.escape(table['title'])}</h3>", _table(tuple(table["headers"]), table["rows"])]
     parts.append("<ul>" + "".join(f"<li>{html.escape(note)}</li>" for note in tables["notes"]) + "</ul>")
+    parts.append(_pareto_plot(compare_dir))
     for figure in sorted((compare_dir / "figures").glob("*.png")):
         parts.append(f"<h3>{html.escape(figure.stem.replace('_', ' '))}: ground truth, then each method</h3>"
                      f"<img alt='{html.escape(figure.stem)}' src='data:image/png;base64,{_base64_file(figure)}'>")
@@ -247,11 +250,7 @@ def _loss_logs(representation: str) -> dict[str, tuple[TableSchema, tuple[str, .
 def _loss_curve(train_dir: Path, schema: TableSchema = TRAIN_LOG, terms: tuple[str, ...] = ("loss", "l1", "dssim")
                 ) -> str:
     """Base64 PNG of the loss ``terms`` of a stage's ``train_log.parquet`` against steps."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     log = read_table(train_dir / "train_log.parquet", schema)
     fig, ax = plt.subplots(figsize=(6, 3), dpi=100)
     for name in terms:
@@ -259,11 +258,86 @@ def _loss_curve(train_dir: Path, schema: TableSchema = TRAIN_LOG, terms: tuple[s
     ax.set_xlabel("step")
     ax.set_yscale("log")
     ax.legend()
+    return _figure_png(fig)
+
+
+def _figure_png(fig) -> str:  # noqa: ANN001 - a matplotlib Figure
+    """Base64 PNG of a matplotlib figure, closed afterwards."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     plt.close(fig)
     return base64.b64encode(buf.getvalue()).decode()
+
+
+def _pyplot():  # noqa: ANN202 - the matplotlib.pyplot module
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def pareto_front(cost: np.ndarray, quality: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points no other point beats, i.e. none is at most as costly and at least as good
+    with one of the two strictly better. cost, quality: (N,)."""
+    cost, quality = np.asarray(cost, float), np.asarray(quality, float)
+    no_worse = (cost[None, :] <= cost[:, None]) & (quality[None, :] >= quality[:, None])
+    better = (cost[None, :] < cost[:, None]) | (quality[None, :] > quality[:, None])
+    return ~(no_worse & better).any(axis=1)
+
+
+def _pareto_plot(compare_dir: Path) -> str:
+    """Held-out quality against training time, one point per method of the comparison, the Pareto front
+    joined (novel view and self-reenactment, full images, all frames)."""
+    table = read_table(compare_dir / "comparison.parquet", COMPARISON)
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5), dpi=100)
+    for ax, split in zip(axes, ("novel_view", "self_reenact")):
+        rows = [i for i in range(len(table["method"])) if table["split"][i] == split
+                and table["region"][i] == "full" and table["contact"][i] == "all"]
+        if not rows:
+            continue
+        cost = np.array([table["train_wall_s"][i] for i in rows], float)
+        psnr = np.array([table["psnr"][i] for i in rows], float)
+        front = pareto_front(cost, psnr)
+        ax.scatter(cost, psnr, c=np.where(front, "tab:red", "tab:gray"))
+        for i, c, q in zip(rows, cost, psnr):
+            ax.annotate(str(table["label"][i]), (c, q), fontsize=8, xytext=(3, 3), textcoords="offset points")
+        order = np.argsort(cost[front])
+        ax.plot(cost[front][order], psnr[front][order], color="tab:red", linewidth=1)
+        ax.set_xlabel("training wall time (s, warm-up + stage two)")
+        ax.set_ylabel(f"{split.replace('_', ' ')} PSNR (dB)")
+    png = _figure_png(fig)
+    return ("<h3>Quality against training time (red: the Pareto front, methods no other beats on both)</h3>"
+            f"<img alt='quality against time' src='data:image/png;base64,{png}'>")
+
+
+def _validation_section(warmup_dir: Path, dynamic_dir: Path) -> str:
+    """The validation curves of the two training stages (stage.*.validation), one time axis: nothing when
+    neither validated."""
+    curves = {name: read_table(d / "curve.parquet", CURVE) for name, d in (("warm-up", warmup_dir),
+                                                                        ("stage two", dynamic_dir))
+              if (d / "curve.parquet").is_file()}
+    curves = {name: c for name, c in curves.items() if len(c["step"])}
+    if not curves:
+        return ("<p>No validation curve: stage.warmup.validation.every and stage.dynamic.validation.every "
+                "are 0 (README, \"Quality during training\").</p>")
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 3), dpi=100)
+    offset = 0.0
+    for name, curve in curves.items():
+        wall = np.asarray(curve["wall_s"], float) + offset
+        ax.plot(wall, curve["psnr"], marker=".", label=name)
+        offset = float(wall[-1])
+    ax.set_xlabel("training wall time (s)")
+    ax.set_ylabel("validation PSNR (dB)")
+    ax.legend()
+    return ("<h3>Validation PSNR during training (withheld training frames, training cameras)</h3>"
+            f"<img alt='validation curve' src='data:image/png;base64,{_figure_png(fig)}'>")
 
 
 def _base64_file(path: Path) -> str:
