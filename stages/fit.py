@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from avatar.fitting.errors import landmark_error, mpjpe, per_vertex_error
-from avatar.fitting.fit import FitConfig, fit_sequence
+from avatar.fitting.fit import FitConfig, WorldScaleError, fit_sequence
 from avatar.training.posing import posed_keypoints
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
@@ -73,8 +73,11 @@ def fit(ctx: StageContext) -> None:
             hand_fitted = _sees_hand(train_kp)
             # Without any hand keypoint the hand stays where its initialisation puts it, inside the head, and the
             # interpenetration term pushes the face: fit the face alone, then write the placeholder hand.
-            result = fit_sequence(train_kp, cameras, head, hand,
-                                  conf if hand_fitted else replace(conf, penetration_mm=0.0))
+            try:
+                result = fit_sequence(train_kp, cameras, head, hand,
+                                      conf if hand_fitted else replace(conf, penetration_mm=0.0))
+            except WorldScaleError as exc:
+                raise SchemaError(f"{cap_dir / 'cameras.parquet'}: {exc}") from exc
             params = result.params if hand_fitted else _placeholder_hand(result.params)
             entry = {"reprojection_px": {p: float(np.nanmean(v)) for p, v in result.reprojection_px.items()
                                          if np.isfinite(v).any()},

@@ -193,6 +193,34 @@ class _Problem:
             return float(self.loss(scale, pairs))
 
 
+#: How far apart the triangulated face landmarks may lie (metres: the largest distance between two of them,
+#: median over frames). A human face spans about 0.14 m ear to ear, 0.08 m between the outer eye corners.
+FACE_SPAN_M = (0.03, 1.0)
+
+
+class WorldScaleError(ValueError):
+    """The cameras' world units are not metres (the templates, the contact radius and PBD are)."""
+
+
+def check_world_scale(points: np.ndarray, valid: np.ndarray) -> float | None:
+    """The median over frames of the largest distance between two valid triangulated face landmarks
+    (``points`` (T, K, 3), ``valid`` (T, K)); None where no frame has two. Raises
+    :class:`WorldScaleError` when it lies outside :data:`FACE_SPAN_M`."""
+    spans = [float(np.linalg.norm(p[v][:, None] - p[v][None], axis=-1).max())
+             for p, v in zip(points, valid) if v.sum() >= 2]
+    if not spans:
+        return None
+    span = float(np.median(spans))
+    low, high = FACE_SPAN_M
+    if not low <= span <= high:
+        factor = 0.001 if span > high else 1000.0
+        raise WorldScaleError(
+            f"the face landmarks triangulate {span:.4g} world units across, but a face spans about 0.14 m: the "
+            f"camera translations are not in metres, which the templates, d_max and PBD assume; multiply the "
+            f"translations of world_to_cam by {factor:g} (e.g. millimetres to metres) and rerun")
+    return span
+
+
 def _weak(obs: Observations, valid: np.ndarray, cfg: FitConfig) -> np.ndarray:
     """(T,) frames with too few confident views or triangulated points."""
     confident = (obs.conf >= cfg.min_confidence).sum(-1) >= cfg.min_keypoints_per_view  # (T, C)
@@ -251,6 +279,8 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
     weights, weak = {}, {}
     for part, model in (("hand", hand_params), ("face", face_params)):
         points, valid, weight = _triangulate_part(obs[part], P_np, cfg)
+        if part == "face":
+            check_world_scale(points, valid)
         model.init_from_keypoints(points, valid)
         weights[part] = torch.as_tensor(weight)
         weak[part] = _weak(obs[part], valid, cfg)

@@ -127,3 +127,27 @@ def _deepest(hand_vertices: np.ndarray, face_vertices: np.ndarray) -> float:
     """The most negative signed distance (metres) of a hand vertex to the face surface."""
     sd, _, _ = signed_distance(torch.as_tensor(hand_vertices), torch.as_tensor(face_vertices), FLAME.faces)
     return float(sd.min())
+
+
+@pytest.mark.parametrize("scale", [1000.0, 1e-4], ids=["millimetres", "tiny"])
+def test_a_capture_not_in_metres_is_one_clear_error(capture: SyntheticCapture, scale: float) -> None:
+    """The same capture with its world in other units projects to the same pixels; the fit names the fix
+    instead of fitting a metre-sized template to a world 1000 times larger (or 1e4 times smaller)."""
+    from dataclasses import replace
+
+    from avatar.fitting.fit import WorldScaleError, check_world_scale
+
+    train = _train(capture)
+    scaled = []
+    for cam in train:
+        T = cam.world_to_cam.copy()
+        T[:3, 3] *= scale
+        scaled.append(replace(cam, world_to_cam=T))
+    kp = {c.camera_id: capture.keypoints[c.camera_id] for c in train}
+    quick = FitConfig(rigid_iterations=2, coarse_iterations=2, fine_iterations=2)
+    with pytest.raises(WorldScaleError, match="multiply the translations of world_to_cam by"):
+        fit_sequence(kp, scaled, HEAD, HAND, quick)
+    landmarks, _ = _face(capture.params)
+    span = check_world_scale(landmarks, np.ones(landmarks.shape[:2], bool))
+    assert 0.1 < span < 0.25  # the real face, in metres, passes
+    assert check_world_scale(landmarks, np.zeros(landmarks.shape[:2], bool)) is None
