@@ -1,76 +1,147 @@
-"""Quality against time per preset: held-out-camera and held-out-motion metrics of the static avatar.
+"""Quality against time and memory, per preset and method (issue 15): the speed/accuracy trade.
 
-Runs capture -> frames -> warmup -> dynamic -> evaluate for each preset and the methods gaussian_avatars
-(static Gaussians, warm-up plus stage-two steps) and interactavatar into a temporary directory (or
-``--outputs``) and prints one row per preset: warm-up steps and the GaussianAvatars stages' wall time,
-Gaussians, and its PSNR / SSIM / LPIPS on the novel view (all frames and frames without contact) and on
-self-reenactment; then the full model's novel-view and self-reenactment PSNR (all methods side by side:
-``make compare``). Goal (issue 4): novel-view
-PSNR >= 28 dB on frames without contact at ``standard``.
+For each preset and method it runs the DAG until ``evaluate`` (into a temporary directory or ``--outputs``;
+presets live in their own folders, methods share every stage upstream of the warm-up, as in ``make
+compare``) and prints two tables:
 
-Usage: python benchmarks/bench_quality.py [--presets smoke draft standard] [--outputs DIR] [--fit-source S]
+- cost: wall time per stage (the shared ones once per preset), peak memory, Gaussians, and the run's total
+  against the largest preset's for the same method;
+- quality: PSNR / SSIM / LPIPS per split (NV: held-out camera; SR: held-out motion) and region (full,
+  hand, interaction: the hand-face overlap box), mean over images; and NV PSNR as a share of the largest
+  preset's.
+
+With ``--early-stop`` every run is made twice with ``stage.warmup/dynamic.validation`` on (``--every``
+steps; the same withheld training frames both times): planned schedule and ``stop_when_flat``, and a third
+table gives the steps run, the training time saved and the held-out PSNR lost.
+
+Goals (issue 15): ``draft`` reaches at least 95 % of ``standard``'s NV PSNR at no more than 20 % of its wall
+time; the early stop saves at least 30 % of ``standard``'s training time for at most 0.2 dB.
+
+Usage: python benchmarks/bench_quality.py [--presets smoke draft standard] [--methods gaussian_avatars
+       interactavatar] [--outputs DIR] [--fit-source S] [--early-stop --every 100]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
+from data_schemas.metrics import METRICS  # noqa: E402
+from data_schemas.tables import read_table  # noqa: E402
 from pipeline.config import validate_config  # noqa: E402
 from pipeline.runner import Runner  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from stages import REGISTRY  # noqa: E402
 
+SHARED = ("capture", "frames", "keypoints", "fit", "scene", "pbd")
+PER_METHOD = ("warmup", "dynamic", "evaluate")
+SPLITS = {"novel_view": "NV", "self_reenact": "SR"}
+REGIONS = ("full", "hand", "interaction")
 
-def run_method(preset: str, outputs: Path, fit_source: str, method: str) -> tuple[dict, dict, dict, float]:
-    """Run the DAG until evaluate for one method; (warm-up, dynamic, evaluate manifests, wall s)."""
+
+def run(preset: str, method: str, outputs: Path, fit_source: str, extra: list[str]) -> dict:
+    """One DAG run until evaluate; the manifests of its stages and the evaluate metrics table."""
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"quality={preset}", f"paths.outputs={outputs / preset}",
-                                           "run.until=evaluate", "run.progress=false", f"fit.source={fit_source}",
-                                           f"method={method}"])
-    cfg = validate_config(cfg, REGISTRY)
-    t0 = time.perf_counter()
-    Runner(cfg, REGISTRY, log=lambda _m: None).run()
-    total = time.perf_counter() - t0
-    root = outputs / preset / cfg.subject / "methods" / method
-    manifests = [json.loads((root / s / "_manifest.json").read_text()) for s in ("warmup", "dynamic", "evaluate")]
-    return (*manifests, total)
+        cfg = compose("config", overrides=[f"quality={preset}", f"paths.outputs={outputs}", "run.until=evaluate",
+                                           "run.progress=false", f"fit.source={fit_source}", f"method={method}",
+                                           *extra])
+    Runner(validate_config(cfg, REGISTRY), REGISTRY, log=lambda _m: None).run()
+    root = outputs / cfg.subject
+    folders = {s: root / s for s in SHARED} | {s: root / "methods" / method / s for s in PER_METHOD}
+    return {"manifests": {s: json.loads((f / "_manifest.json").read_text()) for s, f in folders.items()},
+            "metrics": read_table(folders["evaluate"] / "metrics.parquet", METRICS)}
 
 
-def run_preset(preset: str, outputs: Path, fit_source: str) -> tuple:
-    """One table row: the GaussianAvatars baseline's quality and cost, and the full model's PSNR."""
-    warm, dyn, static_ev, static_s = run_method(preset, outputs, fit_source, "gaussian_avatars")
-    _, _, full_ev, full_s = run_method(preset, outputs, fit_source, "interactavatar")
-    static, ev, total = static_ev["metrics"], full_ev["metrics"], static_s + full_s
-    return (preset, warm["metrics"]["steps"], warm["metrics"]["gaussians"], f"{warm['timings']['wall_s']:.0f}",
-            f"{dyn['timings']['wall_s']:.0f}", f"{total:.0f}", static["novel_view_psnr"],
-            static.get("novel_view_psnr_no_contact", float("nan")), static["novel_view_ssim"],
-            static["novel_view_lpips"], static["self_reenact_psnr"], static["self_reenact_lpips"],
-            ev["novel_view_psnr"], ev["self_reenact_psnr"])
+def region_means(metrics: dict) -> dict[tuple[str, str, str], float]:
+    """(split, region, metric) -> mean over the images where the region is present."""
+    out = {}
+    split, region = np.asarray(metrics["split"]), np.asarray(metrics["region"])
+    for s in SPLITS:
+        for r in REGIONS:
+            rows = (split == s) & (region == r)
+            for m in ("psnr", "ssim", "lpips"):
+                values = np.asarray(metrics[m], float)[rows]
+                out[(s, r, m)] = float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
+    return out
+
+
+def wall(result: dict, stages: tuple[str, ...]) -> float:
+    return sum(result["manifests"][s]["timings"]["wall_s"] for s in stages)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", nargs="+", default=["smoke", "draft"])
+    parser.add_argument("--methods", nargs="+", default=["gaussian_avatars", "interactavatar"])
     parser.add_argument("--outputs", type=Path, default=None, help="keep artifacts here (default: a temp dir)")
     parser.add_argument("--fit-source", default="ground_truth",
                         help="fit.source: ground_truth (default) measures the avatar apart from fitting error")
+    parser.add_argument("--early-stop", action="store_true", help="also measure stop_when_flat (two runs each)")
+    parser.add_argument("--every", type=int, default=100, help="validation interval (steps) with --early-stop")
     args = parser.parse_args()
+    results: dict[tuple[str, str, str], dict] = {}
+    validate = [f"stage.{s}.validation.every={args.every}" for s in ("warmup", "dynamic")]
+    stop = [f"stage.{s}.validation.stop_when_flat.enabled=true" for s in ("warmup", "dynamic")]
+    variants = {"plain": []} | ({"planned": validate, "stopped": validate + stop} if args.early_stop else {})
     with tempfile.TemporaryDirectory() as tmp:
-        outputs = args.outputs or Path(tmp)
-        rows = [run_preset(p, outputs, args.fit_source) for p in args.presets]
-    print(format_table(("preset", "warm-up steps", "Gaussians", "warm-up s", "stage two s", "DAG s", "GA NV PSNR",
-                        "GA NV PSNR no-contact", "GA NV SSIM", "GA NV LPIPS", "GA SR PSNR", "GA SR LPIPS",
-                        "full NV PSNR", "full SR PSNR"), rows))
+        base = args.outputs or Path(tmp)
+        for preset in args.presets:
+            for variant, extra in variants.items():
+                for method in args.methods:
+                    results[(preset, method, variant)] = run(preset, method, base / variant / preset,
+                                                             args.fit_source, extra)
+    largest = args.presets[-1]
+    cost, quality = [], []
+    for preset in args.presets:
+        for i, method in enumerate(args.methods):
+            r = results[(preset, method, "plain")]
+            ref = results[(largest, method, "plain")]
+            shared = wall(r, SHARED) if i == 0 else 0.0  # computed once per preset, by the first method
+            total = shared + wall(r, PER_METHOD)
+            ref_total = (wall(ref, SHARED) if i == 0 else 0.0) + wall(ref, PER_METHOD)
+            peak = max(m["peak_memory_mb"] for m in r["manifests"].values())
+            cost.append((preset, method, f"{shared:.0f}", *(f"{r['manifests'][s]['timings']['wall_s']:.0f}"
+                                                            for s in PER_METHOD),
+                         f"{total:.0f}", f"{total / ref_total:.2f}", f"{peak:.0f}",
+                         r["manifests"]["dynamic"]["metrics"]["gaussians"]))
+            means, ref_means = region_means(r["metrics"]), region_means(ref["metrics"])
+            quality.append((preset, method, *(f"{means[(s, reg, m)]:.{2 if m == 'psnr' else 4}f}"
+                                              for s in SPLITS for reg in REGIONS for m in ("psnr", "ssim", "lpips")),
+                            f"{100 * means[('novel_view', 'full', 'psnr')] / ref_means[('novel_view', 'full', 'psnr')]:.1f}"))
+    load = os.getloadavg()
+    print(f"fit.source={args.fit_source}; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}; ratios "
+          f"against {largest}")
+    print(format_table(("preset", "method", "shared s", *(f"{s} s" for s in PER_METHOD), "total s",
+                        f"x {largest}", "peak MB", "Gaussians"), cost))
+    print()
+    print(format_table(("preset", "method", *(f"{SPLITS[s]} {reg} {m}" for s in SPLITS for reg in REGIONS
+                                              for m in ("PSNR", "SSIM", "LPIPS")), f"NV PSNR % {largest}"), quality))
+    if args.early_stop:
+        rows = []
+        for preset in args.presets:
+            for method in args.methods:
+                planned, stopped = results[(preset, method, "planned")], results[(preset, method, "stopped")]
+                p_steps = sum(planned["manifests"][s]["metrics"]["steps"] for s in ("warmup", "dynamic"))
+                s_steps = sum(stopped["manifests"][s]["metrics"]["steps"] for s in ("warmup", "dynamic"))
+                p_s, s_s = wall(planned, ("warmup", "dynamic")), wall(stopped, ("warmup", "dynamic"))
+                p_q, s_q = region_means(planned["metrics"]), region_means(stopped["metrics"])
+                rows.append((preset, method, p_steps, s_steps, f"{p_s:.0f}", f"{s_s:.0f}",
+                             f"{100 * (1 - s_s / p_s):.0f}",
+                             *(f"{s_q[(s, 'full', 'psnr')] - p_q[(s, 'full', 'psnr')]:+.2f}" for s in SPLITS)))
+        print()
+        print(format_table(("preset", "method", "planned steps", "steps run", "planned train s", "stopped train s",
+                            "time saved %", "NV PSNR change", "SR PSNR change"), rows))
 
 
 if __name__ == "__main__":
