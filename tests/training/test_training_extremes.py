@@ -1,5 +1,6 @@
-"""Training at ten times every learning rate: every parameter and loss stays finite (or one clear error),
-for the warm-up and for stage two (hand MLPs, interaction MLPs, PointNet++, point features, Gaussians)."""
+"""Training at the extremes: ten times every learning rate (the warm-up, and stage two's hand MLPs,
+interaction MLPs, PointNet++, point features and Gaussians), and contact in every frame. Every parameter
+and loss stays finite."""
 
 from __future__ import annotations
 
@@ -45,3 +46,15 @@ def test_stage_two_at_ten_times_the_learning_rates_stays_finite():
     assert all(math.isfinite(r.loss) for r in result.log)
     assert _all_finite([t for t in model.network_state().values() if t.is_floating_point()])
     assert _all_finite([p.detach() for p in model.gaussians.parameters()])
+
+
+def test_contact_in_every_frame_trains_every_module_and_stays_finite():
+    """The hand pressed to the face in every frame: contact oversampling has nothing else to draw, I runs
+    on every step, and everything stays finite."""
+    scene = make_scene([0.02, 0.03, 0.02])
+    model = scene.model()
+    result = train_dynamic(model, scene.views, scene.meshes, scene.cond, np.ones(3, bool),
+                           DynamicTrainConfig(steps=8, backend="auto", log_every=1, contact_fraction=0.9))
+    assert result.interaction_steps == 8 and result.interaction_evaluations > 0
+    assert all(math.isfinite(r.loss) for r in result.log)
+    assert _all_finite([t for t in model.network_state().values() if t.is_floating_point()])
