@@ -38,7 +38,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="9", config_schema=ReportConfig, per_method=True,
+       outputs=("report.html",), version="10", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -112,7 +112,19 @@ def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
             f"{len(info['deforming_triangles'])} of {info['face_triangles']} face triangles lie within d_max = "
             f"{info['d_max_m'] * 100:g} cm of the hand in some training contact frame (the only ones the interaction "
             f"module and PBD can reach). Decided on the '{info['decided_on']}' sequence; stage.scene.* overrides.")
-    return _table(("modelled", "", "why"), rows) + f"<p>{html.escape(work)}</p>"
+    left_out = []
+    if not info["model_hand"]:
+        per_triangle = int(manifests["warmup"]["config"]["quality.gaussians_per_triangle"])
+        left_out.append(f"{info['hand_triangles']} MANO triangles without Gaussians (about "
+                        f"{info['hand_triangles'] * per_triangle} Gaussians not created at this preset) and no hand MLPs")
+    if not info["model_pbd"]:
+        left_out.append("no contact simulated in any frame")
+    if not info["model_interaction"]:
+        left_out.append("no interaction MLPs and no PointNet++")
+    saved = ("Left out: " + "; ".join(left_out) + ". benchmarks/bench_scene.py measures the time this saves "
+             "against modelling everything (README, \"Model only what a scene requires\").") if left_out else ""
+    return _table(("modelled", "", "why"), rows) + f"<p>{html.escape(work)}</p>" + \
+        (f"<p>{html.escape(saved)}</p>" if saved else "")
 
 
 def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, str]:

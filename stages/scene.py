@@ -47,7 +47,7 @@ class SceneConfig:
 
 
 @stage("scene", inputs=("capture", "frames", "fit"), config_keys=("model", "stage.scene", "stage.dynamic.d_max"),
-       outputs=("scene.json", "scene.parquet"), config_schema=SceneConfig, sources=model_sources)
+       outputs=("scene.json", "scene.parquet"), version="2", config_schema=SceneConfig, sources=model_sources)
 def scene(ctx: StageContext) -> None:
     """scene.parquet (per frame: hand views, distance, contact) and scene.json (what to model, and why)."""
     conf, d_max = ctx.cfg.stage.scene, float(ctx.cfg.stage.dynamic.d_max)
@@ -74,6 +74,7 @@ def scene(ctx: StageContext) -> None:
                        "min_hand_fraction": float(conf.min_hand_fraction)},
         "sequences": {seq: _summary(f) for seq, f in facts.items()},
         "deforming_triangles": np.flatnonzero(triangles).tolist(), "face_triangles": len(head.faces),
+        "hand_triangles": len(hand.faces),
     }, "scene analysis")
     ctx.metrics.update({name: getattr(decision, name) for name in DECISIONS})
     ctx.metrics.update({"hand_frames": int(train.hand_present.sum()), "contact_frames": int(train.contact.sum()),
