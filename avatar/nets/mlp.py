@@ -12,7 +12,6 @@ when F is wide.
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor, nn
 
 

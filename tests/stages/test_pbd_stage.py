@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from data_schemas.deform import CONTACTS, DEFORM
-from data_schemas.tables import SchemaError, read_table
+from data_schemas.tables import read_table
 from pipeline.cli import run_app
 from stages.common import load_meshes, templates
 from tests.conftest import compose_cfg
