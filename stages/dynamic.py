@@ -85,8 +85,8 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
     the scene analysis models the hand and the contact."""
     q, conf = cfg.quality, cfg.stage.dynamic
     return DynamicModelConfig(
-        hand_mlp=bool(conf.hand_mlp) and scene.model_hand, interaction=bool(conf.interaction) and scene.model_interaction,
-        hand_width=int(q.dynamic_width),
+        hand_mlp=bool(conf.hand_mlp) and scene.model_hand,
+        interaction=bool(conf.interaction) and scene.model_interaction, hand_width=int(q.dynamic_width),
         hand_depth=int(q.dynamic_hand_depth), interaction_width=int(q.dynamic_width),
         interaction_depth=int(q.dynamic_interaction_depth), position_frequencies=int(conf.position_frequencies),
         offset_frequencies=int(conf.offset_frequencies), point_feature_dim=int(conf.point_feature_dim),

@@ -119,8 +119,10 @@ def reenact(ctx: StageContext) -> None:
         (ctx.out_dir / "ply").mkdir()
     truth_sequence, truth_note = _ground_truth_sequence(ctx, T)
     truth_cameras = [] if truth_sequence is None else [name for name in views if name != "orbit"]
+    capture_K = {c.camera_id: c.K for c in read_cameras(ctx.input_dir("capture") / "cameras.parquet")}
     for name in truth_cameras:
-        truth = _write_ground_truth(ctx, truth_sequence, name, views[name][0], size, background, fps)
+        truth = _write_ground_truth(ctx, truth_sequence, name, capture_K[name], views[name][0], size, background,
+                                    fps)
         write_web_video(ctx.out_dir / "videos" / f"{name}_vs_gt.mp4",
                         (np.concatenate([ours, gt], axis=1) for ours, gt in zip(rendered[name], truth)), fps)
     write_table(ctx.out_dir / "params.parquet", PARAMS, {"frame": np.arange(T), **params})
@@ -213,21 +215,20 @@ def _ground_truth_sequence(ctx: StageContext, num_frames: int) -> tuple[str | No
     return sequence, f"the capture's '{sequence}' through the same crops"
 
 
-def _write_ground_truth(ctx: StageContext, sequence: str, camera_id: str, K: np.ndarray, size: int,
-                        background: torch.Tensor, fps: float) -> list[np.ndarray]:
+def _write_ground_truth(ctx: StageContext, sequence: str, camera_id: str, K_capture: np.ndarray, K: np.ndarray,
+                        size: int, background: torch.Tensor, fps: float) -> list[np.ndarray]:
     """Write ``videos/<camera_id>_gt.mp4``: the capture's ``sequence`` from camera ``camera_id`` reframed to
-    the reenactment's per-frame intrinsics ``K`` (T, 3, 3) at ``size`` px, put on the reenactment's
-    background where the capture has masks; return its frames (size, size, 3) uint8."""
+    the reenactment's per-frame intrinsics ``K`` (T, 3, 3) at ``size`` px from the camera's own ``K_capture``
+    (3, 3), put on the reenactment's background where the capture has masks; return its frames (size, size, 3)
+    uint8."""
     capture_dir = ctx.input_dir("capture")
-    cameras = {c.camera_id: c for c in read_cameras(capture_dir / "cameras.parquet")}
     fill = background.numpy() * 255
     frames = []
     for t, image in enumerate(iter_video(video_path(capture_dir, sequence, camera_id))):
-        truth = reframe(image, cameras[camera_id].K, K[t], size, tuple(fill.tolist())).astype(np.float32)
+        truth = reframe(image, K_capture, K[t], size, tuple(fill.tolist())).astype(np.float32)
         mask = mask_path(capture_dir, sequence, camera_id, t)
         if mask.is_file():
-            alpha = reframe((read_png(mask, 1) > 0).astype(np.float32), cameras[camera_id].K, K[t], size,
-                            (0.0,))[..., None]
+            alpha = reframe((read_png(mask, 1) > 0).astype(np.float32), K_capture, K[t], size, (0.0,))[..., None]
             truth = truth * alpha + fill * (1 - alpha)
         frames.append((truth + 0.5).clip(0, 255).astype(np.uint8))
     write_web_video(ctx.out_dir / "videos" / f"{camera_id}_gt.mp4", frames, fps)

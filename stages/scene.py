@@ -10,6 +10,7 @@ the triangles that can deform, each with its reason; ``stage.scene.<decision>`` 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -81,7 +82,7 @@ def scene(ctx: StageContext) -> None:
                         "deforming_triangles": int(triangles.sum())})
 
 
-def _hand_views(frames_dir, min_area: float) -> dict[tuple[str, int], int]:
+def _hand_views(frames_dir: Path, min_area: float) -> dict[tuple[str, int], int]:
     """(sequence, frame) -> training cameras whose crop mask shows at least ``min_area`` of hand."""
     index = read_table(frames_dir / "index.parquet", FRAMES_INDEX)
     counts: dict[tuple[str, int], int] = {}
