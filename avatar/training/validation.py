@@ -22,6 +22,7 @@ the curve and takes the same decisions.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -33,6 +34,8 @@ from torch import Tensor
 
 from avatar.metrics import psnr
 from avatar.training.data import ViewSet
+
+log = logging.getLogger(__name__)
 
 Render = Callable[[int], Tensor]
 """``render(frame)``: the model's (C, S, S, 3) images of training frame ``frame`` from the C training cameras
@@ -145,6 +148,7 @@ class Validator:
         self.train_frames = np.setdiff1d(np.arange(views.num_frames), self.frames)
         self.curve: list[CurvePoint] = []
         self.stopped_at: int | None = None
+        self.resumed_from = 0  # the step a checkpoint resumed after (0: started from scratch)
         self.train_s = 0.0
         self.validation_s = 0.0
         self._clock = time.perf_counter()
@@ -163,6 +167,9 @@ class Validator:
         the steps from ``stop_from`` on: start the clock, validate the starting model when the curve has no
         point yet. Returns the steps left to run."""
         self.planned_steps, self.stop_from = planned_steps, stop_from
+        self.resumed_from = start
+        if start:
+            log.info("resumed from a checkpoint after step %d of %d", start, planned_steps)
         self._clock = time.perf_counter()
         self.after_step(start, render)
         return range(start + 1, self.end + 1)
@@ -222,11 +229,11 @@ class Validator:
 
     def metrics(self) -> dict[str, float | int | bool]:
         """Manifest metrics: ``stopped_at_step`` (steps run), ``planned_steps``, ``early_stopped``,
-        ``validation_s``; with a curve ``validation_psnr`` (its last point); when stopped early
+        ``validation_s``, ``resumed_from_step`` (the checkpoint's step a killed run was resumed from, else 0); with a curve ``validation_psnr`` (its last point); when stopped early
         ``time_saved_s``, the steps not run times the mean training step time."""
         out: dict[str, float | int | bool] = {"stopped_at_step": self.end, "planned_steps": self.planned_steps,
                                              "early_stopped": self.stopped_at is not None,
-                                             "validation_s": self.validation_s}
+                                             "validation_s": self.validation_s, "resumed_from_step": self.resumed_from}
         if self.curve:
             out["validation_psnr"] = self.curve[-1].psnr
         if self.stopped_at is not None:

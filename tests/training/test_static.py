@@ -12,6 +12,7 @@ from avatar.gaussians.model import BoundGaussians
 from avatar.training import static
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.static import StaticConfig, train_static
+from avatar.training.validation import ValidationConfig, Validator
 
 
 def _scene() -> tuple[ViewSet, MeshSequence]:
@@ -57,7 +58,9 @@ def test_killed_run_resumes_from_checkpoint_to_the_same_result(tmp_path, monkeyp
     assert (tmp_path / static.CHECKPOINT).is_file()
 
     resumed = _model(meshes)
-    log = train_static(resumed, views, meshes, CFG, checkpoint_dir=tmp_path)
+    validator = Validator(ValidationConfig(), views)
+    log = train_static(resumed, views, meshes, CFG, checkpoint_dir=tmp_path, validator=validator)
+    assert validator.metrics()["resumed_from_step"] == 10  # the manifest says the run was resumed, and where
     assert [r.step for r in log] == [r.step for r in ref_log]
     assert resumed.num_gaussians == reference.num_gaussians
     for name, value in reference.state_dict().items():
