@@ -56,9 +56,9 @@ test-all: $(STAMP) $(EXT)
 
 ## make test-slurm: a real single-node SLURM cluster on localhost (slurmctld, slurmd, slurmdbd with
 ## MariaDB, munge; installed from Debian's packages when missing, as root), batches submitted through
-## the submitit launcher; the daemons it started are stopped and their state removed. About 10 min.
+## the submitit launcher; the daemons it started are stopped and their state removed. 4-5 min on 2 cores.
 test-slurm: $(STAMP) $(EXT)
-	$(PY) -m pytest -q -m cluster tests/cluster/test_slurm.py
+	$(PY) -m pytest -q -s -m cluster tests/cluster/test_slurm.py
 
 # The Ray launcher's own environment: hydra-ray-launcher pins cloudpickle<3 (pyproject.toml, extra `ray`).
 RAY_VENV  := .venv-ray
@@ -72,9 +72,9 @@ $(RAY_STAMP): pyproject.toml
 	@touch $(RAY_STAMP)
 
 ## make test-ray: a real local Ray cluster (ray start --head on 127.0.0.1) in its own environment,
-## batches through the Ray launcher; `ray stop` at the end. About 10 min.
+## batches through the Ray launcher; `ray stop` at the end. 4-5 min on 2 cores.
 test-ray: $(RAY_STAMP) $(EXT)
-	$(RAY_VENV)/bin/python -m pytest -q -m cluster tests/cluster/test_ray.py
+	$(RAY_VENV)/bin/python -m pytest -q -s -m cluster tests/cluster/test_ray.py
 
 ## make mediapipe: the optional real-footage detectors (part of the install above, so run and test have them)
 mediapipe: $(STAMP)
