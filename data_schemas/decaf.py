@@ -49,6 +49,7 @@ needs the template models and lives in :mod:`avatar.templates.decaf`.
 
 from __future__ import annotations
 
+import codecs
 import pickle
 from collections import OrderedDict
 from collections.abc import Iterator
@@ -77,8 +78,11 @@ def _numpy_allow_list() -> dict[tuple[str, str], Any]:
         from numpy._core import multiarray, numeric
     except ImportError:  # pragma: no cover - numpy 1.x
         from numpy.core import multiarray, numeric  # type: ignore[no-redef]
+    # Protocol 2, written by Python 3, stores an array's bytes as _codecs.encode(<latin1 text>, "latin1"):
+    # a pure conversion from text to bytes, so it is safe to allow.
     allowed: dict[tuple[str, str], Any] = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype,
-                                           ("collections", "OrderedDict"): OrderedDict}
+                                           ("collections", "OrderedDict"): OrderedDict,
+                                           ("_codecs", "encode"): codecs.encode}
     for package in ("numpy.core", "numpy._core"):
         allowed[(f"{package}.multiarray", "_reconstruct")] = multiarray._reconstruct
         allowed[(f"{package}.multiarray", "scalar")] = multiarray.scalar

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from avatar.templates import FLAMELayer, TemplateModel, load_official_model, procedural_hand, procedural_head
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, mask_path, provided_path, video_path
+from data_schemas.decaf import read_calibration
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.images import read_png
 from data_schemas.keypoints import KEYPOINTS
@@ -289,6 +290,19 @@ def _expect_capture_error(tmp_path: Path, fragment: str, *extra: str) -> None:
         run_app(_cfg(tmp_path, *extra))
     assert fragment in str(info.value), str(info.value)
     assert not (tmp_path / "out" / "S1" / "capture").exists(), "half-written capture left behind"
+
+
+def test_cameras_pkl_of_protocol_2_written_by_python_3_is_read(tmp_path):
+    """Python 3 stores an array's bytes in a protocol-2 pickle through _codecs.encode: legitimate, read it."""
+    root = make_decaf(tmp_path / "decaf")
+    cameras = {cam: {"intrinsic": _intrinsic(i), "extrinsic": _extrinsic(i)} for i, cam in enumerate(CAMERAS)}
+    path = root / "train" / "cameras" / "S1" / "cameras.pkl"
+    _dump(path, cameras, protocol=2)
+    assert b"_codecs" in path.read_bytes()
+    calibration = read_calibration(path)
+    for i, cam in enumerate(CAMERAS):
+        np.testing.assert_array_equal(calibration[str(cam)]["K"], _intrinsic(i))
+        np.testing.assert_array_equal(calibration[str(cam)]["world_to_cam"], _extrinsic(i))
 
 
 def test_missing_cameras_pkl(tmp_path):
