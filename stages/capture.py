@@ -11,15 +11,15 @@ import numpy as np
 from omegaconf import DictConfig
 
 from data_schemas.capture import (
-    CaptureIndex, SequenceInfo, copy_into_capture, cross_sequence, gt_path, mask_path, video_path,
+    CaptureIndex, SequenceInfo, cross_sequence, gt_path, mask_path, video_path,
 )
 from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.deform import DEFORM
-from data_schemas.images import read_png, write_png
+from data_schemas.images import write_png
 from data_schemas.keypoints import write_keypoints
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, write_table
-from data_schemas.video import check_fully_decoded, read_video, video_fps, write_video
+from data_schemas.video import write_video
 from pipeline.sources import SourceFiles
 from pipeline.stage import Resources, StageContext, stage
 from stages.common import model_files
@@ -64,7 +64,7 @@ def _files_below(folder: Path) -> tuple[Path, ...]:
     config_keys=("dataset", "quality.capture_size", "quality.num_frames_train", "quality.num_frames_test",
                  "quality.supersample", "stage.capture"),
     outputs=("cameras.parquet", "capture.json"),
-    version="6",
+    version="7",
     resources=Resources(cpus=2),
     config_schema=CaptureConfig,
     sources=capture_sources,
@@ -75,7 +75,9 @@ def capture(ctx: StageContext) -> None:
     if dataset.name == "synthetic":
         index = _generate_synthetic(ctx)
     elif dataset.name == "folder":
-        index = _import_folder(Path(dataset.root) / ctx.subject, ctx.out_dir, ctx.cfg.stage.capture, ctx.subject)
+        from stages.capture_folder import import_folder  # COLMAP, nerfstudio, undistortion: folder captures only
+
+        index = import_folder(dataset, ctx.subject, ctx.out_dir, float(ctx.cfg.stage.capture.default_frame_rate))
     elif dataset.name == "decaf":
         from stages.capture_decaf import import_decaf  # pulls in torch (FLAME), which folder captures never need
 
@@ -138,69 +140,3 @@ def _write_synthetic_sequence(root: Path, seq: str, cap: SyntheticCapture) -> No
     write_keypoints(gt_path(root, seq, "keypoints"), cap.keypoints, num_frames)
     write_table(gt_path(root, seq, "deform"), DEFORM,
                 {"frame": frames, "contact": cap.contact, "offsets": cap.face_offsets.reshape(num_frames, -1)})
-
-
-# ---------------------------------------------------------------------------- folder
-def _import_folder(src: Path, out: Path, conf: DictConfig, subject: str) -> CaptureIndex:
-    """Validate a capture on disk and bring it into the stage directory (copies, never links)."""
-    if not src.is_dir():
-        raise SchemaError(f"{src}: capture folder missing; set dataset.root so that <root>/{subject} exists")
-    calibration = ("cameras.parquet, one row per camera (camera_id, width, height, K, world_to_cam, dist, split; "
-                   "data_schemas.cameras.write_cameras writes it)")
-    if not any(src.iterdir()):
-        raise SchemaError(f"{src}: capture folder is empty; put {calibration} and one video per camera in "
-                          f"<sequence>/videos/<camera_id>.mp4 in it, as in the README's artifact layout")
-    if not (src / "cameras.parquet").is_file():
-        raise SchemaError(f"{src / 'cameras.parquet'}: camera calibration missing; add {calibration}")
-    cameras = read_cameras(src / "cameras.parquet")
-    seq_names = sorted(p.name for p in src.iterdir() if (p / "videos").is_dir())
-    if not seq_names:
-        raise SchemaError(f"{src}: no <sequence>/videos/ folder; put one video per camera in e.g. {src}/train/videos/")
-    sequences = {name: _validate_sequence(src, name, cameras, conf) for name in seq_names}
-    copy_into_capture(src / "cameras.parquet", out / "cameras.parquet")
-    for name, info in sequences.items():
-        for cam in cameras:
-            copy_into_capture(video_path(src, name, cam.camera_id), video_path(out, name, cam.camera_id))
-            if info.has_masks:
-                for t in range(info.num_frames):
-                    copy_into_capture(mask_path(src, name, cam.camera_id, t), mask_path(out, name, cam.camera_id, t))
-    return CaptureIndex(subject=subject, dataset="folder", sequences=sequences)
-
-
-def _validate_sequence(src: Path, seq: str, cameras: list[Camera], conf: DictConfig) -> SequenceInfo:
-    videos_dir = src / seq / "videos"
-    on_disk = {p.stem: p for p in videos_dir.iterdir() if p.suffix.lower() == ".mp4"}
-    ids = {c.camera_id for c in cameras}
-    without_video, without_camera = sorted(ids - set(on_disk)), sorted(set(on_disk) - ids)
-    if without_video:
-        cam_id = without_video[0]
-        raise SchemaError(f"{video_path(src, seq, cam_id)}: camera '{cam_id}' in {src / 'cameras.parquet'} "
-                          f"has no video; add the video or remove the camera's row")
-    if without_camera:
-        cam_id = without_camera[0]
-        raise SchemaError(f"{on_disk[cam_id]}: video has no camera '{cam_id}' in {src / 'cameras.parquet'}; "
-                          f"add its calibration or remove the video")
-    counts: dict[str, int] = {}
-    for cam in cameras:
-        path = video_path(src, seq, cam.camera_id)
-        frames = read_video(path)
-        check_fully_decoded(path, len(frames))
-        if frames.shape[1:3] != (cam.height, cam.width):
-            raise SchemaError(f"{path}: frames are {frames.shape[2]}x{frames.shape[1]} but cameras.parquet says "
-                              f"{cam.width}x{cam.height}; fix the calibration or the video")
-        counts[cam.camera_id] = len(frames)
-    if len(set(counts.values())) != 1:
-        raise SchemaError(f"{videos_dir}: views disagree on frame count {counts}; trim the videos to the same "
-                          f"synchronised range")
-    num_frames = next(iter(counts.values()))
-    has_masks = (src / seq / "masks").is_dir()
-    if has_masks:
-        for cam in cameras:
-            for t in range(num_frames):
-                mask = read_png(mask_path(src, seq, cam.camera_id, t), 1)
-                if mask.shape != (cam.height, cam.width):
-                    raise SchemaError(f"{mask_path(src, seq, cam.camera_id, t)}: mask is {mask.shape[::-1]}, "
-                                      f"expected {cam.width}x{cam.height}")
-    fps = video_fps(video_path(src, seq, cameras[0].camera_id)) or float(conf.default_frame_rate)
-    return SequenceInfo(num_frames=num_frames, frame_rate=fps, width=cameras[0].width, height=cameras[0].height,
-                        has_masks=has_masks, has_ground_truth=False)

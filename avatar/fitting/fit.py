@@ -202,10 +202,11 @@ class WorldScaleError(ValueError):
     """The cameras' world units are not metres (the templates, the contact radius and PBD are)."""
 
 
-def check_world_scale(points: np.ndarray, valid: np.ndarray) -> float | None:
+def check_world_scale(points: np.ndarray, valid: np.ndarray, template_span_m: float = 0.14) -> float | None:
     """The median over frames of the largest distance between two valid triangulated face landmarks
     (``points`` (T, K, 3), ``valid`` (T, K)); None where no frame has two. Raises
-    :class:`WorldScaleError` when it lies outside :data:`FACE_SPAN_M`."""
+    :class:`WorldScaleError` when it lies outside :data:`FACE_SPAN_M`, with the scale that would make it
+    ``template_span_m`` (the head template's own landmark span)."""
     spans = [float(np.linalg.norm(p[v][:, None] - p[v][None], axis=-1).max())
              for p, v in zip(points, valid) if v.sum() >= 2]
     if not spans:
@@ -215,9 +216,12 @@ def check_world_scale(points: np.ndarray, valid: np.ndarray) -> float | None:
     if not low <= span <= high:
         factor = 0.001 if span > high else 1000.0
         raise WorldScaleError(
-            f"the face landmarks triangulate {span:.4g} world units across, but a face spans about 0.14 m: the "
-            f"camera translations are not in metres, which the templates, d_max and PBD assume; multiply the "
-            f"translations of world_to_cam by {factor:g} (e.g. millimetres to metres) and rerun")
+            f"the face landmarks triangulate {span:.4g} world units across, but a face spans about "
+            f"{template_span_m:.2f} m: the camera translations are not in metres, which the templates, d_max and "
+            f"PBD assume; multiply the translations of world_to_cam by {factor:g} (e.g. millimetres to metres) and "
+            f"rerun, or, for a COLMAP or nerfstudio calibration (arbitrary units), set "
+            f"dataset.calibration_scale_m={template_span_m / span:.3g} (estimated from the face's size against "
+            f"the head template's; heads differ by about 10 %, a distance measured in the scene is better)")
     return span
 
 
@@ -280,7 +284,8 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
     for part, model in (("hand", hand_params), ("face", face_params)):
         points, valid, weight = _triangulate_part(obs[part], P_np, cfg)
         if part == "face":
-            check_world_scale(points, valid)
+            rest = face_params.rest_landmarks()[0]
+            check_world_scale(points, valid, float(np.linalg.norm(rest[:, None] - rest[None], axis=-1).max()))
         model.init_from_keypoints(points, valid)
         weights[part] = torch.as_tensor(weight)
         weak[part] = _weak(obs[part], valid, cfg)

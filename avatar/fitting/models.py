@@ -129,12 +129,16 @@ class FaceParams(_PartParams):
     def faces(self) -> torch.Tensor:
         return self.layer.faces
 
+    def rest_landmarks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rest pose's landmarks (68, 3) and root joint (3,), metres, at the current shape."""
+        with torch.no_grad():
+            out = self.layer(self.shape, torch.zeros(1, self.layer.num_expression, dtype=DTYPE))
+            return self.layer.landmarks(out.vertices)[0].numpy(), out.joints[0, 0].numpy()
+
     def init_from_keypoints(self, points: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Set global_orient and transl by rigidly aligning the rest-pose landmarks
         to triangulated landmarks (T, 68, 3) with valid (T, 68) bool. Returns ok (T,)."""
-        with torch.no_grad():
-            out = self.layer(self.shape, torch.zeros(1, self.layer.num_expression, dtype=DTYPE))
-            rest, root = self.layer.landmarks(out.vertices)[0].numpy(), out.joints[0, 0].numpy()
+        rest, root = self.rest_landmarks()
         orient, transl, ok = rigid_init(rest, root, points, valid)
         with torch.no_grad():
             self.global_orient.copy_(torch.as_tensor(orient))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -145,8 +147,10 @@ def test_a_capture_not_in_metres_is_one_clear_error(capture: SyntheticCapture, s
         scaled.append(replace(cam, world_to_cam=T))
     kp = {c.camera_id: capture.keypoints[c.camera_id] for c in train}
     quick = FitConfig(rigid_iterations=2, coarse_iterations=2, fine_iterations=2)
-    with pytest.raises(WorldScaleError, match="multiply the translations of world_to_cam by"):
+    with pytest.raises(WorldScaleError, match="multiply the translations of world_to_cam by") as info:
         fit_sequence(kp, scaled, HEAD, HAND, quick)
+    estimate = float(re.search(r"dataset.calibration_scale_m=([0-9.e+-]+)", str(info.value)).group(1))
+    assert abs(estimate * scale - 1.0) < 0.15  # the scale that undoes the damage, from the face's size (0.90 here)
     landmarks, _ = _face(capture.params)
     span = check_world_scale(landmarks, np.ones(landmarks.shape[:2], bool))
     assert 0.1 < span < 0.25  # the real face, in metres, passes

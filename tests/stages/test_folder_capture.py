@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -10,12 +11,13 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from data_schemas.cameras import Camera, write_cameras
+from avatar.calibration.undistort import Undistorter
+from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.capture import mask_path, video_path
 from data_schemas.frames import FRAMES_INDEX
 from data_schemas.images import write_png
 from data_schemas.tables import read_table
-from data_schemas.video import write_video
+from data_schemas.video import read_video, write_video
 from pipeline.cli import run_app
 from pipeline.runner import StageFailed
 from tests.conftest import compose_cfg
@@ -163,7 +165,9 @@ def test_empty_subject_folder_names_the_layout(tmp_path):
 def test_missing_cameras_table_names_the_file_and_fix(tmp_path):
     subject = make_capture(tmp_path / "data")
     (subject / "cameras.parquet").unlink()
-    _expect_capture_error(tmp_path, "alice/cameras.parquet: camera calibration missing; add cameras.parquet, one row")
+    _expect_capture_error(tmp_path, "alice: camera calibration missing; add cameras.parquet, one row")
+    with pytest.raises(StageFailed, match="a COLMAP sparse model or a nerfstudio transforms.json"):
+        run_app(_cfg(tmp_path))
 
 
 def test_replacing_a_source_video_reruns_the_capture_and_everything_below(tmp_path):
@@ -192,3 +196,63 @@ def test_published_capture_shares_no_storage_with_the_source(tmp_path):
     assert published.read_bytes() == before
     reports = {r.stage: (r.action, r.reason) for r in run_app(_cfg(tmp_path, "run.until=capture"))}
     assert reports["capture"] == ("run", "source changed: train/videos/cam01.mp4")
+
+
+def _colmap_capture(root: Path, distorted: str = "cam01") -> Path:
+    """The capture of :func:`make_capture` calibrated by a COLMAP model in COLMAP's layout (sparse/0),
+    in half-metre units; camera ``distorted`` has OpenCV distortion."""
+    import pycolmap
+
+    subject = make_capture(root)
+    (subject / "cameras.parquet").unlink()
+    rec = pycolmap.Reconstruction()
+    for i in range(3):
+        cam = _camera(i)
+        camera = pycolmap.Camera.create_from_model_name(i + 1, "OPENCV", 60.0, SIZE, SIZE)
+        k1 = -0.8 if cam.camera_id == distorted else 0.0
+        camera.params = [60.0, 60.0, SIZE / 2 + 0.5, SIZE / 2 + 0.5, k1, 0.0, 0.0, 0.0]
+        rec.add_camera_with_trivial_rig(camera)
+        pose = pycolmap.Rigid3d(rotation=pycolmap.Rotation3d(np.array([0.0, 0.0, 0.0, 1.0])),
+                                translation=cam.world_to_cam[:3, 3] / 0.5)
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{cam.camera_id}.png", camera_id=i + 1, image_id=i + 1),
+                                         pose)
+    (subject / "sparse" / "0").mkdir(parents=True)
+    rec.write(str(subject / "sparse" / "0"))
+    return subject
+
+
+def test_colmap_calibration_is_scaled_undistorted_once_and_recorded(tmp_path):
+    subject = _colmap_capture(tmp_path / "data")
+    reports = run_app(_cfg(tmp_path, "dataset.calibration_scale_m=0.5", "dataset.test_cameras=[cam02]"))
+    assert [r.action for r in reports] == ["run", "run"]
+    capture = tmp_path / "out" / "alice" / "capture"
+    cameras = {c.camera_id: c for c in read_cameras(capture / "cameras.parquet")}
+    for i in range(3):
+        expected = _camera(i)
+        np.testing.assert_allclose(cameras[expected.camera_id].world_to_cam, expected.world_to_cam, atol=1e-12)
+        np.testing.assert_allclose(cameras[expected.camera_id].K, expected.K, atol=1e-12)  # the 0.5 px shift
+        assert not cameras[expected.camera_id].dist.any()  # later stages see pinhole cameras
+    assert [cameras[c].split for c in sorted(cameras)] == ["train", "train", "test"]
+    record = json.loads((capture / "calibration.json").read_text())
+    assert record["source"].endswith("sparse/0") and record["scale_m"] == 0.5
+    assert list(record["undistorted"]) == ["cam01"] and record["undistorted"]["cam01"][0] == -0.8
+    for cam_id in ("cam00", "cam02"):  # undistorted cameras are copied as they are
+        assert video_path(capture, "train", cam_id).read_bytes() == video_path(subject, "train", cam_id).read_bytes()
+    # The distorted one is re-encoded through its own undistortion (tested against projections in
+    # tests/calibration), equal up to the video codec's rounding.
+    assert video_path(capture, "train", "cam01").read_bytes() != video_path(subject, "train", "cam01").read_bytes()
+    source, imported = read_video(video_path(subject, "train", "cam01")), read_video(video_path(capture, "train", "cam01"))
+    dist = np.array([-0.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    expected = np.stack([Undistorter(_camera(1).K, dist, SIZE, SIZE).image(f) for f in source])
+    # Compared on the patch's silhouette: the codec's rounding of a 48 px video is larger than colour tolerances.
+    patch = lambda v: np.abs(v.astype(int) - 90).sum(-1) > 115  # noqa: E731
+    iou = lambda a, b: (patch(a) & patch(b)).sum() / (patch(a) | patch(b)).sum()  # noqa: E731
+    assert iou(imported, expected) > 0.95 > iou(imported, source)
+
+
+def test_colmap_image_that_matches_no_video_names_the_model_and_camera(tmp_path):
+    subject = _colmap_capture(tmp_path / "data")
+    video_path(subject, "train", "cam01").unlink()
+    _expect_capture_error(tmp_path, "cam01.mp4: camera 'cam01' in")
+    with pytest.raises(StageFailed, match=r"sparse/0 has no video.*remove the camera's images from the calibration"):
+        run_app(_cfg(tmp_path))

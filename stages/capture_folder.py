@@ -1,0 +1,163 @@
+"""``dataset=folder``: validate a capture on disk and import it into the ``capture`` stage.
+
+Layout (README, "Your own footage"): ``<root>/<subject>/<sequence>/videos/<camera_id>.mp4`` (and
+optionally ``<sequence>/masks/``), with one calibration beside the sequences (``dataset.calibration``):
+
+* ``cameras.parquet`` (``parquet``): this project's own, in metres;
+* a COLMAP sparse model (``colmap``): ``cameras.bin``/``images.bin`` or ``.txt``, in the subject folder,
+  ``sparse/0/`` or ``sparse/``; image names map to cameras by folder or stem (``avatar.calibration.images``);
+* a nerfstudio ``transforms.json`` (``nerfstudio``);
+* ``auto`` (default): the first of these that exists.
+
+COLMAP's and nerfstudio's scale is arbitrary: ``dataset.calibration_scale_m`` (metres per unit) scales the
+translations; unset, the fit stage measures the face and names the scale to set. Distortion is removed
+here, once: distorted views are re-encoded undistorted with the same ``K`` (and their masks remapped), so
+every later stage sees pinhole cameras; ``calibration.json`` keeps the coefficients that were removed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig
+
+from avatar.calibration.colmap import find_model, read_colmap
+from avatar.calibration.images import rig_cameras
+from avatar.calibration.nerfstudio import read_transforms
+from avatar.calibration.undistort import Undistorter, is_distorted
+from data_schemas.cameras import Camera, read_cameras, write_cameras
+from data_schemas.capture import CaptureIndex, SequenceInfo, copy_into_capture, mask_path, video_path
+from data_schemas.images import read_png, write_png
+from data_schemas.tables import SchemaError
+from data_schemas.video import check_fully_decoded, iter_video, read_video, video_fps, write_video_stream
+from data_schemas.writes import write_json
+
+CALIBRATIONS = ("auto", "parquet", "colmap", "nerfstudio")
+PARQUET_HELP = ("cameras.parquet, one row per camera (camera_id, width, height, K, world_to_cam, dist, split; "
+                "data_schemas.cameras.write_cameras writes it), a COLMAP sparse model or a nerfstudio transforms.json")
+
+
+def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_rate: float) -> CaptureIndex:
+    """Validate ``<dataset.root>/<subject>`` and bring it into ``out`` (copies, or undistorted re-encodes)."""
+    src = Path(dataset.root) / subject
+    if not src.is_dir():
+        raise SchemaError(f"{src}: capture folder missing; set dataset.root so that <root>/{subject} exists")
+    if not any(src.iterdir()):
+        raise SchemaError(f"{src}: capture folder is empty; put {PARQUET_HELP} and one video per camera in "
+                          f"<sequence>/videos/<camera_id>.mp4 in it, as in the README's artifact layout")
+    cameras, calibration = read_calibration(src, dataset)
+    seq_names = sorted(p.name for p in src.iterdir() if (p / "videos").is_dir())
+    if not seq_names:
+        raise SchemaError(f"{src}: no <sequence>/videos/ folder; put one video per camera in e.g. {src}/train/videos/")
+    sequences = {name: _validate_sequence(src, name, cameras, calibration, default_frame_rate) for name in seq_names}
+    write_cameras(out / "cameras.parquet", [replace(c, dist=np.zeros_like(c.dist)) for c in cameras])
+    for cam in cameras:
+        undistort = Undistorter(cam.K, cam.dist, cam.width, cam.height) if is_distorted(cam.dist) else None
+        for name, info in sequences.items():
+            _import_view(src, out, name, cam, info, undistort)
+    write_json(out / "calibration.json", {
+        "source": str(calibration), "scale_m": dataset.get("calibration_scale_m"),
+        "undistorted": {c.camera_id: c.dist.tolist() for c in cameras if is_distorted(c.dist)},
+    }, "calibration record")
+    return CaptureIndex(subject=subject, dataset="folder", sequences=sequences)
+
+
+def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], Path]:
+    """The cameras of the capture folder ``src`` (translations in metres when a scale is given) and the
+    calibration file or folder they came from."""
+    choice = str(dataset.get("calibration", "auto"))
+    if choice not in CALIBRATIONS:
+        raise SchemaError(f"dataset.calibration={choice!r}: choose one of {CALIBRATIONS}")
+    scale = dataset.get("calibration_scale_m")
+    test_cameras = dataset.get("test_cameras")
+    parquet, model, transforms = src / "cameras.parquet", find_model(src), src / "transforms.json"
+    if choice == "auto":
+        choice = ("parquet" if parquet.is_file() else "colmap" if model is not None
+                  else "nerfstudio" if transforms.is_file() else "")
+        if not choice:
+            raise SchemaError(f"{src}: camera calibration missing; add {PARQUET_HELP}")
+    if choice == "parquet":
+        if not parquet.is_file():
+            raise SchemaError(f"{parquet}: camera calibration missing; add {PARQUET_HELP}")
+        cameras = read_cameras(parquet)
+        if scale is not None:
+            cameras = [replace(c, world_to_cam=_scaled(c.world_to_cam, float(scale))) for c in cameras]
+        return cameras, parquet
+    if choice == "colmap":
+        if model is None:
+            raise SchemaError(f"{src}: no COLMAP model (cameras.bin or cameras.txt) in it, sparse/0/ or sparse/")
+        images, where = read_colmap(model), model
+    else:
+        if not transforms.is_file():
+            raise SchemaError(f"{transforms}: missing; dataset.calibration=nerfstudio reads it")
+        images, where = read_transforms(transforms), transforms
+    cameras = rig_cameras(images, str(where), 1.0 if scale is None else float(scale),
+                          None if test_cameras is None else [str(c) for c in test_cameras])
+    return cameras, where
+
+
+def _scaled(world_to_cam: np.ndarray, scale: float) -> np.ndarray:
+    out = world_to_cam.copy()
+    out[:3, 3] *= scale
+    return out
+
+
+def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo,
+                 undistort: Undistorter | None) -> None:
+    """Copy one camera's video (and masks) of ``seq``, or re-encode them undistorted."""
+    if undistort is None:
+        copy_into_capture(video_path(src, seq, cam.camera_id), video_path(out, seq, cam.camera_id))
+    else:
+        frames = (undistort.image(f) for f in iter_video(video_path(src, seq, cam.camera_id)))
+        write_video_stream(video_path(out, seq, cam.camera_id), frames, info.frame_rate)
+    if not info.has_masks:
+        return
+    for t in range(info.num_frames):
+        source, target = mask_path(src, seq, cam.camera_id, t), mask_path(out, seq, cam.camera_id, t)
+        if undistort is None:
+            copy_into_capture(source, target)
+        else:
+            write_png(target, undistort.labels(read_png(source, 1)))
+
+
+def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: Path,
+                       default_frame_rate: float) -> SequenceInfo:
+    videos_dir = src / seq / "videos"
+    on_disk = {p.stem: p for p in videos_dir.iterdir() if p.suffix.lower() == ".mp4"}
+    ids = {c.camera_id for c in cameras}
+    without_video, without_camera = sorted(ids - set(on_disk)), sorted(set(on_disk) - ids)
+    if without_video:
+        cam_id = without_video[0]
+        remove = "the camera's row" if calibration.suffix == ".parquet" else "the camera's images from the calibration"
+        raise SchemaError(f"{video_path(src, seq, cam_id)}: camera '{cam_id}' in {calibration} has no video "
+                          f"(videos here: {sorted(on_disk)}); add the video or remove {remove}")
+    if without_camera:
+        cam_id = without_camera[0]
+        raise SchemaError(f"{on_disk[cam_id]}: video has no camera '{cam_id}' in {calibration} (cameras: "
+                          f"{sorted(ids)}); add its calibration or remove the video")
+    counts: dict[str, int] = {}
+    for cam in cameras:
+        path = video_path(src, seq, cam.camera_id)
+        frames = read_video(path)
+        check_fully_decoded(path, len(frames))
+        if frames.shape[1:3] != (cam.height, cam.width):
+            raise SchemaError(f"{path}: frames are {frames.shape[2]}x{frames.shape[1]} but {calibration} says "
+                              f"{cam.width}x{cam.height}; fix the calibration or the video")
+        counts[cam.camera_id] = len(frames)
+    if len(set(counts.values())) != 1:
+        raise SchemaError(f"{videos_dir}: views disagree on frame count {counts}; trim the videos to the same "
+                          f"synchronised range")
+    num_frames = next(iter(counts.values()))
+    has_masks = (src / seq / "masks").is_dir()
+    if has_masks:
+        for cam in cameras:
+            for t in range(num_frames):
+                mask = read_png(mask_path(src, seq, cam.camera_id, t), 1)
+                if mask.shape != (cam.height, cam.width):
+                    raise SchemaError(f"{mask_path(src, seq, cam.camera_id, t)}: mask is {mask.shape[::-1]}, "
+                                      f"expected {cam.width}x{cam.height}")
+    fps = video_fps(video_path(src, seq, cameras[0].camera_id)) or float(default_frame_rate)
+    return SequenceInfo(num_frames=num_frames, frame_rate=fps, width=cameras[0].width, height=cameras[0].height,
+                        has_masks=has_masks, has_ground_truth=False)
