@@ -3,7 +3,7 @@ capture layout, or the DECAF release: ``stages.capture_decaf``)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -85,8 +85,12 @@ def capture(ctx: StageContext) -> None:
     else:
         raise SchemaError(f"dataset.name={dataset.name!r}: unknown dataset; use dataset=synthetic, dataset=folder "
                           f"or dataset=decaf")
+    if dataset.get("train_cameras") is not None:
+        _train_only(ctx.out_dir / "cameras.parquet", [str(c) for c in dataset.train_cameras])
     index.write(ctx.out_dir)
-    ctx.metrics["cameras"] = len(read_cameras(ctx.out_dir / "cameras.parquet"))
+    cameras = read_cameras(ctx.out_dir / "cameras.parquet")
+    ctx.metrics["cameras"] = len(cameras)
+    ctx.metrics["train_cameras"] = sum(c.split == "train" for c in cameras)
     for name, seq in index.sequences.items():
         ctx.metrics[f"{name}_frames"] = seq.num_frames
         if seq.provided:
@@ -140,3 +144,14 @@ def _write_synthetic_sequence(root: Path, seq: str, cap: SyntheticCapture) -> No
     write_keypoints(gt_path(root, seq, "keypoints"), cap.keypoints, num_frames)
     write_table(gt_path(root, seq, "deform"), DEFORM,
                 {"frame": frames, "contact": cap.contact, "offsets": cap.face_offsets.reshape(num_frames, -1)})
+
+
+def _train_only(path: Path, train: list[str]) -> None:
+    """``dataset.train_cameras``: train on these cameras only (one makes a monocular capture); every other
+    camera is held out for novel views."""
+    cameras = read_cameras(path)
+    ids = [c.camera_id for c in cameras]
+    unknown = sorted(set(train) - set(ids))
+    if unknown or not train or set(train) >= set(ids):
+        raise SchemaError(f"dataset.train_cameras={train}: choose some but not all of the cameras {ids}")
+    write_cameras(path, [replace(c, split="train" if c.camera_id in train else "test") for c in cameras])

@@ -43,7 +43,7 @@ class FitStageConfig:
 
 
 @stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit"),
-       outputs=("train/params.parquet", "fit_report.json"), version="4", resources=Resources(cpus=2),
+       outputs=("train/params.parquet", "fit_report.json"), version="5", resources=Resources(cpus=2),
        config_schema=FitStageConfig, sources=model_sources)
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors and, per sequence,
@@ -56,7 +56,8 @@ def fit(ctx: StageContext) -> None:
     head, hand = templates(ctx.cfg.model)
     cameras = [c for c in read_cameras(cap_dir / "cameras.parquet") if c.split == "train"]
     conf = FitConfig(**{f.name: getattr(ctx.cfg.stage.fit, f.name) for f in fields(FitStageConfig)})
-    report: dict[str, dict] = {"source": source, "sequences": {}}
+    # train_views: 1 is a monocular fit (avatar.fitting.monocular): depth comes from the templates' sizes.
+    report: dict = {"source": source, "train_views": len(cameras), "sequences": {}}
     for seq, info in ctx.progress(list(index.sequences.items()), desc="fit: sequences"):
         hand_fitted = True
         if source == "ground_truth":

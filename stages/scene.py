@@ -48,7 +48,7 @@ class SceneConfig:
 
 
 @stage("scene", inputs=("capture", "frames", "fit"), config_keys=("model", "stage.scene", "stage.dynamic.d_max"),
-       outputs=("scene.json", "scene.parquet"), version="2", config_schema=SceneConfig, sources=model_sources)
+       outputs=("scene.json", "scene.parquet"), version="3", config_schema=SceneConfig, sources=model_sources)
 def scene(ctx: StageContext) -> None:
     """scene.parquet (per frame: hand views, distance, contact) and scene.json (what to model, and why)."""
     conf, d_max = ctx.cfg.stage.scene, float(ctx.cfg.stage.dynamic.d_max)
@@ -57,21 +57,22 @@ def scene(ctx: StageContext) -> None:
     sequences = sorted(p.parent.name for p in fit_dir.glob("*/params.parquet"))
     if DECIDED_ON not in sequences:
         raise SchemaError(f"{fit_dir}: no fitted '{DECIDED_ON}' sequence to analyse; rerun the fit stage")
-    views = _hand_views(frames_dir, float(conf.min_hand_area))
+    views, train_cameras = _hand_views(frames_dir, float(conf.min_hand_area))
+    min_views = min(int(conf.min_views), train_cameras)  # a monocular capture sees the hand in one view at most
     facts: dict[str, SceneFacts] = {}
     for seq in ctx.progress(sequences, desc="scene: sequences"):
         table = read_table(fit_dir / seq / "params.parquet", PARAMS)
         posed = posed_keypoints({k: np.asarray(table[k]) for k in PARAM_COLUMNS}, head, hand)
         distances = hand_face_distances(posed["face_vertices"], posed["hand_vertices"])
         counts = np.array([views.get((seq, t), 0) for t in range(len(distances))])
-        facts[seq] = scene_facts(counts, distances, int(conf.min_views), d_max)
+        facts[seq] = scene_facts(counts, distances, min_views, d_max)
     train = facts[DECIDED_ON]
     decision = decide(train, float(conf.min_hand_fraction), {name: str(conf[name]).lower() for name in DECISIONS})
     triangles = deforming_triangles(train.near_vertices, np.asarray(head.faces))
     _write_frames(ctx, facts)
     write_json(ctx.out_dir / "scene.json", {
         **asdict(decision), "reasons": decision.reasons, "decided_on": DECIDED_ON, "d_max_m": d_max,
-        "thresholds": {"min_hand_area": float(conf.min_hand_area), "min_views": int(conf.min_views),
+        "thresholds": {"min_hand_area": float(conf.min_hand_area), "min_views": min_views,
                        "min_hand_fraction": float(conf.min_hand_fraction)},
         "sequences": {seq: _summary(f) for seq, f in facts.items()},
         "deforming_triangles": np.flatnonzero(triangles).tolist(), "face_triangles": len(head.faces),
@@ -82,8 +83,9 @@ def scene(ctx: StageContext) -> None:
                         "deforming_triangles": int(triangles.sum())})
 
 
-def _hand_views(frames_dir: Path, min_area: float) -> dict[tuple[str, int], int]:
-    """(sequence, frame) -> training cameras whose crop mask shows at least ``min_area`` of hand."""
+def _hand_views(frames_dir: Path, min_area: float) -> tuple[dict[tuple[str, int], int], int]:
+    """(sequence, frame) -> training cameras whose crop mask shows at least ``min_area`` of hand; and the
+    number of training cameras."""
     index = read_table(frames_dir / "index.parquet", FRAMES_INDEX)
     counts: dict[tuple[str, int], int] = {}
     for seq, camera, frame, split in zip(index["sequence"], index["camera_id"], index["frame"], index["split"]):
@@ -92,7 +94,7 @@ def _hand_views(frames_dir: Path, min_area: float) -> dict[tuple[str, int], int]
         labels = read_png(crop_mask_path(frames_dir, seq, camera, int(frame)), 1)
         seen = float((labels == MASK_LABELS["hand"]).mean()) >= min_area
         counts[(seq, int(frame))] = counts.get((seq, int(frame)), 0) + int(seen)
-    return counts
+    return counts, len({c for c, split in zip(index["camera_id"], index["split"]) if split == "train"})
 
 
 def _summary(facts: SceneFacts) -> dict:

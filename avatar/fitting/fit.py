@@ -4,6 +4,8 @@ Method (see :func:`fit_sequence`):
 
 1. Triangulate every frame's hand keypoints and face landmarks (RANSAC DLT,
    :mod:`avatar.fitting.triangulation`); detections RANSAC rejects are dropped.
+   From one camera (monocular), place each part's rest keypoints by PnP instead, at the depth its
+   template's metric size implies (:mod:`avatar.fitting.monocular`).
 2. Initialise each frame from the triangulated points: the hand by analytic
    inverse kinematics (:mod:`avatar.fitting.hand_ik`: palm by Kabsch, then each
    finger bone turned onto its observed direction), the face by rigid Kabsch
@@ -31,6 +33,7 @@ import numpy as np
 import torch
 
 from avatar.fitting.models import DTYPE, FaceParams, HandParams
+from avatar.fitting.monocular import PALM, place_rest_points
 from avatar.fitting.observations import PART_SIZES, Observations, pack_part
 from avatar.fitting.penetration import ContactPairs, contact_depth, find_contact_pairs
 from avatar.fitting.rigid import MIN_RIGID_POINTS
@@ -228,7 +231,7 @@ def check_world_scale(points: np.ndarray, valid: np.ndarray, template_span_m: fl
 def _weak(obs: Observations, valid: np.ndarray, cfg: FitConfig) -> np.ndarray:
     """(T,) frames with too few confident views or triangulated points."""
     confident = (obs.conf >= cfg.min_confidence).sum(-1) >= cfg.min_keypoints_per_view  # (T, C)
-    return (confident.sum(-1) < cfg.min_views) | (valid.sum(-1) < MIN_RIGID_POINTS)
+    return (confident.sum(-1) < min(cfg.min_views, confident.shape[1])) | (valid.sum(-1) < MIN_RIGID_POINTS)
 
 
 def _triangulate_part(obs: Observations, P: np.ndarray, cfg: FitConfig
@@ -280,12 +283,18 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
     P_np = projection_matrices(cameras)
     P = torch.as_tensor(P_np, dtype=DTYPE)
     hand_params, face_params = HandParams(hand, T), FaceParams(head, T)
+    rest = {"hand": hand_params.rest_keypoints(), "face": face_params.rest_landmarks()[0]}
     weights, weak = {}, {}
     for part, model in (("hand", hand_params), ("face", face_params)):
-        points, valid, weight = _triangulate_part(obs[part], P_np, cfg)
-        if part == "face":
-            rest = face_params.rest_landmarks()[0]
-            check_world_scale(points, valid, float(np.linalg.norm(rest[:, None] - rest[None], axis=-1).max()))
+        if len(cameras) == 1:  # monocular: placed by the template's metric size (avatar.fitting.monocular)
+            points, valid = place_rest_points(rest[part], obs[part].uv[:, 0], obs[part].conf[:, 0], cameras[0],
+                                              cfg.min_confidence, PALM if part == "hand" else None)
+            weight = obs[part].conf.copy()
+        else:
+            points, valid, weight = _triangulate_part(obs[part], P_np, cfg)
+        if part == "face" and len(cameras) > 1:
+            check_world_scale(points, valid, float(np.linalg.norm(rest["face"][:, None] - rest["face"][None],
+                                                                  axis=-1).max()))
         model.init_from_keypoints(points, valid)
         weights[part] = torch.as_tensor(weight)
         weak[part] = _weak(obs[part], valid, cfg)

@@ -80,6 +80,12 @@ class HandParams(_PartParams):
             self.hand_pose.copy_(torch.as_tensor(pose))
         return ok
 
+    def rest_keypoints(self) -> np.ndarray:
+        """(21, 3) keypoints of the flat rest hand at the current shape, metres, OpenPose order."""
+        with torch.no_grad():
+            out = self.keypoint_layer(self.shape, torch.zeros(1, self.layer.pose_dim, dtype=DTYPE))
+            return self.keypoint_layer.keypoints21(out.vertices, out.joints)[0].numpy()
+
     def _posed(self, layer: MANOLayer, frames: torch.Tensor | slice = slice(None)) -> LayerOutput:
         pose = self.hand_pose[frames]
         return layer(self.shape.expand(pose.shape[0], -1), pose, self.global_orient[frames], self.transl[frames])
