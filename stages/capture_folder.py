@@ -35,6 +35,7 @@ from data_schemas.video import check_fully_decoded, iter_video, read_video, vide
 from data_schemas.writes import write_json
 
 CALIBRATIONS = ("auto", "parquet", "colmap", "nerfstudio")
+DEFAULT_INTRINSICS = "<default intrinsics: dataset.default_fov_deg>"  # names the calibration in messages
 PARQUET_HELP = ("cameras.parquet, one row per camera (camera_id, width, height, K, world_to_cam, dist, split; "
                 "data_schemas.cameras.write_cameras writes it), a COLMAP sparse model or a nerfstudio transforms.json")
 
@@ -57,8 +58,11 @@ def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_ra
         undistort = Undistorter(cam.K, cam.dist, cam.width, cam.height) if is_distorted(cam.dist) else None
         for name, info in sequences.items():
             _import_view(src, out, name, cam, info, undistort)
+    defaulted = calibration.name == DEFAULT_INTRINSICS
     write_json(out / "calibration.json", {
-        "source": str(calibration), "scale_m": dataset.get("calibration_scale_m"),
+        "source": "none: default intrinsics" if defaulted else str(calibration),
+        "default_fov_deg": float(dataset.get("default_fov_deg", 60.0)) if defaulted else None,
+        "scale_m": dataset.get("calibration_scale_m"),
         "undistorted": {c.camera_id: c.dist.tolist() for c in cameras if is_distorted(c.dist)},
     }, "calibration record")
     return CaptureIndex(subject=subject, dataset="folder", sequences=sequences)
@@ -77,7 +81,11 @@ def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], Path
         choice = ("parquet" if parquet.is_file() else "colmap" if model is not None
                   else "nerfstudio" if transforms.is_file() else "")
         if not choice:
-            raise SchemaError(f"{src}: camera calibration missing; add {PARQUET_HELP}")
+            camera = _default_camera(src, float(dataset.get("default_fov_deg", 60.0)))
+            if camera is None:
+                raise SchemaError(f"{src}: camera calibration missing; add {PARQUET_HELP} (only a single camera, a "
+                                  f"monocular video, may go without one)")
+            return [camera], src / DEFAULT_INTRINSICS
     if choice == "parquet":
         if not parquet.is_file():
             raise SchemaError(f"{parquet}: camera calibration missing; add {PARQUET_HELP}")
@@ -96,6 +104,24 @@ def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], Path
     cameras = rig_cameras(images, str(where), 1.0 if scale is None else float(scale),
                           None if test_cameras is None else [str(c) for c in test_cameras])
     return cameras, where
+
+
+def _default_camera(src: Path, fov_deg: float) -> Camera | None:
+    """The one camera of a monocular capture without calibration: a pinhole with ``fov_deg`` horizontal field of
+    view, principal point at the image centre, no distortion, at the world origin (world = camera axes).
+    None when the folder has more than one camera (a rig needs its calibration)."""
+    videos = sorted(src.glob("*/videos/*.mp4"))
+    ids = sorted({p.stem for p in videos})
+    if len(ids) != 1:
+        return None
+    if not 1.0 <= fov_deg <= 170.0:
+        raise SchemaError(f"dataset.default_fov_deg={fov_deg}: a horizontal field of view in degrees, 1 to 170")
+    first = next(iter_video(videos[0]))
+    height, width = first.shape[:2]
+    focal = (width / 2) / np.tan(np.deg2rad(fov_deg) / 2)
+    K = np.array([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    return Camera(camera_id=ids[0], width=width, height=height, K=K, world_to_cam=np.eye(4), dist=np.zeros(5),
+                  split="train")
 
 
 def _scaled(world_to_cam: np.ndarray, scale: float) -> np.ndarray:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -15,6 +16,7 @@ from avatar.render.gaussians import resolve_backend
 from avatar.training.dynamic import rasterize
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.training.data import MeshSequence
+from data_schemas.cameras import read_cameras
 from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
 from data_schemas.images import write_png
 from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, showcase_path
@@ -56,6 +58,9 @@ def evaluate(ctx: StageContext) -> None:
     model = load_trained(ctx.input_dir("dynamic"))
     (ctx.out_dir / "grids").mkdir()
     splits = _splits(ctx)
+    for split, why in _unmeasurable(cap_dir, splits).items():  # e.g. a monocular capture has no held-out camera
+        del splits[split]
+        ctx.metrics[f"{split}_skipped"] = why
     write_json(ctx.out_dir / "splits.json", {split: sequence for split, (sequence, _) in splits.items()},
                "the sequence each split renders")
     for split, (sequence, camera_split) in splits.items():
@@ -86,6 +91,19 @@ def evaluate(ctx: StageContext) -> None:
     write_table(ctx.out_dir / "metrics.parquet", METRICS,
                 {k: (v if METRICS.column(k).kind == "string" else np.asarray(v)) for k, v in rows.items()})
     ctx.metrics.update(_summary(rows))
+
+
+def _unmeasurable(cap_dir: Path, splits: dict[str, tuple[str, str]]) -> dict[str, str]:
+    """split -> why it cannot be measured on this capture: its sequence or its cameras are missing."""
+    sequences = CaptureIndex.read(cap_dir).sequences
+    camera_splits = {c.split for c in read_cameras(cap_dir / "cameras.parquet")}
+    why = {}
+    for split, (sequence, camera_split) in splits.items():
+        if sequence not in sequences:
+            why[split] = f"the capture has no '{sequence}' sequence"
+        elif camera_split not in camera_splits:
+            why[split] = f"the capture has no '{camera_split}' camera (a held-out view)"
+    return why
 
 
 def _splits(ctx: StageContext) -> dict[str, tuple[str, str]]:

@@ -256,3 +256,40 @@ def test_colmap_image_that_matches_no_video_names_the_model_and_camera(tmp_path)
     _expect_capture_error(tmp_path, "cam01.mp4: camera 'cam01' in")
     with pytest.raises(StageFailed, match=r"sparse/0 has no video.*remove the camera's images from the calibration"):
         run_app(_cfg(tmp_path))
+
+
+def test_a_single_uncalibrated_video_gets_the_default_field_of_view(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    (subject / "cameras.parquet").unlink()
+    for cam_id in ("cam01", "cam02"):
+        video_path(subject, "train", cam_id).unlink()
+    reports = run_app(_cfg(tmp_path, "dataset.default_fov_deg=90"))
+    assert [r.action for r in reports] == ["run", "run"]
+    capture = tmp_path / "out" / "alice" / "capture"
+    (camera,) = read_cameras(capture / "cameras.parquet")
+    assert camera.camera_id == "cam00" and camera.split == "train"
+    np.testing.assert_allclose(camera.K, [[SIZE / 2, 0, (SIZE - 1) / 2], [0, SIZE / 2, (SIZE - 1) / 2], [0, 0, 1]])
+    np.testing.assert_array_equal(camera.world_to_cam, np.eye(4))
+    record = json.loads((capture / "calibration.json").read_text())
+    assert record["source"] == "none: default intrinsics" and record["default_fov_deg"] == 90.0
+
+
+def test_several_uncalibrated_videos_are_one_clear_error(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    (subject / "cameras.parquet").unlink()
+    _expect_capture_error(tmp_path, "only a single camera, a monocular video, may go without one")
+
+
+def test_evaluate_skips_a_split_the_capture_cannot_measure(tmp_path):
+    """A monocular capture has no held-out camera; one without a test sequence has no held-out motion."""
+    from stages.evaluate import _unmeasurable
+
+    make_capture(tmp_path / "data")
+    capture = tmp_path / "out" / "alice" / "capture"
+    run_app(_cfg(tmp_path, "run.until=capture"))
+    splits = {"novel_view": ("test", "test"), "self_reenact": ("test", "train"), "seen": ("train", "train")}
+    why = _unmeasurable(capture, splits)
+    assert why == {"novel_view": "the capture has no 'test' sequence",
+                   "self_reenact": "the capture has no 'test' sequence"}
+    assert _unmeasurable(capture, {"x": ("train", "held_out")}) == {
+        "x": "the capture has no 'held_out' camera (a held-out view)"}
