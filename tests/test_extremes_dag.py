@@ -32,6 +32,14 @@ def _numbers(value: object) -> list[float]:
     return [x for v in value for x in _numbers(v)] if isinstance(value, list) else []
 
 
+def assert_every_metric_finite(subject: Path) -> None:
+    """Every stage of ``subject`` (method interactavatar) has a manifest whose numbers are all finite."""
+    for s in REGISTRY:
+        folder = subject / "methods" / "interactavatar" / s.name if s.per_method else subject / s.name
+        metrics = json.loads((folder / "_manifest.json").read_text())["metrics"]
+        assert all(math.isfinite(x) for x in _numbers(metrics)), (s.name, metrics)
+
+
 @pytest.mark.parametrize("extreme", [["dataset.scene=face_only"],
                                      ["quality.num_frames_train=1", "quality.num_frames_test=1"],
                                      ["stage.capture.num_cameras=2"]],
@@ -39,10 +47,7 @@ def _numbers(value: object) -> list[float]:
 def test_the_whole_dag_runs_and_every_number_is_finite(tmp_path: Path, extreme: list[str]) -> None:
     run_app(compose_cfg([f"paths.outputs={tmp_path}", *SMALL, *extreme]))
     subject = tmp_path / "synth_a"
-    for s in REGISTRY:
-        folder = subject / "methods" / "interactavatar" / s.name if s.per_method else subject / s.name
-        metrics = json.loads((folder / "_manifest.json").read_text())["metrics"]
-        assert all(math.isfinite(x) for x in _numbers(metrics)), (s.name, metrics)
+    assert_every_metric_finite(subject)
     table = read_table(subject / "methods" / "interactavatar" / "evaluate" / "metrics.parquet", METRICS)
     full = np.asarray(table["region"]) == "full"
     assert full.any() and np.isfinite(np.asarray(table["psnr"])[full]).all()
