@@ -155,3 +155,19 @@ def test_a_capture_not_in_metres_is_one_clear_error(capture: SyntheticCapture, s
     span = check_world_scale(landmarks, np.ones(landmarks.shape[:2], bool))
     assert 0.1 < span < 0.25  # the real face, in metres, passes
     assert check_world_scale(landmarks, np.zeros(landmarks.shape[:2], bool)) is None
+
+
+def test_monocular_fit_with_missing_detections_goes_on(capture: SyntheticCapture) -> None:
+    """One view: a frame without a face, a frame without a hand, a frame with few landmarks are weak frames,
+    not failures, and every parameter stays finite."""
+    (camera,) = [c for c in capture.cameras if c.camera_id == "cam01"]
+    kp = {part: a.copy() for part, a in capture.keypoints[camera.camera_id].items()}
+    kp["face"][2] = np.nan
+    kp["hand"][3, :, 2] = 0.0
+    kp["face"][4, :60, 2] = 0.0
+    res = fit_sequence({camera.camera_id: kp}, [camera], HEAD, HAND, FitConfig(coarse_iterations=30, fine_iterations=30))
+    _check_layout(res.params, capture)
+    assert res.weak_frames["face"][2] and res.weak_frames["hand"][3]
+    assert not res.weak_frames["face"][[0, 1, 3, 5]].any() and not res.weak_frames["hand"][[0, 1, 2, 5]].any()
+    assert np.isnan(res.reprojection_px["face"][2]) and np.isnan(res.reprojection_px["hand"][3])
+    assert np.nanmax(res.reprojection_px["face"]) < 2.0  # the one view is explained where it has detections
