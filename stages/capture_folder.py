@@ -35,7 +35,7 @@ from data_schemas.video import check_fully_decoded, iter_video, read_video, vide
 from data_schemas.writes import write_json
 
 CALIBRATIONS = ("auto", "parquet", "colmap", "nerfstudio")
-DEFAULT_INTRINSICS = "<default intrinsics: dataset.default_fov_deg>"  # names the calibration in messages
+DEFAULT_INTRINSICS = "none: default intrinsics"  # source of a single uncalibrated camera (dataset.default_fov_deg)
 PARQUET_HELP = ("cameras.parquet, one row per camera (camera_id, width, height, K, world_to_cam, dist, split; "
                 "data_schemas.cameras.write_cameras writes it), a COLMAP sparse model or a nerfstudio transforms.json")
 
@@ -58,9 +58,9 @@ def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_ra
         undistort = Undistorter(cam.K, cam.dist, cam.width, cam.height) if is_distorted(cam.dist) else None
         for name, info in sequences.items():
             _import_view(src, out, name, cam, info, undistort)
-    defaulted = calibration.name == DEFAULT_INTRINSICS
+    defaulted = calibration == DEFAULT_INTRINSICS
     write_json(out / "calibration.json", {
-        "source": "none: default intrinsics" if defaulted else str(calibration),
+        "source": calibration,
         "default_fov_deg": float(dataset.get("default_fov_deg", 60.0)) if defaulted else None,
         "scale_m": dataset.get("calibration_scale_m"),
         "undistorted": {c.camera_id: c.dist.tolist() for c in cameras if is_distorted(c.dist)},
@@ -68,9 +68,9 @@ def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_ra
     return CaptureIndex(subject=subject, dataset="folder", sequences=sequences)
 
 
-def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], Path]:
-    """The cameras of the capture folder ``src`` (translations in metres when a scale is given) and the
-    calibration file or folder they came from."""
+def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], str]:
+    """The cameras of the capture folder ``src`` (translations in metres when a scale is given) and where they
+    came from: the calibration file or folder, or :data:`DEFAULT_INTRINSICS`."""
     choice = str(dataset.get("calibration", "auto"))
     if choice not in CALIBRATIONS:
         raise SchemaError(f"dataset.calibration={choice!r}: choose one of {CALIBRATIONS}")
@@ -85,14 +85,14 @@ def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], Path
             if camera is None:
                 raise SchemaError(f"{src}: camera calibration missing; add {PARQUET_HELP} (only a single camera, a "
                                   f"monocular video, may go without one)")
-            return [camera], src / DEFAULT_INTRINSICS
+            return [camera], DEFAULT_INTRINSICS
     if choice == "parquet":
         if not parquet.is_file():
             raise SchemaError(f"{parquet}: camera calibration missing; add {PARQUET_HELP}")
         cameras = read_cameras(parquet)
         if scale is not None:
             cameras = [replace(c, world_to_cam=_scaled(c.world_to_cam, float(scale))) for c in cameras]
-        return cameras, parquet
+        return cameras, str(parquet)
     if choice == "colmap":
         if model is None:
             raise SchemaError(f"{src}: no COLMAP model (cameras.bin or cameras.txt) in it, sparse/0/ or sparse/")
@@ -103,7 +103,7 @@ def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], Path
         images, where = read_transforms(transforms), transforms
     cameras = rig_cameras(images, str(where), 1.0 if scale is None else float(scale),
                           None if test_cameras is None else [str(c) for c in test_cameras])
-    return cameras, where
+    return cameras, str(where)
 
 
 def _default_camera(src: Path, fov_deg: float) -> Camera | None:
@@ -148,7 +148,7 @@ def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo
             write_png(target, undistort.labels(read_png(source, 1)))
 
 
-def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: Path,
+def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: str,
                        default_frame_rate: float) -> SequenceInfo:
     videos_dir = src / seq / "videos"
     on_disk = {p.stem: p for p in videos_dir.iterdir() if p.suffix.lower() == ".mp4"}
@@ -156,7 +156,7 @@ def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: 
     without_video, without_camera = sorted(ids - set(on_disk)), sorted(set(on_disk) - ids)
     if without_video:
         cam_id = without_video[0]
-        remove = "the camera's row" if calibration.suffix == ".parquet" else "the camera's images from the calibration"
+        remove = "the camera's row" if calibration.endswith(".parquet") else "the camera's images from the calibration"
         raise SchemaError(f"{video_path(src, seq, cam_id)}: camera '{cam_id}' in {calibration} has no video "
                           f"(videos here: {sorted(on_disk)}); add the video or remove {remove}")
     if without_camera:

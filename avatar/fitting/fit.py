@@ -205,13 +205,17 @@ class WorldScaleError(ValueError):
     """The cameras' world units are not metres (the templates, the contact radius and PBD are)."""
 
 
+def landmark_span(points: np.ndarray) -> float:
+    """The largest distance between two of ``points`` (K, 3), K >= 1."""
+    return float(np.linalg.norm(points[:, None] - points[None], axis=-1).max())
+
+
 def check_world_scale(points: np.ndarray, valid: np.ndarray, template_span_m: float = 0.14) -> float | None:
     """The median over frames of the largest distance between two valid triangulated face landmarks
     (``points`` (T, K, 3), ``valid`` (T, K)); None where no frame has two. Raises
     :class:`WorldScaleError` when it lies outside :data:`FACE_SPAN_M`, with the scale that would make it
     ``template_span_m`` (the head template's own landmark span)."""
-    spans = [float(np.linalg.norm(p[v][:, None] - p[v][None], axis=-1).max())
-             for p, v in zip(points, valid) if v.sum() >= 2]
+    spans = [landmark_span(p[v]) for p, v in zip(points, valid) if v.sum() >= 2]
     if not spans:
         return None
     span = float(np.median(spans))
@@ -292,9 +296,8 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
             weight = obs[part].conf.copy()
         else:
             points, valid, weight = _triangulate_part(obs[part], P_np, cfg)
-        if part == "face" and len(cameras) > 1:
-            check_world_scale(points, valid, float(np.linalg.norm(rest["face"][:, None] - rest["face"][None],
-                                                                  axis=-1).max()))
+            if part == "face":
+                check_world_scale(points, valid, landmark_span(rest["face"]))
         model.init_from_keypoints(points, valid)
         weights[part] = torch.as_tensor(weight)
         weak[part] = _weak(obs[part], valid, cfg)

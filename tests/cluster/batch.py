@@ -147,15 +147,11 @@ def every_stage(action: str, submission: Submission, subjects: Sequence[str]) ->
 def computed_once(submission: Submission, subject: str, stages: Sequence[str]) -> dict[str, Counter[str]]:
     """Stages among ``stages`` that the jobs of ``submission`` did not compute exactly once, with the
     actions counted; {} when each was computed by one job and found by the others."""
-    bad = {}
-    for stage in stages:
-        actions: Counter[str] = Counter()
-        for (subj, _method, name, action), n in submission.decisions().items():
-            if subj == subject and name == stage:
-                actions[action] += n
-        if actions["run"] != 1:
-            bad[stage] = actions
-    return bad
+    actions: dict[str, Counter[str]] = {stage: Counter() for stage in stages}
+    for (subj, _method, stage, action), n in submission.decisions().items():
+        if subj == subject and stage in actions:
+            actions[stage][action] += n
+    return {stage: counted for stage, counted in actions.items() if counted["run"] != 1}
 
 
 def table(rows: Sequence[tuple[str, ...]], header: tuple[str, ...]) -> str:
