@@ -32,13 +32,13 @@ def main() -> None:
                                    num_frames=args.frames, supersample=1))
     head, hand = procedural_head(), procedural_hand()
     mano = MANOLayer(hand)
-    flame = FLAMELayer(head, int(head.num_shape), head.num_shapes_total - int(head.num_shape))
 
     def hand_kp(params: dict[str, np.ndarray]) -> np.ndarray:
         out = mano(*[torch.as_tensor(params[k]) for k in HAND_KEYS])
         return mano.keypoints21(out.vertices, out.joints).detach().numpy()
 
     def face_lmk(params: dict[str, np.ndarray]) -> np.ndarray:
+        flame = FLAMELayer.for_params(head, params)
         return flame.landmarks(flame(*[torch.as_tensor(params[k]) for k in FACE_KEYS]).vertices).detach().numpy()
 
     train = [c for c in cap.cameras if c.split == "train"]

@@ -43,6 +43,7 @@ from data_schemas.keypoints import write_keypoints
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.video import iter_video, write_video_stream
+from stages.frame_selection import selected_frames
 
 HAND_ORDERS = ("mediapipe", "mano")
 
@@ -111,19 +112,10 @@ def _cameras(scans: dict[str, DecafSequence], test_cameras: list[str] | None) ->
     return cameras
 
 
-def _selected_frames(num_frames: int, dataset: DictConfig) -> np.ndarray:
-    step = int(dataset.frame_step)
-    if step < 1:
-        raise SchemaError(f"dataset.frame_step={step}: must be 1 or more")
-    frames = np.arange(0, num_frames, step)
-    return frames if dataset.max_frames is None else frames[: int(dataset.max_frames)]
-
-
 def _import_sequence(scan: DecafSequence, out: Path, cameras: list[Camera], models: _Models,
                      dataset: DictConfig, default_frame_rate: float) -> SequenceInfo:
-    seq, frames = scan.mode, _selected_frames(scan.num_frames, dataset)
-    if len(frames) == 0:
-        raise SchemaError(f"dataset.max_frames={dataset.max_frames}: no frame of {seq}/{scan.subject} selected")
+    seq = scan.mode
+    frames = selected_frames(scan.num_frames, dataset, f"{scan.root}/{seq}: sequence of subject {scan.subject}")
     notes: list[str] = []
     provided: list[str] = []
     keypoints = _read_keypoints(scan, cameras, frames, dataset.hand_keypoint_order)

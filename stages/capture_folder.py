@@ -31,8 +31,9 @@ from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, copy_into_capture, mask_path, video_path
 from data_schemas.images import read_png, write_png
 from data_schemas.tables import SchemaError
-from data_schemas.video import check_fully_decoded, iter_video, read_video, video_fps, write_video_stream
+from data_schemas.video import check_fully_decoded, iter_video, video_fps, write_video_stream
 from data_schemas.writes import write_json
+from stages.frame_selection import selected_frames
 
 CALIBRATIONS = ("auto", "parquet", "colmap", "nerfstudio")
 DEFAULT_INTRINSICS = "none: default intrinsics"  # source of a single uncalibrated camera (dataset.default_fov_deg)
@@ -52,12 +53,13 @@ def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_ra
     seq_names = sorted(p.name for p in src.iterdir() if (p / "videos").is_dir())
     if not seq_names:
         raise SchemaError(f"{src}: no <sequence>/videos/ folder; put one video per camera in e.g. {src}/train/videos/")
-    sequences = {name: _validate_sequence(src, name, cameras, calibration, default_frame_rate) for name in seq_names}
+    selections = {name: _validate_sequence(src, name, cameras, calibration, dataset, default_frame_rate)
+                  for name in seq_names}
     write_cameras(out / "cameras.parquet", [replace(c, dist=np.zeros_like(c.dist)) for c in cameras])
     for cam in cameras:
         undistort = Undistorter(cam.K, cam.dist, cam.width, cam.height) if is_distorted(cam.dist) else None
-        for name, info in sequences.items():
-            _import_view(src, out, name, cam, info, undistort)
+        for name, (info, frames) in selections.items():
+            _import_view(src, out, name, cam, info, frames, undistort)
     defaulted = calibration == DEFAULT_INTRINSICS
     write_json(out / "calibration.json", {
         "source": calibration,
@@ -65,7 +67,8 @@ def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_ra
         "scale_m": dataset.get("calibration_scale_m"),
         "undistorted": {c.camera_id: c.dist.tolist() for c in cameras if is_distorted(c.dist)},
     }, "calibration record")
-    return CaptureIndex(subject=subject, dataset="folder", sequences=sequences)
+    return CaptureIndex(subject=subject, dataset="folder",
+                        sequences={name: info for name, (info, _) in selections.items()})
 
 
 def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], str]:
@@ -130,26 +133,40 @@ def _scaled(world_to_cam: np.ndarray, scale: float) -> np.ndarray:
     return out
 
 
-def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo,
+def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo, frames: np.ndarray | None,
                  undistort: Undistorter | None) -> None:
-    """Copy one camera's video (and masks) of ``seq``, or re-encode them undistorted."""
-    if undistort is None:
-        copy_into_capture(video_path(src, seq, cam.camera_id), video_path(out, seq, cam.camera_id))
+    """Copy one camera's video (and masks) of ``seq``, or re-encode the selected source ``frames`` (T,; None:
+    all), undistorted where the camera is distorted."""
+    source_video = video_path(src, seq, cam.camera_id)
+    if undistort is None and frames is None:
+        copy_into_capture(source_video, video_path(out, seq, cam.camera_id))
     else:
-        frames = (undistort.image(f) for f in iter_video(video_path(src, seq, cam.camera_id)))
-        write_video_stream(video_path(out, seq, cam.camera_id), frames, info.frame_rate)
+        wanted = set(range(info.num_frames) if frames is None else frames.tolist())
+        kept = (f for t, f in enumerate(iter_video(source_video)) if t in wanted)
+        write_video_stream(video_path(out, seq, cam.camera_id),
+                           kept if undistort is None else (undistort.image(f) for f in kept), info.frame_rate)
     if not info.has_masks:
         return
-    for t in range(info.num_frames):
-        source, target = mask_path(src, seq, cam.camera_id, t), mask_path(out, seq, cam.camera_id, t)
+    for t, source_t in enumerate(range(info.num_frames) if frames is None else frames):
+        source, target = mask_path(src, seq, cam.camera_id, int(source_t)), mask_path(out, seq, cam.camera_id, t)
         if undistort is None:
             copy_into_capture(source, target)
         else:
             write_png(target, undistort.labels(read_png(source, 1)))
 
 
-def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: str,
-                       default_frame_rate: float) -> SequenceInfo:
+def _length(path: Path) -> int:
+    """Frames of a video, decoded one at a time (a long recording never sits in memory); one clear error
+    when the file is damaged."""
+    count = sum(1 for _ in iter_video(path))
+    check_fully_decoded(path, count)
+    return count
+
+
+def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: str, dataset: DictConfig,
+                       default_frame_rate: float) -> tuple[SequenceInfo, np.ndarray | None]:
+    """The sequence's record in the capture and the source frames (T,) it imports (``dataset.start_frame``,
+    ``frame_step``, ``max_frames``), None when that is every frame."""
     videos_dir = src / seq / "videos"
     on_disk = {p.stem: p for p in videos_dir.iterdir() if p.suffix.lower() == ".mp4"}
     ids = {c.camera_id for c in cameras}
@@ -166,24 +183,26 @@ def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: 
     counts: dict[str, int] = {}
     for cam in cameras:
         path = video_path(src, seq, cam.camera_id)
-        frames = read_video(path)
-        check_fully_decoded(path, len(frames))
-        if frames.shape[1:3] != (cam.height, cam.width):
-            raise SchemaError(f"{path}: frames are {frames.shape[2]}x{frames.shape[1]} but {calibration} says "
+        height, width = next(iter_video(path)).shape[:2]
+        if (height, width) != (cam.height, cam.width):
+            raise SchemaError(f"{path}: frames are {width}x{height} but {calibration} says "
                               f"{cam.width}x{cam.height}; fix the calibration or the video")
-        counts[cam.camera_id] = len(frames)
+        counts[cam.camera_id] = _length(path)
     if len(set(counts.values())) != 1:
         raise SchemaError(f"{videos_dir}: views disagree on frame count {counts}; trim the videos to the same "
                           f"synchronised range")
-    num_frames = next(iter(counts.values()))
+    length = next(iter(counts.values()))
+    frames = selected_frames(length, dataset, str(videos_dir))
     has_masks = (src / seq / "masks").is_dir()
     if has_masks:
         for cam in cameras:
-            for t in range(num_frames):
-                mask = read_png(mask_path(src, seq, cam.camera_id, t), 1)
+            for t in frames:
+                mask = read_png(mask_path(src, seq, cam.camera_id, int(t)), 1)
                 if mask.shape != (cam.height, cam.width):
-                    raise SchemaError(f"{mask_path(src, seq, cam.camera_id, t)}: mask is {mask.shape[::-1]}, "
+                    raise SchemaError(f"{mask_path(src, seq, cam.camera_id, int(t))}: mask is {mask.shape[::-1]}, "
                                       f"expected {cam.width}x{cam.height}")
-    fps = video_fps(video_path(src, seq, cameras[0].camera_id)) or float(default_frame_rate)
-    return SequenceInfo(num_frames=num_frames, frame_rate=fps, width=cameras[0].width, height=cameras[0].height,
+    fps = (video_fps(video_path(src, seq, cameras[0].camera_id)) or float(default_frame_rate)) / int(
+        dataset.get("frame_step", 1))
+    info = SequenceInfo(num_frames=len(frames), frame_rate=fps, width=cameras[0].width, height=cameras[0].height,
                         has_masks=has_masks, has_ground_truth=False)
+    return info, None if np.array_equal(frames, np.arange(length)) else frames

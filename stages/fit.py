@@ -37,13 +37,14 @@ class FitStageConfig:
     face_pose_prior: float
     expression_prior: float
     shape_prior: float
+    shape_roughness: float
     smooth_rotation: float
     smooth_transl_mm: float
     penetration_mm: float
 
 
 @stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit"),
-       outputs=("train/params.parquet", "fit_report.json"), version="5", resources=Resources(cpus=2),
+       outputs=("train/params.parquet", "fit_report.json"), version="6", resources=Resources(cpus=2),
        config_schema=FitStageConfig, sources=model_sources)
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors and, per sequence,

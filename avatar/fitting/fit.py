@@ -15,7 +15,9 @@ Method (see :func:`fit_sequence`):
    centimetres for conditioning): first the rigid parameters, then everything,
    under a confidence-weighted Geman-McClure reprojection loss (pixels) whose
    scale anneals from coarse to fine, weak L2 priors on pose, expression and
-   shape (shape is shared by the sequence), second-difference temporal
+   shape (shape is shared by the sequence), a roughness prior on the identity
+   where the template has one (the procedural head's landmark-region offsets),
+   second-difference temporal
    smoothness and a hand-face interpenetration penalty
    (:mod:`avatar.fitting.penetration`, on the hand points near the face at the
    start of each phase). Keypoints come from keypoint-only templates
@@ -64,6 +66,7 @@ class FitConfig:
     face_pose_prior: float = 1e-1
     expression_prior: float = 1e-2
     shape_prior: float = 1e-2
+    shape_roughness: float = 10.0
     smooth_rotation: float = 1e-1
     smooth_transl_mm: float = 1e-3
     penetration_mm: float = 1e-3
@@ -133,7 +136,8 @@ def _regulariser(part: HandParams | FaceParams, cfg: FitConfig) -> torch.Tensor:
         prior = cfg.hand_pose_prior * _mean_sq(part.hand_pose)
     else:
         prior = (cfg.expression_prior * _mean_sq(part.expression)
-                 + cfg.face_pose_prior * (_mean_sq(part.jaw_pose) + _mean_sq(part.neck_pose)))
+                 + cfg.face_pose_prior * (_mean_sq(part.jaw_pose) + _mean_sq(part.neck_pose))
+                 + cfg.shape_roughness * part.roughness())
     smooth = sum(_second_difference(x) for x in part.motion_terms())
     return (prior + cfg.shape_prior * part.shape.pow(2).sum() + cfg.smooth_rotation * smooth
             + cfg.smooth_transl_mm * _second_difference(part.transl * MM_PER_M))

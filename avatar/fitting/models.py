@@ -130,6 +130,14 @@ class FaceParams(_PartParams):
         self.jaw_pose = _param(num_frames, 3)
         self.transl_cm = _param(num_frames, 3)  # centimetres: steps comparable to the rotations'
         self.register_buffer("eye_pose", torch.zeros(num_frames, 6, dtype=DTYPE))
+        roughness = model.shape_roughness
+        self.register_buffer("shape_roughness", None if roughness is None else torch.tensor(roughness, dtype=DTYPE))
+
+    def roughness(self) -> torch.Tensor:
+        """``beta^T R beta`` of the shared identity (0 for a template without ``shape_roughness``)."""
+        if self.shape_roughness is None:
+            return self.shape.new_zeros(())
+        return (self.shape @ self.shape_roughness @ self.shape.T).sum()
 
     @property
     def faces(self) -> torch.Tensor:

@@ -22,6 +22,7 @@ from avatar.synthetic.performance import Performance, perform
 from avatar.synthetic.rig import make_rig, mesh_raster_camera
 from avatar.synthetic.shading import BACKGROUND_LINEAR, Channels, ShadowMap, make_shader, srgb_encode
 from avatar.synthetic.soft_tissue import contact_offsets
+from avatar.templates.head import NUM_DESIGNED_SHAPE
 from avatar.templates.layers import FLAMELayer, MANOLayer
 from avatar.templates.procedural import procedural_hand, procedural_head
 from avatar.threads import single_threaded
@@ -57,8 +58,8 @@ class _Subject:
 
 def _subject(name: str) -> _Subject:
     head, hand = procedural_head(), procedural_hand()
-    identity = make_identity(name, int(head.num_shape))
-    flame = FLAMELayer(head, int(head.num_shape), head.num_shapes_total - int(head.num_shape))
+    identity = make_identity(name, NUM_DESIGNED_SHAPE)  # the subjects lie in the designed identity space
+    flame = FLAMELayer(head, NUM_DESIGNED_SHAPE, head.num_shapes_total - int(head.num_shape))
     mano = MANOLayer(hand)
     rest = mano(torch.as_tensor(identity.mano_shape[None]), torch.zeros(1, 45, dtype=torch.float64))
     hand_rest, joints = rest.vertices[0].numpy(), rest.joints[0].numpy()

@@ -24,10 +24,25 @@ bone, brow ridges, cheekbones, chin, orbits and a hollow under the cheeks, plus
 the cervical spine): ~6 mm on the forehead and scalp, 5-7 mm on the nose bridge,
 ~9 mm at the chin, 1.2-2.2 cm in the cheeks, 2-4 cm in the neck.
 
-Shape space: columns 0-9 identity (size, face width, face length, nose size,
-cheek fullness, jaw width, chin protrusion, lip thickness, brow ridge, eye
-depth), columns 10-19 expression (smile, mouth stretch, pucker, cheek puff,
-brow raise, frown, blink, mouth sideways, lip press, nose wrinkle).
+Shape space: identity first, then expression.
+
+* Columns 0-9, the designed identity (the synthetic subjects use only these):
+  size, face width, face length, nose size, cheek fullness, jaw width, chin
+  protrusion, lip thickness, brow ridge, eye depth.
+* Columns 10-12, global proportions a designed head lacks: head width (whole
+  head), face depth (the face's protrusion), upper-face height.
+* Columns 13-216, landmark-region offsets, so that the head can take on the
+  proportions of heads it was not built from: for each of the 68 landmarks and
+  each axis x, y, z, a smooth field (Gaussian kernel of ``_REGION_SIGMA`` over
+  the rest surface, regularised interpolation) that moves that landmark by
+  ~1 cm per unit coefficient and its neighbours by little. Their columns are
+  ordered landmark-major (landmark k, axis a at 13 + 3 k + a). Their
+  ``shape_roughness`` is the squared difference of each landmark's offset from
+  the mean of its ``_REGION_NEIGHBOURS`` nearest landmarks' (a graph Laplacian
+  prior): fitting prefers smooth corrections, which a different head needs and
+  keypoint noise does not make.
+* The last 10 columns, expression: smile, mouth stretch, pucker, cheek puff,
+  brow raise, frown, blink, mouth sideways, lip press, nose wrinkle.
 Pose correctives: neck flexion bulges the front of the neck, jaw opening thins
 the lower lip and lifts the floor of the mouth, eye pitch moves the upper lids.
 
@@ -48,8 +63,15 @@ from avatar.templates.rigging import axis_corrective, joint_regressor, smoothste
 
 NUM_JOINTS = 5
 FLAME_PARENTS = (-1, 0, 1, 1, 1)
-NUM_SHAPE = 10
+NUM_DESIGNED_SHAPE = 10
+NUM_GLOBAL_SHAPE = 3
+NUM_LANDMARKS = 68
+NUM_SHAPE = NUM_DESIGNED_SHAPE + NUM_GLOBAL_SHAPE + 3 * NUM_LANDMARKS
 NUM_EXPRESSION = 10
+_REGION_SIGMA = 0.015  # m: reach of a landmark-region offset field
+_REGION_AMPLITUDE = 0.01  # m: landmark displacement per unit coefficient
+_REGION_RIDGE = 0.05  # Tikhonov term of the interpolation (nearby landmarks share their fields)
+_REGION_NEIGHBOURS = 4
 
 _FOCUS = np.array([0.0, -0.25, 1.0]) / np.linalg.norm([0.0, -0.25, 1.0])
 _WARP = 0.6  # direction warp strength: mesh ~2.5x denser at the face than at the back
@@ -247,8 +269,42 @@ def _skinning(reg: _Regions) -> np.ndarray:
     return w / w.sum(axis=1, keepdims=True)
 
 
-def _shapedirs(reg: _Regions) -> np.ndarray:
-    """(V, 3, 20): 10 identity then 10 expression displacement fields (see module docstring)."""
+def _landmark_region_fields(vertices: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """(V, 3, 3 L) fields, landmark-major: field (k, a) moves landmark k (L, 3 rest positions)
+    by ~``_REGION_AMPLITUDE`` along axis a, decaying with distance as a Gaussian of
+    ``_REGION_SIGMA``. Regularised interpolation ``K_vl (K_ll + r I)^-1`` keeps the
+    fields of landmarks a few millimetres apart (inner and outer lips) from cancelling."""
+
+    def kernel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        d2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)
+        return np.exp(-0.5 * d2 / _REGION_SIGMA**2)
+
+    L = landmarks.shape[0]
+    weights = kernel(vertices, landmarks) @ np.linalg.inv(kernel(landmarks, landmarks) + _REGION_RIDGE * np.eye(L))
+    weights *= 1.0 + _REGION_RIDGE  # an isolated landmark moves by exactly the amplitude
+    fields = _REGION_AMPLITUDE * weights[:, None, :, None] * np.eye(3)[None, :, None, :]  # (V, 3, L, 3)
+    return fields.reshape(vertices.shape[0], 3, 3 * L)
+
+
+def _landmark_region_roughness(landmarks: np.ndarray) -> np.ndarray:
+    """(NUM_SHAPE, NUM_SHAPE) ``D^T D`` over the identity columns, ``D`` = identity minus the mean
+    over each landmark's ``_REGION_NEIGHBOURS`` nearest landmarks (L, 3 rest positions), per axis, on
+    the landmark-region columns; zero on the designed and global ones."""
+    L = landmarks.shape[0]
+    distance = np.linalg.norm(landmarks[:, None] - landmarks[None], axis=-1)
+    neighbours = np.argsort(distance, axis=1)[:, 1:_REGION_NEIGHBOURS + 1]
+    difference = np.eye(L)
+    np.put_along_axis(difference, neighbours, -1.0 / _REGION_NEIGHBOURS, axis=1)
+    per_axis = np.kron(difference, np.eye(3))  # landmark-major, axis-minor like the columns
+    roughness = np.zeros((NUM_SHAPE, NUM_SHAPE))
+    start = NUM_DESIGNED_SHAPE + NUM_GLOBAL_SHAPE
+    roughness[start:, start:] = per_axis.T @ per_axis
+    return roughness
+
+
+def _shapedirs(reg: _Regions, landmarks: np.ndarray) -> np.ndarray:
+    """(V, 3, NUM_SHAPE + NUM_EXPRESSION): identity then expression displacement fields
+    (see module docstring); ``landmarks`` (68, 3) are the rest landmark positions."""
     v, u = reg.v, reg.u
     x_hat, y_hat, _ = np.eye(3)
 
@@ -260,7 +316,7 @@ def _shapedirs(reg: _Regions) -> np.ndarray:
 
     sides = (1.0, -1.0)
     lower_face = reg.front() * smoothstep(0.0, -0.06, v[:, 1])
-    identity = [  # NUM_SHAPE fields
+    identity = [  # NUM_DESIGNED_SHAPE fields
         0.05 * v,
         field(0.08 * reg.front() * v[:, 0], x_hat),
         field(0.10 * lower_face * v[:, 1], y_hat),
@@ -271,6 +327,11 @@ def _shapedirs(reg: _Regions) -> np.ndarray:
         radial(("upper_lip", "lower_lip"), _SKIN, 0.35),
         radial(("brow",), _SKIN, 0.6),
         radial(("eye_socket",), _SKIN, 0.4),
+    ]
+    global_proportions = [  # NUM_GLOBAL_SHAPE fields
+        field(0.08 * v[:, 0], x_hat),
+        field(0.10 * reg.front() * v[:, 2], np.array([0.0, 0.0, 1.0])),
+        field(0.10 * reg.front() * smoothstep(-0.02, 0.04, v[:, 1]) * v[:, 1], y_hat),
     ]
     expression = [  # NUM_EXPRESSION fields
         sum(field(reg.corner(s), np.array([s * 0.006, 0.005, -0.002])) + field(reg.cheek(s), np.array([0.0, 0.003, 0.002]))
@@ -286,7 +347,8 @@ def _shapedirs(reg: _Regions) -> np.ndarray:
         -0.004 * reg.lips()[:, None] * u,
         field(sum(reg.patch(s * 0.15, -0.05, 0.08, 0.12) for s in sides) + 0.5 * reg.lip(upper=True), 0.004 * y_hat),
     ]
-    return np.stack(identity + expression, axis=2)
+    return np.concatenate((np.stack(identity + global_proportions, axis=2),
+                           _landmark_region_fields(v, landmarks), np.stack(expression, axis=2)), axis=2)
 
 
 def _posedirs(reg: _Regions) -> np.ndarray:
@@ -356,10 +418,11 @@ def build_head() -> TemplateModel:
     regressor = joint_regressor(vertices, joints, np.array([0.04, 0.05, 0.05, 0.03, 0.03]))
     weights = _skinning(reg)
     lmk_faces, lmk_bary = embed_directions(vertices, faces, np.zeros(3), _landmark_directions())
+    landmarks = np.einsum("lk,lkc->lc", lmk_bary, vertices[faces[lmk_faces]])
     return TemplateModel(
         name="flame",
         v_template=vertices,
-        shapedirs=_shapedirs(reg),
+        shapedirs=_shapedirs(reg, landmarks),
         posedirs=_posedirs(reg),
         J_regressor=regressor,
         weights=weights,
@@ -370,5 +433,6 @@ def build_head() -> TemplateModel:
         part_labels=_part_labels(reg, weights),
         landmark_faces=lmk_faces,
         landmark_bary=lmk_bary,
+        shape_roughness=_landmark_region_roughness(landmarks),
     )
 

@@ -6,7 +6,8 @@ of its inputs, so the same layer serves float32 training and float64 checks.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Mapping
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -170,6 +171,13 @@ class FLAMELayer(_SkinnedLayer):
         self.has_landmarks = has_lmk
         self.register_buffer("landmark_faces", torch.from_numpy(np.array(lmk_faces)))
         self.register_buffer("landmark_bary", torch.from_numpy(np.array(lmk_bary)))
+
+    @classmethod
+    def for_params(cls, model: TemplateModel, params: Mapping[str, Any]) -> FLAMELayer:
+        """The layer for parameters as wide as ``params`` holds: ``flame_shape`` (T, S') and
+        ``flame_expression`` (T, E') use the first S' identity and E' expression columns (a
+        synthetic subject's shape lies in the procedural head's first, designed columns)."""
+        return cls(model, int(np.shape(params["flame_shape"])[1]), int(np.shape(params["flame_expression"])[1]))
 
     def forward(
         self,

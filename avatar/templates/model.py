@@ -67,6 +67,10 @@ class TemplateModel:
       barycentric points on faces.
     * ``tip_vertex_ids`` (5,): MANO fingertip vertices in the order thumb,
       index, middle, ring, pinky.
+    * ``shape_roughness`` (num_shape, num_shape): symmetric positive
+      semi-definite; ``beta^T R beta`` measures how rough an identity is (the
+      procedural head: landmark-region offsets that differ from their
+      neighbours'). Fitting penalises it; ``None`` (official models) for none.
 
     Arrays are copied to float64 / int64 and frozen (read-only); construction
     raises ``ValueError`` naming the offending field on any inconsistency.
@@ -88,6 +92,7 @@ class TemplateModel:
     landmark_faces: np.ndarray | None = None
     landmark_bary: np.ndarray | None = None
     tip_vertex_ids: np.ndarray | None = None
+    shape_roughness: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.name not in ("mano", "flame"):
@@ -97,7 +102,7 @@ class TemplateModel:
             put(self, key, _float_array(key, getattr(self, key)))
         put(self, "faces", _int_array("faces", self.faces))
         put(self, "kintree_table", _normalise_kintree(_int_array("kintree_table", self.kintree_table)))
-        for key in ("hands_components", "hands_mean", "inner_distance", "landmark_bary"):
+        for key in ("hands_components", "hands_mean", "inner_distance", "landmark_bary", "shape_roughness"):
             if getattr(self, key) is not None:
                 put(self, key, _float_array(key, getattr(self, key)))
         for key in ("landmark_faces", "tip_vertex_ids"):
@@ -185,6 +190,11 @@ class TemplateModel:
         if self.tip_vertex_ids is not None:
             if self.tip_vertex_ids.shape != (5,) or self.tip_vertex_ids.min() < 0 or self.tip_vertex_ids.max() >= V:
                 fail(f"tip_vertex_ids must be 5 vertex indices in [0, {V}), got {self.tip_vertex_ids.tolist()}")
+        if self.shape_roughness is not None:
+            n = int(self.num_shape)
+            if self.shape_roughness.shape != (n, n) or not np.allclose(self.shape_roughness, self.shape_roughness.T):
+                fail(f"shape_roughness must be a symmetric (num_shape={n}, num_shape) matrix, got "
+                     f"{self.shape_roughness.shape}")
         for key, ids in (self.part_labels or {}).items():
             if ids.ndim != 1 or (ids.size and (ids.min() < 0 or ids.max() >= V)):
                 fail(f"part_labels[{key!r}] must be a 1-D array of vertex indices in [0, {V})")

@@ -15,7 +15,7 @@ def pose_layers(params: Mapping[str, np.ndarray], head: TemplateModel, hand: Tem
           ) -> tuple[FLAMELayer, LayerOutput, MANOLayer, LayerOutput]:
     """Run the FLAME and MANO layers on every frame of ``params`` (no gradients)."""
     t = {k: torch.tensor(np.asarray(v), dtype=dtype) for k, v in params.items()}
-    flame = FLAMELayer(head, num_shape=t["flame_shape"].shape[1], num_expression=t["flame_expression"].shape[1])
+    flame = FLAMELayer.for_params(head, t)
     mano = MANOLayer(hand)
     with torch.no_grad():
         face = flame(t["flame_shape"], t["flame_expression"], t["flame_global_orient"], t["flame_neck_pose"],

@@ -13,9 +13,9 @@ import pytest
 
 from avatar.calibration.undistort import Undistorter
 from data_schemas.cameras import Camera, read_cameras, write_cameras
-from data_schemas.capture import mask_path, video_path
+from data_schemas.capture import CaptureIndex, mask_path, video_path
 from data_schemas.frames import FRAMES_INDEX
-from data_schemas.images import write_png
+from data_schemas.images import read_png, write_png
 from data_schemas.tables import read_table
 from data_schemas.video import read_video, write_video
 from pipeline.cli import run_app
@@ -293,3 +293,39 @@ def test_evaluate_skips_a_split_the_capture_cannot_measure(tmp_path):
                    "self_reenact": "the capture has no 'test' sequence"}
     assert _unmeasurable(capture, {"x": ("train", "held_out")}) == {
         "x": "the capture has no 'held_out' camera (a held-out view)"}
+
+
+def _square_top(frame: np.ndarray) -> int:
+    """Row where the bright square of :func:`_frames` starts (12 + source frame index)."""
+    return int(np.flatnonzero((frame[..., 0] > 150).any(axis=1))[0])
+
+
+def test_frame_selection_imports_every_step_th_frame_from_the_start(tmp_path):
+    """start_frame / frame_step / max_frames pick source frames (videos and masks alike); fps / step."""
+    subject = tmp_path / "data" / "alice"
+    cams = [_camera(i) for i in range(3)]
+    write_cameras(subject / "cameras.parquet", cams)
+    for i, cam in enumerate(cams):
+        write_video(video_path(subject, "train", cam.camera_id), _frames(i, n=7), 24.0)
+        for t in range(7):
+            write_png(mask_path(subject, "train", cam.camera_id, t), np.full((SIZE, SIZE), t, np.uint8))
+    run_app(_cfg(tmp_path, "run.until=capture", "dataset.start_frame=1", "dataset.frame_step=2",
+                 "dataset.max_frames=2"))
+    capture = tmp_path / "out" / "alice" / "capture"
+    video = read_video(video_path(capture, "train", "cam01"))
+    assert [_square_top(f) for f in video] == [12 + 1, 12 + 3]
+    assert [int(read_png(mask_path(capture, "train", "cam01", t), 1)[0, 0]) for t in range(2)] == [1, 3]
+    assert not mask_path(capture, "train", "cam01", 2).exists()
+    info = CaptureIndex.read(capture).sequences["train"]
+    assert info.num_frames == 2 and info.frame_rate == pytest.approx(12.0)
+
+
+def test_a_video_shorter_than_the_frames_requested_is_one_clear_error(tmp_path):
+    make_capture(tmp_path / "data")
+    with pytest.raises(StageFailed, match=r"train/videos: 3 frames, shorter than the frames requested "
+                                          r"\(dataset.start_frame=3\); lower dataset.start_frame"):
+        run_app(_cfg(tmp_path, "dataset.start_frame=3"))
+    assert not (tmp_path / "out" / "alice" / "capture").exists()
+    for bad, message in (("dataset.frame_step=0", "must be 1 or more"), ("dataset.max_frames=0", "or null")):
+        with pytest.raises(StageFailed, match=message):
+            run_app(_cfg(tmp_path, bad))

@@ -57,7 +57,7 @@ def _hand_face_distances(cap: SyntheticCapture) -> np.ndarray:
     """(T,) smallest distance from a hand vertex to the undeformed face surface per frame, from the
     ground-truth parameters."""
     head, hand = procedural_head(), procedural_hand()
-    flame = FLAMELayer(head, int(head.num_shape), head.num_shapes_total - int(head.num_shape))
+    flame = FLAMELayer.for_params(head, cap.params)
     face = flame(*(torch.as_tensor(cap.params[k]) for k in FLAME_KEYS)).vertices.numpy()
     hands = MANOLayer(hand)(*(torch.as_tensor(cap.params[k]) for k in MANO_KEYS)).vertices.numpy()
     return np.array([_mesh_distance(h, f, np.array(head.faces)) for h, f in zip(hands, face)])

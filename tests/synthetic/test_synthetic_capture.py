@@ -42,7 +42,7 @@ def _mano(cap: SyntheticCapture) -> tuple[MANOLayer, torch.Tensor, torch.Tensor]
 
 def _faces_final(cap: SyntheticCapture) -> torch.Tensor:
     head = procedural_head()
-    layer = FLAMELayer(head, int(head.num_shape), head.num_shapes_total - int(head.num_shape))
+    layer = FLAMELayer.for_params(head, cap.params)
     verts = layer(*(torch.as_tensor(cap.params[k]) for k in FLAME_KEYS)).vertices
     return verts + torch.as_tensor(cap.face_offsets)
 

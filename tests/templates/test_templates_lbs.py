@@ -45,8 +45,8 @@ def _random_hand_inputs(rng: np.random.Generator, batch: int = 1) -> dict[str, n
             "global_orient": rng.normal(0, 0.5, (batch, 3)), "transl": rng.normal(0, 0.1, (batch, 3))}
 
 
-def _random_head_inputs(rng: np.random.Generator, batch: int = 1) -> dict[str, np.ndarray]:
-    return {"shape": rng.normal(0, 1.0, (batch, 10)), "expression": rng.normal(0, 1.0, (batch, 10)),
+def _random_head_inputs(rng: np.random.Generator, batch: int = 1, num_shape: int = 10) -> dict[str, np.ndarray]:
+    return {"shape": rng.normal(0, 1.0, (batch, num_shape)), "expression": rng.normal(0, 1.0, (batch, 10)),
             "global_orient": rng.normal(0, 0.3, (batch, 3)), "neck_pose": rng.normal(0, 0.3, (batch, 3)),
             "jaw_pose": np.abs(rng.normal(0, 0.2, (batch, 3))), "eye_pose": rng.normal(0, 0.2, (batch, 6)),
             "transl": rng.normal(0, 0.1, (batch, 3))}
@@ -85,8 +85,8 @@ def test_mano_layer_matches_brute_force(hand: TemplateModel) -> None:
 
 def test_flame_layer_matches_brute_force(head: TemplateModel) -> None:
     rng = np.random.default_rng(2)
-    layer = FLAMELayer(head, num_shape=10, num_expression=10)
-    x = _random_head_inputs(rng)
+    layer = FLAMELayer(head, num_shape=int(head.num_shape), num_expression=10)  # every shapedirs column
+    x = _random_head_inputs(rng, num_shape=int(head.num_shape))
     out = layer(**{k: _t(v) for k, v in x.items()})
     pose = np.concatenate([x["global_orient"], x["neck_pose"], x["jaw_pose"], x["eye_pose"]], axis=1).reshape(5, 3)
     ref_v, ref_j = reference_lbs(head, np.concatenate([x["shape"][0], x["expression"][0]]), pose)
@@ -167,7 +167,7 @@ def test_gradient_finite_at_zero_pose(head: TemplateModel) -> None:
 def test_lbs_accepts_rotation_matrices(head: TemplateModel) -> None:
     rng = np.random.default_rng(6)
     pose = _t(rng.normal(0, 0.3, (2, 5, 3)))
-    betas = _t(rng.normal(0, 1.0, (2, 20)))
+    betas = _t(rng.normal(0, 1.0, (2, head.num_shapes_total)))
     arrays = [_t(np.array(getattr(head, k))) for k in ("v_template", "shapedirs", "posedirs", "J_regressor")]
     parents, weights = [int(p) for p in head.parents], _t(np.array(head.weights))
     from_rotvec = lbs(betas, pose, *arrays, parents, weights)

@@ -138,13 +138,35 @@ def test_pose_basis_is_orthonormal(hand: TemplateModel) -> None:
 
 
 def test_shape_directions_are_plausible(hand: TemplateModel, head: TemplateModel) -> None:
-    for model, n in ((hand, 10), (head, 20)):
+    for model, n in ((hand, 10), (head, 227)):
         assert model.shapedirs.shape[2] == n
         reach = np.linalg.norm(model.shapedirs, axis=1).max(axis=0)
         assert np.all((reach > 1e-3) & (reach < 0.02)), "each direction moves the skin by mm to cm"
         flat = model.shapedirs.reshape(-1, n)
         assert np.linalg.matrix_rank(flat) == n
-    assert head.num_shape == 10
+    assert head.num_shape == 217
+
+
+def test_landmark_region_fields_move_their_landmark(head: TemplateModel) -> None:
+    """Identity column 13 + 3 k + a moves landmark k along axis a (by ~1 cm per unit where no other
+    landmark is near) and decays away from it: the scalp and the neck stay put."""
+    layer = FLAMELayer(head, int(head.num_shape), 0)
+    rest = layer.landmarks(layer(torch.zeros(1, head.num_shape, dtype=torch.float64),
+                                 torch.zeros(1, 0, dtype=torch.float64)).vertices)[0].numpy()
+    landmark_rows = np.einsum("lk,lkvc->lvc", head.landmark_bary,
+                              head.shapedirs[head.faces[head.landmark_faces]][..., 13:217])  # (68, 3, 204)
+    moves = landmark_rows.reshape(68, 3, 68, 3)  # landmark, axis moved, field landmark, field axis
+    own = np.einsum("kakb->kab", moves)  # (68, 3, 3): landmark k's motion under its own three fields
+    assert np.all(np.abs(own - np.diagonal(own, axis1=1, axis2=2)[..., None] * np.eye(3)) < 1e-12)
+    gain = np.diagonal(own, axis1=1, axis2=2)[:, 0]
+    spacing = np.sort(np.linalg.norm(rest[:, None] - rest[None], axis=-1), axis=1)[:, 1]
+    assert np.all(gain > 0.001) and np.all(gain <= 0.0105)
+    assert np.all(gain[spacing > 0.02] > 0.008), "an isolated landmark moves by ~1 cm per unit"
+    reach = np.linalg.norm(head.shapedirs[:, :, 13:217], axis=1)  # (V, 204)
+    for part in ("scalp", "neck"):
+        far = head.part_labels[part]
+        far = far[np.linalg.norm(head.v_template[far, None] - rest[None], axis=-1).min(1) > 0.06]
+        assert reach[far].max() < 1e-4, part
 
 
 def test_expressions_move_the_mouth_not_the_scalp(head: TemplateModel) -> None:
