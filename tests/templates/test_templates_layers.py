@@ -94,3 +94,19 @@ def test_flame_layer_column_selection(head: TemplateModel) -> None:
     shape, expr = torch.as_tensor(rng.normal(size=(1, 3))), torch.as_tensor(rng.normal(size=(1, 2)))
     padded = full(torch.cat((shape, _zeros(1, 7)), 1), torch.cat((expr, _zeros(1, 8)), 1))
     np.testing.assert_allclose(small(shape, expr).vertices.numpy(), padded.vertices.numpy(), atol=1e-12)
+
+
+def test_flame_layer_for_params_takes_the_widths_of_the_table(head: TemplateModel) -> None:
+    """A table with fewer shape columns than the template (a synthetic subject's 10) poses as zero-padded."""
+    rng = np.random.default_rng(7)
+    narrow = {"flame_shape": rng.normal(0, 1, (2, 10)), "flame_expression": rng.normal(0, 1, (2, 4))}
+    layer = FLAMELayer.for_params(head, narrow)
+    assert (layer.num_shape, layer.num_expression) == (10, 4)
+    full = FLAMELayer(head, int(head.num_shape), 4)
+    padded = np.concatenate((narrow["flame_shape"], np.zeros((2, int(head.num_shape) - 10))), axis=1)
+    a = layer(torch.as_tensor(narrow["flame_shape"]), torch.as_tensor(narrow["flame_expression"])).vertices
+    b = full(torch.as_tensor(padded), torch.as_tensor(narrow["flame_expression"])).vertices
+    np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-12)
+    too_wide = {"flame_shape": np.zeros((1, int(head.num_shape) + 1)), "flame_expression": np.zeros((1, 10))}
+    with pytest.raises(ValueError, match="num_shape must lie in"):
+        FLAMELayer.for_params(head, too_wide)

@@ -46,6 +46,8 @@ def test_kintree_root_normalised_to_minus_one(hand: TemplateModel) -> None:
         ("hands_mean", lambda m: m.hands_mean[:-1], "hands_mean"),
         ("tip_vertex_ids", lambda m: m.tip_vertex_ids[:4], "tip_vertex_ids"),
         ("num_shape", lambda m: 11, "num_shape"),
+        ("shape_roughness", lambda m: np.eye(m.num_shape + 1), "shape_roughness"),
+        ("shape_roughness", lambda m: np.triu(np.ones((m.num_shape, m.num_shape))), "symmetric"),
         ("name", lambda m: "smpl", "name"),
     ],
 )
