@@ -9,6 +9,7 @@ import numpy as np
 
 from avatar.fitting.errors import landmark_error, mpjpe, per_vertex_error
 from avatar.fitting.fit import FitConfig, WorldScaleError, fit_sequence
+from avatar.templates import TemplateModel
 from avatar.training.posing import posed_keypoints
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
@@ -20,6 +21,10 @@ from pipeline.stage import Resources, StageContext, stage
 from stages.common import load_ground_truth_params, load_provided_params, model_sources, templates
 
 SOURCES = ("ground_truth", "provided", "fitted")
+IDENTITY_SPACES = ("auto", "full", "core")
+#: keypoint detectors whose landmarks sit where the template's embedding puts them, up to noise (the synthetic
+#: ground truth); identity_space=auto fits the full identity space only to these (README, "The built-in head").
+UNBIASED_DETECTORS = ("ground_truth",)
 #: fit.source=fitted, a sequence without any hand keypoint in the train views (a capture without a hand, e.g. the
 #: synthetic face_only scene; fit_report.json: "hand_fitted": false) gets a placeholder hand, not a fit: MANO's
 #: mean shape in its flat rest pose, unrotated, this far (metres) below the fitted head's translation (world -y):
@@ -38,13 +43,14 @@ class FitStageConfig:
     expression_prior: float
     shape_prior: float
     shape_roughness: float
+    identity_space: str
     smooth_rotation: float
     smooth_transl_mm: float
     penetration_mm: float
 
 
-@stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit"),
-       outputs=("train/params.parquet", "fit_report.json"), version="6", resources=Resources(cpus=2),
+@stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
+       outputs=("train/params.parquet", "fit_report.json"), version="7", resources=Resources(cpus=2),
        config_schema=FitStageConfig, sources=model_sources)
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors and, per sequence,
@@ -56,7 +62,10 @@ def fit(ctx: StageContext) -> None:
     index = CaptureIndex.read(cap_dir)
     head, hand = templates(ctx.cfg.model)
     cameras = [c for c in read_cameras(cap_dir / "cameras.parquet") if c.split == "train"]
-    conf = FitConfig(**{f.name: getattr(ctx.cfg.stage.fit, f.name) for f in fields(FitStageConfig)})
+    settings = {f.name: getattr(ctx.cfg.stage.fit, f.name) for f in fields(FitStageConfig)}
+    conf = FitConfig(**{k: v for k, v in settings.items() if k != "identity_space"},
+                     face_shape_columns=face_shape_columns(head, settings["identity_space"],
+                                                           str(ctx.cfg.stage.keypoints.detector)))
     # train_views: 1 is a monocular fit (avatar.fitting.monocular): depth comes from the templates' sizes.
     report: dict = {"source": source, "train_views": len(cameras), "sequences": {}}
     for seq, info in ctx.progress(list(index.sequences.items()), desc="fit: sequences"):
@@ -100,6 +109,17 @@ def fit(ctx: StageContext) -> None:
     write_json(ctx.out_dir / "fit_report.json", report, "fit report")
 
 
+def face_shape_columns(head: TemplateModel, identity_space: str, detector: str) -> int | None:
+    """How many identity columns the face fit frees: all (None) for ``full``, the template's core space for
+    ``core``, and for ``auto`` the full space only with an unbiased detector (:data:`UNBIASED_DETECTORS`): the
+    procedural head's landmark-region offsets would follow a real detector's systematic offsets."""
+    if identity_space not in IDENTITY_SPACES:
+        raise SchemaError(f"stage.fit.identity_space={identity_space!r}: choose one of {IDENTITY_SPACES}")
+    if identity_space == "full" or (identity_space == "auto" and detector in UNBIASED_DETECTORS):
+        return None
+    return None if head.num_core_shape is None else int(head.num_core_shape)
+
+
 def _keypoints_by_camera(table: dict, num_frames: int) -> dict[str, dict[str, np.ndarray]]:
     """keypoints.parquet rows -> camera_id -> part -> (T, K, 3)."""
     out: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
@@ -124,7 +144,7 @@ def _placeholder_hand(params: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {**params, **rest, "mano_transl": params["flame_transl"] - np.array([0.0, ABSENT_HAND_DROP_M, 0.0])}
 
 
-def _errors(params: dict, gt: dict, head, hand) -> dict[str, float]:  # noqa: ANN001 - TemplateModel
+def _errors(params: dict, gt: dict, head: TemplateModel, hand: TemplateModel) -> dict[str, float]:
     """Hand MPJPE (21 keypoints), face landmark error and mean per-vertex errors, in mm."""
     pred, true = posed_keypoints(params, head, hand), posed_keypoints(gt, head, hand)
     return {

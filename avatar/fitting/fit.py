@@ -67,6 +67,9 @@ class FitConfig:
     expression_prior: float = 1e-2
     shape_prior: float = 1e-2
     shape_roughness: float = 10.0
+    face_shape_columns: int | None = None
+    """Fit only the head's first ``face_shape_columns`` identity columns (None: all ``num_shape``); the
+    result's ``flame_shape`` is that wide (the rest are zero)."""
     smooth_rotation: float = 1e-1
     smooth_transl_mm: float = 1e-3
     penetration_mm: float = 1e-3
@@ -290,7 +293,7 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
     T = obs["hand"].num_frames
     P_np = projection_matrices(cameras)
     P = torch.as_tensor(P_np, dtype=DTYPE)
-    hand_params, face_params = HandParams(hand, T), FaceParams(head, T)
+    hand_params, face_params = HandParams(hand, T), FaceParams(head, T, cfg.face_shape_columns)
     rest = {"hand": hand_params.rest_keypoints(), "face": face_params.rest_landmarks()[0]}
     weights, weak = {}, {}
     for part, model in (("hand", hand_params), ("face", face_params)):

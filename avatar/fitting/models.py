@@ -114,12 +114,13 @@ class HandParams(_PartParams):
 
 class FaceParams(_PartParams):
     """FLAME over T frames: shape (1, S), expression (T, E), global_orient / neck_pose /
-    jaw_pose (T, 3), transl (T, 3); eye_pose stays zero (landmarks do not see the eyeballs)."""
+    jaw_pose (T, 3), transl (T, 3); eye_pose stays zero (landmarks do not see the eyeballs).
+    ``shape_columns``: fit only the first S of the model's identity columns (None: all)."""
 
-    def __init__(self, model: TemplateModel, num_frames: int) -> None:
+    def __init__(self, model: TemplateModel, num_frames: int, shape_columns: int | None = None) -> None:
         super().__init__()
-        num_shape = int(model.num_shape)
-        num_expression = model.num_shapes_total - num_shape
+        num_shape = int(model.num_shape) if shape_columns is None else int(shape_columns)
+        num_expression = model.num_shapes_total - int(model.num_shape)
         self.layer = FLAMELayer(model, num_shape, num_expression)
         self.keypoint_layer = FLAMELayer(keypoint_template(model), num_shape, num_expression)
         self.num_frames = num_frames
@@ -131,7 +132,8 @@ class FaceParams(_PartParams):
         self.transl_cm = _param(num_frames, 3)  # centimetres: steps comparable to the rotations'
         self.register_buffer("eye_pose", torch.zeros(num_frames, 6, dtype=DTYPE))
         roughness = model.shape_roughness
-        self.register_buffer("shape_roughness", None if roughness is None else torch.tensor(roughness, dtype=DTYPE))
+        self.register_buffer("shape_roughness", None if roughness is None else torch.tensor(
+            roughness[:num_shape, :num_shape], dtype=DTYPE))
 
     def roughness(self) -> torch.Tensor:
         """``beta^T R beta`` of the shared identity (0 for a template without ``shape_roughness``)."""

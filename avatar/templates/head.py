@@ -40,7 +40,9 @@ Shape space: identity first, then expression.
   ``shape_roughness`` is the squared difference of each landmark's offset from
   the mean of its ``_REGION_NEIGHBOURS`` nearest landmarks' (a graph Laplacian
   prior): fitting prefers smooth corrections, which a different head needs and
-  keypoint noise does not make.
+  keypoint noise does not make. ``num_core_shape`` marks the designed columns: a
+  fit to detections with systematic offsets (MediaPipe's) keeps to them, because
+  the landmark-region offsets would follow the detector's bias.
 * The last 10 columns, expression: smile, mouth stretch, pucker, cheek puff,
   brow raise, frown, blink, mouth sideways, lip press, nose wrinkle.
 Pose correctives: neck flexion bulges the front of the neck, jaw opening thins
@@ -434,5 +436,6 @@ def build_head() -> TemplateModel:
         landmark_faces=lmk_faces,
         landmark_bary=lmk_bary,
         shape_roughness=_landmark_region_roughness(landmarks),
+        num_core_shape=NUM_DESIGNED_SHAPE,
     )
 

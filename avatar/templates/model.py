@@ -71,6 +71,9 @@ class TemplateModel:
       semi-definite; ``beta^T R beta`` measures how rough an identity is (the
       procedural head: landmark-region offsets that differ from their
       neighbours'). Fitting penalises it; ``None`` (official models) for none.
+    * ``num_core_shape``: how many leading identity columns form the template's
+      core space (the procedural head: its 10 designed components), the space a
+      fit to biased detections keeps to; ``None``: all ``num_shape``.
 
     Arrays are copied to float64 / int64 and frozen (read-only); construction
     raises ``ValueError`` naming the offending field on any inconsistency.
@@ -93,6 +96,7 @@ class TemplateModel:
     landmark_bary: np.ndarray | None = None
     tip_vertex_ids: np.ndarray | None = None
     shape_roughness: np.ndarray | None = None
+    num_core_shape: int | None = None
 
     def __post_init__(self) -> None:
         if self.name not in ("mano", "flame"):
@@ -190,6 +194,8 @@ class TemplateModel:
         if self.tip_vertex_ids is not None:
             if self.tip_vertex_ids.shape != (5,) or self.tip_vertex_ids.min() < 0 or self.tip_vertex_ids.max() >= V:
                 fail(f"tip_vertex_ids must be 5 vertex indices in [0, {V}), got {self.tip_vertex_ids.tolist()}")
+        if self.num_core_shape is not None and not 0 <= int(self.num_core_shape) <= int(self.num_shape):
+            fail(f"num_core_shape={self.num_core_shape} must lie in [0, num_shape={self.num_shape}]")
         if self.shape_roughness is not None:
             n = int(self.num_shape)
             if self.shape_roughness.shape != (n, n) or not np.allclose(self.shape_roughness, self.shape_roughness.T):

@@ -75,3 +75,31 @@ def test_fit_reaches_a_head_outside_the_designed_space(capture: SyntheticCapture
     # Measured (seeds 1, 3): widened 0.22 / 0.21 px, 0.42 / 0.37 mm; designed only 1.75 / 2.52 px, 3.2 / 4.4 mm.
     assert residual["widened"] < GOAL_PX < residual["designed"], residual
     assert error["widened"] < 0.5 * error["designed"] and error["widened"] < 1.0, error
+
+
+def test_identity_space_follows_the_detector() -> None:
+    """auto frees the whole identity space only for unbiased (ground-truth) keypoints; core keeps to the
+    procedural head's designed columns; an official model without a core space is fitted whole."""
+    from stages.fit import face_shape_columns
+
+    head = procedural_head()
+    assert face_shape_columns(head, "auto", "ground_truth") is None
+    assert face_shape_columns(head, "auto", "mediapipe") == NUM_DESIGNED_SHAPE
+    assert face_shape_columns(head, "auto", "provided") == NUM_DESIGNED_SHAPE
+    assert face_shape_columns(head, "core", "ground_truth") == NUM_DESIGNED_SHAPE
+    assert face_shape_columns(head, "full", "mediapipe") is None
+    assert face_shape_columns(dataclasses.replace(head, num_core_shape=None), "core", "mediapipe") is None
+    from data_schemas.tables import SchemaError
+    with pytest.raises(SchemaError, match="identity_space='wide'"):
+        face_shape_columns(head, "wide", "mediapipe")
+
+
+def test_a_fit_keeps_to_the_columns_it_is_given(capture: SyntheticCapture) -> None:
+    """face_shape_columns=10 fits a 10-wide flame_shape (the synthetic subject's own space) and recovers it."""
+    train = [c for c in capture.cameras if c.split == "train"][:4]
+    keypoints = {c.camera_id: capture.keypoints[c.camera_id] for c in train}
+    fit = fit_sequence(keypoints, train, procedural_head(), procedural_hand(),
+                       FitConfig(face_shape_columns=NUM_DESIGNED_SHAPE, coarse_iterations=40, fine_iterations=80))
+    assert fit.params["flame_shape"].shape == (capture.params["flame_shape"].shape[0], NUM_DESIGNED_SHAPE)
+    truth = _landmarks(procedural_head(), capture.params)
+    assert landmark_error(_landmarks(procedural_head(), fit.params), truth) < 1.0

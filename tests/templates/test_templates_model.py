@@ -47,6 +47,7 @@ def test_kintree_root_normalised_to_minus_one(hand: TemplateModel) -> None:
         ("tip_vertex_ids", lambda m: m.tip_vertex_ids[:4], "tip_vertex_ids"),
         ("num_shape", lambda m: 11, "num_shape"),
         ("shape_roughness", lambda m: np.eye(m.num_shape + 1), "shape_roughness"),
+        ("num_core_shape", lambda m: m.num_shape + 1, "num_core_shape"),
         ("shape_roughness", lambda m: np.triu(np.ones((m.num_shape, m.num_shape))), "symmetric"),
         ("name", lambda m: "smpl", "name"),
     ],
