@@ -33,9 +33,10 @@ Shape space: identity first, then expression.
   head), face depth (the face's protrusion), upper-face height.
 * Columns 13-216, landmark-region offsets, so that the head can take on the
   proportions of heads it was not built from: for each of the 68 landmarks and
-  each axis x, y, z, a smooth field (Gaussian kernel of ``_REGION_SIGMA`` over
-  the rest surface, regularised interpolation) that moves that landmark by
-  ~1 cm per unit coefficient and its neighbours by little. Their columns are
+  each axis x, y, z, a smooth field (a Gaussian kernel of ``_REGION_SIGMA`` in
+  the Euclidean distance to the rest landmarks, regularised interpolation)
+  that moves that landmark by ~1 cm per unit coefficient and its neighbours by
+  little. Their columns are
   ordered landmark-major (landmark k, axis a at 13 + 3 k + a). Their
   ``shape_roughness`` is the squared difference of each landmark's offset from
   the mean of its ``_REGION_NEIGHBOURS`` nearest landmarks' (a graph Laplacian

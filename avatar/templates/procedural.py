@@ -22,5 +22,5 @@ def procedural_hand() -> TemplateModel:
 
 @lru_cache(maxsize=1)
 def procedural_head() -> TemplateModel:
-    """Head and neck, FLAME layout: 5 joints, 10 shape + 10 expression columns, 68 landmarks."""
+    """Head and neck, FLAME layout: 5 joints, 217 identity (10 designed) + 10 expression columns, 68 landmarks."""
     return build_head()
