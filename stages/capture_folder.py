@@ -17,6 +17,7 @@ every later stage sees pinhole cameras; ``calibration.json`` keeps the coefficie
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 from pathlib import Path
 
@@ -138,16 +139,18 @@ def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo
     """Copy one camera's video (and masks) of ``seq``, or re-encode the selected source ``frames`` (T,; None:
     all), undistorted where the camera is distorted."""
     source_video = video_path(src, seq, cam.camera_id)
+    sources = np.arange(info.num_frames) if frames is None else frames
     if undistort is None and frames is None:
         copy_into_capture(source_video, video_path(out, seq, cam.camera_id))
     else:
-        wanted = set(range(info.num_frames) if frames is None else frames.tolist())
-        kept = (f for t, f in enumerate(iter_video(source_video)) if t in wanted)
+        wanted = set(sources.tolist())
+        decoded = itertools.islice(iter_video(source_video), int(sources[-1]) + 1)  # nothing past the last one
+        kept = (f for t, f in enumerate(decoded) if t in wanted)
         write_video_stream(video_path(out, seq, cam.camera_id),
                            kept if undistort is None else (undistort.image(f) for f in kept), info.frame_rate)
     if not info.has_masks:
         return
-    for t, source_t in enumerate(range(info.num_frames) if frames is None else frames):
+    for t, source_t in enumerate(sources):
         source, target = mask_path(src, seq, cam.camera_id, int(source_t)), mask_path(out, seq, cam.camera_id, t)
         if undistort is None:
             copy_into_capture(source, target)
@@ -155,12 +158,14 @@ def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo
             write_png(target, undistort.labels(read_png(source, 1)))
 
 
-def _length(path: Path) -> int:
-    """Frames of a video, decoded one at a time (a long recording never sits in memory); one clear error
-    when the file is damaged."""
-    count = sum(1 for _ in iter_video(path))
+def _scan(path: Path) -> tuple[int, tuple[int, int]]:
+    """Frame count and (height, width) of a video, decoded once, one frame at a time (a long recording never
+    sits in memory); one clear error when the file is damaged."""
+    count, size = 0, (0, 0)
+    for count, frame in enumerate(iter_video(path), start=1):
+        size = frame.shape[:2]
     check_fully_decoded(path, count)
-    return count
+    return count, size
 
 
 def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: str, dataset: DictConfig,
@@ -183,11 +188,10 @@ def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: 
     counts: dict[str, int] = {}
     for cam in cameras:
         path = video_path(src, seq, cam.camera_id)
-        height, width = next(iter_video(path)).shape[:2]
+        counts[cam.camera_id], (height, width) = _scan(path)
         if (height, width) != (cam.height, cam.width):
             raise SchemaError(f"{path}: frames are {width}x{height} but {calibration} says "
                               f"{cam.width}x{cam.height}; fix the calibration or the video")
-        counts[cam.camera_id] = _length(path)
     if len(set(counts.values())) != 1:
         raise SchemaError(f"{videos_dir}: views disagree on frame count {counts}; trim the videos to the same "
                           f"synchronised range")

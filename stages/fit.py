@@ -49,7 +49,8 @@ class FitStageConfig:
     penetration_mm: float
 
 
-@stage("fit", inputs=("capture", "keypoints"), config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
+@stage("fit", inputs=("capture", "keypoints"),
+       config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
        outputs=("train/params.parquet", "fit_report.json"), version="7", resources=Resources(cpus=2),
        config_schema=FitStageConfig, sources=model_sources)
 def fit(ctx: StageContext) -> None:

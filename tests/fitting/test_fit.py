@@ -130,7 +130,8 @@ def test_bent_fingers_pressed_on_face(capture: SyntheticCapture) -> None:
 
 def _deepest(hand_vertices: np.ndarray, face_vertices: np.ndarray) -> float:
     """The most negative signed distance (metres) of a hand vertex to the face surface."""
-    sd, _, _ = signed_distance(torch.as_tensor(hand_vertices), torch.as_tensor(face_vertices), torch.as_tensor(HEAD.faces))
+    sd, _, _ = signed_distance(torch.as_tensor(hand_vertices), torch.as_tensor(face_vertices),
+                               torch.as_tensor(HEAD.faces))
     return float(sd.min())
 
 
