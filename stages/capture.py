@@ -3,6 +3,8 @@ capture layout, or the DECAF release: ``stages.capture_decaf``)."""
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -25,7 +27,7 @@ from pipeline.stage import Resources, StageContext, stage
 from stages.common import model_files
 
 if TYPE_CHECKING:
-    from avatar.synthetic import SyntheticCapture
+    from avatar.synthetic import SyntheticCapture, SyntheticConfig
 
 SEQUENCES = ("train", "test")
 
@@ -100,7 +102,7 @@ def capture(ctx: StageContext) -> None:
 # ---------------------------------------------------------------------------- synthetic
 def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
     # Imported here: the generator pulls in torch, which folder captures and cached runs never need.
-    from avatar.synthetic import SyntheticConfig, generate
+    from avatar.synthetic import SyntheticConfig
 
     q, conf = ctx.cfg.quality, ctx.cfg.stage.capture
     if ctx.subject not in ctx.cfg.dataset.subjects:
@@ -113,23 +115,61 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
     plan = {seq: (seq, None) for seq in SEQUENCES}
     if conf.cross_reenactment:
         plan |= {cross_sequence(other): ("test", other) for other in ctx.cfg.dataset.subjects if other != ctx.subject}
+    configs = {seq: SyntheticConfig(subject=ctx.subject, sequence=script, image_size=int(q.capture_size),
+                                    num_frames=int(frames_per_sequence[script]), supersample=int(q.supersample),
+                                    seed=int(ctx.cfg.dataset.seed), num_cameras=int(conf.num_cameras),
+                                    performer=performer, scene=str(ctx.cfg.dataset.scene))
+               for seq, (script, performer) in plan.items()}
+    rendered = _render_sequences(ctx, configs)
     sequences: dict[str, SequenceInfo] = {}
-    cameras: list[Camera] | None = None
-    for seq, (script, performer) in ctx.progress(list(plan.items()), desc="capture: generating sequences"):
-        cap = generate(SyntheticConfig(subject=ctx.subject, sequence=script, image_size=int(q.capture_size),
-                                       num_frames=int(frames_per_sequence[script]), supersample=int(q.supersample),
-                                       seed=int(ctx.cfg.dataset.seed), num_cameras=int(conf.num_cameras),
-                                       performer=performer, scene=str(ctx.cfg.dataset.scene)))
-        cams = cap.cameras
-        cameras = cameras or cams
-        _write_synthetic_sequence(ctx.out_dir, seq, cap)
-        sequences[seq] = SequenceInfo(num_frames=len(cap.contact), frame_rate=cap.frame_rate,
-                                      width=cams[0].width, height=cams[0].height,
+    for seq in configs:  # plan order, whatever order the workers finished in
+        info = rendered[seq]
+        sequences[seq] = SequenceInfo(num_frames=info.num_frames, frame_rate=info.frame_rate,
+                                      width=info.cameras[0].width, height=info.cameras[0].height,
                                       has_masks=True, has_ground_truth=True)
-        ctx.metrics[f"{seq}_contact_frames"] = int(cap.contact.sum())
-    assert cameras is not None
-    write_cameras(ctx.out_dir / "cameras.parquet", cameras)
+        ctx.metrics[f"{seq}_contact_frames"] = info.contact_frames
+    write_cameras(ctx.out_dir / "cameras.parquet", rendered[next(iter(configs))].cameras)
     return CaptureIndex(subject=ctx.subject, dataset="synthetic", sequences=sequences)
+
+
+@dataclass(frozen=True)
+class _Rendered:
+    """What the stage keeps of a sequence once its files are written (small: it crosses process borders)."""
+
+    cameras: list[Camera]
+    num_frames: int
+    frame_rate: float
+    contact_frames: int
+
+
+def _render_sequences(ctx: StageContext, configs: dict[str, SyntheticConfig]) -> dict[str, _Rendered]:
+    """Generate and write every sequence of ``configs`` (name -> generator config) into the stage's folder.
+
+    The sequences are independent (each is seeded by seed, subject and script), so they render in parallel
+    worker processes, as many as torch's thread budget allows (each generator runs on one thread): the files
+    are byte-identical to a serial run. One thread, or one sequence, renders in this process.
+    """
+    import torch  # the generator's dependency, like avatar.synthetic
+
+    workers = min(len(configs), torch.get_num_threads())
+    jobs = [(ctx.out_dir, seq, cfg) for seq, cfg in configs.items()]
+    desc = "capture: generating sequences"
+    if workers <= 1:
+        return dict(_render_sequence(*job) for job in ctx.progress(jobs, desc=desc))
+    # spawn, not fork: a forked child of a process whose OpenMP pool has started can hang in it
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = [pool.submit(_render_sequence, *job) for job in jobs]
+        return dict(future.result() for future in ctx.progress(as_completed(futures), desc=desc, total=len(jobs)))
+
+
+def _render_sequence(root: Path, seq: str, cfg: SyntheticConfig) -> tuple[str, _Rendered]:
+    """Generate one sequence and write its files under ``root`` (runs in a worker process)."""
+    from avatar.synthetic import generate
+
+    cap = generate(cfg)
+    _write_synthetic_sequence(root, seq, cap)
+    return seq, _Rendered(cameras=cap.cameras, num_frames=len(cap.contact), frame_rate=cap.frame_rate,
+                          contact_frames=int(cap.contact.sum()))
 
 
 def _write_synthetic_sequence(root: Path, seq: str, cap: SyntheticCapture) -> None:

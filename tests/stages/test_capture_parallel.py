@@ -1,0 +1,53 @@
+"""The synthetic capture renders its sequences in parallel worker processes: the files must be the serial
+run's, byte for byte, and the stage's metrics the same."""
+
+from __future__ import annotations
+
+import importlib
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from pipeline.cli import run_app
+from tests.conftest import compose_cfg
+
+CAPTURE = importlib.import_module("stages.capture")  # the module (the package exports the stage under its name)
+
+TINY = ["quality=smoke", "quality.capture_size=32", "quality.num_frames_train=2", "quality.num_frames_test=2",
+        "stage.capture.num_cameras=2", "run.progress=false", "run.only=capture"]
+
+
+def _capture(out: Path, threads: int) -> dict[str, bytes]:
+    """Run the capture stage with a torch thread budget of ``threads``; relative path -> bytes of its files."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        run_app(compose_cfg([f"paths.outputs={out}", *TINY]))
+    finally:
+        torch.set_num_threads(before)
+    root = out / "synth_a" / "capture"
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and p.name != "_manifest.json"}
+
+
+def test_parallel_sequences_write_the_serial_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    pools = []
+
+    class CountedPool(CAPTURE.ProcessPoolExecutor):
+        def __init__(self, workers: int, **kwargs: object) -> None:
+            pools.append(workers)
+            super().__init__(workers, **kwargs)
+
+    monkeypatch.setattr(CAPTURE, "ProcessPoolExecutor", CountedPool)
+    serial = _capture(tmp_path / "serial", threads=1)
+    assert pools == []
+    parallel = _capture(tmp_path / "parallel", threads=3)  # three sequences: train, test, cross_synth_b
+    assert pools == [3]
+    assert any(name.startswith("cross_synth_b/") for name in serial)
+    assert serial.keys() == parallel.keys()
+    assert [name for name in serial if serial[name] != parallel[name]] == []
+    metrics = [json.loads((tmp_path / run / "synth_a" / "capture" / "_manifest.json").read_text())["metrics"]
+               for run in ("serial", "parallel")]
+    assert metrics[0] == metrics[1]
