@@ -13,7 +13,10 @@ records, and writes
   cropped to the hand box and to the hand-face overlap box (the paper's Figures 4, 5 and 7).
 
 Listed methods that have not been evaluated yet are named in ``tables.md`` with the command that adds them;
-the stage reruns when one appears (its digest enters the cache key).
+the stage reruns when one appears (its digest enters the cache key). A method whose results were computed
+from other inputs than the ones on disk now (:func:`stale_reason`: the capture, fit or PBD reran since, or
+its own warm-up or stage two reran without its evaluation) is left out of every table and named, with the
+reason, in the notes and the ``methods_stale`` metric: its row would compare results of different data.
 """
 
 from __future__ import annotations
@@ -75,7 +78,10 @@ class MethodRun:
 
     @property
     def train_wall_s(self) -> float:
-        return sum(float(self.manifests[s]["timings"]["wall_s"]) for s in ("warmup", "dynamic"))
+        """Wall time of the warm-up and stage two, without their validation passes (``validation_s``, when
+        ``stage.<stage>.validation.every`` > 0): training, not measuring it."""
+        stages = [self.manifests[s] for s in ("warmup", "dynamic")]
+        return sum(float(m["timings"]["wall_s"]) - float(m["metrics"].get("validation_s", 0.0)) for m in stages)
 
     @property
     def gaussians(self) -> int:
@@ -85,21 +91,23 @@ class MethodRun:
 @stage("compare", inputs=("capture", "frames", "fit", "pbd"), config_keys=("stage.compare",),
        outputs=("comparison.parquet", "tables.json", "tables.md", "figures"), config_schema=CompareConfig,
        cross_method_inputs=("warmup", "dynamic", "evaluate"), methods_key="stage.compare.methods",
-       reads_manifests=True)  # it reports the methods' wall times
+       reads_manifests=True, version="2")  # it reports the methods' wall times
 def compare(ctx: StageContext) -> None:
     """Tables 1 and 2 and the image rows of the paper for every evaluated method of stage.compare.methods."""
     conf = ctx.cfg.stage.compare
     listed = [str(m) for m in conf.methods]
     dirs = {stage: ctx.method_dirs(stage) for stage in ("warmup", "dynamic", "evaluate")}
-    runs = [_read_run(m, {stage: dirs[stage][m] for stage in dirs}) for m in listed
-            if all(m in dirs[stage] for stage in dirs)]
-    missing = [m for m in listed if m not in {r.name for r in runs}]
+    found = [_read_run(m, {stage: dirs[stage][m] for stage in dirs}) for m in listed
+             if all(m in dirs[stage] for stage in dirs)]
+    shared = {name: _manifest(ctx.input_dir(name)) for name in SHARED_STAGES}
+    stale = {r.name: why for r in found if (why := stale_reason(r.manifests, shared)) is not None}
+    runs = [r for r in found if r.name not in stale]
+    missing = [m for m in listed if m not in {r.name for r in found}]
     rows = _comparison_rows(runs)
     write_table(ctx.out_dir / "comparison.parquet", COMPARISON,
                 {c.name: (rows[c.name] if c.kind == "string" else np.asarray(rows[c.name])) for c in COMPARISON.columns})
-    shared = {name: _manifest(ctx.input_dir(name)) for name in SHARED_STAGES}
     cost = _cost(runs, shared)
-    tables = _tables(runs, rows, missing, cost)
+    tables = _tables(runs, rows, missing, cost, stale)
     write_json(ctx.out_dir / "tables.json", tables, "the comparison tables")
     write_bytes(ctx.out_dir / "tables.md", _markdown(tables).encode(), "the comparison tables")
     (ctx.out_dir / "figures").mkdir()
@@ -109,6 +117,7 @@ def compare(ctx: StageContext) -> None:
             if figure is not None:
                 write_png(ctx.out_dir / "figures" / f"{split}_{crop}.png", figure)
     ctx.metrics.update({"methods_compared": len(runs), "methods_missing": ",".join(missing) or "-",
+                        "methods_stale": ",".join(stale) or "-",
                         "same_train_steps": int(len({r.train_steps for r in runs}) <= 1), **cost})
 
 
@@ -125,6 +134,25 @@ def _split_sequences(runs: list[MethodRun]) -> dict[str, str]:
 
 def _manifest(stage_dir: Path) -> dict[str, Any]:
     return json.loads((stage_dir / MANIFEST_NAME).read_text())
+
+
+def stale_reason(manifests: dict[str, dict[str, Any]], shared: dict[str, dict[str, Any]]) -> str | None:
+    """Why a method's results do not belong in this comparison, or None when they do.
+
+    ``manifests``: the method's warmup, dynamic and evaluate manifests; ``shared``: the manifests of the shared
+    stages this comparison reads (:data:`SHARED_STAGES`). A method's artifacts stay on disk when a shared
+    stage reruns (another preset or capture in the same outputs folder, a changed fit), and its warm-up,
+    stage two and evaluation can each be rerun alone: its row belongs here only if its evaluation read
+    these shared stages' outputs and the chain warm-up -> stage two -> evaluation is one run (each read the
+    outputs of the one before it that are on disk now).
+    """
+    reads = [("evaluate", name, shared[name]) for name in SHARED_STAGES]
+    reads += [("evaluate", "dynamic", manifests["dynamic"]), ("dynamic", "warmup", manifests["warmup"])]
+    for reader, name, manifest in reads:
+        if manifests[reader].get("upstream", {}).get(name) != manifest["output_digest"]:
+            return (f"its {reader} read another {name} than the one on disk now (rerun since); "
+                    f"rerun the method up to evaluate")
+    return None
 
 
 def _read_run(method: str, dirs: dict[str, Path]) -> MethodRun:
@@ -185,8 +213,8 @@ def _metric_cells(values: dict[str, float]) -> list[str]:
     return [_fmt(values["psnr"], 2), _fmt(values["ssim"], 4), _fmt(values["lpips"], 4)]
 
 
-def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[str], cost: dict[str, float]
-            ) -> dict[str, Any]:
+def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[str], cost: dict[str, float],
+            stale: dict[str, str] | None = None) -> dict[str, Any]:
     """The comparison as titled tables (headers, rows of strings) plus notes, for tables.md and the report."""
     present = {r.name: r for r in runs}
     paper_cells = lambda m, split: _metric_cells(dict(zip(METRIC_NAMES, PAPER[m][split]))) \
@@ -225,6 +253,9 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[str], co
         notes.append(f"Not evaluated yet: {', '.join(missing)}. Add them with "
                      f"`interactavatar -m method={','.join(missing)}` (same subject and preset), then "
                      f"`interactavatar run.only=compare`, or run `make compare`.")
+    for method, why in (stale or {}).items():
+        notes.append(f"Left out, stale: {method}: {why} (`interactavatar method={method} run.until=evaluate`, "
+                     f"then `interactavatar run.only=compare`).")
     return {"tables": [
         {"title": "Table 1: baselines against the full model (full image)",
          "headers": ["split", "method", "PSNR", "SSIM", "LPIPS", "paper PSNR", "paper SSIM", "paper LPIPS"],

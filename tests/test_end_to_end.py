@@ -186,3 +186,14 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     reenacted = json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text())["metrics"]
     assert reenacted["head_scale"] != 1.0 and reenacted["frames"] > 0
     assert reenacted["ground_truth_videos"] == reenacted["views"] - 1  # the capture's cross_synth_b beside
+
+    # A method whose stage two reran without its evaluation has results of two different models: the
+    # comparison leaves it out and names it with the fix.
+    retrained = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "method=gaussian_avatars",
+                        "run.only=dynamic", "stage.dynamic.seed=1")
+    assert retrained.returncode == 0, retrained.stderr[-3000:]
+    compared = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=compare")
+    assert compared.returncode == 0, compared.stderr[-3000:]
+    tables = (subject / "compare" / "tables.md").read_text()
+    assert "Left out, stale: gaussian_avatars: its evaluate read another dynamic" in tables, tables
+    assert "gaussian_avatars" not in set(read_table(subject / "compare" / "comparison.parquet", COMPARISON)["method"])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from data_schemas.metrics import CONTACT_GROUPS
-from stages.compare import MethodRun, _comparison_rows, _cost, _crop, _lookup, _tables
+from stages.compare import SHARED_STAGES, MethodRun, _comparison_rows, _cost, _crop, _lookup, _tables, stale_reason
 from stages.evaluate import showcase_pairs
 
 
@@ -99,3 +99,43 @@ def test_crops_stay_inside_the_image_and_keep_its_pixels():
     np.testing.assert_array_equal(inside, image[20:36, 10:26])
     edge = _crop(image, np.array([60.0, 0.0, 64.0, 2.0]), 16)  # at the corner: shifted inside, at least 8 px
     np.testing.assert_array_equal(edge, np.repeat(np.repeat(image[0:8, 56:64], 2, 0), 2, 1))
+
+
+def _chain() -> tuple[dict[str, dict], dict[str, dict]]:
+    """A method's warmup/dynamic/evaluate manifests that read each other and the shared stages' outputs."""
+    shared = {name: {"output_digest": f"{name}-1"} for name in SHARED_STAGES}
+    up = {name: f"{name}-1" for name in SHARED_STAGES}
+    manifests = {"warmup": {"output_digest": "w-1", "upstream": dict(up)},
+                 "dynamic": {"output_digest": "d-1", "upstream": {**up, "warmup": "w-1"}},
+                 "evaluate": {"output_digest": "e-1", "upstream": {**up, "dynamic": "d-1"}}}
+    return manifests, shared
+
+
+def test_a_method_is_stale_when_its_inputs_reran_after_it():
+    manifests, shared = _chain()
+    assert stale_reason(manifests, shared) is None
+    for name in SHARED_STAGES:  # e.g. the capture regenerated at another preset in the same outputs folder
+        changed = {**shared, name: {"output_digest": f"{name}-2"}}
+        assert f"evaluate read another {name}" in stale_reason(manifests, changed)
+    manifests["dynamic"]["output_digest"] = "d-2"  # stage two retrained, its evaluation not rerun
+    assert "evaluate read another dynamic" in stale_reason(manifests, shared)
+    manifests, shared = _chain()
+    manifests["warmup"]["output_digest"] = "w-2"  # warm-up retrained under a stage two that was not
+    assert "dynamic read another warmup" in stale_reason(manifests, shared)
+
+
+def test_stale_methods_are_named_with_the_fix_and_not_tabled():
+    runs = [_run("interactavatar")]
+    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
+                                                        "unshared_wall_s": 2.0},
+                     {"gaussian_avatars": "its evaluate read another capture than the one on disk now"})
+    assert any("Left out, stale: gaussian_avatars" in n and "method=gaussian_avatars" in n for n in tables["notes"])
+    assert all(row[1] != "GAUSSIAN_AVATARS" for table in tables["tables"] for row in table["rows"])
+
+
+def test_train_wall_time_leaves_out_validation():
+    run = _run("interactavatar")
+    assert run.train_wall_s == pytest.approx(15.0)
+    run.manifests["warmup"]["metrics"]["validation_s"] = 4.0
+    run.manifests["dynamic"]["metrics"]["validation_s"] = 1.5
+    assert run.train_wall_s == pytest.approx(15.0 - 5.5)
