@@ -3,7 +3,11 @@ capture layout, or the DECAF release: ``stages.capture_decaf``)."""
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
+import os
+import signal
+import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -30,6 +34,8 @@ if TYPE_CHECKING:
     from avatar.synthetic import SyntheticCapture, SyntheticConfig
 
 SEQUENCES = ("train", "test")
+#: prctl option: the signal a process receives when its parent dies (linux/prctl.h).
+_PR_SET_PDEATHSIG = 1
 
 
 @dataclass
@@ -157,9 +163,20 @@ def _render_sequences(ctx: StageContext, configs: dict[str, SyntheticConfig]) ->
     if workers <= 1:
         return dict(_render_sequence(*job) for job in ctx.progress(jobs, desc=desc))
     # spawn, not fork: a forked child of a process whose OpenMP pool has started can hang in it
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_die_with_parent, initargs=(os.getpid(),)) as pool:
         futures = [pool.submit(_render_sequence, *job) for job in jobs]
         return dict(future.result() for future in ctx.progress(as_completed(futures), desc=desc, total=len(jobs)))
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Worker initializer: a killed run leaves no worker writing into its scratch folder. On Linux the kernel
+    sends SIGKILL to the worker when the stage's process dies (``PR_SET_PDEATHSIG``); a worker whose parent
+    is already gone exits at once. Elsewhere the pool's own shutdown is all there is."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent_pid:
+        os._exit(1)
 
 
 def _render_sequence(root: Path, seq: str, cfg: SyntheticConfig) -> tuple[str, _Rendered]:

@@ -1,17 +1,20 @@
 """The synthetic capture renders its sequences in parallel worker processes: the files must be the serial
-run's, byte for byte, and the stage's metrics the same."""
+run's, byte for byte, and the stage's metrics the same; a killed run leaves no worker behind."""
 
 from __future__ import annotations
 
 import importlib
 import json
+import signal
+import subprocess
 from pathlib import Path
 
+import psutil
 import pytest
 import torch
 
 from pipeline.cli import run_app
-from tests.conftest import compose_cfg
+from tests.conftest import REPO, cli_command, cli_env, compose_cfg, wait_for
 
 CAPTURE = importlib.import_module("stages.capture")  # the module (the package exports the stage under its name)
 
@@ -51,3 +54,25 @@ def test_parallel_sequences_write_the_serial_files(tmp_path: Path, monkeypatch: 
     metrics = [json.loads((tmp_path / run / "synth_a" / "capture" / "_manifest.json").read_text())["metrics"]
                for run in ("serial", "parallel")]
     assert metrics[0] == metrics[1]
+
+
+def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
+    """SIGKILL the CLI while its workers render: the kernel takes the workers down with it, so nothing goes on
+    writing into the stage's scratch folder."""
+    env = {**cli_env(), "OMP_NUM_THREADS": "2"}  # two workers on any machine
+    proc = subprocess.Popen(cli_command(f"paths.outputs={tmp_path}", "quality=smoke", "quality.num_frames_train=40",
+                                        "run.progress=false", "run.only=capture"),
+                            cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        parent = psutil.Process(proc.pid)
+        # the workers have started once two children import the generator (the spawn helper is a third)
+        wait_for(lambda: sum("spawn_main" in " ".join(c.cmdline()) for c in parent.children()) >= 2, 120)
+        workers = [c for c in parent.children(recursive=True) if "spawn_main" in " ".join(c.cmdline())]
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+        gone, alive = psutil.wait_procs(workers, timeout=30)
+        assert alive == [] and len(gone) >= 2
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert not (tmp_path / "synth_a" / "capture" / "_manifest.json").exists()
