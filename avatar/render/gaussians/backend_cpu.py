@@ -110,21 +110,21 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx: FunctionCtx, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor,
                 depths: Tensor, background: Tensor, bins: TileBins) -> tuple[Tensor, Tensor, Tensor]:
-        rgb, alpha, depth, t_final, last = _ops().rasterize_forward(
+        rgb, alpha, depth, t_final, last, kept_rows = _ops().rasterize_forward(
             means2d, conics, opacities, colors, depths, background, *bins.raster_args(), *bins.grid_args(),
             torch.get_num_threads())
-        ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, alpha, t_final, last)
+        ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, alpha, t_final, last, kept_rows)
         ctx.bins = bins
         return rgb, alpha, depth
 
     @staticmethod
     @once_differentiable
     def backward(ctx: FunctionCtx, g_rgb: Tensor, g_alpha: Tensor, g_depth: Tensor) -> tuple[Tensor | None, ...]:
-        means2d, conics, opacities, colors, depths, background, alpha, t_final, last = ctx.saved_tensors
+        means2d, conics, opacities, colors, depths, background, alpha, t_final, last, kept_rows = ctx.saved_tensors
         bins: TileBins = ctx.bins
         grads = _ops().rasterize_backward(
             means2d, conics, opacities, colors, depths, background, *bins.raster_args(), bins.slots,
-            bins.gauss_offsets, alpha, t_final, last, g_rgb, g_alpha, g_depth, *bins.grid_args(),
+            bins.gauss_offsets, kept_rows, alpha, t_final, last, g_rgb, g_alpha, g_depth, *bins.grid_args(),
             torch.get_num_threads())
         return *grads, None
 

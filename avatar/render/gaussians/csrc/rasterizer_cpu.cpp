@@ -525,14 +525,27 @@ struct alignas(64) Splat {
   int32_t box[4];
 };
 
-// The Gaussians of `order` (depth order, see bin_tiles_impl), packed.
+// A buffer of the calling thread that keeps its memory from call to call (one per element type and use,
+// never shrinking): a 200k-Gaussian backward writes ~35 MB of per-pair gradients, and faulting in fresh
+// zeroed pages on every call cost about as much as the compositing. Not initialised: callers write every
+// element they read.
+enum class Buffer { kSplats, kPairGrad };
+
+template <typename T, Buffer kUse>
+T* reusable_buffer(size_t n) {
+  static thread_local std::vector<T> buffer;
+  if (buffer.size() < n) buffer.resize(n);
+  return buffer.data();
+}
+
+// The Gaussians of `order` (depth order, see bin_tiles_impl), packed into this thread's splat buffer.
 template <typename scalar_t>
-std::vector<Splat<scalar_t>> pack_splats(const at::Tensor& order, const scalar_t* means2d, const scalar_t* conics,
-                                         const scalar_t* opacities, const scalar_t* colors, const scalar_t* depths,
-                                         const int32_t* box) {
+const Splat<scalar_t>* pack_splats(const at::Tensor& order, const scalar_t* means2d, const scalar_t* conics,
+                                   const scalar_t* opacities, const scalar_t* colors, const scalar_t* depths,
+                                   const int32_t* box) {
   const int64_t n = order.size(0);
   const int32_t* ord = order.const_data_ptr<int32_t>();
-  std::vector<Splat<scalar_t>> splats(n);
+  Splat<scalar_t>* splats = reusable_buffer<Splat<scalar_t>, Buffer::kSplats>(static_cast<size_t>(n));
 #pragma omp parallel for schedule(static)
   for (int64_t r = 0; r < n; ++r) {
     const int64_t i = ord[r];
@@ -640,9 +653,10 @@ struct Counts {
 };
 
 template <typename scalar_t, int TS, bool kCount>
-void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* ids,
+void raster_forward_impl(const TileGrid& grid, const Splat<scalar_t>* splats, const int32_t* ids,
                          const int64_t* toff, const scalar_t* background, scalar_t* rgb, scalar_t* alpha_out,
-                         scalar_t* depth_out, scalar_t* t_final, int32_t* last_out, std::vector<Counts>* counts) {
+                         scalar_t* depth_out, scalar_t* t_final, int32_t* last_out, int16_t* kept_rows,
+                         std::vector<Counts>* counts) {
   using S = Simd<scalar_t>;
   using V = typename S::V;
   using I = typename S::I;
@@ -669,10 +683,12 @@ void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>
       const Span sp = r.clip(s.box);
       const uint32_t span = Lanes::columns(sp.x0, sp.x1);
       const I kk = I{} + static_cast<int32_t>(k - begin);
+      uint32_t rows_kept = 0;
       for (int row = sp.y0; row <= sp.y1; ++row) {
         const uint32_t open_row = span & ~done[row];
         if (open_row == 0) continue;
         const RowTerms<scalar_t> terms(s, r.y0 + row);
+        I row_keep{};
         for (int c = 0; c < Lanes::kChunks; ++c) {
           const uint32_t open_bits = Lanes::chunk_bits(open_row, c);
           if (open_bits == 0) continue;
@@ -693,6 +709,7 @@ void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>
           acc[v] += w;
           trans[v] = keep ? next : trans[v];
           last[v] = keep ? kk : last[v];
+          row_keep |= keep;
           const uint32_t stop_bits = Lanes::bits_of(stop);
           if (stop_bits != 0) {
             done[row] |= stop_bits << (c * L);
@@ -703,7 +720,9 @@ void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>
             local.contributions += __builtin_popcount(Lanes::bits_of(keep));
           }
         }
+        if (Lanes::bits_of(row_keep) != 0) rows_kept |= 1u << row;
       }
+      kept_rows[k] = static_cast<int16_t>(rows_kept);
     }
     for (int iy = 0; iy < r.h; ++iy) {
       for (int ix = 0; ix < r.w; ++ix) {
@@ -724,7 +743,9 @@ void raster_forward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>
 }
 
 template <typename scalar_t, int TS>
-void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t>>& splats, const int32_t* ids, const int32_t* slots, const int64_t* toff, const scalar_t* background,
+void raster_backward_impl(const TileGrid& grid, const Splat<scalar_t>* splats, const int32_t* ids,
+                          const int32_t* slots, const int16_t* kept_rows, const int64_t* toff,
+                          const scalar_t* background,
                           const scalar_t* alpha_in, const scalar_t* t_final, const int32_t* last_in,
                           const scalar_t* g_rgb, const scalar_t* g_alpha, const scalar_t* g_depth,
                           scalar_t* pair_grad, double* tile_bg_grad) {
@@ -770,6 +791,13 @@ void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t
       std::fill_n(pair_grad + int64_t{kPairGrad} * slots[k], kPairGrad, scalar_t(0));
     }
     for (int64_t k = begin + max_last; k >= begin; --k) {
+      // Rows where the forward blended nothing of pair k replay nothing (a pixel replays k only if the
+      // forward kept it there), so they are skipped: the gradients are those of the full replay, bit for bit.
+      const uint32_t rows = static_cast<uint16_t>(kept_rows[k]);
+      if (rows == 0) {
+        std::fill_n(pair_grad + int64_t{kPairGrad} * slots[k], kPairGrad, scalar_t(0));
+        continue;
+      }
       if (k - kPrefetch >= begin) __builtin_prefetch(&splats[ids[k - kPrefetch]]);
       const int32_t local_k = static_cast<int32_t>(k - begin);
       const I kk = I{} + local_k;
@@ -778,6 +806,7 @@ void raster_backward_impl(const TileGrid& grid, const std::vector<Splat<scalar_t
       const uint32_t span = Lanes::columns(sp.x0, sp.x1);
       V gm_x{}, gm_y{}, gc_a{}, gc_b{}, gc_c{}, g_o{}, g_r{}, g_g{}, g_b{}, g_d{};
       for (int row = sp.y0; row <= sp.y1; ++row) {
+        if (((rows >> row) & 1u) == 0) continue;
         const RowTerms<scalar_t> terms(s, r.y0 + row);
         const scalar_t dy = terms.dy;
         for (int c = 0; c < Lanes::kChunks; ++c) {
@@ -927,31 +956,36 @@ struct RasterInputs {
     TORCH_CHECK(colors.size(1) == 3, "colors must be (N, 3)");
   }
   template <typename scalar_t>
-  std::vector<Splat<scalar_t>> splats() const {
+  const Splat<scalar_t>* splats() const {
     return pack_splats<scalar_t>(order, means2d.const_data_ptr<scalar_t>(), conics.const_data_ptr<scalar_t>(),
                                  opacities.const_data_ptr<scalar_t>(), colors.const_data_ptr<scalar_t>(),
                                  depths.const_data_ptr<scalar_t>(), box.const_data_ptr<int32_t>());
   }
 };
 
+// The forward pass: (rgb, alpha, depth, t_final, last, kept_rows); kept_rows (P,) int16: bit r of pair k is
+// set when the forward blended Gaussian k into a pixel of row r of its tile (0 for pairs after the tile stopped).
 template <bool kCount>
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> forward_pass(const RasterInputs& in,
-                                                                                   std::vector<Counts>* counts) {
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> forward_pass(
+    const RasterInputs& in, std::vector<Counts>* counts) {
   const auto opts = in.means2d.options();
   const int64_t h = in.grid.height, w = in.grid.width;
   at::Tensor rgb = at::empty({h, w, 3}, opts), alpha = at::empty({h, w}, opts), depth = at::empty({h, w}, opts);
   at::Tensor t_final = at::empty({h, w}, opts), last = at::empty({h, w}, opts.dtype(at::kInt));
+  at::Tensor kept_rows = at::empty({in.ids.size(0)}, opts.dtype(at::kShort));
+  std::fill_n(kept_rows.data_ptr<int16_t>(), kept_rows.numel(), int16_t{0});
   dispatch(in.means2d.scalar_type(), in.grid.tile_size, [&](auto tag, auto tile) {
     using scalar_t = decltype(tag);
     raster_forward_impl<scalar_t, decltype(tile)::value, kCount>(
         in.grid, in.splats<scalar_t>(), in.ids.const_data_ptr<int32_t>(), in.tile_offsets.const_data_ptr<int64_t>(),
         in.background.const_data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(),
-        depth.data_ptr<scalar_t>(), t_final.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), counts);
+        depth.data_ptr<scalar_t>(), t_final.data_ptr<scalar_t>(), last.data_ptr<int32_t>(),
+        kept_rows.data_ptr<int16_t>(), counts);
   });
-  return {rgb, alpha, depth, t_final, last};
+  return {rgb, alpha, depth, t_final, last, kept_rows};
 }
 
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_forward(
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> rasterize_forward(
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities, const at::Tensor& colors,
     const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& order,
     const at::Tensor& ids, const at::Tensor& tile_offsets, int64_t width, int64_t height, int64_t tile_size,
@@ -985,7 +1019,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities, const at::Tensor& colors,
     const at::Tensor& depths, const at::Tensor& background, const at::Tensor& box, const at::Tensor& order,
     const at::Tensor& ids, const at::Tensor& tile_offsets, const at::Tensor& slots, const at::Tensor& gauss_offsets,
-    const at::Tensor& alpha, const at::Tensor& t_final, const at::Tensor& last, const at::Tensor& g_rgb,
+    const at::Tensor& kept_rows, const at::Tensor& alpha, const at::Tensor& t_final, const at::Tensor& last,
+    const at::Tensor& g_rgb,
     const at::Tensor& g_alpha, const at::Tensor& g_depth, int64_t width, int64_t height, int64_t tile_size,
     int64_t threads) {
   set_threads(threads);
@@ -997,18 +1032,20 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   at::Tensor g_opacities = at::empty({n}, opts), g_colors = at::empty({n, 3}, opts), g_depths = at::empty({n}, opts);
   at::Tensor g_background = at::empty({3}, opts);
   const at::Tensor sl = slots.contiguous(), go = gauss_offsets.contiguous(), a = alpha.contiguous();
+  const at::Tensor kr = kept_rows.contiguous();
+  TORCH_CHECK(kr.scalar_type() == at::kShort && kr.numel() == pairs, "kept_rows must be the forward's (P,) int16");
   const at::Tensor tf = t_final.contiguous(), la = last.contiguous();
   const at::Tensor gr = g_rgb.contiguous(), ga = g_alpha.contiguous(), gd = g_depth.contiguous();
   dispatch(in.means2d.scalar_type(), in.grid.tile_size, [&](auto tag, auto tile) {
     using scalar_t = decltype(tag);
-    std::vector<scalar_t> pair_grad(static_cast<size_t>(pairs) * kPairGrad);
+    scalar_t* pair_grad = reusable_buffer<scalar_t, Buffer::kPairGrad>(static_cast<size_t>(pairs) * kPairGrad);
     std::vector<double> tile_bg(3 * static_cast<size_t>(in.grid.num_tiles()));
     raster_backward_impl<scalar_t, decltype(tile)::value>(
         in.grid, in.splats<scalar_t>(), in.ids.const_data_ptr<int32_t>(), sl.const_data_ptr<int32_t>(),
-        in.tile_offsets.const_data_ptr<int64_t>(), in.background.const_data_ptr<scalar_t>(),
+        kr.const_data_ptr<int16_t>(), in.tile_offsets.const_data_ptr<int64_t>(), in.background.const_data_ptr<scalar_t>(),
         a.const_data_ptr<scalar_t>(), tf.const_data_ptr<scalar_t>(), la.const_data_ptr<int32_t>(),
         gr.const_data_ptr<scalar_t>(), ga.const_data_ptr<scalar_t>(), gd.const_data_ptr<scalar_t>(),
-        pair_grad.data(), tile_bg.data());
+        pair_grad, tile_bg.data());
     // Each Gaussian sums its slots in tile order.
     const int64_t* off = go.const_data_ptr<int64_t>();
     scalar_t* outs[5] = {g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
@@ -1051,7 +1088,7 @@ TORCH_LIBRARY(interactavatar_gs, m) {
         &bin_tiles);
   m.def("rasterize_forward(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
         "Tensor background, Tensor box, Tensor order, Tensor ids, Tensor tile_offsets, int width, int height, "
-        "int tile_size, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor)",
+        "int tile_size, int threads) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
         &rasterize_forward);
   m.def("rasterize_counts(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
         "Tensor background, Tensor box, Tensor order, Tensor ids, Tensor tile_offsets, int width, int height, "
@@ -1059,7 +1096,8 @@ TORCH_LIBRARY(interactavatar_gs, m) {
         &rasterize_counts);
   m.def("rasterize_backward(Tensor means2d, Tensor conics, Tensor opacities, Tensor colors, Tensor depths, "
         "Tensor background, Tensor box, Tensor order, Tensor ids, Tensor tile_offsets, Tensor slots, "
-        "Tensor gauss_offsets, Tensor alpha, Tensor t_final, Tensor last, Tensor g_rgb, Tensor g_alpha, "
+        "Tensor gauss_offsets, Tensor kept_rows, Tensor alpha, Tensor t_final, Tensor last, Tensor g_rgb, "
+        "Tensor g_alpha, "
         "Tensor g_depth, int width, int height, int tile_size, int threads) "
         "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)",
         &rasterize_backward);
