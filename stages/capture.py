@@ -36,6 +36,11 @@ if TYPE_CHECKING:
 SEQUENCES = ("train", "test")
 #: prctl option: the signal a process receives when its parent dies (linux/prctl.h).
 _PR_SET_PDEATHSIG = 1
+#: Rendered (supersampled) pixels of a whole capture below which its sequences render in this process: each
+#: worker first imports torch and the generator (seconds), which costs more than a small capture saves.
+#: Measured on 2 cores at load ~5: smoke (4 M pixels) 13-14 s serial against 21 s in 2 workers; draft
+#: (100 M) 130 s against 101 s.
+PARALLEL_MIN_PIXELS = 20_000_000
 
 
 @dataclass
@@ -153,11 +158,13 @@ def _render_sequences(ctx: StageContext, configs: dict[str, SyntheticConfig]) ->
 
     The sequences are independent (each is seeded by seed, subject and script), so they render in parallel
     worker processes, as many as torch's thread budget allows (each generator runs on one thread): the files
-    are byte-identical to a serial run. One thread, or one sequence, renders in this process.
+    are byte-identical to a serial run. One thread, one sequence, or a capture under
+    :data:`PARALLEL_MIN_PIXELS` renders in this process.
     """
     import torch  # the generator's dependency, like avatar.synthetic
 
-    workers = min(len(configs), torch.get_num_threads())
+    pixels = sum(c.num_frames * c.num_cameras * (c.image_size * c.supersample) ** 2 for c in configs.values())
+    workers = min(len(configs), torch.get_num_threads()) if pixels >= PARALLEL_MIN_PIXELS else 1
     jobs = [(ctx.out_dir, seq, cfg) for seq, cfg in configs.items()]
     desc = "capture: generating sequences"
     if workers <= 1:

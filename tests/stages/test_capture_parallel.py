@@ -46,6 +46,9 @@ def test_parallel_sequences_write_the_serial_files(tmp_path: Path, monkeypatch: 
     monkeypatch.setattr(CAPTURE, "ProcessPoolExecutor", CountedPool)
     serial = _capture(tmp_path / "serial", threads=1)
     assert pools == []
+    _capture(tmp_path / "small", threads=3)
+    assert pools == []  # under PARALLEL_MIN_PIXELS: starting workers would cost more than they save
+    monkeypatch.setattr(CAPTURE, "PARALLEL_MIN_PIXELS", 0)  # now this tiny capture renders in workers too
     parallel = _capture(tmp_path / "parallel", threads=3)  # three sequences: train, test, cross_synth_b
     assert pools == [3]
     assert any(name.startswith("cross_synth_b/") for name in serial)
@@ -61,7 +64,7 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
     writing into the stage's scratch folder."""
     env = {**cli_env(), "OMP_NUM_THREADS": "2"}  # two workers on any machine
     proc = subprocess.Popen(cli_command(f"paths.outputs={tmp_path}", "quality=smoke", "quality.num_frames_train=40",
-                                        "run.progress=false", "run.only=capture"),
+                                        "quality.capture_size=256", "run.progress=false", "run.only=capture"),
                             cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         parent = psutil.Process(proc.pid)
@@ -76,3 +79,4 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
     assert not (tmp_path / "synth_a" / "capture" / "_manifest.json").exists()
+
