@@ -150,8 +150,7 @@ def stale_reason(manifests: dict[str, dict[str, Any]], shared: dict[str, dict[st
     reads += [("evaluate", "dynamic", manifests["dynamic"]), ("dynamic", "warmup", manifests["warmup"])]
     for reader, name, manifest in reads:
         if manifests[reader].get("upstream", {}).get(name) != manifest["output_digest"]:
-            return (f"its {reader} read another {name} than the one on disk now (rerun since); "
-                    f"rerun the method up to evaluate")
+            return f"its {reader} read another {name} than the one on disk now (rerun since)"
     return None
 
 

@@ -787,15 +787,16 @@ void raster_backward_impl(const TileGrid& grid, const Splat<scalar_t>* splats, c
     }
     for (int ch = 0; ch < 3; ++ch) tile_bg_grad[3 * t + ch] = bg[ch];
     const int64_t begin = toff[t], end = toff[t + 1];
-    for (int64_t k = begin + max_last + 1; k < end; ++k) {
+    auto zero_pair = [&](int64_t k) {
       std::fill_n(pair_grad + int64_t{kPairGrad} * slots[k], kPairGrad, scalar_t(0));
-    }
+    };
+    for (int64_t k = begin + max_last + 1; k < end; ++k) zero_pair(k);
     for (int64_t k = begin + max_last; k >= begin; --k) {
       // Rows where the forward blended nothing of pair k replay nothing (a pixel replays k only if the
       // forward kept it there), so they are skipped: the gradients are those of the full replay, bit for bit.
       const uint32_t rows = static_cast<uint16_t>(kept_rows[k]);
       if (rows == 0) {
-        std::fill_n(pair_grad + int64_t{kPairGrad} * slots[k], kPairGrad, scalar_t(0));
+        zero_pair(k);
         continue;
       }
       if (k - kPrefetch >= begin) __builtin_prefetch(&splats[ids[k - kPrefetch]]);
@@ -1042,7 +1043,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     std::vector<double> tile_bg(3 * static_cast<size_t>(in.grid.num_tiles()));
     raster_backward_impl<scalar_t, decltype(tile)::value>(
         in.grid, in.splats<scalar_t>(), in.ids.const_data_ptr<int32_t>(), sl.const_data_ptr<int32_t>(),
-        kr.const_data_ptr<int16_t>(), in.tile_offsets.const_data_ptr<int64_t>(), in.background.const_data_ptr<scalar_t>(),
+        kr.const_data_ptr<int16_t>(), in.tile_offsets.const_data_ptr<int64_t>(),
+        in.background.const_data_ptr<scalar_t>(),
         a.const_data_ptr<scalar_t>(), tf.const_data_ptr<scalar_t>(), la.const_data_ptr<int32_t>(),
         gr.const_data_ptr<scalar_t>(), ga.const_data_ptr<scalar_t>(), gd.const_data_ptr<scalar_t>(),
         pair_grad, tile_bg.data());
