@@ -295,13 +295,14 @@ class ValidationSchema:
 
     every: int
     frames: int
+    lpips: bool
     stop_when_flat: FlatStopSchema
 
 
 def validation_config(conf: DictConfig) -> ValidationConfig:
     """The training loops' :class:`ValidationConfig` of a ``stage.<warmup|dynamic>.validation`` block."""
     stop = conf.stop_when_flat
-    return ValidationConfig(int(conf.every), int(conf.frames),
+    return ValidationConfig(int(conf.every), int(conf.frames), bool(conf.lpips),
                             FlatStop(bool(stop.enabled), float(stop.min_gain_db), int(stop.window)))
 
 

@@ -103,7 +103,7 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
                  "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
                  "splatting", "stage.warmup"),  # SplattingAvatar's recipe and schedule
     outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet"),
-    version="4",
+    version="5",
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=DynamicConfig,

@@ -7,9 +7,10 @@ never frame 0, the canonical frame whose images also seed the warm-up's colours)
 
 A validation renders those F x C images without gradients, with the renderer and backend of training, and
 records the mean per-image PSNR of the full image (as stage ``evaluate`` averages it), the render clamped
-to [0, 1]. LPIPS is left out: at ``draft`` (4 frames, 7 cameras, 128 px) LPIPS-alex over the 28 images would
-make a warm-up validation 1.6 times as costly (README, "Quality during training"), and the stop rule needs
-only PSNR; stage ``evaluate`` measures LPIPS on the final model.
+to [0, 1], and with ``lpips`` the mean LPIPS-alex (``evaluate``'s metric) of the same images. LPIPS is off by
+default: at ``draft`` (4 frames, 7 cameras, 128 px) it makes a warm-up validation 1.6 times as costly
+(README, "Quality during training") and the stop rule needs only PSNR; choosing a loss weight that trades
+PSNR against perceptual quality on training views needs it (``benchmarks/bench_patch_weight.py``).
 
 The curve has a point at the step training starts from (the starting model), every ``every`` steps, and at
 the step it ends. The stop rule (:func:`is_flat`) looks at the points from ``stop_from`` on, the step after
@@ -23,6 +24,7 @@ the curve and takes the same decisions.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -33,6 +35,7 @@ import torch
 from torch import Tensor
 
 from avatar.metrics import psnr
+from avatar.metrics.evaluation import default_lpips
 from avatar.training.data import ViewSet
 
 log = logging.getLogger(__name__)
@@ -53,10 +56,12 @@ class FlatStop:
 
 @dataclass(frozen=True)
 class ValidationConfig:
-    """``every``: steps between validations (0: none, no frame withheld); ``frames``: frames withheld."""
+    """``every``: steps between validations (0: none, no frame withheld); ``frames``: frames withheld;
+    ``lpips``: measure LPIPS-alex too."""
 
     every: int = 0
     frames: int = 4
+    lpips: bool = False
     stop_when_flat: FlatStop = field(default_factory=FlatStop)
 
     @property
@@ -80,11 +85,13 @@ class ValidationConfig:
 
 @dataclass
 class CurvePoint:
-    """One validation: after ``step`` steps and ``wall_s`` seconds of training (validation excluded)."""
+    """One validation: after ``step`` steps and ``wall_s`` seconds of training (validation excluded); ``lpips``
+    NaN when not measured."""
 
     step: int
     wall_s: float
     psnr: float
+    lpips: float = math.nan
 
 
 def withheld_frames(num_frames: int, count: int) -> np.ndarray:
@@ -180,7 +187,7 @@ class Validator:
             return False
         self._lap()
         with torch.no_grad():
-            self.curve.append(CurvePoint(step, self.train_s, self._psnr(render)))
+            self.curve.append(CurvePoint(step, self.train_s, *self._measure(render)))
         if self.cfg.stop_when_flat.enabled and step < self.planned_steps and self._flat():
             self.stopped_at = step
         now = time.perf_counter()
@@ -199,11 +206,14 @@ class Validator:
         self.train_s += now - self._clock
         self._clock = now
 
-    def _psnr(self, render: Render) -> float:
-        """Mean full-image PSNR (dB) over the withheld frames and the training cameras."""
-        pred = torch.cat([render(int(t)) for t in self.frames]).clamp(0, 1)  # (F C, S, S, 3)
-        gt = self.views.images[torch.from_numpy(self.frames)].flatten(0, 1).to(pred.dtype) / 255.0
-        return float(psnr(pred.permute(0, 3, 1, 2), gt.permute(0, 3, 1, 2)).mean())
+    def _measure(self, render: Render) -> tuple[float, float]:
+        """Mean full-image PSNR (dB) and LPIPS-alex (NaN unless ``cfg.lpips``) over the withheld frames and the
+        training cameras."""
+        pred = torch.cat([render(int(t)) for t in self.frames]).clamp(0, 1).permute(0, 3, 1, 2)  # (F C, 3, S, S)
+        gt = self.views.images[torch.from_numpy(self.frames)].flatten(0, 1).to(pred.dtype).permute(0, 3, 1, 2) / 255.0
+        lpips = (float(default_lpips()(pred.float(), gt.float(), unit_range=True).mean()) if self.cfg.lpips
+                 else math.nan)
+        return float(psnr(pred, gt).mean()), lpips
 
     def _flat(self) -> bool:
         stop = self.cfg.stop_when_flat
@@ -225,18 +235,21 @@ class Validator:
         """The curve as the columns of ``curve.parquet`` (``data_schemas.curve.CURVE``)."""
         return {"step": np.array([p.step for p in self.curve], dtype=np.int64),
                 "wall_s": np.array([p.wall_s for p in self.curve], dtype=np.float64),
-                "psnr": np.array([p.psnr for p in self.curve], dtype=np.float64)}
+                "psnr": np.array([p.psnr for p in self.curve], dtype=np.float64),
+                "lpips": np.array([p.lpips for p in self.curve], dtype=np.float64)}
 
     def metrics(self) -> dict[str, float | int | bool]:
         """Manifest metrics: ``stopped_at_step`` (steps run), ``planned_steps``, ``early_stopped``,
         ``validation_s``, ``resumed_from_step`` (the checkpoint's step a killed run was resumed from, else 0);
-        with a curve ``validation_psnr`` (its last point); when stopped early ``time_saved_s``, the steps not
+        with a curve ``validation_psnr`` (its last point) and with LPIPS ``validation_lpips``; when stopped early ``time_saved_s``, the steps not
         run times the mean training step time."""
         out: dict[str, float | int | bool] = {"stopped_at_step": self.end, "planned_steps": self.planned_steps,
                                              "early_stopped": self.stopped_at is not None,
                                              "validation_s": self.validation_s, "resumed_from_step": self.resumed_from}
         if self.curve:
             out["validation_psnr"] = self.curve[-1].psnr
+            if self.cfg.lpips:
+                out["validation_lpips"] = self.curve[-1].lpips
         if self.stopped_at is not None:
             out["time_saved_s"] = (self.planned_steps - self.end) * self.train_s / max(self.end, 1)
         return out

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from avatar.gaussians.model import BoundGaussians
+from avatar.metrics.lpips import LPIPS
 from avatar.splatting import EmbeddedGaussians
 from avatar.training import static
 from avatar.training.data import MeshSequence, ViewSet
@@ -138,6 +139,33 @@ def test_a_tiny_warmup_records_a_curve_and_nothing_changes_without_validation():
     assert off.curve == [] and off.table()["step"].size == 0 and off.frames.size == 0
     for name, value in plain.state_dict().items():
         assert torch.equal(with_off.state_dict()[name], value), name
+
+
+def test_lpips_on_the_curve_is_the_evaluation_metric_of_the_withheld_images_and_nan_when_off():
+    """With ``lpips`` each point holds LPIPS-alex (``evaluate``'s metric) of the withheld frames from every training
+    camera, computed here image by image from the renders; without it the column is NaN and no metric is written."""
+    gen = torch.Generator().manual_seed(0)
+    frames, cams, size = 5, 2, 40
+    images = torch.randint(0, 256, (frames, cams, size, size, 3), generator=gen, dtype=torch.uint8)
+    views = ViewSet(images, torch.zeros(frames, cams, size, size, dtype=torch.uint8), torch.eye(3).repeat(cams, 1, 1),
+                    torch.eye(4).repeat(cams, 1, 1), ["a", "b"], torch.zeros(3))
+    noise = torch.rand(frames, cams, size, size, 3, generator=gen)
+
+    def render(frame: int) -> torch.Tensor:  # (C, S, S, 3): each frame's images, blurred towards noise
+        return 0.7 * images[frame].float() / 255 + 0.3 * noise[frame]
+
+    reference = LPIPS("alex")
+    on, off = (Validator(ValidationConfig(every=1, frames=2, lpips=flag), views) for flag in (True, False))
+    for validator in (on, off):
+        validator.begin(0, 3, 0, render)
+    np.testing.assert_array_equal(on.frames, [2, 3])
+    expected = np.mean([float(reference(render(t)[c].permute(2, 0, 1), images[t, c].permute(2, 0, 1).float() / 255,
+                                        unit_range=True)) for t in (2, 3) for c in range(cams)])
+    assert on.curve[0].lpips == pytest.approx(expected, rel=1e-5) and 0.0 < expected
+    assert on.curve[0].psnr == off.curve[0].psnr
+    assert on.metrics()["validation_lpips"] == on.curve[0].lpips
+    assert math.isnan(off.curve[0].lpips) and "validation_lpips" not in off.metrics()
+    assert math.isnan(off.table()["lpips"][0]) and on.table()["lpips"][0] == on.curve[0].lpips
 
 
 @pytest.mark.parametrize(("densify_until", "stop"), [(0.25, 20), (0.5, 30)])
