@@ -6,8 +6,11 @@ For each stage the runner decides, and prints with its reason, one of:
 - ``run``: forced, never run, config/code/upstream changed, or outputs missing or corrupted;
 - ``skip``: not selected by ``run.only`` / ``run.from`` / ``run.until``.
 
-Execution holds the stage's write lock and read locks on its inputs, re-decides
-under them (another run may just have produced the stage or replaced an input),
+A stage is first decided under read locks on it and its inputs: a cached one is done
+then, so it never waits for other runs that only read it (methods of one subject run
+side by side and read the shared stages for hours). Execution holds the stage's write
+lock and read locks on its inputs, re-decides under them (another run may just have
+produced the stage or replaced an input),
 writes into a temporary directory, checks that the inputs it read are still the
 ones its manifest names, and publishes atomically with the manifest written last.
 """
@@ -314,14 +317,14 @@ class Runner:
         # The cross-method inputs present now; one that appears while waiting for the locks is left to the
         # next run (the key records exactly what was read).
         reads = list(self._inputs(s, set()).values())
-        with self.ws.lock(a, reads, order, self.lock_timeout_s):
-            self._forget_replaced_inputs(self._inputs(s, set()))
-            d = self._decide(s, self.selection.force, set())
+        with self.ws.lock(a, reads, order, self.lock_timeout_s, write=False):
+            d = self._redecide(s)
             if not d.run:
-                self.ws.discard_leftovers(a)
-                report = StageReport(s.name, "cached", d.reason, metrics=self._verified[a.key].metrics)
-                self._log_decision(report)
-                return report
+                return self._cached(s, a, d)
+        with self.ws.lock(a, reads, order, self.lock_timeout_s):
+            d = self._redecide(s)
+            if not d.run:
+                return self._cached(s, a, d)
             other = None if self.selection.force else self._same_key_elsewhere(s, d.key)
             shared = self._share(s, a, other, d) if other is not None else None
             if shared is not None:
@@ -376,6 +379,18 @@ class Runner:
                 raise
             report.wall_s, report.peak_rss_mb, report.metrics = usage.wall_s, usage.peak_rss_mb, dict(ctx.metrics)
             return report
+
+    def _redecide(self, s: Stage) -> _Decision:
+        """Decide ``s`` afresh; call holding at least read locks on it and its inputs (no run is writing them)."""
+        self._forget_replaced_inputs(self._inputs(s, set()))
+        return self._decide(s, self.selection.force, set())
+
+    def _cached(self, s: Stage, a: Artifact, d: _Decision) -> StageReport:
+        """The report of cached ``s`` (decision ``d``, under its lock); clears what killed runs of it left."""
+        self.ws.discard_leftovers(a)
+        report = StageReport(s.name, "cached", d.reason, metrics=self._verified[a.key].metrics)
+        self._log_decision(report)
+        return report
 
     def _share(self, s: Stage, a: Artifact, other: Artifact, d: _Decision) -> StageReport | None:
         """Publish ``other``'s artifact (same cache key) as this method's, by hard links, and its manifest

@@ -128,15 +128,16 @@ class Workspace:
 
     @contextmanager
     def lock(self, artifact: Artifact, reads: Sequence[Artifact], order: Sequence[str],
-             timeout_s: float) -> Iterator[None]:
-        """Write lock on ``artifact`` and read locks on the artifacts it ``reads``, across processes.
+             timeout_s: float, write: bool = True) -> Iterator[None]:
+        """Write lock (``write=False``: a read lock) on ``artifact`` and read locks on the artifacts it ``reads``,
+        across processes.
 
-        While held, no other run can write ``artifact`` or replace any of ``reads``; other
-        readers of ``reads`` may run alongside. Locks are taken in ``order`` (the DAG's
+        While held, no other run can write ``artifact`` or replace any of ``reads``; other readers of ``reads``
+        (and with ``write=False`` of ``artifact``) may run alongside. Locks are taken in ``order`` (the DAG's
         topological order of stage names; then by subject and method), so runs never deadlock, also when
         they read each other's subjects.
         """
-        wanted = {a: True for a in reads} | {artifact: False}
+        wanted = {a: True for a in reads} | {artifact: not write}
         rank = {name: i for i, name in enumerate(order)}
         ordered = sorted(wanted, key=lambda a: (rank[a.stage], a.subject or self.subject, a.method or ""))
         requests = [(self._lock_path(a), wanted[a], f"stage '{a.id}' of subject '{a.subject or self.subject}'")
@@ -189,8 +190,8 @@ class Workspace:
     def discard_leftovers(self, artifact: Artifact) -> None:
         """Remove what killed or failed runs of ``artifact`` left behind (temporary dirs, checkpoints).
 
-        Call with the artifact's write lock held and only when it is whole: no live
-        run can be writing either, and no later run can resume from them.
+        Call with the artifact's write or read lock held (either keeps every writer out) and only when it
+        is whole: no live run can be writing either, and no later run can resume from them.
         """
         self.discard_stale_tmp(artifact)
         self.discard_scratch(artifact)

@@ -6,6 +6,7 @@ import json
 import signal
 import subprocess
 
+from pipeline.locks import flock
 from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli, wait_for
 
 TOY = [*TOY_OVERRIDES, "run.progress=false"]
@@ -46,6 +47,21 @@ def test_two_concurrent_runs_do_not_interleave(tmp_path):
     # Both runs agree on the final artifacts.
     manifest = json.loads((out / "synth_a" / "c" / "_manifest.json").read_text())
     assert manifest["outputs"]
+
+
+def test_a_cached_stage_does_not_wait_for_a_run_that_reads_it(tmp_path):
+    """Methods of one subject run side by side and read the shared stages for hours (their training stages hold
+    read locks on them): a run that finds those stages cached goes on at once; one that must rewrite a stage
+    still waits for the readers (here: gives up after run.lock_timeout_s, with the setting named)."""
+    out = tmp_path / "out"
+    args = [*TOY, f"paths.outputs={out}", "run.lock_timeout_s=3"]
+    assert run_cli(*args).returncode == 0
+    with flock(out / "synth_a" / ".locks" / "a.lock", shared=True, timeout_s=0.0, what="a reader of stage a"):
+        cached = run_cli(*args)
+        assert cached.returncode == 0, cached.stderr
+        assert all(f"{s}          cached" in cached.stdout for s in "abcd"), cached.stdout
+        forced = run_cli(*args, "run.only=a", "run.force=true")
+    assert forced.returncode != 0 and "run.lock_timeout_s" in forced.stderr + forced.stdout, forced.stderr
 
 
 def test_cli_bad_config_is_one_clear_error(tmp_path):
