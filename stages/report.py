@@ -38,7 +38,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="10", config_schema=ReportConfig, per_method=True,
+       outputs=("report.html",), version="11", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -340,15 +340,22 @@ def _validation_section(warmup_dir: Path, dynamic_dir: Path) -> str:
                 "are 0 (README, \"Quality during training\").</p>")
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6, 3), dpi=100)
+    with_lpips = any(np.isfinite(np.asarray(c["lpips"], float)).any() for c in curves.values())
+    ax_lpips = ax.twinx() if with_lpips else None
     offset = 0.0
     for name, curve in curves.items():
         wall = np.asarray(curve["wall_s"], float) + offset
-        ax.plot(wall, curve["psnr"], marker=".", label=name)
+        line, = ax.plot(wall, curve["psnr"], marker=".", label=name)
+        if ax_lpips is not None:  # validation.lpips: dashed, same colour, right axis
+            ax_lpips.plot(wall, curve["lpips"], linestyle="--", marker=".", color=line.get_color())
         offset = float(wall[-1])
     ax.set_xlabel("training wall time (s)")
     ax.set_ylabel("validation PSNR (dB)")
+    if ax_lpips is not None:
+        ax_lpips.set_ylabel("validation LPIPS (dashed)")
     ax.legend()
-    return ("<h3>Validation PSNR during training (withheld training frames, training cameras)</h3>"
+    title = "Validation PSNR" + (" and LPIPS" if with_lpips else "")
+    return (f"<h3>{title} during training (withheld training frames, training cameras)</h3>"
             f"<img alt='validation curve' src='data:image/png;base64,{_figure_png(fig)}'>")
 
 
