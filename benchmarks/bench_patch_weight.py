@@ -12,8 +12,8 @@ The rule, fixed before any run: the patch loss is there for perceptual quality, 
 Among the candidates whose final validation PSNR is within ``--psnr-tolerance`` dB (0.1) of the best
 candidate's, take the one with the lowest final validation LPIPS (ties: the smaller c).
 
-Candidates live side by side as methods ``patch_w<c>`` (``patch_w0_03``) of one outputs folder, so runs may be split over
-several processes (``--weights``) and the table printed afterwards with ``--no-run``.
+Candidates live side by side as methods ``patch_w<c>`` (``patch_w0_03``) of one outputs folder, so runs may be
+split over several processes (``--weights``) and the table printed afterwards with ``--no-run``.
 
 Usage: python benchmarks/bench_patch_weight.py [--subject synth_a] [--preset draft] [--weights 0 0.01 0.03 0.1]
        [--outputs DIR] [--every 250] [--frames 4] [--psnr-tolerance 0.1] [--set KEY=VALUE ...] [--no-run]
@@ -64,7 +64,7 @@ class Candidate:
 
 def method_name(weight: float) -> str:
     """The method folder of a candidate: ``patch_w0_03`` for 0.03."""
-    return "patch_w" + f"{weight:g}".replace(".", "_").replace("-", "m").replace("+", "")
+    return "patch_w" + f"{weight:g}".replace(".", "_")  # weights are >= 0 (checked), e.g. 1e-05 -> patch_w1e-05
 
 
 def overrides(preset: str, subject: str, outputs: Path, weight: float, warmup_steps: int, every: int, frames: int,

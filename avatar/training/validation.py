@@ -241,8 +241,8 @@ class Validator:
     def metrics(self) -> dict[str, float | int | bool]:
         """Manifest metrics: ``stopped_at_step`` (steps run), ``planned_steps``, ``early_stopped``,
         ``validation_s``, ``resumed_from_step`` (the checkpoint's step a killed run was resumed from, else 0);
-        with a curve ``validation_psnr`` (its last point) and with LPIPS ``validation_lpips``; when stopped early ``time_saved_s``, the steps not
-        run times the mean training step time."""
+        with a curve ``validation_psnr`` (its last point) and with LPIPS ``validation_lpips``; when stopped early
+        ``time_saved_s``, the steps not run times the mean training step time."""
         out: dict[str, float | int | bool] = {"stopped_at_step": self.end, "planned_steps": self.planned_steps,
                                              "early_stopped": self.stopped_at is not None,
                                              "validation_s": self.validation_s, "resumed_from_step": self.resumed_from}
