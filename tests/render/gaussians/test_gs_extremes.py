@@ -37,9 +37,14 @@ def _backward(scene: Scene, backend: str) -> tuple[RenderOutput, list[torch.Tens
     return out, [p.grad for p in params]
 
 
-def _render_and_backward(scene: Scene, backend: str) -> tuple[RenderOutput, list[torch.Tensor]]:
+def _render_and_backward(scene: Scene, backend: str,
+                         ill_conditioned: tuple[int, ...] = ()) -> tuple[RenderOutput, list[torch.Tensor]]:
     """Render, backpropagate rgb + alpha + depth, and assert that everything is finite (and, for the
-    compiled backend, equal to the torch backend's to 1e-5)."""
+    compiled backend, equal to the torch backend's to 1e-5).
+
+    ``ill_conditioned``: Gaussians whose gradients are checked for finiteness only, not against the torch
+    backend, because two correct evaluation orders of them disagree by more than 1e-5 (see the caller).
+    """
     out, grads = _backward(scene, backend)
     for name in ("rgb", "alpha", "depth"):
         assert torch.isfinite(getattr(out, name)).all(), name
@@ -51,7 +56,9 @@ def _render_and_backward(scene: Scene, backend: str) -> tuple[RenderOutput, list
         for name in ("rgb", "alpha", "depth"):
             assert torch.allclose(getattr(out, name), getattr(ref, name), rtol=0, atol=1e-5), name
         assert torch.equal(out.radii, ref.radii)
+        compared = [i for i in range(scene.means.shape[0]) if i not in ill_conditioned]
         for name, g, r in zip((*NAMES, "means2d"), [*grads, out.grad2d()], [*ref_grads, ref.grad2d()]):
+            g, r = g[compared], r[compared]
             # 1e-5 of the largest entry; the 1e-6 floor covers inputs whose gradient is float32 rounding noise.
             tol = 1e-5 * r.abs().amax(dim=None) + 1e-6 if r.numel() else 0.0
             assert ((g - r).abs() <= tol).all(), f"d/d{name} differs from the torch backend"
@@ -128,7 +135,11 @@ def test_degenerate_scales_per_axis(backend: str) -> None:
     base = random_scene(5, seed=11, dtype=F32)
     scales = [[0.0, 0.0, 0.1], [0.1, 0.0, 0.0], [1e6, 0.0, 1e-9]]
     means = [_camera_point(base, [0.1 * i, 0.0, 2.0]) for i in range(3)]
-    _render_and_backward(_with_extra(means, scales=scales), backend)
+    # The last one (scale 1e6 beside 0 and 1e-9) has a 2D covariance of ~1e14 whose inverse is formed by
+    # cancellation: its mean and quaternion gradients differ between the two backends by 7e-5 (means) and
+    # 2e-2 (quats) of their size even in float64, and their float32 values are off the float64 ones by 1.5-2.4.
+    # Its image and the other Gaussians' gradients are still compared; its own only need to be finite.
+    _render_and_backward(_with_extra(means, scales=scales), backend, ill_conditioned=(7,))
 
 
 def test_unnormalised_and_zero_quaternions(backend: str) -> None:
