@@ -371,7 +371,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> bin_tiles
   const auto long_opts = at::TensorOptions().dtype(at::kLong);
   const auto int_opts = at::TensorOptions().dtype(at::kInt);
   // Box coordinates are pixels in [0, size - 1] and the tile size a power of two, so a shift divides
-  // exactly; an integer division by the run-time tile size (idiv, ~40 cycles) took most of the binning.
+  // exactly (an integer division by the run-time tile size costs ~40 cycles on some CPUs).
   const int shift = __builtin_ctz(static_cast<unsigned>(grid.tile_size));
   // The tiles of Gaussian i: rows y0..y1, columns x0..x1 of the grid.
   auto tiles_of = [&](int64_t i) {
