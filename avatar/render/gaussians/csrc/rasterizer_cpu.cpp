@@ -473,12 +473,14 @@ struct Simd<float> {
   typedef float V __attribute__((vector_size(32)));
   typedef int32_t I __attribute__((vector_size(32)));
   static constexpr int kLanes = 8;
-  static constexpr float kExpFloor = -80.0f;
+  static constexpr float kExp2Floor = -115.0f;  // 2^-115 = 2.4e-35, clear of subnormals
   static constexpr float kRound = 12582912.0f;  // 1.5 * 2^23: x + kRound - kRound rounds x to an integer
   static constexpr int32_t kRoundBits = 0x4B400000;
   static constexpr int kMantissa = 23, kBias = 127, kTaylor = 6;
-  static constexpr float kTaylorCoef[kTaylor + 1] = {1.0f, 1.0f, 0.5f, 1.0f / 6, 1.0f / 24, 1.0f / 120, 1.0f / 720};
-  static constexpr float kLn2Hi = 0.693145751953125f, kLn2Lo = 1.4286068203094172e-06f;
+  // ln(2)^k / k! for k = 0, 1, ..., 6: the Taylor polynomial of 2^r = exp(r ln 2)
+  static constexpr float kTaylorCoef[kTaylor + 1] = {1.0f, 0.6931471805599453f, 0.2402265069591007f,
+                                                     0.055504108664821576f, 0.009618129107628477f,
+                                                     0.0013333558146428441f, 0.00015403530393381606f};
 };
 
 template <>
@@ -486,32 +488,35 @@ struct Simd<double> {
   typedef double V __attribute__((vector_size(32)));
   typedef int64_t I __attribute__((vector_size(32)));
   static constexpr int kLanes = 4;
-  static constexpr double kExpFloor = -700.0;
+  static constexpr double kExp2Floor = -1000.0;  // 2^-1000 = 9.3e-302
   static constexpr double kRound = 6755399441055744.0;  // 1.5 * 2^52
   static constexpr int64_t kRoundBits = 0x4338000000000000LL;
   static constexpr int kMantissa = 52, kBias = 1023, kTaylor = 12;
-  // 1 / k! for k = 0, 1, ..., 12
-  static constexpr double kTaylorCoef[kTaylor + 1] = {1.0,         1.0,          0.5,           1.0 / 6,
-                                                      1.0 / 24,    1.0 / 120,    1.0 / 720,     1.0 / 5040,
-                                                      1.0 / 40320, 1.0 / 362880, 1.0 / 3628800, 1.0 / 39916800,
-                                                      1.0 / 479001600};
-  static constexpr double kLn2Hi = 6.93147180369123816490e-01, kLn2Lo = 1.90821492927058770002e-10;
+  // ln(2)^k / k! for k = 0, 1, ..., 12
+  static constexpr double kTaylorCoef[kTaylor + 1] = {
+      1.0,                  0.6931471805599453,    0.2402265069591007,    0.055504108664821576,
+      0.009618129107628477, 0.0013333558146428441, 0.00015403530393381606, 1.5252733804059838e-05,
+      1.3215486790144305e-06, 1.0178086009239696e-07, 7.054911620801121e-09, 4.44553827187081e-10,
+      2.5678435993488196e-11};
 };
 
-// exp(x) for x <= 0 (x = -q / 2, q >= 0) per lane: x = n ln2 + r with |r| <= ln2 / 2 (n rounded
-// by the 1.5 * 2^mantissa trick), a Taylor polynomial for exp(r) of degree 6 (float, relative
-// error 1.2e-7) or 12 (double, 2e-16) and 2^n written into the exponent bits. Below x = -80
-// (float) or -700 (double) it returns exp of that limit: alpha is far below ALPHA_MIN there, and the limit keeps
-// o exp(x) (o >= ALPHA_MIN) clear of subnormal numbers, whose arithmetic is ~100x slower.
+// 2^x for x <= 0 per lane: x = n + r with n an integer and |r| <= 1/2 (n rounded by the
+// 1.5 * 2^mantissa trick; r = x - n is exact), a Taylor polynomial for 2^r of degree 6 (float,
+// relative error 1.2e-7) or 12 (double, 2e-16) and 2^n written into the exponent bits. Below
+// x = -115 (float) or -1000 (double) it returns 2 to that limit: alpha is far below ALPHA_MIN
+// there, and the limit keeps it clear of subnormal numbers, whose arithmetic is ~100x slower.
+// Working in base 2 (the conic and the opacity folded into x, see RowTerms) saves the ln 2 range
+// reduction of exp and the multiplication by the opacity: 6 of the ~66 vector operations per 8
+// pixels of the forward.
 template <typename scalar_t>
-inline typename Simd<scalar_t>::V exp_neg(typename Simd<scalar_t>::V x) {
+inline typename Simd<scalar_t>::V exp2_neg(typename Simd<scalar_t>::V x) {
   using S = Simd<scalar_t>;
   using V = typename S::V;
   using I = typename S::I;
-  x = x < S::kExpFloor ? V{} + S::kExpFloor : x;
-  const V t = x * static_cast<scalar_t>(1.4426950408889634074) + S::kRound;
+  x = x < S::kExp2Floor ? V{} + S::kExp2Floor : x;
+  const V t = x + S::kRound;
   const V n = t - S::kRound;
-  const V r = (x - n * S::kLn2Hi) - n * S::kLn2Lo;
+  const V r = x - n;
   // Estrin's scheme: pairs c_2j + c_2j+1 r, then pairs of those with r^2, r^4, ...: a dependency
   // chain of ~log2(degree) multiply-adds instead of Horner's degree.
   constexpr int kTerms = S::kTaylor / 2 + 1;
@@ -536,7 +541,7 @@ constexpr int kPrefetch = 8;
 
 template <typename scalar_t>
 struct alignas(64) Splat {
-  scalar_t mx, my, a, b, c, opacity;
+  scalar_t mx, my, a, b, c, opacity, log2_opacity;
   scalar_t color[3];
   scalar_t depth;
   int32_t box[4];
@@ -566,27 +571,31 @@ const Splat<scalar_t>* pack_splats(const at::Tensor& order, const scalar_t* mean
 #pragma omp parallel for schedule(static)
   for (int64_t r = 0; r < n; ++r) {
     const int64_t i = ord[r];
+    const scalar_t log2_o = static_cast<scalar_t>(std::log2(static_cast<double>(opacities[i])));
     splats[r] = Splat<scalar_t>{means2d[2 * i], means2d[2 * i + 1], conics[3 * i], conics[3 * i + 1],
-                                conics[3 * i + 2], opacities[i], {colors[3 * i], colors[3 * i + 1], colors[3 * i + 2]},
+                                conics[3 * i + 2], opacities[i], log2_o,
+                                {colors[3 * i], colors[3 * i + 1], colors[3 * i + 2]},
                                 depths[i], {box[4 * i], box[4 * i + 1], box[4 * i + 2], box[4 * i + 3]}};
   }
   return splats;
 }
 
-// exp(-q / 2) of a Gaussian at pixel offsets (dx, dy) from its mean; alpha is o times this. The
-// forward and the backward both call it, so their skip and clamp decisions agree bit for bit.
-//   q = a dx^2 + 2 b dx dy + c dy^2 = (a dx + 2 b dy) dx + c dy^2, with the row terms per row.
+// The unclamped alpha o exp(-q / 2) = 2^(log2 o - q log2(e) / 2) of a Gaussian at pixel offsets
+// (dx, dy) from its mean. The forward and the backward both call it, so their skip and clamp
+// decisions agree bit for bit.
+//   -q log2(e) / 2 = (k a dx + 2 k b dy) dx + k c dy^2 with k = -log2(e) / 2, the row terms per row.
 template <typename scalar_t>
 struct RowTerms {
-  scalar_t dy, b2dy, cdy2;
-  RowTerms(const Splat<scalar_t>& s, int y) : dy(static_cast<scalar_t>(y) - s.my), b2dy(2 * s.b * dy), cdy2(s.c * dy * dy) {}
+  static constexpr scalar_t kHalfLog2e = static_cast<scalar_t>(-0.72134752044448170368);  // -log2(e) / 2
+  scalar_t dy, ka, kb2dy, kcdy2_log2o;
+  RowTerms(const Splat<scalar_t>& s, int y)
+      : dy(static_cast<scalar_t>(y) - s.my), ka(kHalfLog2e * s.a), kb2dy(2 * kHalfLog2e * s.b * dy),
+        kcdy2_log2o(kHalfLog2e * s.c * dy * dy + s.log2_opacity) {}
 };
 
 template <typename scalar_t>
-inline typename Simd<scalar_t>::V falloff(const Splat<scalar_t>& s, typename Simd<scalar_t>::V dx,
-                                          const RowTerms<scalar_t>& row) {
-  const typename Simd<scalar_t>::V q = (s.a * dx + row.b2dy) * dx + row.cdy2;
-  return exp_neg<scalar_t>(static_cast<scalar_t>(-0.5) * q);
+inline typename Simd<scalar_t>::V raw_alpha(typename Simd<scalar_t>::V dx, const RowTerms<scalar_t>& row) {
+  return exp2_neg<scalar_t>((row.ka * dx + row.kb2dy) * dx + row.kcdy2_log2o);
 }
 
 struct TileRect {
@@ -710,7 +719,7 @@ void raster_forward_impl(const TileGrid& grid, const Splat<scalar_t>* splats, co
           const uint32_t open_bits = Lanes::chunk_bits(open_row, c);
           if (open_bits == 0) continue;
           const int v = row * Lanes::kChunks + c;
-          const V raw = s.opacity * falloff(s, lanes.x[c] - s.mx, terms);
+          const V raw = raw_alpha<scalar_t>(lanes.x[c] - s.mx, terms);
           const I hit = lanes.mask(open_bits) & (raw >= static_cast<scalar_t>(kAlphaMin));
           // Missed lanes get alpha 0: no subnormal products, T unchanged.
           const V alpha = hit ? (raw < static_cast<scalar_t>(kAlphaMax) ? raw : V{} + static_cast<scalar_t>(kAlphaMax))
@@ -822,19 +831,23 @@ void raster_backward_impl(const TileGrid& grid, const Splat<scalar_t>* splats, c
       const Splat<scalar_t>& s = splats[ids[k]];
       const Span sp = r.clip(s.box);
       const uint32_t span = Lanes::columns(sp.x0, sp.x1);
-      V gm_x{}, gm_y{}, gc_a{}, gc_b{}, gc_c{}, g_o{}, g_r{}, g_g{}, g_b{}, g_d{};
+      I span_mask[Lanes::kChunks];
+      for (int c = 0; c < Lanes::kChunks; ++c) span_mask[c] = lanes.mask(Lanes::chunk_bits(span, c));
+      // With p = alpha dL/dalpha per pixel (dL/dq = -p / 2) the conic and mean gradients are moments of p:
+      //   dL/da = -sum(p dx^2) / 2, dL/db = -sum(p dx dy), dL/dc = -sum(p dy^2) / 2,
+      //   dL/dmx = a sum(p dx) + b sum(p dy), dL/dmy = b sum(p dx) + c sum(p dy), dL/do = sum(p) / o.
+      // dy is constant along a row, so a row sums p and p dx over its chunks and multiplies by dy once.
+      V m_1{}, m_x{}, m_y{}, m_xx{}, m_xy{}, m_yy{}, g_r{}, g_g{}, g_b{}, g_d{};
       for (int row = sp.y0; row <= sp.y1; ++row) {
         if (((rows >> row) & 1u) == 0) continue;
         const RowTerms<scalar_t> terms(s, r.y0 + row);
-        const scalar_t dy = terms.dy;
+        V row_p{}, row_px{};
         for (int c = 0; c < Lanes::kChunks; ++c) {
           const int v = row * Lanes::kChunks + c;
-          const uint32_t span_bits = Lanes::chunk_bits(span, c);
-          if (span_bits == 0 || local_k > chunk_last[v]) continue;  // no pixel of the chunk replays k
+          if (Lanes::chunk_bits(span, c) == 0 || local_k > chunk_last[v]) continue;  // no pixel of the chunk replays k
           const V dx = lanes.x[c] - s.mx;
-          const V gauss = falloff(s, dx, terms);
-          const V raw = s.opacity * gauss;
-          const I hit = lanes.mask(span_bits) & (kk <= last[v]) & (raw >= static_cast<scalar_t>(kAlphaMin));
+          const V raw = raw_alpha<scalar_t>(dx, terms);
+          const I hit = span_mask[c] & (kk <= last[v]) & (raw >= static_cast<scalar_t>(kAlphaMin));
           const I free = hit & (raw < static_cast<scalar_t>(kAlphaMax));  // alpha not clamped
           // Missed lanes get alpha 0: w = 0, and T and the later sum stay as they are.
           const V alpha = hit ? (raw < static_cast<scalar_t>(kAlphaMax) ? raw : V{} + static_cast<scalar_t>(kAlphaMax))
@@ -851,18 +864,33 @@ void raster_backward_impl(const TileGrid& grid, const Splat<scalar_t>* splats, c
           g_g += w * g1[v];
           g_b += w * g2[v];
           g_d += w * g3[v];
-          g_o += gauss * d_alpha;
-          const V d_q = static_cast<scalar_t>(-0.5) * alpha * d_alpha;
-          gc_a += d_q * dx * dx;
-          gc_b += 2 * d_q * dx * dy;
-          gc_c += d_q * dy * dy;
-          gm_x -= 2 * d_q * (s.a * dx + s.b * dy);
-          gm_y -= 2 * d_q * (s.b * dx + s.c * dy);
+          const V p = raw * d_alpha;  // alpha dL/dalpha: raw is alpha wherever d_alpha is not 0
+          const V p_dx = p * dx;
+          row_p += p;
+          row_px += p_dx;
+          m_xx += p_dx * dx;
         }
+        const scalar_t dy = terms.dy;
+        m_1 += row_p;
+        m_x += row_px;
+        m_y += dy * row_p;
+        m_xy += dy * row_px;
+        m_yy += (dy * dy) * row_p;
       }
+      const double p1 = lane_sum(m_1), px = lane_sum(m_x), py = lane_sum(m_y);
+      const double pxx = lane_sum(m_xx), pxy = lane_sum(m_xy), pyy = lane_sum(m_yy);
+      const double a = s.a, b = s.b, c = s.c, o = s.opacity;
       scalar_t* out = pair_grad + int64_t{kPairGrad} * slots[k];
-      const V sums[kPairGrad] = {gm_x, gm_y, gc_a, gc_b, gc_c, g_o, g_r, g_g, g_b, g_d};
-      for (int i = 0; i < kPairGrad; ++i) out[i] = lane_sum(sums[i]);
+      out[0] = static_cast<scalar_t>(a * px + b * py);
+      out[1] = static_cast<scalar_t>(b * px + c * py);
+      out[2] = static_cast<scalar_t>(-0.5 * pxx);
+      out[3] = static_cast<scalar_t>(-pxy);
+      out[4] = static_cast<scalar_t>(-0.5 * pyy);
+      out[5] = static_cast<scalar_t>(o > 0 ? p1 / o : 0.0);
+      out[6] = lane_sum(g_r);
+      out[7] = lane_sum(g_g);
+      out[8] = lane_sum(g_b);
+      out[9] = lane_sum(g_d);
     }
   });
 }
