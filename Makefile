@@ -30,7 +30,7 @@ $(STAMP): pyproject.toml
 
 # The compiled CPU rasterizer (avatar/render/gaussians/extension.py): one g++ run (~15-30 s) the first
 # time on each kind of CPU (csrc/build/<target>/: a checkout shared by cluster nodes keeps one build per
-# instruction set) and whenever its source changes; otherwise a no-op check of ~2 s. A failed build is
+# instruction set) and whenever its source changes; otherwise a no-op check of 3-5 s. A failed build is
 # reported (once, not retried until the source, flags, torch, compiler or CPU change) and the torch
 # backend is used.
 ext: | $(STAMP)
