@@ -103,7 +103,7 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
                  "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
                  "splatting", "stage.warmup"),  # SplattingAvatar's recipe and schedule
     outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet"),
-    version="5",
+    version="6",  # 6: the compiled rasterizer's alpha as a power of two (rounding-level changes)
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=DynamicConfig,

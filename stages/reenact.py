@@ -78,7 +78,7 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
 @stage("reenact", inputs=("capture", "fit", "scene", "dynamic"),
        config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
        outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
-       version="3", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
+       version="4", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
        input_subject=driver_subject, sources=_sources)
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""

@@ -69,7 +69,7 @@ class WarmupConfig:
     config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup",
                  "method.representation", "method.pbd", "splatting"),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet"),
-    version="5",
+    version="6",  # 6: the compiled rasterizer's alpha as a power of two (rounding-level changes)
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=WarmupConfig,

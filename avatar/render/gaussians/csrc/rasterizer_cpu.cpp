@@ -586,11 +586,11 @@ const Splat<scalar_t>* pack_splats(const at::Tensor& order, const scalar_t* mean
 //   -q log2(e) / 2 = (k a dx + 2 k b dy) dx + k c dy^2 with k = -log2(e) / 2, the row terms per row.
 template <typename scalar_t>
 struct RowTerms {
-  static constexpr scalar_t kHalfLog2e = static_cast<scalar_t>(-0.72134752044448170368);  // -log2(e) / 2
+  static constexpr scalar_t kMinusHalfLog2e = static_cast<scalar_t>(-0.72134752044448170368);  // -log2(e) / 2
   scalar_t dy, ka, kb2dy, kcdy2_log2o;
   RowTerms(const Splat<scalar_t>& s, int y)
-      : dy(static_cast<scalar_t>(y) - s.my), ka(kHalfLog2e * s.a), kb2dy(2 * kHalfLog2e * s.b * dy),
-        kcdy2_log2o(kHalfLog2e * s.c * dy * dy + s.log2_opacity) {}
+      : dy(static_cast<scalar_t>(y) - s.my), ka(kMinusHalfLog2e * s.a), kb2dy(2 * kMinusHalfLog2e * s.b * dy),
+        kcdy2_log2o(kMinusHalfLog2e * s.c * dy * dy + s.log2_opacity) {}
 };
 
 template <typename scalar_t>
