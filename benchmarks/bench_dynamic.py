@@ -50,6 +50,7 @@ from avatar.render.gaussians import render_gaussians  # noqa: E402
 from avatar.training.dynamic import rasterize  # noqa: E402
 from data_schemas.capture import MASK_LABELS  # noqa: E402
 from data_schemas.deform import DEFORM  # noqa: E402
+from data_schemas.frames import UNOBSERVED  # noqa: E402
 from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
 from pipeline.config import validate_config  # noqa: E402
@@ -141,13 +142,14 @@ def error_budget(root: Path, variant: str, metrics: dict) -> list[tuple]:
                 count = {r: int((lab == MASK_LABELS[r]).sum()) for r in ("hand", "face")}
                 sse = {r: 10 ** (-by_key[(t, camera_id, r)] / 10) * count[r] if count[r] else 0.0
                        for r in ("hand", "face")}
-                psnr_full = by_key[(t, camera_id, "full")]
-                sse_full = 10 ** (-psnr_full / 10) * lab.size
+                psnr_full = by_key[(t, camera_id, "full")]  # over the observed pixels (no crop padding)
+                observed = int((lab != UNOBSERVED).sum())
+                sse_full = 10 ** (-psnr_full / 10) * observed
                 full.append(psnr_full)
-                hand_oracle.append(-10 * np.log10((sse_full - sse["hand"]) / lab.size))
-                both_oracle.append(-10 * np.log10((sse_full - sse["hand"] - sse["face"]) / lab.size))
+                hand_oracle.append(-10 * np.log10((sse_full - sse["hand"]) / observed))
+                both_oracle.append(-10 * np.log10((sse_full - sse["hand"] - sse["face"]) / observed))
                 shares.append((sse["hand"] / sse_full, sse["face"] / sse_full,
-                               1 - (sse["hand"] + sse["face"]) / sse_full, count["hand"] / lab.size))
+                               1 - (sse["hand"] + sse["face"]) / sse_full, count["hand"] / observed))
         f, h, b, s = np.mean(full), np.mean(hand_oracle), np.mean(both_oracle), np.mean(shares, axis=0)
         rows.append((split, variant, f"{f:.2f}", f"{h:.2f} ({h - f:+.2f})", f"{b:.2f} ({b - f:+.2f})",
                      f"{s[0]:.0%} / {s[1]:.0%} / {s[2]:.0%}", f"{s[3]:.1%}"))

@@ -5,11 +5,15 @@ Layout::
     index.parquet                                   one row per (sequence, camera, frame)
     <sequence>/<camera_id>/rgb/<frame:06d>.png      crop, (S, S, 3) uint8 sRGB
     <sequence>/<camera_id>/mask/<frame:06d>.png     crop labels (S, S) uint8: 0 bg, 1 face, 2 hand,
-                                                    3 foreground of unknown part (keyed masks)
+                                                    3 foreground of unknown part (keyed masks),
+                                                    4 unobserved (the crop reaches past the camera image)
 
 The crop of a view is fixed over a sequence; ``K`` is the crop's intrinsics
 (OpenCV pixel convention), ``crop`` the window (x0, y0, size) in the full image.
 Boxes are (x0, y0, x1, y1) in crop pixels, zero when the part is not visible.
+Where a crop reaches past the camera image its RGB is padded with the background
+colour and its label is ``UNOBSERVED``: no camera saw those pixels, so no loss
+or metric may compare a render with them.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ FRAMES_INDEX = TableSchema(
     ),
 )
 UNKNOWN_PART = 3
+UNOBSERVED = 4  # crop padding outside the camera image
 
 
 def rgb_path(root: Path, sequence: str, camera_id: str, frame: int) -> Path:

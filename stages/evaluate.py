@@ -18,6 +18,7 @@ from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.training.data import MeshSequence
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
+from data_schemas.frames import UNOBSERVED
 from data_schemas.images import write_png
 from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, showcase_path
 from data_schemas.tables import SchemaError, write_table
@@ -44,7 +45,7 @@ Renderer = Callable[[int, int], torch.Tensor]
 
 @stage("evaluate", inputs=("capture", "frames", "fit", "scene", "pbd", "dynamic"),
        config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
-       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="7", config_schema=EvaluateConfig,
+       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="8", config_schema=EvaluateConfig,
        sources=contact_sources, per_method=True, subject_inputs=("fit",), input_subject=driver_subject)
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion (and, when reenact.driver names another subject
@@ -74,9 +75,10 @@ def evaluate(ctx: StageContext) -> None:
         pairs = [(t, c) for t in range(views.num_frames) for c in range(views.num_cameras)]
         grid = []
         for i, (t, c) in enumerate(ctx.progress(pairs, desc=f"evaluate {split}")):
-            gt = views.image(t, c).permute(2, 0, 1)
             with torch.no_grad():
-                pred = render(t, c).clamp(0, 1).permute(2, 0, 1)
+                raw = render(t, c).clamp(0, 1)
+            # metrics and error maps on the observed pixels only: the render takes the ground truth on padding
+            gt, pred = (image.permute(2, 0, 1) for image in views.target_and_render(raw, t, c))
             for region, mask in _regions(views.labels[t, c].numpy()).items():
                 m = image_metrics(pred, gt, None if mask is None else torch.from_numpy(mask), lpips_model=lpips)
                 for key, value in (("method", method), ("split", split), ("camera_id", views.camera_ids[c]),
@@ -84,7 +86,7 @@ def evaluate(ctx: StageContext) -> None:
                                    ("psnr", m["psnr"]), ("ssim", m["ssim"]), ("lpips", m["lpips"])):
                     rows[key].append(value)
             if (t, c) in showcase:
-                write_png(showcase_path(ctx.out_dir, split, t, views.camera_ids[c]), _to_u8(pred))
+                write_png(showcase_path(ctx.out_dir, split, t, views.camera_ids[c]), _to_u8(raw.permute(2, 0, 1)))
             if i % max(len(pairs) // max(conf.grid_samples, 1), 1) == 0 and len(grid) < conf.grid_samples:
                 grid.append(_grid_row(gt, [pred]))
         write_png(ctx.out_dir / "grids" / f"{split}.png", np.concatenate(grid, axis=0))
@@ -161,15 +163,18 @@ def _summary(rows: dict[str, list]) -> dict[str, float]:
 
 
 def _regions(labels: np.ndarray) -> dict[str, np.ndarray | None]:
-    """Region masks (S, S) bool of one crop; ``full`` is None (every pixel). ``interaction`` is the
-    overlap of the hand and face boxes, empty when they do not overlap."""
+    """Region masks (S, S) bool of one crop; ``full`` is the observed pixels (None when the camera saw every
+    pixel of the crop; crop padding past its image is left out). ``interaction`` is the overlap of the hand
+    and face boxes, empty when they do not overlap."""
+    observed = labels != UNOBSERVED
     hand, face = labels == MASK_LABELS["hand"], labels == MASK_LABELS["face"]
     interaction = np.zeros_like(hand)
     box = overlap_box(label_box(labels, MASK_LABELS["hand"]), label_box(labels, MASK_LABELS["face"]))
     if box is not None:
         x0, y0, x1, y1 = box.astype(int)
         interaction[y0:y1, x0:x1] = True
-    masks: dict[str, np.ndarray | None] = {"full": None, "hand": hand, "face": face, "interaction": interaction}
+    masks: dict[str, np.ndarray | None] = {"full": None if observed.all() else observed, "hand": hand, "face": face,
+                                           "interaction": interaction}
     assert tuple(masks) == REGIONS
     return masks
 

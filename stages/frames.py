@@ -12,7 +12,7 @@ from avatar.preprocess.masks import background_colour, key_foreground
 from avatar.preprocess.mediapipe_detect import HANDEDNESS, LandmarkDetector, SelfieSegmenter, part_labels
 from data_schemas.cameras import Camera, read_cameras
 from data_schemas.capture import MASK_LABELS, CaptureIndex, mask_path, video_path
-from data_schemas.frames import FRAMES_INDEX, UNKNOWN_PART, crop_mask_path, rgb_path
+from data_schemas.frames import FRAMES_INDEX, UNKNOWN_PART, UNOBSERVED, crop_mask_path, rgb_path
 from data_schemas.images import read_png, write_png
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.video import read_video
@@ -46,7 +46,7 @@ class FramesConfig:
     inputs=("capture",),
     config_keys=("quality.image_size", "stage.frames"),
     outputs=("index.parquet",),
-    version="1",
+    version="2",  # 2: crop padding is labelled UNOBSERVED (was background)
     resources=Resources(cpus=1),
     config_schema=FramesConfig,
 )
@@ -121,11 +121,13 @@ def _sequence_crop(labels: np.ndarray, margin: float, size: int) -> SquareCrop:
 
 def _write_view(out: Path, seq: str, cam: Camera, video: np.ndarray, labels: np.ndarray, crop: SquareCrop,
                 rows: dict[str, list]) -> None:
+    """Write the crops of one view: RGB padded with the background colour where the crop reaches past the
+    image, labels padded with UNOBSERVED there (so no loss or metric compares a render with the padding)."""
     fill = background_colour(video).astype(np.uint8)
     K = crop.adjust_intrinsics(cam.K)
     for t in range(len(video)):
         rgb = crop.apply(video[t], fill)
-        lab = crop.apply(labels[t], 0, labels=True)
+        lab = crop.apply(labels[t], UNOBSERVED, labels=True)
         write_png(rgb_path(out, seq, cam.camera_id, t), rgb)
         write_png(crop_mask_path(out, seq, cam.camera_id, t), lab)
         face = label_box(lab, MASK_LABELS["face"])
@@ -140,4 +142,4 @@ def _write_view(out: Path, seq: str, cam: Camera, video: np.ndarray, labels: np.
         rows["hand_box"].append(hand if hand is not None else np.zeros(4))
         rows["face_visible"].append(face is not None)
         rows["hand_visible"].append(hand is not None)
-        rows["foreground_fraction"].append(float((lab > 0).mean()))
+        rows["foreground_fraction"].append(float(((lab > 0) & (lab != UNOBSERVED)).mean()))

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+UNOBSERVED_LABEL = 4  # crop padding past the camera image (data_schemas.frames.UNOBSERVED)
+
 
 @dataclass
 class ViewSet:
@@ -14,7 +16,8 @@ class ViewSet:
 
     Attributes:
         images: (T, C, S, S, 3) uint8 sRGB crops (converted to float per sample, to keep memory low).
-        labels: (T, C, S, S) uint8 part labels (0 background, 1 face, 2 hand, 3 unknown foreground).
+        labels: (T, C, S, S) uint8 part labels (0 background, 1 face, 2 hand, 3 unknown foreground,
+            4 unobserved: crop padding past the camera image, never compared with a render).
         K: (C, 3, 3) crop intrinsics (OpenCV pixel convention).
         world_to_cam: (C, 4, 4) extrinsics.
         camera_ids: the C camera names.
@@ -43,6 +46,18 @@ class ViewSet:
     def image(self, frame: int, camera: int) -> Tensor:
         """(S, S, 3) float image in [0, 1]."""
         return self.images[frame, camera].float() / 255.0
+
+    def observed(self, frame: int, camera: int) -> Tensor:
+        """(S, S) bool: the pixels the camera saw (False on crop padding past its image)."""
+        return self.labels[frame, camera] != UNOBSERVED_LABEL
+
+    def target_and_render(self, pred: Tensor, frame: int, camera: int) -> tuple[Tensor, Tensor]:
+        """(ground truth, render) of crop (``frame``, ``camera``) for a loss or metric, both (S, S, 3) in
+        ``pred``'s dtype: on unobserved pixels the render is replaced by the ground truth, so they add
+        nothing to any image term and pass it no gradient (the padding's colour is not what the camera
+        would have seen there)."""
+        gt = self.image(frame, camera).to(pred.dtype)
+        return gt, torch.where(self.observed(frame, camera)[..., None], pred, gt)
 
 
 @dataclass

@@ -182,8 +182,8 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         t1 = time.perf_counter()
         out = rasterize(g, views, camera, cfg.backend)
         t2 = time.perf_counter()
-        terms = _loss_terms(out.rgb, views.image(frame, camera), views.labels[frame, camera].numpy(), g,
-                            out.radii > 0, cfg, lpips)
+        gt, pred = views.target_and_render(out.rgb, frame, camera)
+        terms = _loss_terms(pred, gt, views.labels[frame, camera].numpy(), g, out.radii > 0, cfg, lpips)
         loss = reconstruction_loss(terms, cfg.lambda_dssim, cfg.scale_weight, cfg.position_weight) \
             + cfg.patch_weight * terms["patch"]
         t3 = time.perf_counter()

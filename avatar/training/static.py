@@ -168,8 +168,9 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
                 group["lr"] = exponential_lr(step, cfg.lr_position_init, cfg.lr_position_final, cfg.steps)
         out, world_scales = render_frame(model, meshes, views, frame, camera, cfg.backend)
         visible = out.radii > 0
-        terms = reconstruction_terms(out.rgb, views.image(frame, camera), torch.exp(model.log_scales),
-                                     model.local_means, visible, cfg.eps_s, cfg.eps_mu)
+        gt, pred = views.target_and_render(out.rgb, frame, camera)
+        terms = reconstruction_terms(pred, gt, torch.exp(model.log_scales), model.local_means, visible,
+                                     cfg.eps_s, cfg.eps_mu)
         loss = reconstruction_loss(terms, cfg.lambda_dssim, cfg.scale_weight, cfg.position_weight)
         loss.backward()
         density.accumulate(out.grad2d_norm(), visible, views.size)

@@ -207,13 +207,16 @@ class Validator:
         self._clock = now
 
     def _measure(self, render: Render) -> tuple[float, float]:
-        """Mean full-image PSNR (dB) and LPIPS-alex (NaN unless ``cfg.lpips``) over the withheld frames and the
-        training cameras."""
-        pred = torch.cat([render(int(t)) for t in self.frames]).clamp(0, 1).permute(0, 3, 1, 2)  # (F C, 3, S, S)
-        gt = self.views.images[torch.from_numpy(self.frames)].flatten(0, 1).to(pred.dtype).permute(0, 3, 1, 2) / 255.0
+        """Mean full-image PSNR (dB, over the observed pixels) and LPIPS-alex (NaN unless ``cfg.lpips``) over
+        the withheld frames and the training cameras; crop padding is left out as in training."""
+        pairs = [self.views.target_and_render(image, int(t), c)
+                 for t in self.frames for c, image in enumerate(render(int(t)).clamp(0, 1))]
+        gt, pred = (torch.stack(images).permute(0, 3, 1, 2) for images in zip(*pairs))  # (F C, 3, S, S)
+        observed = torch.stack([self.views.observed(int(t), c)
+                                for t in self.frames for c in range(self.views.num_cameras)])  # (F C, S, S)
         lpips = (float(default_lpips()(pred.float(), gt.float(), unit_range=True).mean()) if self.cfg.lpips
                  else math.nan)
-        return float(psnr(pred, gt).mean()), lpips
+        return float(psnr(pred, gt, observed).mean()), lpips
 
     def _flat(self) -> bool:
         stop = self.cfg.stop_when_flat

@@ -14,7 +14,7 @@ import pytest
 from avatar.calibration.undistort import Undistorter
 from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.capture import CaptureIndex, mask_path, video_path
-from data_schemas.frames import FRAMES_INDEX
+from data_schemas.frames import FRAMES_INDEX, UNOBSERVED, crop_mask_path, rgb_path
 from data_schemas.images import read_png, write_png
 from data_schemas.tables import read_table
 from data_schemas.video import read_video, write_video
@@ -329,3 +329,32 @@ def test_a_video_shorter_than_the_frames_requested_is_one_clear_error(tmp_path):
     for bad, message in (("dataset.frame_step=0", "must be 1 or more"), ("dataset.max_frames=0", "or null")):
         with pytest.raises(StageFailed, match=message):
             run_app(_cfg(tmp_path, bad))
+
+
+def test_crop_padding_past_the_image_is_labelled_unobserved(tmp_path):
+    """A subject at the image's right edge: its square crop reaches past the image, and exactly the crop
+    pixels whose source lies outside the image (up to the nearest-neighbour rounding at the edge) are
+    UNOBSERVED, hold the estimated background colour, and are not counted as foreground."""
+    subject = make_capture(tmp_path / "data", masks=True)
+    for cam in read_cameras(subject / "cameras.parquet"):
+        video = np.full((FRAMES, SIZE, SIZE, 3), 90, np.uint8)
+        video[:, 8:40, 30:SIZE] = (210, 160, 130)  # 32 px tall, 18 wide: the square is wider
+        write_video(video_path(subject, "train", cam.camera_id), video, 25.0)
+        for t in range(FRAMES):
+            lab = np.zeros((SIZE, SIZE), np.uint8)
+            lab[8:40, 30:SIZE] = 1
+            write_png(mask_path(subject, "train", cam.camera_id, t), lab)
+    run_app(_cfg(tmp_path))
+    frames_dir = tmp_path / "out" / "alice" / "frames"
+    index = read_table(frames_dir / "index.parquet", FRAMES_INDEX)
+    for seq, cam, t, (x0, y0, size), fraction in zip(index["sequence"], index["camera_id"], index["frame"],
+                                                     index["crop"], index["foreground_fraction"]):
+        labels = read_png(crop_mask_path(frames_dir, seq, cam, int(t)), 1)
+        rgb = read_png(rgb_path(frames_dir, seq, cam, int(t)), 3)
+        out = labels.shape[0]
+        source_x = x0 + (np.arange(out) + 0.5) * size / out - 0.5  # crop pixel centres in the camera image
+        assert x0 + size > SIZE + 2  # the crop does reach past the image
+        outside, inside = source_x > SIZE - 0.5 + 1, source_x < SIZE - 0.5 - 1
+        assert (labels[:, outside] == UNOBSERVED).all() and not (labels[:, inside] == UNOBSERVED).any()
+        assert (np.abs(rgb[:, outside].astype(int) - 90) <= 6).all()  # the background estimate (codec noise)
+        assert fraction == pytest.approx(float((labels == 1).mean()), abs=1e-6)
