@@ -46,7 +46,7 @@ from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.dynamic import rasterize  # noqa: E402
 from avatar.training.static import render_frame  # noqa: E402
 from data_schemas.capture import MASK_LABELS  # noqa: E402
-from data_schemas.cameras import read_cameras  # noqa: E402
+from data_schemas.cameras import Camera, read_cameras  # noqa: E402
 from data_schemas.metrics import SPLIT_SOURCES  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from stages.common import (  # noqa: E402
@@ -97,14 +97,12 @@ def hand_psnr(views: ViewSet, image: torch.Tensor, frame: int, camera: int) -> f
     return float(image_metrics(pred.permute(2, 0, 1), gt.permute(2, 0, 1), hand)["psnr"])
 
 
-def off_image_share(hand_vertices: np.ndarray, cameras: list) -> list[float]:  # noqa: ANN001 - data_schemas Cameras
-    """Per camera, the share of ``hand_vertices`` (Vh, 3) that project outside its image."""
+def off_image_share(hand_vertices: np.ndarray, cameras: list[Camera]) -> list[float]:
+    """Per camera, the share of ``hand_vertices`` (Vh, 3) that project outside its image (or behind it)."""
     shares = []
     for cam in cameras:
-        x = hand_vertices @ cam.world_to_cam[:3, :3].T + cam.world_to_cam[:3, 3]
-        uv = x @ np.asarray(cam.K).T
-        uv = uv[:, :2] / uv[:, 2:]
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        uv, z = cam.project(hand_vertices)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         shares.append(float(1.0 - inside.mean()))
     return shares
 
