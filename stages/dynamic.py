@@ -103,7 +103,8 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
                  "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
                  "splatting", "stage.warmup"),  # SplattingAvatar's recipe and schedule
     outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet"),
-    version="6",  # 6: the compiled rasterizer's alpha as a power of two (rounding-level changes)
+    version="7",  # 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
+    # rasterizer's alpha as a power of two (rounding-level)
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=DynamicConfig,

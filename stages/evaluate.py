@@ -43,9 +43,10 @@ class EvaluateConfig:
 Renderer = Callable[[int, int], torch.Tensor]
 
 
+# version 9: SSIM filtered by shifted sums instead of conv2d (rounding-level changes)
 @stage("evaluate", inputs=("capture", "frames", "fit", "scene", "pbd", "dynamic"),
        config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
-       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="8", config_schema=EvaluateConfig,
+       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="9", config_schema=EvaluateConfig,
        sources=contact_sources, per_method=True, subject_inputs=("fit",), input_subject=driver_subject)
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion (and, when reenact.driver names another subject

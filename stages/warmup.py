@@ -69,7 +69,8 @@ class WarmupConfig:
     config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup",
                  "method.representation", "method.pbd", "splatting"),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet"),
-    version="6",  # 6: the compiled rasterizer's alpha as a power of two (rounding-level changes)
+    version="7",  # 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
+    # rasterizer's alpha as a power of two (rounding-level)
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=WarmupConfig,

@@ -56,15 +56,40 @@ def gaussian_window(dtype: torch.dtype = torch.float32, device: torch.device | s
     return g / g.sum()
 
 
+def _correlate_axis(x: Tensor, weights: list[float], dim: int, pad: int) -> Tensor:
+    """Correlate ``x`` along ``dim`` (-1 or -2) with the taps ``weights`` (K,) after zero-padding ``pad`` on
+    both sides; the axis shrinks to ``n + 2 pad - K + 1``. A sum of K shifted slices: on CPU, for these
+    one-channel planes, D-SSIM with it ran 14x (128 px) to 31x (256 px) faster than with ``conv2d``'s oneDNN
+    path on a Zen 4 core, and 4-6x faster than with its native path (benchmarks/bench_ssim.py)."""
+    if pad:
+        x = F.pad(x, (pad, pad) if dim == -1 else (0, 0, pad, pad))
+    n_out = x.shape[dim] - len(weights) + 1
+    out = x.narrow(dim, 0, n_out) * weights[0]
+    for k, w in enumerate(weights[1:], start=1):
+        out.add_(x.narrow(dim, k, n_out), alpha=w)
+    return out
+
+
+class _SeparableBlur(torch.autograd.Function):
+    """The separable Gaussian filter of :func:`_blur` with its adjoint as backward (one graph node instead of
+    22 slice operations). Correlation with zero padding ``p`` has as adjoint the correlation with the flipped
+    taps (the same: the window is symmetric) and padding ``K - 1 - p``."""
+
+    @staticmethod
+    def forward(ctx, planes: Tensor, weights: list[float], pad: int) -> Tensor:  # noqa: ANN001
+        ctx.weights, ctx.adjoint_pad = weights, len(weights) - 1 - pad
+        return _correlate_axis(_correlate_axis(planes, weights, -1, pad), weights, -2, pad)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:  # noqa: ANN001
+        w, p = ctx.weights, ctx.adjoint_pad
+        return _correlate_axis(_correlate_axis(grad, w, -2, p), w, -1, p), None, None
+
+
 def _blur(x: Tensor, padding: Padding) -> Tensor:
     """Gaussian-filter every channel of ``x`` ``(N, K, H, W)`` separably; ``(N, K, H', W')`` per ``padding``."""
-    n, k, h, w = x.shape
-    g = gaussian_window(x.dtype, x.device)
-    pad = _RADIUS if padding == "zero" else 0
-    planes = x.reshape(n * k, 1, h, w)
-    planes = F.conv2d(planes, g.view(1, 1, 1, WINDOW_SIZE), padding=(0, pad))
-    planes = F.conv2d(planes, g.view(1, 1, WINDOW_SIZE, 1), padding=(pad, 0))
-    return planes.reshape(n, k, *planes.shape[-2:])
+    weights = gaussian_window(torch.float64).tolist()
+    return _SeparableBlur.apply(x, weights, _RADIUS if padding == "zero" else 0)
 
 
 def _ssim_map(x: Tensor, y: Tensor, padding: Padding) -> Tensor:

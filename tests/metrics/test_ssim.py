@@ -11,7 +11,7 @@ from scipy.ndimage import gaussian_filter
 from skimage.metrics import structural_similarity
 
 from avatar.metrics import dssim_loss, ssim, ssim_map
-from avatar.metrics.ssim import C1, C2
+from avatar.metrics.ssim import C1, C2, _blur, gaussian_window
 
 SKIMAGE = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=-1)
 
@@ -136,3 +136,21 @@ def test_empty_mask():
     flat = torch.full((1, 3, 12, 12), 0.5, dtype=torch.float64, requires_grad=True)
     dssim_loss(flat, torch.zeros_like(flat)).backward()
     assert torch.isfinite(flat.grad).all() and not math.isnan(ssim(flat, flat).item())
+
+
+@pytest.mark.parametrize("padding", ["zero", "valid"])
+def test_blur_matches_a_brute_force_2d_window(padding):
+    """The shifted-sum separable filter (and its hand-written adjoint) against a direct 11 x 11 sum."""
+    x = torch.rand(2, 3, 17, 14, generator=torch.Generator().manual_seed(5), dtype=torch.float64, requires_grad=True)
+    g = gaussian_window(torch.float64)
+    window = g[:, None] * g[None, :]
+    padded = torch.nn.functional.pad(x, (5, 5, 5, 5)) if padding == "zero" else x
+    h, w = padded.shape[-2] - 10, padded.shape[-1] - 10
+    reference = sum(window[i, j] * padded[..., i:i + h, j:j + w] for i in range(11) for j in range(11))
+    blurred = _blur(x, padding)
+    assert blurred.shape == reference.shape
+    torch.testing.assert_close(blurred, reference, rtol=0, atol=1e-14)
+    weights = torch.rand(reference.shape, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    (grad,) = torch.autograd.grad((blurred * weights).sum(), x)
+    (ref_grad,) = torch.autograd.grad((reference * weights).sum(), x)
+    torch.testing.assert_close(grad, ref_grad, rtol=0, atol=1e-14)
