@@ -67,8 +67,9 @@ def triangle_frames(vertices: Tensor, faces: Tensor, min_scale: float = 1e-6) ->
     e1, e2 = v1 - v0, v2 - v0
     x_axis = torch.zeros_like(e1) + e1.new_tensor([1.0, 0.0, 0.0])
     a0 = _normalise(e1, _normalise(e2, x_axis))
-    a1 = _normalise(torch.linalg.cross(a0, e2), _any_perpendicular(a0))
-    a2 = _normalise(torch.linalg.cross(a0, a1), _any_perpendicular(a0))
+    perpendicular = _any_perpendicular(a0)  # the fallback of both: a normal for a degenerate triangle
+    a1 = _normalise(torch.linalg.cross(a0, e2), perpendicular)
+    a2 = _normalise(torch.linalg.cross(a0, a1), perpendicular)
     # a2 = a0 x a1 lies in the triangle plane, perpendicular to the first edge, pointing away from v2
     # (as in GaussianAvatars: a2 = -normalise(a1 x a0)).
     rotation = torch.stack([a0, a1, a2], dim=-1)
