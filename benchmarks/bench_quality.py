@@ -4,8 +4,9 @@ For each preset and method it runs the DAG until ``evaluate`` (into a temporary 
 presets live in their own folders, methods share every stage upstream of the warm-up, as in ``make
 compare``) and prints two tables:
 
-- cost: wall time per stage (the shared ones once per preset), peak memory, Gaussians, and the run's total
-  against the largest preset's for the same method;
+- cost: wall time per stage (the shared ones computed once per preset, and counted in every method's row:
+  each row is what one method's run costs from scratch), peak memory, Gaussians, and the run's total against
+  the largest preset's for the same method;
 - quality: PSNR / SSIM / LPIPS per split (NV: held-out camera; SR: held-out motion) and region (full,
   hand, interaction: the hand-face overlap box), mean over images; and NV PSNR as a share of the largest
   preset's.
@@ -104,12 +105,14 @@ def main() -> None:
     largest = args.presets[-1]
     cost, quality = [], []
     for preset in args.presets:
-        for i, method in enumerate(args.methods):
+        for method in args.methods:
             r = results[(preset, method, "plain")]
             ref = results[(largest, method, "plain")]
-            shared = wall(r, SHARED) if i == 0 else 0.0  # computed once per preset, by the first method
+            # each row is one method's run from scratch: the shared stages (computed once per preset, by the
+            # first method; every method reads the same manifests) plus its own
+            shared = wall(r, SHARED)
             total = shared + wall(r, PER_METHOD)
-            ref_total = (wall(ref, SHARED) if i == 0 else 0.0) + wall(ref, PER_METHOD)
+            ref_total = wall(ref, SHARED) + wall(ref, PER_METHOD)
             peak = max(m["peak_memory_mb"] for m in r["manifests"].values())
             cost.append((preset, method, f"{shared:.0f}", *(f"{r['manifests'][s]['timings']['wall_s']:.0f}"
                                                             for s in PER_METHOD),
