@@ -37,6 +37,7 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from avatar.metrics._images import as_batch, mask_weights, masked_mean, unbatch
 
@@ -81,6 +82,7 @@ class _SeparableBlur(torch.autograd.Function):
         return _correlate_axis(_correlate_axis(planes, weights, -1, pad), weights, -2, pad)
 
     @staticmethod
+    @once_differentiable  # a second derivative would need the adjoint's graph: raise instead of a silent zero
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:  # noqa: ANN001
         w, p = ctx.weights, ctx.adjoint_pad
         return _correlate_axis(_correlate_axis(grad, w, -2, p), w, -1, p), None, None
