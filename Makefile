@@ -41,11 +41,13 @@ run: $(STAMP) ext
 	$(VENV)/bin/interactavatar $(ARGS)
 
 ## make compare: every method of the paper's Tables 1 and 2 on one subject (shared stages computed once),
-## then the comparison and the report; same ARGS as run, e.g. ARGS="quality=draft subject=synth_b"
+## then the comparison and the report; same ARGS as run, e.g. ARGS="quality=draft subject=synth_b".
+## SEEDS=0,1,2 trains each method once per seed (methods/<method>-seed<k>/) and tables mean and spread.
 METHODS ?= interactavatar,gaussian_avatars,splatting_avatar,no_hand_mlp,no_interaction,no_pbd,no_patch
+SEEDS ?= 0
 compare: $(STAMP) ext
-	$(VENV)/bin/interactavatar -m method=$(METHODS) $(ARGS)
-	$(VENV)/bin/interactavatar run.from=compare $(ARGS)
+	$(VENV)/bin/interactavatar -m method=$(METHODS) seed=$(SEEDS) $(ARGS)
+	$(VENV)/bin/interactavatar run.from=compare "stage.compare.methods=[$(METHODS)]" "stage.compare.seeds=[$(SEEDS)]" $(ARGS)
 
 ## make test: the default suite (CPU only, includes the end-to-end smoke DAG)
 test: $(STAMP) ext

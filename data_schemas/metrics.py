@@ -38,9 +38,10 @@ CONTACT_GROUPS = ("all", "contact", "no_contact")
 
 COMPARISON = TableSchema(
     name="comparison",
-    version=1,
+    version=2,  # 2: one row per training seed (column seed)
     columns=(
         Column("method", "string"),
+        Column("seed", "int32", doc="the training run's seed (root key seed; method_run names its folder)"),
         Column("label", "string", doc="the method's name in the paper's tables, e.g. 'w/o I'"),
         Column("split", "string"),
         Column("region", "string"),

@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from pipeline.registry import RegistryError, StageRegistry
-from pipeline.workspace import method_problem, subject_problem
+from pipeline.workspace import method_problem, seed_problem, subject_problem
 
 
 class ConfigError(ValueError):
@@ -145,6 +145,9 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
         if problem:
             errors.append(f"{problem} (stages {', '.join(s.name for s in stages if s.per_method)} keep one "
                           f"artifact per method)")
+        problem = seed_problem(OmegaConf.select(cfg, "seed", default=0))
+        if problem:
+            errors.append(f"{problem} (the training run's seed: stage.warmup.seed and stage.dynamic.seed follow it)")
     for s in stages:
         if s.methods_key is not None:
             methods = OmegaConf.select(cfg, s.methods_key, default=None)
@@ -152,6 +155,12 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
                 errors.append(f"{s.methods_key}: stage '{s.name}' needs a non-empty list of method names")
             else:
                 errors.extend(p for m in methods if (p := method_problem(m, s.methods_key)))
+        if s.seeds_key is not None:
+            seeds = OmegaConf.select(cfg, s.seeds_key, default=None)
+            if not OmegaConf.is_list(seeds) or not seeds:
+                errors.append(f"{s.seeds_key}: stage '{s.name}' needs a non-empty list of seeds, e.g. [0, 1, 2]")
+            else:
+                errors.extend(p for seed in seeds if (p := seed_problem(seed, s.seeds_key)))
         for key in s.config_keys:
             if OmegaConf.select(cfg, key, default=_MISSING) is _MISSING:
                 errors.append(f"stage '{s.name}' depends on config key '{key}', which is not set")

@@ -42,7 +42,7 @@ from pipeline.monitor import ResourceMonitor
 from pipeline.registry import StageRegistry
 from pipeline.sources import changed_sources, hash_sources
 from pipeline.stage import Stage, StageContext
-from pipeline.workspace import Artifact, LockTimeout, Workspace, subject_problem
+from pipeline.workspace import Artifact, LockTimeout, Workspace, method_run, subject_problem
 
 Log = Callable[[str], None]
 
@@ -122,7 +122,10 @@ class Runner:
         self.registry = registry
         self.log = log
         self.ws = Workspace(Path(cfg.paths.outputs), cfg.subject)
-        self.method: str | None = OmegaConf.select(cfg, "method.name", default=None)
+        method = OmegaConf.select(cfg, "method.name", default=None)
+        # the run's folder under methods/: the method's name, with its seed unless 0 (pipeline.workspace.method_run)
+        self.method: str | None = (None if method is None
+                                   else method_run(str(method), int(OmegaConf.select(cfg, "seed", default=0))))
         self.selection = Selection.from_cfg(cfg.run)
         self.show_progress = bool(cfg.run.get("progress", True))
         self.lock_timeout_s = float(cfg.run.get("lock_timeout_s", 3600.0))
@@ -143,9 +146,11 @@ class Runner:
         one this run plans to write)."""
         out = {name: self.artifact(name) for name in s.inputs}
         methods = OmegaConf.select(self.cfg, s.methods_key) if s.methods_key else None
+        seeds = OmegaConf.select(self.cfg, s.seeds_key) if s.seeds_key else None
+        runs = [method_run(str(m), int(seed)) for m in methods or () for seed in seeds or (0,)]
         for name in s.cross_method_inputs:
-            for method in methods or ():
-                a = Artifact(name, str(method))
+            for run in runs:
+                a = Artifact(name, run)
                 if a.key in pending or self._verified.get(a.key) or self._verify(a):
                     out[a.key] = a
         other = s.input_subject(self.cfg) if s.input_subject is not None else None

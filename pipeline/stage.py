@@ -23,6 +23,7 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
 - ``cross_method_inputs``, ``methods_key``: per-method stages whose artifacts of *several* methods the
   stage reads (the comparison): those of every method named by the config list at ``methods_key`` that
   has a complete artifact; their digests enter the key, so a method evaluated later reruns the stage;
+  with ``seeds_key`` (a config list of seeds) every seed's run of each method (``method_run``), else seed 0's;
 - ``subject_inputs``, ``input_subject``: shared stages of *another subject* of the same outputs folder
   that the stage reads (a reenactment's driver ``fit``) when ``input_subject(cfg)`` names one (``None``:
   none this time); their digests enter the key like any input's, so re-fitting the driver reruns it.
@@ -136,6 +137,7 @@ class Stage:
     per_method: bool = False
     cross_method_inputs: tuple[str, ...] = ()
     methods_key: str | None = None
+    seeds_key: str | None = None
     subject_inputs: tuple[str, ...] = ()
     input_subject: SubjectChooser | None = None
 
@@ -154,6 +156,8 @@ class Stage:
             raise ValueError(f"stage '{self.name}' lists itself as an input")
         if bool(self.cross_method_inputs) != (self.methods_key is not None):
             raise ValueError(f"stage '{self.name}': cross_method_inputs and methods_key go together")
+        if self.seeds_key is not None and self.methods_key is None:
+            raise ValueError(f"stage '{self.name}': seeds_key needs methods_key")
         if bool(self.subject_inputs) != (self.input_subject is not None):
             raise ValueError(f"stage '{self.name}': subject_inputs and input_subject go together")
         for key in self.cache_exclude:
@@ -177,6 +181,7 @@ def stage(
     per_method: bool = False,
     cross_method_inputs: Iterable[str] = (),
     methods_key: str | None = None,
+    seeds_key: str | None = None,
     subject_inputs: Iterable[str] = (),
     input_subject: SubjectChooser | None = None,
 ) -> Callable[[StageFn], Stage]:
@@ -198,6 +203,7 @@ def stage(
             per_method=per_method,
             cross_method_inputs=tuple(cross_method_inputs),
             methods_key=methods_key,
+            seeds_key=seeds_key,
             subject_inputs=tuple(subject_inputs),
             input_subject=input_subject,
             description=(fn.__doc__ or "").strip().splitlines()[0] if fn.__doc__ else "",

@@ -33,8 +33,8 @@ from pathlib import Path
 
 from pipeline.locks import LockTimeout, flock, flock_all
 
-__all__ = ["Artifact", "LockTimeout", "METHODS_DIR", "SUBJECT_RULE", "Workspace", "method_problem",
-           "outputs_problem", "subject_problem"]
+__all__ = ["Artifact", "LockTimeout", "METHODS_DIR", "SUBJECT_RULE", "Workspace", "method_problem", "method_run",
+           "outputs_problem", "seed_problem", "subject_problem"]
 
 SUBJECT_RULE = "letters, digits, '-' or '_', starting with a letter or digit"
 _SUBJECT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
@@ -52,6 +52,19 @@ def method_problem(method: object, key: str = "method.name") -> str | None:
     """Why ``method`` cannot name a method folder, or ``None`` when it can."""
     if not isinstance(method, str) or not _SUBJECT.fullmatch(method):
         return f"{key}={method!r}: use {SUBJECT_RULE}, e.g. method=interactavatar"
+    return None
+
+
+def method_run(method: str, seed: int = 0) -> str:
+    """The name of one training run of ``method`` (its artifact folder under ``methods/``): the method's own name
+    for seed 0, the default run, and ``<method>-seed<k>`` for seed k (``make compare SEEDS=0,1,2``)."""
+    return method if int(seed) == 0 else f"{method}-seed{int(seed)}"
+
+
+def seed_problem(seed: object, key: str = "seed") -> str | None:
+    """Why ``seed`` cannot seed a training run, or ``None`` when it can (a non-negative integer)."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        return f"{key}={seed!r}: use a non-negative integer, e.g. seed=1"
     return None
 
 

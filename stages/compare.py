@@ -28,6 +28,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.stats import ttest_ind
 
 from avatar.preprocess.crops import label_box, overlap_box
 from data_schemas.capture import MASK_LABELS
@@ -38,6 +39,7 @@ from data_schemas.tables import read_table, write_table
 from data_schemas.writes import write_bytes, write_json
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
+from pipeline.workspace import method_run
 
 #: InteractAvatar (ICCV 2025) on DECAF at 512x512, full images: Table 1 and Table 2 (novel view only; the
 #: paper gives no numbers for "w/o PBD" and "w/o L_patch", only images). method -> split -> (PSNR, SSIM, LPIPS)
@@ -59,18 +61,26 @@ class CompareConfig:
     """Types of ``stage.compare`` (values in conf/stage/compare.yaml)."""
 
     methods: list[str]
+    seeds: list[int]
     crop_px: int
 
 
 @dataclass
 class MethodRun:
-    """What the comparison reads of one method: its metrics table and run records."""
+    """What the comparison reads of one training run of a method (one seed): its metrics table and run
+    records."""
 
     name: str
+    seed: int
     label: str
     evaluate_dir: Path
     metrics: dict[str, np.ndarray]
     manifests: dict[str, dict[str, Any]]  # warmup, dynamic, evaluate
+
+    @property
+    def run(self) -> str:
+        """The run's folder name under ``methods/`` (:func:`pipeline.workspace.method_run`)."""
+        return method_run(self.name, self.seed)
 
     @property
     def train_steps(self) -> int:
@@ -91,18 +101,20 @@ class MethodRun:
 @stage("compare", inputs=("capture", "frames", "fit", "pbd"), config_keys=("stage.compare",),
        outputs=("comparison.parquet", "tables.json", "tables.md", "figures"), config_schema=CompareConfig,
        cross_method_inputs=("warmup", "dynamic", "evaluate"), methods_key="stage.compare.methods",
-       reads_manifests=True, version="2")  # it reports the methods' wall times
+       seeds_key="stage.compare.seeds", reads_manifests=True, version="3")  # 3: seeds
 def compare(ctx: StageContext) -> None:
-    """Tables 1 and 2 and the image rows of the paper for every evaluated method of stage.compare.methods."""
+    """Tables 1 and 2 and the image rows of the paper for every evaluated method of stage.compare.methods and
+    training seed of stage.compare.seeds (mean and spread over the seeds)."""
     conf = ctx.cfg.stage.compare
-    listed = [str(m) for m in conf.methods]
+    listed = [(str(m), int(seed)) for m in conf.methods for seed in conf.seeds]
     dirs = {stage: ctx.method_dirs(stage) for stage in ("warmup", "dynamic", "evaluate")}
-    found = [_read_run(m, {stage: dirs[stage][m] for stage in dirs}) for m in listed
-             if all(m in dirs[stage] for stage in dirs)]
+    found = [_read_run(m, seed, {stage: dirs[stage][method_run(m, seed)] for stage in dirs}) for m, seed in listed
+             if all(method_run(m, seed) in dirs[stage] for stage in dirs)]
     shared = {name: _manifest(ctx.input_dir(name)) for name in SHARED_STAGES}
-    stale = {r.name: why for r in found if (why := stale_reason(r.manifests, shared)) is not None}
-    runs = [r for r in found if r.name not in stale]
-    missing = [m for m in listed if m not in {r.name for r in found}]
+    stale = {r.run: (why, _run_args(r.name, r.seed)) for r in found
+             if (why := stale_reason(r.manifests, shared)) is not None}
+    runs = [r for r in found if r.run not in stale]
+    missing = [(m, seed) for m, seed in listed if method_run(m, seed) not in {r.run for r in found}]
     rows = _comparison_rows(runs)
     write_table(ctx.out_dir / "comparison.parquet", COMPARISON,
                 {c.name: (rows[c.name] if c.kind == "string" else np.asarray(rows[c.name])) for c in COMPARISON.columns})
@@ -111,13 +123,16 @@ def compare(ctx: StageContext) -> None:
     write_json(ctx.out_dir / "tables.json", tables, "the comparison tables")
     write_bytes(ctx.out_dir / "tables.md", _markdown(tables).encode(), "the comparison tables")
     (ctx.out_dir / "figures").mkdir()
-    for split, sequence in _split_sequences(runs).items():
+    first_seed = [r for r in runs if r.seed == int(conf.seeds[0])]  # the image rows: one run per method
+    for split, sequence in _split_sequences(first_seed).items():
         for crop in ("hand", "interaction"):
-            figure = _figure(runs, ctx.input_dir("frames"), split, sequence, crop, int(conf.crop_px))
+            figure = _figure(first_seed, ctx.input_dir("frames"), split, sequence, crop, int(conf.crop_px))
             if figure is not None:
                 write_png(ctx.out_dir / "figures" / f"{split}_{crop}.png", figure)
-    ctx.metrics.update({"methods_compared": len(runs), "methods_missing": ",".join(missing) or "-",
+    ctx.metrics.update({"methods_compared": len(runs),
+                        "methods_missing": ",".join(method_run(m, seed) for m, seed in missing) or "-",
                         "methods_stale": ",".join(stale) or "-",
+                        "seeds": ",".join(str(int(seed)) for seed in conf.seeds),
                         "same_train_steps": int(len({r.train_steps for r in runs}) <= 1), **cost})
 
 
@@ -154,11 +169,12 @@ def stale_reason(manifests: dict[str, dict[str, Any]], shared: dict[str, dict[st
     return None
 
 
-def _read_run(method: str, dirs: dict[str, Path]) -> MethodRun:
+def _read_run(method: str, seed: int, dirs: dict[str, Path]) -> MethodRun:
     manifests = {stage: _manifest(d) for stage, d in dirs.items()}
     label = manifests["evaluate"]["config"]["method"].get("label", method)
     table = read_table(dirs["evaluate"] / "metrics.parquet", METRICS)
-    return MethodRun(method, str(label), dirs["evaluate"], {k: np.asarray(v) for k, v in table.items()}, manifests)
+    return MethodRun(method, seed, str(label), dirs["evaluate"], {k: np.asarray(v) for k, v in table.items()},
+                     manifests)
 
 
 def _comparison_rows(runs: list[MethodRun]) -> dict[str, list]:
@@ -177,7 +193,7 @@ def _comparison_rows(runs: list[MethodRun]) -> dict[str, list]:
                     images = int(np.isfinite(values["ssim"]).sum())
                     if images == 0:
                         continue
-                    for key, value in (("method", run.name), ("label", run.label), ("split", split),
+                    for key, value in (("method", run.name), ("seed", run.seed), ("label", run.label), ("split", split),
                                        ("region", region), ("contact", group), ("images", images),
                                        *((m, float(np.nanmean(values[m]))) for m in METRIC_NAMES),
                                        ("train_steps", run.train_steps), ("train_wall_s", run.train_wall_s),
@@ -186,11 +202,33 @@ def _comparison_rows(runs: list[MethodRun]) -> dict[str, list]:
     return rows
 
 
+def _seed_values(rows: dict[str, list], method: str, split: str, region: str, group: str = "all"
+                 ) -> dict[str, np.ndarray]:
+    """metric -> (S,) the value of each seed's run of ``method`` (empty where it has no such row)."""
+    found = [i for i in range(len(rows["method"]))
+             if (rows["method"][i], rows["split"][i], rows["region"][i], rows["contact"][i]) == (method, split, region, group)]
+    return {m: np.array([rows[m][i] for i in found], dtype=np.float64) for m in METRIC_NAMES}
+
+
 def _lookup(rows: dict[str, list], method: str, split: str, region: str, group: str = "all") -> dict[str, float]:
-    for i in range(len(rows["method"])):
-        if (rows["method"][i], rows["split"][i], rows["region"][i], rows["contact"][i]) == (method, split, region, group):
-            return {m: rows[m][i] for m in METRIC_NAMES}
-    return {m: float("nan") for m in METRIC_NAMES}
+    """metric -> the mean over ``method``'s seeds (NaN where it has no row)."""
+    return {m: float(np.nanmean(v)) if v.size and np.isfinite(v).any() else float("nan")
+            for m, v in _seed_values(rows, method, split, region, group).items()}
+
+
+def welch_p(a: np.ndarray, b: np.ndarray) -> float:
+    """Two-sided p-value of Welch's t-test (unequal variances) of the means of ``a`` (n,) and ``b`` (m,); NaN
+    with fewer than two values on a side or no spread at all."""
+    a, b = a[np.isfinite(a)], b[np.isfinite(b)]
+    if a.size < 2 or b.size < 2 or (np.ptp(a) == 0 and np.ptp(b) == 0):
+        return float("nan")
+    return float(ttest_ind(a, b, equal_var=False).pvalue)
+
+
+def _spread(values: np.ndarray) -> float:
+    """Sample standard deviation (ddof 1) of the finite ``values``; NaN below two."""
+    values = values[np.isfinite(values)]
+    return float(np.std(values, ddof=1)) if values.size >= 2 else float("nan")
 
 
 def _cost(runs: list[MethodRun], shared: dict[str, dict[str, Any]]) -> dict[str, float]:
@@ -212,23 +250,75 @@ def _metric_cells(values: dict[str, float]) -> list[str]:
     return [_fmt(values["psnr"], 2), _fmt(values["ssim"], 4), _fmt(values["lpips"], 4)]
 
 
-def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[str], cost: dict[str, float],
-            stale: dict[str, str] | None = None) -> dict[str, Any]:
+def _stat(values: np.ndarray, digits: int) -> str:
+    """The seeds' mean, with ``± standard deviation`` when there are two or more: ``31.12 ± 0.08``."""
+    finite = values[np.isfinite(values)]
+    if not finite.size:
+        return "-"
+    mean = _fmt(float(finite.mean()), digits)
+    return mean if finite.size < 2 else f"{mean} ± {_spread(finite):.{digits}f}"
+
+
+def _stat_cells(rows: dict[str, list], method: str, split: str, region: str, group: str = "all") -> list[str]:
+    values = _seed_values(rows, method, split, region, group)
+    return [_stat(values["psnr"], 2), _stat(values["ssim"], 4), _stat(values["lpips"], 4)]
+
+
+#: the regions (and frame group) of the seeds table: where the full model's effects act
+SEED_REGIONS = (("full", "all"), ("hand", "all"), ("face", "all"), ("interaction", "all"), ("interaction", "contact"))
+SIGNIFICANCE = 0.05
+
+
+def _seed_table(rows: dict[str, list], present: dict[str, str], splits: list[str]) -> list[list[str]]:
+    """Rows of the full model's PSNR minus each other method's, per split and region: the difference of the
+    means, the larger of the two seed spreads, Welch's p and what the seeds support."""
+    out = []
+    full = "interactavatar"
+    for split in splits:
+        for method in present:
+            if method == full:
+                continue
+            for region, group in SEED_REGIONS:
+                a = _seed_values(rows, full, split, region, group)["psnr"]
+                b = _seed_values(rows, method, split, region, group)["psnr"]
+                if not (np.isfinite(a).any() and np.isfinite(b).any()):
+                    continue
+                diff = float(np.nanmean(a) - np.nanmean(b))
+                spread = float(np.nanmax([_spread(a), _spread(b)])) if max(a.size, b.size) >= 2 else float("nan")
+                p = welch_p(a, b)
+                verdict = ("one seed: no spread" if not np.isfinite(spread) else
+                           "supported" if np.isfinite(p) and p < SIGNIFICANCE else "within the spread")
+                out.append([split, present[method], region + (" (contact)" if group == "contact" else ""),
+                            f"{diff:+.2f}", _fmt(spread, 2), _fmt(p, 3), verdict])
+    return out
+
+
+def _run_args(method: str, seed: int) -> str:
+    """The command-line overrides that select one training run."""
+    return f"method={method}" + (f" seed={seed}" if seed else "")
+
+
+def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[str, int]], cost: dict[str, float],
+            stale: dict[str, tuple[str, str]] | None = None) -> dict[str, Any]:
     """The comparison as titled tables (headers, rows of strings) plus notes, for tables.md and the report."""
-    present = {r.name: r for r in runs}
+    present = {r.name: r for r in runs}  # method -> one of its runs (label, ...)
+    seeds = sorted({r.seed for r in runs})
     paper_cells = lambda m, split: _metric_cells(dict(zip(METRIC_NAMES, PAPER[m][split]))) \
         if split in PAPER.get(m, {}) else ["-"] * 3  # noqa: E731
     splits = [s for s in SPLITS if s in set(rows["split"])]
-    table1 = [[split, present[m].label, *_metric_cells(_lookup(rows, m, split, "full")), *paper_cells(m, split)]
+    table1 = [[split, present[m].label, *_stat_cells(rows, m, split, "full"), *paper_cells(m, split)]
               for split in splits for m in BASELINES if m in present]
     table2 = [[split, present[m].label,
-               *(_fmt(_lookup(rows, m, split, region)["psnr"], 2) for region in ("full", "hand", "interaction")),
-               *(_fmt(_lookup(rows, m, split, region)["lpips"], 4) for region in ("full", "hand", "interaction")),
-               _fmt(_lookup(rows, m, split, "interaction", "contact")["psnr"], 2), *paper_cells(m, split)]
+               *(_stat(_seed_values(rows, m, split, region)["psnr"], 2) for region in ("full", "hand", "interaction")),
+               *(_stat(_seed_values(rows, m, split, region)["lpips"], 4) for region in ("full", "hand", "interaction")),
+               _stat(_seed_values(rows, m, split, "interaction", "contact")["psnr"], 2), *paper_cells(m, split)]
               for split in splits for m in ABLATIONS if m in present]
-    budget = [[r.label, str(r.train_steps), f"{r.train_wall_s:.0f}", str(r.gaussians)] for r in runs]
+    budget = [[r.label, str(r.seed), str(r.train_steps), f"{r.train_wall_s:.0f}", str(r.gaussians)] for r in runs]
     steps = {r.train_steps for r in runs}
     notes = [
+        f"Training seeds: {', '.join(map(str, seeds))}. A cell is the mean over the seeds' runs, with ± the sample "
+        "standard deviation (ddof 1) when there are two or more; each run's value is the mean over the frames of the "
+        "split.",
         "Full images, mean over every frame of the split; PSNR in dB. Novel view: the held-out camera on the "
         "training motion; self-reenactment: the training cameras on the held-out motion; cross-reenactment "
         "(when reenact.driver names another subject): the training cameras on that subject's held-out motion "
@@ -249,11 +339,13 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[str], co
                      + ("" if len(drivers) == 1 else ": different drivers, the rows are not comparable") + "; "
                      "methods evaluated without another subject as reenact.driver have no cross_reenact rows.")
     if missing:
-        notes.append(f"Not evaluated yet: {', '.join(missing)}. Add them with "
-                     f"`interactavatar -m method={','.join(missing)}` (same subject and preset), then "
-                     f"`interactavatar run.only=compare`, or run `make compare`.")
-    for method, why in (stale or {}).items():
-        notes.append(f"Left out, stale: {method}: {why} (`interactavatar method={method} run.until=evaluate`, "
+        methods = ",".join(dict.fromkeys(m for m, _ in missing))
+        missing_seeds = ",".join(dict.fromkeys(str(seed) for _, seed in missing))
+        notes.append(f"Not evaluated yet: {', '.join(method_run(m, seed) for m, seed in missing)}. Add them with "
+                     f"`interactavatar -m method={methods}" + (f" seed={missing_seeds}" if missing_seeds != "0" else "") +
+                     "` (same subject and preset), then `interactavatar run.only=compare`, or run `make compare`.")
+    for run, (why, fix) in (stale or {}).items():  # run -> (why, the overrides that select it)
+        notes.append(f"Left out, stale: {run}: {why} (`interactavatar {fix} run.until=evaluate`, "
                      f"then `interactavatar run.only=compare`).")
     return {"tables": [
         {"title": "Table 1: baselines against the full model (full image)",
@@ -264,7 +356,13 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[str], co
                      "LPIPS interaction", "PSNR interaction (contact frames)", "paper PSNR", "paper SSIM",
                      "paper LPIPS"],
          "rows": table2},
-        {"title": "Training budget", "headers": ["method", "steps", "train wall s", "Gaussians"], "rows": budget},
+        {"title": "Training budget", "headers": ["method", "seed", "steps", "train wall s", "Gaussians"],
+         "rows": budget},
+        *([{"title": "Seeds: InteractAvatar's PSNR minus each method's (dB); 'supported' where Welch's t-test "
+                     f"gives p < {SIGNIFICANCE} over the seeds",
+            "headers": ["split", "method", "region", "difference of means", "larger seed sd", "Welch p", "seeds say"],
+            "rows": _seed_table(rows, {m: r.label for m, r in present.items()}, splits)}]
+          if "interactavatar" in present and len(seeds) >= 2 else []),
     ], "notes": notes, "missing": missing}
 
 

@@ -3,8 +3,9 @@
 - ``a`` is shared by every method;
 - ``p`` is per-method and depends on ``method.p_value`` only, so methods with the same value have the same
   ``p`` (the runner shares it instead of recomputing);
-- ``q`` is per-method and depends on ``method.name`` (every method its own);
-- ``cmp`` is shared and reads ``q`` of the methods listed in ``stage.cmp.methods`` that exist.
+- ``q`` is per-method and depends on ``method.name`` and ``seed`` (every run its own);
+- ``cmp`` is shared and reads ``q`` of the methods listed in ``stage.cmp.methods`` that exist, one run per seed
+  of ``stage.cmp.seeds``.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ def p(ctx: StageContext) -> None:
     (ctx.out_dir / "p.txt").write_text(f"{text}p={ctx.cfg.method.p_value}\n")
 
 
-@stage("q", inputs=("p",), config_keys=("method.name",), outputs=("q.txt",), per_method=True)
+@stage("q", inputs=("p",), config_keys=("method.name", "seed"), outputs=("q.txt",), per_method=True)
 def q(ctx: StageContext) -> None:
     """Per-method stage of every method its own."""
     text = (ctx.input_dir("p") / "p.txt").read_text()
@@ -36,7 +37,7 @@ def q(ctx: StageContext) -> None:
 
 
 @stage("cmp", config_keys=("stage.cmp",), outputs=("cmp.txt",), cross_method_inputs=("q",),
-       methods_key="stage.cmp.methods")
+       methods_key="stage.cmp.methods", seeds_key="stage.cmp.seeds")
 def cmp(ctx: StageContext) -> None:
     """Shared stage reading every listed method's q."""
     dirs = ctx.method_dirs("q")

@@ -18,7 +18,7 @@ from tests.conftest import compose_cfg
 def method_cfg(tmp_path: Path):
     def make(method: str, p_value: int = 1, *extra: str):
         return compose_cfg(["pipeline.stages_module=tests.toy_methods", "stage=[]", "+stage.a.value=1",
-                            "+stage.cmp.methods=[m1,m2,m3]", f"method.name={method}", f"+method.p_value={p_value}",
+                            "+stage.cmp.methods=[m1,m2,m3]", "+stage.cmp.seeds=[0]", f"method.name={method}", f"+method.p_value={p_value}",
                             f"paths.outputs={tmp_path / 'out'}", "run.progress=false", *extra])
     return make
 
@@ -49,6 +49,22 @@ def test_methods_live_side_by_side_and_share_identical_artifacts(method_cfg, tmp
     again = run_app(method_cfg("m1"))  # adding methods recomputed nothing of m1
     assert actions(again) == {"a": "cached", "p": "cached", "q": "cached", "cmp": "cached"}
     assert again[-1].metrics["methods"] == 3
+
+
+def test_each_seed_is_a_run_of_its_own_beside_the_others(method_cfg, tmp_path):
+    """seed=k keeps the method's per-method artifacts in methods/<method>-seed<k>/ (seed 0 where it always was);
+    a stage that does not depend on the seed is shared, and the comparison reads every listed seed."""
+    root = tmp_path / "out" / "synth_a"
+    run_app(method_cfg("m1"))
+    seeded = run_app(method_cfg("m1", 1, "seed=1", "stage.cmp.seeds=[0,1]"))
+    assert actions(seeded) == {"a": "cached", "p": "shared", "q": "run", "cmp": "run"}
+    assert (root / "methods" / "m1-seed1" / "q" / "q.txt").read_text() == "a=1\np=1\nq=m1-seed1\n"
+    assert (root / "methods" / "m1" / "q" / "q.txt").read_text() == "a=1\np=1\nq=m1\n"
+    assert (root / "cmp" / "cmp.txt").read_text() == "m1: a=1\np=1\nq=m1\nm1-seed1: a=1\np=1\nq=m1-seed1\n"
+    with pytest.raises(ConfigError, match="seed=-1"):
+        run_app(method_cfg("m1", 1, "seed=-1"))
+    with pytest.raises(ConfigError, match="stage.cmp.seeds"):
+        run_app(method_cfg("m1", 1, "stage.cmp.seeds=[]"))
 
 
 def test_a_method_s_change_reruns_only_that_method(method_cfg, tmp_path):

@@ -8,18 +8,23 @@ import numpy as np
 import pytest
 
 from data_schemas.metrics import CONTACT_GROUPS
-from stages.compare import SHARED_STAGES, MethodRun, _comparison_rows, _cost, _crop, _lookup, _tables, stale_reason
+from scipy.stats import ttest_ind
+
+from stages.compare import (
+    SHARED_STAGES, MethodRun, _comparison_rows, _cost, _crop, _lookup, _tables, stale_reason, welch_p,
+)
 from stages.evaluate import showcase_pairs
 
 
-def _run(name: str, warmup_key: str = "k0", seed: int = 0) -> MethodRun:
-    """A method with metrics of 2 splits x 4 regions x 2 cameras x 5 frames, frames 1 and 3 with contact,
+def _run(name: str, warmup_key: str = "k0", seed: int = 0, train_seed: int = 0, shift: float = 0.0) -> MethodRun:
+    """A method (training run ``train_seed``; every PSNR raised by ``shift`` dB) with metrics of 2 splits x 4 regions x 2 cameras x 5 frames, frames 1 and 3 with contact,
     the hand region absent (NaN) in frame 0 and one infinite PSNR (a perfect image)."""
     rng = np.random.default_rng(seed)
     rows = [(split, region, cam, frame) for split in ("novel_view", "self_reenact")
             for region in ("full", "hand", "face", "interaction") for cam in ("c0", "c1") for frame in range(5)]
     split, region, cam, frame = (np.array(col) for col in zip(*rows))
     psnr, ssim, lpips = rng.uniform(20, 30, len(rows)), rng.uniform(0.8, 0.9, len(rows)), rng.uniform(0, 0.1, len(rows))
+    psnr += shift
     absent = (region == "hand") & (frame == 0)
     psnr[absent] = ssim[absent] = lpips[absent] = np.nan
     psnr[(region == "face") & (frame == 2) & (cam == "c1")] = np.inf
@@ -28,7 +33,7 @@ def _run(name: str, warmup_key: str = "k0", seed: int = 0) -> MethodRun:
     manifests = {"warmup": {"key": warmup_key, "metrics": {"steps": 20}, "timings": {"wall_s": 10.0}},
                  "dynamic": {"metrics": {"steps": 10, "gaussians": 123}, "timings": {"wall_s": 5.0}},
                  "evaluate": {"timings": {"wall_s": 2.0}}}
-    return MethodRun(name, name.upper(), Path("/nonexistent"), metrics, manifests)
+    return MethodRun(name, train_seed, name.upper(), Path("/nonexistent"), metrics, manifests)
 
 
 def test_rows_are_the_means_of_their_group_ignoring_absent_regions_and_perfect_images():
@@ -71,7 +76,7 @@ def test_shared_warmups_count_once_in_the_cost():
 
 def test_tables_say_whether_the_budget_was_the_same_and_what_is_missing():
     same = _tables([_run("interactavatar"), _run("gaussian_avatars")],
-                   _comparison_rows([_run("interactavatar"), _run("gaussian_avatars")]), ["no_pbd"],
+                   _comparison_rows([_run("interactavatar"), _run("gaussian_avatars")]), [("no_pbd", 0)],
                    {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0})
     assert any("same number of optimisation steps" in n for n in same["notes"])
     assert any("method=no_pbd" in n for n in same["notes"])
@@ -128,8 +133,10 @@ def test_stale_methods_are_named_with_the_fix_and_not_tabled():
     runs = [_run("interactavatar")]
     tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
                                                         "unshared_wall_s": 2.0},
-                     {"gaussian_avatars": "its evaluate read another capture than the one on disk now"})
-    assert any("Left out, stale: gaussian_avatars" in n and "method=gaussian_avatars" in n for n in tables["notes"])
+                     {"gaussian_avatars-seed2": ("its evaluate read another capture than the one on disk now",
+                                                 "method=gaussian_avatars seed=2")})
+    assert any("Left out, stale: gaussian_avatars-seed2" in n and "method=gaussian_avatars seed=2" in n
+               for n in tables["notes"])
     assert all(row[1] != "GAUSSIAN_AVATARS" for table in tables["tables"] for row in table["rows"])
 
 
@@ -139,3 +146,43 @@ def test_train_wall_time_leaves_out_validation():
     run.manifests["warmup"]["metrics"]["validation_s"] = 4.0
     run.manifests["dynamic"]["metrics"]["validation_s"] = 1.5
     assert run.train_wall_s == pytest.approx(15.0 - 5.5)
+
+
+def test_seeds_are_tabled_as_mean_and_spread_and_tested_with_welch():
+    """Three seeds a method: a cell is the mean over the seeds' runs with their sample standard deviation, and
+    the seeds table gives the difference of the means and Welch's p (scipy's, recomputed here by hand)."""
+    full = [_run("interactavatar", seed=s, train_seed=s, shift=3.0) for s in range(3)]
+    base = [_run("gaussian_avatars", seed=10 + s, train_seed=s) for s in range(3)]
+    rows = _comparison_rows(full + base)
+    assert sorted(set(rows["seed"])) == [0, 1, 2]
+    per_seed = np.array([_lookup(_comparison_rows([r]), "interactavatar", "novel_view", "full")["psnr"] for r in full])
+    assert _lookup(rows, "interactavatar", "novel_view", "full")["psnr"] == pytest.approx(per_seed.mean(), rel=1e-12)
+    tables = _tables(full + base, rows, [("no_pbd", 1)], {"total_wall_s": 1.0, "warmups_trained": 1,
+                                                          "unshared_wall_s": 2.0})
+    table1 = tables["tables"][0]
+    cell = next(row[2] for row in table1["rows"] if row[0] == "novel_view" and row[1] == "INTERACTAVATAR")
+    assert cell == f"{per_seed.mean():.2f} ± {per_seed.std(ddof=1):.2f}"
+    seeds = next(t for t in tables["tables"] if t["title"].startswith("Seeds"))
+    row = next(r for r in seeds["rows"] if r[:3] == ["novel_view", "GAUSSIAN_AVATARS", "full"])
+    other = np.array([_lookup(_comparison_rows([r]), "gaussian_avatars", "novel_view", "full")["psnr"] for r in base])
+    assert row[3] == f"{per_seed.mean() - other.mean():+.2f}"
+    assert row[4] == f"{max(per_seed.std(ddof=1), other.std(ddof=1)):.2f}"
+    # Welch by hand: t = (m1 - m2) / sqrt(v1/n1 + v2/n2), Welch-Satterthwaite degrees of freedom
+    v1, v2 = per_seed.var(ddof=1) / 3, other.var(ddof=1) / 3
+    t = (per_seed.mean() - other.mean()) / np.sqrt(v1 + v2)
+    dof = (v1 + v2) ** 2 / (v1 ** 2 / 2 + v2 ** 2 / 2)
+    from scipy.stats import t as student
+    assert welch_p(per_seed, other) == pytest.approx(2 * student.sf(abs(t), dof), rel=1e-9)
+    assert welch_p(per_seed, other) == pytest.approx(ttest_ind(per_seed, other, equal_var=False).pvalue, rel=1e-12)
+    assert row[6] == ("supported" if welch_p(per_seed, other) < 0.05 else "within the spread")
+    assert any("method=no_pbd seed=1" in n for n in tables["notes"])
+    assert any("Training seeds: 0, 1, 2" in n for n in tables["notes"])
+
+
+def test_one_seed_has_no_spread_and_no_seeds_table():
+    runs = [_run("interactavatar"), _run("gaussian_avatars", seed=1)]
+    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
+                                                         "unshared_wall_s": 2.0})
+    assert not any(t["title"].startswith("Seeds") for t in tables["tables"])
+    assert all("±" not in cell for t in tables["tables"] for row in t["rows"] for cell in row)
+    assert np.isnan(welch_p(np.array([1.0]), np.array([2.0, 3.0])))
