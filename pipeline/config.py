@@ -90,6 +90,8 @@ def _check_schema(section: Any, schema: type, where: str, errors: list[str]) -> 
     ``conf/stage/<name>.yaml`` and declare only types (no defaults) in the schema.
     """
     try:
+        if OmegaConf.is_config(section):  # interpolations (stage.*.seed: ${seed}) resolve in the whole config first
+            section = OmegaConf.to_container(section, resolve=True)
         merged = OmegaConf.merge(OmegaConf.structured(schema), section)
     except OmegaConfBaseException as exc:
         msg = str(exc).splitlines()[0]

@@ -23,6 +23,7 @@ from avatar.scene import SceneDecision
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
+from avatar.training.selection import SelectionConfig
 from avatar.training.splatting import train_splatting
 from avatar.training.validation import Validator
 from data_schemas.gaussians import DYNAMIC_TRAIN_LOG
@@ -36,6 +37,14 @@ from stages.common import (
     templates, write_bound_gaussians, write_frame_ply,
     ValidationSchema, record_validation, validation_config, validation_problems,
 )
+
+
+@dataclass
+class SelectSchema:
+    """Types of ``stage.dynamic.select`` (:class:`avatar.training.selection.SelectionConfig`)."""
+
+    enabled: bool
+    margin_db: float
 
 
 @dataclass
@@ -65,6 +74,7 @@ class DynamicConfig:
     ply_frames: list[int]
     backend: str
     seed: int
+    select: SelectSchema
     validation: ValidationSchema
 
     @classmethod
@@ -77,7 +87,30 @@ class DynamicConfig:
         d_max = float(conf.d_max)  # type: ignore[attr-defined]
         if not d_max > 0.0:
             problems.append(f"d_max={d_max:g}: must be positive (metres; the paper uses 0.05)")
+        select = selection_config(conf)
+        problems += [f"select.{problem}" for problem in select.problems()]
+        if select.enabled and int(conf.validation.every) <= 0:  # type: ignore[attr-defined]
+            problems.append("select.enabled=true needs validation frames: set stage.dynamic.validation.every > 0 "
+                            "(e.g. 50), or select.enabled=false")
         return problems + validation_problems(conf)
+
+
+def selection_config(conf: object) -> SelectionConfig:
+    """The core's :class:`SelectionConfig` of a ``stage.dynamic`` section."""
+    return SelectionConfig(bool(conf.select.enabled), float(conf.select.margin_db))  # type: ignore[attr-defined]
+
+
+def check_withheld_by_warmup(cfg) -> None:  # noqa: ANN001 - the run's DictConfig
+    """The selection judges step 0, the warm-up's model, on stage two's validation frames: the warm-up must not
+    have trained on them. ``ValueError`` naming the keys unless it withheld the same frames."""
+    warm, dyn = cfg.stage.warmup.validation, cfg.stage.dynamic.validation
+    if int(warm.every) <= 0 or int(warm.frames) != int(dyn.frames):
+        raise ValueError(
+            f"stage.dynamic.select.enabled=true: the warm-up trained on the frames stage two validates on "
+            f"(stage.warmup.validation.every={warm.every}, frames={warm.frames}; stage.dynamic.validation.frames="
+            f"{dyn.frames}), so step 0 would be judged on frames it saw; set stage.warmup.validation.every > 0 and "
+            f"stage.warmup.validation.frames={dyn.frames} (quality=draft and standard do), or "
+            f"stage.dynamic.select.enabled=false")
 
 
 def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN001 - the run's DictConfig
@@ -103,7 +136,7 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
                  "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
                  "splatting", "stage.warmup"),  # SplattingAvatar's recipe and schedule
     outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet"),
-    version="7",  # 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
+    version="8",  # 8: stage.dynamic.select (the kept step and modules); 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
     # rasterizer's alpha as a power of two (rounding-level)
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
@@ -131,10 +164,10 @@ def _train_embedded(ctx: StageContext, views: ViewSet, meshes: MeshSequence, con
     """SplattingAvatar continued from its warm-up for ``quality.dynamic_steps`` (no density control; walking
     goes on), so it trains as many steps as every other method. ``networks.pt`` holds its canonical mesh."""
     conf, q = ctx.cfg.stage.dynamic, ctx.cfg.quality
-    if conf.hand_mlp or conf.interaction:
-        raise ValueError("method.representation=embedded (SplattingAvatar) has no hand or interaction MLPs: set "
-                         "stage.dynamic.hand_mlp=false and stage.dynamic.interaction=false (method=splatting_avatar "
-                         "does)")
+    if conf.hand_mlp or conf.interaction or conf.select.enabled:
+        raise ValueError("method.representation=embedded (SplattingAvatar) has no hand or interaction MLPs and no "
+                         "selection: set stage.dynamic.hand_mlp=false, stage.dynamic.interaction=false and "
+                         "stage.dynamic.select.enabled=false (method=splatting_avatar does)")
     canonical = meshes.vertices[0]
     model = load_embedded_gaussians(ctx.input_dir("warmup"), meshes.part_names, canonical, meshes.faces)
     validator = Validator(validation_config(conf.validation), views)
@@ -173,6 +206,8 @@ def _write_plys(ctx: StageContext, model: TrainedModel, cond: SequenceConditioni
 def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: SequenceConditioning) -> None:
     """The InteractAvatar model (or what of it the method keeps) on top of the warm-up's bound Gaussians."""
     conf, q = ctx.cfg.stage.dynamic, ctx.cfg.quality
+    if conf.select.enabled:
+        check_withheld_by_warmup(ctx.cfg)
     head, _ = templates(ctx.cfg.model)
     gaussians = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
     arch = model_config(ctx.cfg, load_scene(ctx.input_dir("scene")))
@@ -184,7 +219,8 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
         position_weight=conf.position_weight, patch_weight=conf.patch_weight, eps_s=conf.eps_s, eps_mu=conf.eps_mu,
         lr_mlp=conf.lr_mlp, lr_point_features=conf.lr_point_features, lr_decay=conf.lr_decay,
         contact_fraction=conf.contact_fraction, patch_min_size=conf.patch_min_size,
-        checkpoint_every=conf.checkpoint_every, log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
+        checkpoint_every=conf.checkpoint_every, log_every=conf.log_every, seed=conf.seed, backend=conf.backend,
+        selection=selection_config(conf))
     contact = contact_flags(ctx.input_dir("pbd"), "train", views.num_frames)
     validator = Validator(validation_config(conf.validation), views)
     result = train_dynamic(model, views, meshes, cond, contact, train_cfg, checkpoint_dir=ctx.scratch_dir,
@@ -194,9 +230,11 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
     buffer = io.BytesIO()
     torch.save(model.network_state(), buffer)
     write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "the dynamic model's networks")
+    selection = result.selection.metrics() if result.selection is not None else {}
     write_json(ctx.out_dir / "model.json", {"architecture": asdict(model.cfg), "part_names": list(meshes.part_names),
                                             "num_face_vertices": head.num_vertices, "frame_dims": frame_dims,
-                                            "num_gaussians": model.gaussians.num_gaussians}, "the dynamic model")
+                                            "num_gaussians": model.gaussians.num_gaussians, "selection": selection},
+               "the dynamic model")
     _write_plys(ctx, model, cond, meshes, views.num_frames)
     log = result.log
     write_table(ctx.out_dir / "train_log.parquet", DYNAMIC_TRAIN_LOG,
@@ -212,4 +250,5 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
         "interaction_steps": result.interaction_steps,
         "contact_frames": int(contact.sum()),
         "rasterizer": resolve_backend(conf.backend, model.mu_cano),
+        **selection,
     })

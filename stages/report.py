@@ -38,7 +38,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="11", config_schema=ReportConfig, per_method=True,
+       outputs=("report.html",), version="12", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -124,7 +124,27 @@ def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
     saved = ("Left out: " + "; ".join(left_out) + ". benchmarks/bench_scene.py measures the time this saves "
              "against modelling everything (README, \"Model only what a scene requires\").") if left_out else ""
     return _table(("modelled", "", "why"), rows) + f"<p>{html.escape(work)}</p>" + \
-        (f"<p>{html.escape(saved)}</p>" if saved else "")
+        (f"<p>{html.escape(saved)}</p>" if saved else "") + _selection_paragraph(dynamic)
+
+
+def _selection_paragraph(dynamic: dict) -> str:
+    """What stage two's selection kept (stage.dynamic.select), on the validation figures it rests on; nothing
+    when it did not run."""
+    if "selected_step" not in dynamic:
+        return ("<p>Stage two kept its last step and every module it built (stage.dynamic.select.enabled=false).</p>")
+    step, final = int(dynamic["selected_step"]), int(dynamic["selection_final_step"])
+    text = (f"Stage two kept step {step} of {final}" + (" (the warm-up's model: H and I at zero)" if step == 0 else "")
+            + f": validation PSNR {dynamic['selection_selected_psnr']:.2f} dB against {dynamic['selection_final_psnr']:.2f}"
+            f" dB at the last step, on training frames that neither stage trained on.")
+    for module, name in (("hand_mlp", "the hand MLPs H"), ("interaction", "the interaction MLPs I")):
+        without = dynamic.get(f"selection_psnr_without_{module}")
+        if without is None:
+            text += f" {name[0].upper()}{name[1:]}: not built."
+            continue
+        kept = bool(dynamic[f"kept_{module}"])
+        text += (f" {name[0].upper()}{name[1:]}: {'kept' if kept else 'switched off'} (validation PSNR without them "
+                 f"{without:.2f} dB).")
+    return f"<p>{html.escape(text)} Rule: README, \"Keep only what the training views support\".</p>"
 
 
 def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, str]:

@@ -29,6 +29,7 @@ from avatar.render.gaussians import render_gaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.schedule import exponential_lr
+from avatar.training.selection import BestStep, Selection, SelectionConfig, select
 from avatar.training.static import gaussian_param_groups
 from avatar.training.validation import ValidationConfig, Validator, draw_frame
 
@@ -61,6 +62,7 @@ class DynamicTrainConfig:
     log_every: int = 10
     seed: int = 0
     backend: str = "auto"
+    selection: SelectionConfig = SelectionConfig()  # keep the best validation step and the modules it needs
 
 
 @dataclass
@@ -77,12 +79,14 @@ class DynamicLogRow:
 
 @dataclass
 class DynamicTrainResult:
-    """The loss log and the cost counters of a run (``seconds``: forward time per component, summed)."""
+    """The loss log and the cost counters of a run (``seconds``: forward time per component, summed), and what
+    the selection kept (None when ``cfg.selection`` is off)."""
 
     log: list[DynamicLogRow]
     interaction_evaluations: int
     interaction_steps: int
     seconds: dict[str, float]
+    selection: Selection | None = None
 
 
 Progress = Callable[[Iterable[int]], Iterator[int]]
@@ -150,10 +154,16 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         contact: (T,) bool, frames with hand-face contact (oversampled).
         checkpoint_dir: resume from ``dynamic.pt`` there when present; save every ``cfg.checkpoint_every``.
         lpips: the L_patch network (default LPIPS-VGG with the offline weights).
-        validator: validates the model as evaluated (:func:`render_dynamic`) on its withheld frames.
+        validator: validates the model as evaluated (:func:`render_dynamic`) on its withheld frames; with
+            ``cfg.selection.enabled`` the model left in ``model`` is the one the selection kept
+            (:mod:`avatar.training.selection`), which needs validation.
     """
     gen = torch.Generator().manual_seed(cfg.seed)
     validator = validator if validator is not None else Validator(ValidationConfig(), views)
+    if cfg.selection.enabled and not validator.cfg.enabled:
+        raise ValueError("stage two selects what it keeps on validation frames: set stage.dynamic.validation.every "
+                         "> 0, or stage.dynamic.select.enabled=false")
+    best = BestStep() if cfg.selection.enabled else None
     lpips = lpips if lpips is not None else LPIPS("vgg")
     optimizer = _optimizer(model, cfg)
     result = DynamicTrainResult([], 0, 0, {"model": 0.0, "render": 0.0, "loss": 0.0, "backward": 0.0})
@@ -168,12 +178,20 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         result.log = [DynamicLogRow(**r) for r in state["log"]]
         result.interaction_evaluations, result.interaction_steps = state["interaction"]
         validator.load_state(state["validation"])
+        if best is not None and state["best"] is not None:
+            best.load_state(state["best"])
 
     def render(frame: int) -> Tensor:  # as evaluated: the most probable PointNet++ sample, posed once
         g = model(cond.frame(frame), meshes.vertices[frame])
         return torch.stack([rasterize(g, views, c, cfg.backend).rgb for c in range(views.num_cameras)])
 
-    for step in progress(validator.begin(start, cfg.steps, 0, render)):
+    def offer_validation() -> None:  # a new validation point is a candidate of the selection
+        if best is not None and validator.curve and validator.curve[-1].step > best.offered:
+            best.offer(validator.curve[-1].step, validator.curve[-1].psnr, model)
+
+    steps = validator.begin(start, cfg.steps, 0, render)
+    offer_validation()
+    for step in progress(steps):
         frame = sample_frame(gen, validator.train_frames, contact, cfg.contact_fraction)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         _set_learning_rates(optimizer, cfg, step)
@@ -196,6 +214,7 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         result.interaction_evaluations += g.interaction_evaluations
         result.interaction_steps += int(g.interaction_evaluations > 0)
         stop = validator.after_step(step, render)
+        offer_validation()
         if step % cfg.log_every == 0 or step == validator.end:
             result.log.append(DynamicLogRow(step, loss.item(), *(terms[k].item() for k in
                                             ("l1", "dssim", "scale_reg", "position_reg", "patch")),
@@ -204,13 +223,17 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
             save_checkpoint(ckpt_path, {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                                         "rng": gen.get_state(), "log": [asdict(r) for r in result.log],
                                         "interaction": (result.interaction_evaluations, result.interaction_steps),
-                                        "validation": validator.state()})
+                                        "validation": validator.state(),
+                                        "best": best.state() if best is not None else None})
         if stop:
             break
+    if best is not None:
+        result.selection = select(model, best, validator.end, validator.curve[-1].psnr,
+                                  lambda: validator.measure(render), cfg.selection.margin_db)
     return result
 
 
-_CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction", "validation")
+_CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction", "validation", "best")
 
 
 def _loss_terms(pred: Tensor, gt: Tensor, labels: np.ndarray, g: DynamicFrame, visible: Tensor,

@@ -206,6 +206,12 @@ class Validator:
         self.train_s += now - self._clock
         self._clock = now
 
+    def measure(self, render: Render) -> float:
+        """Mean full-image PSNR (dB) of ``render``'s images of the withheld frames, as a validation point has it
+        (no point is added; for comparing variants of the model at one step)."""
+        with torch.no_grad():
+            return self._measure(render)[0]
+
     def _measure(self, render: Render) -> tuple[float, float]:
         """Mean full-image PSNR (dB, over the observed pixels) and LPIPS-alex (NaN unless ``cfg.lpips``) over
         the withheld frames and the training cameras; crop padding is left out as in training."""

@@ -9,6 +9,8 @@ import torch
 from avatar.losses import patch_perceptual_loss
 from avatar.metrics.lpips import LPIPS
 from avatar.training.dynamic import DynamicTrainConfig, patch_boxes, rasterize, sample_frame, train_dynamic
+from avatar.training.selection import SelectionConfig
+from avatar.training.validation import ValidationConfig, Validator
 from tests.dynamic.conftest import NEAR, Scene
 
 CONTACT = np.array([True, False])
@@ -90,3 +92,51 @@ def test_patch_boxes_and_loss(lpips: LPIPS) -> None:
     torch.testing.assert_close(loss, expected)
     assert patch_perceptual_loss(pred, gt, [], lpips) == 0
     assert patch_boxes(np.ones((8, 8), np.uint8)) == []  # no hand: no patch
+
+
+def test_the_selection_keeps_the_best_validated_step_and_resumes_to_the_same_choice(scene: Scene, tmp_path,
+                                                                                    lpips: LPIPS) -> None:
+    """With selection on, the model left is the best validation point's (step 0, the warm-up, included), less
+    the modules that did not pay for themselves; its validation PSNR re-measured is the one recorded, and a
+    killed run resumes to the same choice, bit for bit."""
+    cfg = _cfg(4, checkpoint_every=1, selection=SelectionConfig(enabled=True, margin_db=0.05))
+    validation = ValidationConfig(every=2, frames=1)
+    validator = Validator(validation, scene.views)
+    model = scene.model()
+    result = train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips,
+                           validator=validator)
+    chosen = result.selection
+    curve = [(p.step, p.psnr) for p in validator.curve]
+    assert [s for s, _ in curve] == [0, 2, 4]
+    best = max(curve, key=lambda point: (point[1], -point[0]))
+    assert (chosen.selected_step, chosen.selected_psnr) == best
+    assert (chosen.final_step, chosen.final_psnr) == curve[-1]
+    assert set(chosen.kept) == {"hand_mlp", "interaction"} and set(chosen.psnr_without) == {"hand_mlp", "interaction"}
+
+    def render(frame: int) -> torch.Tensor:
+        g = model(scene.cond.frame(frame), scene.meshes.vertices[frame])
+        return torch.stack([rasterize(g, scene.views, c).rgb for c in range(scene.views.num_cameras)])
+
+    assert validator.measure(render) == pytest.approx(chosen.psnr, abs=1e-9)
+
+    def killed_after_three(steps):  # noqa: ANN001, ANN202
+        for step in steps:
+            if step == 4:
+                raise _Kill
+            yield step
+
+    with pytest.raises(_Kill):
+        train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, CONTACT, cfg, tmp_path, killed_after_three,
+                      lpips=lpips, validator=Validator(validation, scene.views))
+    resumed = scene.model()
+    again = train_dynamic(resumed, scene.views, scene.meshes, scene.cond, CONTACT, cfg, tmp_path, lpips=lpips,
+                          validator=Validator(validation, scene.views)).selection
+    assert again == chosen
+    for (name, a), (_, b) in zip(model.state_dict().items(), resumed.state_dict().items(), strict=True):
+        assert torch.equal(a, b), name
+
+
+def test_the_selection_needs_validation_frames(scene: Scene, lpips: LPIPS) -> None:
+    cfg = _cfg(1, selection=SelectionConfig(enabled=True))
+    with pytest.raises(ValueError, match="stage.dynamic.validation.every"):
+        train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips)

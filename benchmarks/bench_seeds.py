@@ -1,0 +1,232 @@
+"""InteractAvatar against GaussianAvatars with seeds, on captures unlike the default (issue 40).
+
+Settings (all at ``quality=draft``; every method trained once per seed, the shared stages once):
+
+- ``a``: today's captures: ``full`` appearance, 24 training frames, ground-truth tracking; synth_a and synth_b;
+- ``b``: ``plain`` appearance (no creases, no curl self-shadow, no contact darkening), otherwise as (a); synth_a;
+- ``c``: ``full``, 8 training frames, fitted tracking on MediaPipe detections; synth_a (2 validation frames
+  instead of 4: 4 of 8 would halve the training frames);
+- ``d``: the held-out third identity synth_c, ``full``, 24 frames, fitted tracking on MediaPipe detections.
+
+``run`` trains and evaluates one setting's subject (``interactavatar -m method=... seed=...`` then the comparison
+with ``stage.compare.seeds``) in ``<outputs>/<setting>/``; run two at once with ``OMP_NUM_THREADS=1`` on a 2-core
+machine. ``table`` reads every comparison under ``<outputs>`` and prints, per setting, subject, split and region,
+both methods' mean ± standard deviation over the seeds, the difference of the means, the larger of the two
+spreads, Welch's p, and the goal's verdict; and what the selection kept per seed (``kept_hand_mlp``,
+``kept_interaction``, ``selected_step``). It writes ``benchmarks/results/bench_seeds.{json,md}`` with the commit,
+machine, load and seeds.
+
+Goal (issue 40): in no cell InteractAvatar worse than GaussianAvatars by more than the larger seed spread; in (a),
+on the mean, at least +0.8 dB on the novel view's full image and +1.5 dB on its hand; in (b), the contact frames'
+interaction region still gains.
+
+Usage: python benchmarks/bench_seeds.py run --setting a --subject synth_a [--seeds 0 1 2] [--outputs DIR]
+       python benchmarks/bench_seeds.py table [--outputs DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from data_schemas.metrics import COMPARISON  # noqa: E402
+from data_schemas.tables import read_table  # noqa: E402
+from pipeline.summary import format_table  # noqa: E402
+from pipeline.workspace import method_run  # noqa: E402
+from stages.compare import welch_p  # noqa: E402
+
+METHODS = ("interactavatar", "gaussian_avatars")
+MEDIAPIPE = ["fit.source=fitted", "stage.keypoints.detector=mediapipe"]
+SETTINGS: dict[str, dict] = {
+    "a": {"subjects": ("synth_a", "synth_b"), "overrides": ["fit.source=ground_truth"],
+          "what": "full appearance, 24 frames, ground-truth tracking"},
+    "b": {"subjects": ("synth_a",), "overrides": ["fit.source=ground_truth", "dataset.appearance=plain"],
+          "what": "plain appearance, 24 frames, ground-truth tracking"},
+    "c": {"subjects": ("synth_a",), "overrides": [*MEDIAPIPE, "quality.num_frames_train=8",
+                                                  "stage.warmup.validation.frames=2",
+                                                  "stage.dynamic.validation.frames=2"],
+          "what": "full appearance, 8 frames, fitted tracking (MediaPipe)"},
+    "d": {"subjects": ("synth_c",), "overrides": [*MEDIAPIPE],
+          "what": "held-out identity synth_c, 24 frames, fitted tracking (MediaPipe)"},
+}
+REGIONS = (("full", "all"), ("hand", "all"), ("face", "all"), ("interaction", "all"), ("interaction", "contact"))
+SPLITS = {"novel_view": "NV", "self_reenact": "SR"}
+
+
+def _cli(*args: str) -> None:
+    """One run of the app with this checkout's code (the interpreter that runs this script)."""
+    command = [sys.executable, "-m", "pipeline.cli", *args]
+    print("$", " ".join(command), flush=True)
+    subprocess.run(command, cwd=REPO, check=True)
+
+
+def run(setting: str, subject: str, seeds: list[int], outputs: Path, extra: list[str]) -> None:
+    """Train and evaluate both methods once per seed, then compare them (mean and spread over the seeds)."""
+    spec = SETTINGS[setting]
+    common = [f"paths.outputs={outputs / setting}", f"subject={subject}", "quality=draft", "run.progress=false",
+              *spec["overrides"], *extra]
+    seed_list = ",".join(map(str, seeds))
+    _cli("-m", f"method={','.join(METHODS)}", f"seed={seed_list}", "run.until=evaluate", *common)
+    _cli("run.only=compare", f"stage.compare.methods=[{','.join(METHODS)}]", f"stage.compare.seeds=[{seed_list}]",
+         *common)
+
+
+def _manifest(path: Path) -> dict:
+    return json.loads((path / "_manifest.json").read_text())
+
+
+def _kept(subject_dir: Path, seeds: list[int]) -> list[list[str]]:
+    """What the selection kept, per method and seed."""
+    rows = []
+    for method in METHODS:
+        for seed in seeds:
+            folder = subject_dir / "methods" / method_run(method, seed) / "dynamic"
+            if not (folder / "_manifest.json").is_file():
+                continue
+            m = _manifest(folder)["metrics"]
+            rows.append([method, str(seed), str(m.get("selected_step", "-")), str(m.get("selection_final_step", "-")),
+                         str(m.get("kept_hand_mlp", "-")), str(m.get("kept_interaction", "-")),
+                         f"{m.get('selection_selected_psnr', float('nan')):.2f}",
+                         f"{m.get('selection_final_psnr', float('nan')):.2f}",
+                         f"{m.get('selection_psnr_without_hand_mlp', float('nan')):.2f}",
+                         f"{m.get('selection_psnr_without_interaction', float('nan')):.2f}"])
+    return rows
+
+
+def _values(table: dict, method: str, split: str, region: str, group: str, metric: str) -> np.ndarray:
+    sel = ((np.asarray(table["method"]) == method) & (np.asarray(table["split"]) == split)
+           & (np.asarray(table["region"]) == region) & (np.asarray(table["contact"]) == group))
+    order = np.argsort(np.asarray(table["seed"])[sel])
+    return np.asarray(table[metric], dtype=np.float64)[sel][order]
+
+
+def _stat(v: np.ndarray, digits: int) -> str:
+    if not v.size:
+        return "-"
+    return f"{v.mean():.{digits}f}" + (f" ± {v.std(ddof=1):.{digits}f}" if v.size > 1 else "")
+
+
+def _setting_rows(setting: str, subject: str, table: dict) -> list[dict]:
+    """Per split and region: both methods' PSNR and LPIPS over the seeds, the difference and the verdicts."""
+    out = []
+    for split in SPLITS:
+        for region, group in REGIONS:
+            psnr = {m: _values(table, m, split, region, group, "psnr") for m in METHODS}
+            lpips = {m: _values(table, m, split, region, group, "lpips") for m in METHODS}
+            full, base = psnr["interactavatar"], psnr["gaussian_avatars"]
+            if not (full.size and base.size):
+                continue
+            diff = float(full.mean() - base.mean())
+            spread = max(float(full.std(ddof=1)) if full.size > 1 else 0.0,
+                         float(base.std(ddof=1)) if base.size > 1 else 0.0)
+            out.append({"setting": setting, "subject": subject, "split": split, "region": region, "group": group,
+                        "seeds": int(min(full.size, base.size)),
+                        "ia_psnr": full.tolist(), "ga_psnr": base.tolist(),
+                        "ia_lpips": lpips["interactavatar"].tolist(), "ga_lpips": lpips["gaussian_avatars"].tolist(),
+                        "difference_db": diff, "larger_sd_db": spread, "welch_p": welch_p(full, base),
+                        "worse_beyond_spread": bool(diff < -spread)})
+    return out
+
+
+def _load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _cpu() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def table(outputs: Path, results: Path) -> None:
+    """Print every setting's table and write the result files."""
+    rows, kept, meta = [], {}, {}
+    for setting, spec in SETTINGS.items():
+        for subject in spec["subjects"]:
+            compare_dir = outputs / setting / subject / "compare"
+            if not (compare_dir / "comparison.parquet").is_file():
+                continue
+            manifest = _manifest(compare_dir)
+            seeds = [int(s) for s in manifest["config"]["stage.compare"]["seeds"]]
+            t = read_table(compare_dir / "comparison.parquet", COMPARISON)
+            rows += _setting_rows(setting, subject, t)
+            kept[f"{setting}/{subject}"] = _kept(outputs / setting / subject, seeds)
+            evaluate = _manifest(outputs / setting / subject / "methods" / "interactavatar" / "evaluate")
+            meta[f"{setting}/{subject}"] = {"seeds": seeds, "git": evaluate.get("git_sha", "?"),
+                                            "what": spec["what"], "overrides": spec["overrides"]}
+    lines = [f"# bench_seeds: InteractAvatar against GaussianAvatars with seeds (issue 40)", "",
+             f"Commit of this table: {_commit()}; machine: {_cpu()}, {os.cpu_count()} cores; load now: {_load()}; "
+             f"made {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", ""]
+    for key, info in meta.items():
+        setting, subject = key.split("/")
+        lines += [f"## ({setting}) {subject}: {info['what']}", "",
+                  f"quality=draft {' '.join(info['overrides'])}; seeds {info['seeds']}; trained at {info['git']}.", ""]
+        body = [[SPLITS[r["split"]], r["region"] + (" (contact)" if r["group"] == "contact" else ""),
+                 _stat(np.array(r["ia_psnr"]), 2), _stat(np.array(r["ga_psnr"]), 2), f"{r['difference_db']:+.2f}",
+                 f"{r['larger_sd_db']:.2f}", "-" if not np.isfinite(r["welch_p"]) else f"{r['welch_p']:.3f}",
+                 "WORSE" if r["worse_beyond_spread"] else ("gain" if r["welch_p"] < 0.05 and r["difference_db"] > 0
+                                                          else "level"),
+                 _stat(np.array(r["ia_lpips"]), 4), _stat(np.array(r["ga_lpips"]), 4)]
+                for r in rows if (r["setting"], r["subject"]) == (setting, subject)]
+        lines += [format_table(("split", "region", "InteractAvatar PSNR", "GaussianAvatars PSNR", "diff", "larger sd",
+                                "Welch p", "verdict", "IA LPIPS", "GA LPIPS"), body), ""]
+        lines += ["What stage two's selection kept:", "",
+                  format_table(("method", "seed", "kept step", "of", "H kept", "I kept", "val PSNR kept",
+                                "val PSNR last", "val w/o H", "val w/o I"), kept[key]), ""]
+    lines += ["verdict: WORSE where InteractAvatar's mean is below GaussianAvatars' by more than the larger of the two "
+              "seed standard deviations; gain where it is above with Welch's p < 0.05; level otherwise."]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    results.mkdir(parents=True, exist_ok=True)
+    (results / "bench_seeds.md").write_text(text)
+    (results / "bench_seeds.json").write_text(json.dumps(
+        {"commit": _commit(), "machine": _cpu(), "cores": os.cpu_count(), "load": _load(), "settings": meta,
+         "rows": rows, "kept": kept}, indent=1))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("--setting", choices=sorted(SETTINGS), required=True)
+    r.add_argument("--subject", required=True)
+    r.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    r.add_argument("--outputs", type=Path, default=REPO / "outputs" / "bench_seeds")
+    r.add_argument("extra", nargs="*", help="further overrides, e.g. run.lock_timeout_s=7200")
+    t = sub.add_parser("table")
+    t.add_argument("--outputs", type=Path, default=REPO / "outputs" / "bench_seeds")
+    t.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results")
+    args = parser.parse_args()
+    if args.command == "run":
+        if args.subject not in SETTINGS[args.setting]["subjects"]:
+            parser.error(f"setting {args.setting} is measured on {SETTINGS[args.setting]['subjects']}")
+        run(args.setting, args.subject, args.seeds, args.outputs.resolve(), args.extra)
+    else:
+        table(args.outputs.resolve(), args.results)
+
+
+if __name__ == "__main__":
+    main()
