@@ -57,7 +57,7 @@ SETTINGS: dict[str, dict] = {
                                                   "stage.warmup.validation.frames=2",
                                                   "stage.dynamic.validation.frames=2"],
           "what": "full appearance, 8 frames, fitted tracking (MediaPipe)"},
-    "d": {"subjects": ("synth_c",), "overrides": [*MEDIAPIPE],
+    "d": {"subjects": ("synth_c",), "overrides": [*MEDIAPIPE, "stage.capture.cross_reenactment=false"],
           "what": "held-out identity synth_c, 24 frames, fitted tracking (MediaPipe)"},
 }
 REGIONS = (("full", "all"), ("hand", "all"), ("face", "all"), ("interaction", "all"), ("interaction", "contact"))

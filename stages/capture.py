@@ -116,9 +116,11 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
     from avatar.synthetic import SyntheticConfig
 
     q, conf = ctx.cfg.quality, ctx.cfg.stage.capture
-    if ctx.subject not in ctx.cfg.dataset.subjects:
+    from avatar.synthetic.capture import SUBJECTS
+
+    if ctx.subject not in (*ctx.cfg.dataset.subjects, *SUBJECTS):
         raise SchemaError(f"subject={ctx.subject!r} is not in the synthetic dataset; "
-                          f"choose one of {list(ctx.cfg.dataset.subjects)}")
+                          f"choose one of {list(dict.fromkeys((*ctx.cfg.dataset.subjects, *SUBJECTS)))}")
     frames_per_sequence = {"train": q.num_frames_train, "test": q.num_frames_test}
     # name -> (script, performer): the two sequences, and with stage.capture.cross_reenactment this identity
     # performing every other subject's held-out motion (the ground truth of cross-actor reenactment); every
@@ -129,7 +131,8 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
     configs = {seq: SyntheticConfig(subject=ctx.subject, sequence=script, image_size=int(q.capture_size),
                                     num_frames=int(frames_per_sequence[script]), supersample=int(q.supersample),
                                     seed=int(ctx.cfg.dataset.seed), num_cameras=int(conf.num_cameras),
-                                    performer=performer, scene=str(ctx.cfg.dataset.scene))
+                                    performer=performer, scene=str(ctx.cfg.dataset.scene),
+                                    appearance=str(ctx.cfg.dataset.get("appearance", "full")))
                for seq, (script, performer) in plan.items()}
     rendered = _render_sequences(ctx, configs)
     sequences: dict[str, SequenceInfo] = {}

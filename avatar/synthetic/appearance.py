@@ -41,6 +41,11 @@ CREASE_HALF_WIDTH_M = 0.0022
 CREASE_DEPTH_PALMAR = 0.55
 CREASE_DEPTH_DORSAL = 0.25
 CURL_SHADOW = 0.35
+#: appearance "pressed": a dent this deep (metres) blanches the skin fully; how far it goes towards pale
+BLANCH_FULL_DEPTH_M = 0.004
+BLANCH_STRENGTH = 0.6
+#: the colour pressed skin goes towards, relative to its own mean: lighter, less red, a little yellow
+BLANCH_TINT = np.array([1.18, 1.16, 1.02])
 
 
 def _smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
@@ -139,6 +144,15 @@ def contact_occlusion(face: np.ndarray, hand: np.ndarray) -> tuple[np.ndarray, n
         return np.where(np.isfinite(d), np.exp(-0.5 * (np.minimum(d, reach) / CONTACT_AO_SIGMA_M) ** 2), 0.0)
 
     return 1 - FACE_CONTACT_AO * falloff(d_face), 1 - HAND_CONTACT_AO * falloff(d_hand)
+
+
+def pressure_blanching(albedo: np.ndarray, dent: np.ndarray) -> np.ndarray:
+    """(V, 3) albedo of skin pressed by ``dent`` (V,) metres deep: blood pushed out of the capillaries leaves it
+    paler and yellower, blending towards :data:`BLANCH_TINT` times the albedo's grey, in proportion to the depth up
+    to :data:`BLANCH_FULL_DEPTH_M`. ``albedo`` (V, 3) linear; zero depth leaves it unchanged."""
+    weight = BLANCH_STRENGTH * np.clip(dent / BLANCH_FULL_DEPTH_M, 0.0, 1.0)[:, None]
+    pale = albedo.mean(axis=1, keepdims=True) * BLANCH_TINT
+    return (1 - weight) * albedo + weight * pale
 
 
 def face_appearance(model: TemplateModel, identity: Identity) -> tuple[np.ndarray, np.ndarray]:

@@ -8,10 +8,14 @@ import numpy as np
 
 from data_schemas.cameras import Camera
 
-SUBJECTS = ("synth_a", "synth_b")
+#: The synthetic identities. synth_a and synth_b are the default dataset's two subjects; synth_c is a held-out third
+#: identity (other head and hand proportions, a darker skin, a livelier performance) on which nothing is tuned.
+SUBJECTS = ("synth_a", "synth_b", "synth_c")
 SEQUENCES = ("train", "test")
 #: What the capture shows (see :attr:`SyntheticConfig.scene`).
 SCENES = ("interaction", "no_contact", "face_only")
+#: How the skin's shading responds to pose and contact (see :attr:`SyntheticConfig.appearance`).
+APPEARANCES = ("full", "plain", "pressed")
 
 
 @dataclass(frozen=True)
@@ -19,8 +23,8 @@ class SyntheticConfig:
     """One synthetic capture.
 
     Attributes:
-        subject: "synth_a" or "synth_b" (two identities: different FLAME/MANO
-            shape and skin texture/colour).
+        subject: one of :data:`SUBJECTS` (identities: different FLAME/MANO shape, skin texture/colour and
+            performance style).
         sequence: "train" or "test" (different motion; test is held out).
         image_size: square render resolution per camera, e.g. 64 (smoke) .. 512 (paper).
         num_frames: frames in the sequence, sampled evenly over the motion script.
@@ -38,6 +42,12 @@ class SyntheticConfig:
             articulation but place the hand 2 m below the head, outside every camera (finite values, as
             the params schema wants every column). Both leave the face undeformed (zero face_offsets, no
             contact). See :func:`avatar.synthetic.motion.stage_scene`.
+        appearance: one of :data:`APPEARANCES`. "full": finger creases that deepen with the bend, the curl
+            self-shadow on the palm side and contact darkening of face and hand. "plain": none of the three (the
+            albedo, lighting, shadows, geometry and dents are identical): pose and contact leave the skin's
+            shading alone, so there is nothing for pose-dependent appearance to learn beyond the cast shadows.
+            "pressed": "full" plus pressure blanching, what "full" lacks: skin pressed by a finger loses blood and
+            turns paler and yellower in proportion to the dent's depth (a colour change, not a darkening).
     """
 
     subject: str
@@ -49,10 +59,14 @@ class SyntheticConfig:
     num_cameras: int = 8
     performer: str | None = None
     scene: str = "interaction"
+    appearance: str = "full"
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
             raise ValueError(f"scene must be one of {SCENES}, got {self.scene!r}")
+        if self.appearance not in APPEARANCES:
+            raise ValueError(f"appearance must be one of {APPEARANCES}, got {self.appearance!r} "
+                             f"(dataset.appearance)")
         if self.subject not in SUBJECTS:
             raise ValueError(f"subject must be one of {SUBJECTS}, got {self.subject!r}")
         if self.performer is not None and self.performer not in SUBJECTS:

@@ -9,13 +9,13 @@ import numpy as np
 import torch
 
 from avatar.render.mesh_raster import Mesh, render
-from avatar.synthetic.appearance import HandAppearance, contact_occlusion, face_appearance
+from avatar.synthetic.appearance import HandAppearance, contact_occlusion, face_appearance, pressure_blanching
 from avatar.synthetic.capture import SEQUENCES, SUBJECTS, SyntheticCapture, SyntheticConfig
 from avatar.synthetic.face_anchors import FaceAnchors
 from avatar.synthetic.face_paint import FacePaint
 from avatar.synthetic.geometry import vertex_normals
 from avatar.synthetic.hand_pose import HandFrame
-from avatar.synthetic.identity import Identity, make_identity
+from avatar.synthetic.identity import Identity, make_identity, motion_style
 from avatar.synthetic.keypoints import FACE_SELF_TOLERANCE_M, HAND_SELF_TOLERANCE_M, project_keypoints
 from avatar.synthetic.motion import SCRIPTS, frame_times, jitter, stage_scene
 from avatar.synthetic.performance import Performance, perform
@@ -88,17 +88,23 @@ def _attributes(rest: np.ndarray, world: np.ndarray, faces: np.ndarray, albedo: 
 
 
 def _scene(subject: _Subject, face: np.ndarray, hand: np.ndarray, hand_pose: np.ndarray,
-           curl: np.ndarray) -> list[Mesh]:
+           curl: np.ndarray, dent: np.ndarray, appearance: str = "full") -> list[Mesh]:
     """Face (label 1) and hand (label 2) meshes of one frame with shading attributes.
 
     Args:
         face: (Vf, 3) deformed face; hand: (Vh, 3) posed hand (world metres);
-        hand_pose: (45,) MANO pose; curl: (5,) finger curl controls.
+        hand_pose: (45,) MANO pose; curl: (5,) finger curl controls;
+        dent: (Vf,) depth of each face vertex's soft-tissue offset (metres);
+        appearance: see :attr:`SyntheticConfig.appearance` ("plain": no pose or contact shading).
     """
-    face_occ, hand_occ = contact_occlusion(face, hand)
-    bend = np.linalg.norm(hand_pose.reshape(15, 3), axis=1)
-    hand_occ = hand_occ * subject.hand.pose_occlusion(curl, bend)
-    face_attrs = _attributes(subject.face_rest, face, subject.face_faces, subject.face_albedo, face_occ,
+    if appearance == "plain":
+        face_occ, hand_occ = np.ones(face.shape[0]), np.ones(hand.shape[0])
+    else:
+        face_occ, hand_occ = contact_occlusion(face, hand)
+        bend = np.linalg.norm(hand_pose.reshape(15, 3), axis=1)
+        hand_occ = hand_occ * subject.hand.pose_occlusion(curl, bend)
+    face_albedo = pressure_blanching(subject.face_albedo, dent) if appearance == "pressed" else subject.face_albedo
+    face_attrs = _attributes(subject.face_rest, face, subject.face_faces, face_albedo, face_occ,
                              subject.face_pores)
     hand_attrs = _attributes(subject.hand_rest + HAND_TEXTURE_SHIFT, hand, subject.hand_faces,
                              subject.hand.albedo, hand_occ, subject.hand.pores)
@@ -135,7 +141,7 @@ def _generate(cfg: SyntheticConfig) -> SyntheticCapture:
     subject = _subject(cfg.subject)
     performer = cfg.performer or cfg.subject
     rng = np.random.default_rng([cfg.seed, SUBJECTS.index(performer), SEQUENCES.index(cfg.sequence)])
-    script = stage_scene(jitter(SCRIPTS[cfg.sequence], rng), cfg.scene)
+    script = stage_scene(jitter(SCRIPTS[cfg.sequence], rng, motion_style(performer)), cfg.scene)
     perf = perform(script, frame_times(cfg.num_frames), subject.identity, subject.flame, subject.mano,
                    FaceAnchors.build(subject.flame))
     offsets = _soft_tissue(subject, perf)
@@ -153,7 +159,7 @@ def _generate(cfg: SyntheticConfig) -> SyntheticCapture:
     background = (BACKGROUND_LINEAR,) * 3
     for t in range(t_count):
         meshes = _scene(subject, faces[t], perf.hand_vertices[t], perf.params["mano_hand_pose"][t],
-                        perf.curl[t])
+                        perf.curl[t], np.linalg.norm(offsets[t], axis=1), cfg.appearance)
         shader = make_shader(ShadowMap.build(meshes, aim), subject.identity.texture_seed,
                              {FACE_LABEL: subject.face_paint})
         for cam in cameras:

@@ -1,4 +1,4 @@
-"""The two synthetic identities: shape coefficients and skin/hair colours.
+"""The synthetic identities: shape coefficients, skin/hair colours and performance style.
 
 Colours are linear-light albedos (the sRGB values they were picked from are in
 the comments). Shape coefficients are fixed per identity (independent of the
@@ -46,8 +46,33 @@ def _shape(seed: int, width: int, scale: float) -> np.ndarray:
     return np.clip(np.random.default_rng(seed).normal(0.0, scale, width), -2.0, 2.0)
 
 
+def _opposite(a: np.ndarray, b: np.ndarray, magnitude: float) -> np.ndarray:
+    """(S,) shape coefficients of ``magnitude`` standard deviations, each on the side opposite to the sum of
+    ``a`` and ``b`` (S,): a shape further from both than they are from each other."""
+    return -magnitude * np.where(a + b >= 0, 1.0, -1.0)
+
+
+@dataclass(frozen=True)
+class MotionStyle:
+    """How a performer acts out the shared scripts (:func:`avatar.synthetic.motion.jitter`).
+
+    Attributes:
+        head_gain: multiplies every head key's yaw, pitch and roll (1: the script's angles).
+        jitter_gain: multiplies the spread of the seeded per-key variation (angles, curl, spread, tilt).
+    """
+
+    head_gain: float = 1.0
+    jitter_gain: float = 1.0
+
+
+def motion_style(subject: str) -> MotionStyle:
+    """The performance style of ``subject``: synth_a and synth_b act the scripts as written (they differ by their
+    seeded variation only); synth_c turns its head further and varies more from key to key."""
+    return MotionStyle(head_gain=1.4, jitter_gain=2.5) if subject == "synth_c" else MotionStyle()
+
+
 def make_identity(subject: str, num_flame_shape: int) -> Identity:
-    """The identity of ``subject`` ("synth_a" or "synth_b")."""
+    """The identity of ``subject`` ("synth_a", "synth_b" or the held-out "synth_c")."""
     if subject == "synth_a":
         return Identity(
             flame_shape=_shape(11, num_flame_shape, 0.9), mano_shape=_shape(12, 10, 0.8),
@@ -60,4 +85,11 @@ def make_identity(subject: str, num_flame_shape: int) -> Identity:
             skin=_srgb(150, 102, 76), lips=_srgb(120, 62, 60), brows=_srgb(38, 30, 26),
             hair=_srgb(30, 26, 24), iris=_srgb(60, 40, 26), texture_seed=2002,
         )
-    raise ValueError(f"unknown synthetic subject {subject!r} (synth_a, synth_b)")
+    if subject == "synth_c":  # held out: head and hand on the side of the shape space away from both, a darker skin
+        return Identity(
+            flame_shape=_opposite(_shape(11, num_flame_shape, 0.9), _shape(21, num_flame_shape, 0.9), 1.5),
+            mano_shape=_opposite(_shape(12, 10, 0.8), _shape(22, 10, 0.8), 1.5),
+            skin=_srgb(78, 50, 36), lips=_srgb(70, 40, 38), brows=_srgb(22, 18, 16),
+            hair=_srgb(18, 16, 15), iris=_srgb(40, 28, 20), texture_seed=3003,
+        )
+    raise ValueError(f"unknown synthetic subject {subject!r} (synth_a, synth_b, synth_c)")

@@ -25,6 +25,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from avatar.synthetic.identity import MotionStyle
+
 
 @dataclass(frozen=True)
 class HeadKey:
@@ -168,23 +170,27 @@ def bracket(key_times: np.ndarray, t: float) -> tuple[int, int, float]:
     return i, j, s * s * (3 - 2 * s)
 
 
-def jitter(script: Script, rng: np.random.Generator) -> Script:
+def jitter(script: Script, rng: np.random.Generator, style: MotionStyle = MotionStyle()) -> Script:
     """Small seeded variation of a script (times keep their order; contact keys
-    stay contacts; the end keys keep times 0 and 1)."""
+    stay contacts; the end keys keep times 0 and 1), acted in ``style`` (the default acts it as written: the
+    same draws, the same values)."""
+    gain = style.jitter_gain
+
     def time(t: float) -> float:
         return t if t in (0.0, 1.0) else float(t + rng.uniform(-0.008, 0.008))
 
     head = tuple(
-        replace(k, time=time(k.time), yaw_deg=k.yaw_deg + rng.normal(0, 2.0),
-                pitch_deg=k.pitch_deg + rng.normal(0, 1.5), roll_deg=k.roll_deg + rng.normal(0, 1.0))
+        replace(k, time=time(k.time), yaw_deg=k.yaw_deg * style.head_gain + rng.normal(0, 2.0) * gain,
+                pitch_deg=k.pitch_deg * style.head_gain + rng.normal(0, 1.5) * gain,
+                roll_deg=k.roll_deg * style.head_gain + rng.normal(0, 1.0) * gain)
         for k in script.head
     )
     hand = tuple(
         replace(k, time=time(k.time),
                 standoff_m=k.standoff_m + float(rng.uniform(-0.0008, 0.0008)) * (k.standoff_m < 0),
-                tilt_deg=k.tilt_deg + rng.normal(0, 2.0),
-                curl=tuple(float(c + rng.normal(0, 0.04)) for c in k.curl),
-                spread=float(k.spread + rng.normal(0, 0.02)))
+                tilt_deg=k.tilt_deg + rng.normal(0, 2.0) * gain,
+                curl=tuple(float(c + rng.normal(0, 0.04) * gain) for c in k.curl),
+                spread=float(k.spread + rng.normal(0, 0.02) * gain))
         for k in script.hand
     )
     return Script(head=head, hand=hand)

@@ -1,5 +1,6 @@
-"""Stage two's selection wired through the DAG: the manifest says what was kept and why, the written model is
-the kept one, the report says so, and a selection without withheld warm-up frames is refused with the fix."""
+"""Stage two's selection wired through the DAG on an 8-frame training motion (issue 40's short capture): the
+manifest says what was kept and why, the written model is the kept one, and a selection without withheld warm-up
+frames is refused with the fix."""
 
 from __future__ import annotations
 
@@ -13,9 +14,9 @@ from tests.conftest import compose_cfg
 
 SMALL = ["quality=smoke", "quality.capture_size=48", "stage.capture.num_cameras=3", "fit.source=ground_truth",
          "run.progress=false", "stage.capture.cross_reenactment=false", "quality.warmup_steps=40",
-         "quality.dynamic_steps=20"]
-SELECT = ["stage.warmup.validation.every=20", "stage.warmup.validation.frames=1", "stage.dynamic.validation.every=10",
-          "stage.dynamic.validation.frames=1", "stage.dynamic.select.enabled=true"]
+         "quality.dynamic_steps=20", "quality.num_frames_train=8"]
+SELECT = ["stage.warmup.validation.every=20", "stage.warmup.validation.frames=2", "stage.dynamic.validation.every=10",
+          "stage.dynamic.validation.frames=2", "stage.dynamic.select.enabled=true"]
 
 
 def _dynamic(out: Path) -> dict:
@@ -35,6 +36,13 @@ def test_the_manifest_and_the_model_say_what_the_selection_kept(tmp_path: Path) 
         assert metrics[f"kept_{module}"] == (worth > 0.05)
     model = json.loads((tmp_path / "synth_a" / "methods" / "interactavatar" / "dynamic" / "model.json").read_text())
     assert model["selection"]["selected_step"] == metrics["selected_step"]
+    capture = json.loads((tmp_path / "synth_a" / "capture" / "_manifest.json").read_text())["metrics"]
+    assert capture["train_frames"] == 8
+    from stages.report import _selection_paragraph  # what the report's "What was modelled, and why" says
+
+    text = _selection_paragraph(metrics)
+    assert f"kept step {metrics['selected_step']} of 20" in text
+    assert ("hand MLPs H: kept" in text) == metrics["kept_hand_mlp"]
 
 
 def test_selection_refuses_a_warmup_that_trained_on_the_validation_frames(tmp_path: Path) -> None:
