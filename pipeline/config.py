@@ -151,18 +151,15 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
         if problem:
             errors.append(f"{problem} (the training run's seed: stage.warmup.seed and stage.dynamic.seed follow it)")
     for s in stages:
-        if s.methods_key is not None:
-            methods = OmegaConf.select(cfg, s.methods_key, default=None)
-            if not OmegaConf.is_list(methods) or not methods:
-                errors.append(f"{s.methods_key}: stage '{s.name}' needs a non-empty list of method names")
+        for key, what, problem_of in ((s.methods_key, "method names", method_problem),
+                                      (s.seeds_key, "seeds, e.g. [0, 1, 2]", seed_problem)):
+            if key is None:
+                continue
+            values = OmegaConf.select(cfg, key, default=None)
+            if not OmegaConf.is_list(values) or not values:
+                errors.append(f"{key}: stage '{s.name}' needs a non-empty list of {what}")
             else:
-                errors.extend(p for m in methods if (p := method_problem(m, s.methods_key)))
-        if s.seeds_key is not None:
-            seeds = OmegaConf.select(cfg, s.seeds_key, default=None)
-            if not OmegaConf.is_list(seeds) or not seeds:
-                errors.append(f"{s.seeds_key}: stage '{s.name}' needs a non-empty list of seeds, e.g. [0, 1, 2]")
-            else:
-                errors.extend(p for seed in seeds if (p := seed_problem(seed, s.seeds_key)))
+                errors.extend(p for value in values if (p := problem_of(value, key)))
         for key in s.config_keys:
             if OmegaConf.select(cfg, key, default=_MISSING) is _MISSING:
                 errors.append(f"stage '{s.name}' depends on config key '{key}', which is not set")
