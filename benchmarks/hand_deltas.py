@@ -19,7 +19,7 @@ This is how the crop-padding A/B of the README ("Crop padding: what the fix chan
 seed's effect in H_app's colour deltas. Nothing here touches the held-out data during training: it only reads
 trained models.
 
-Usage: python benchmarks/hand_deltas.py --outputs DIR [--subject synth_a] [--method interactavatar]
+Usage: python benchmarks/hand_deltas.py --outputs DIR [--subject synth_a] [--method interactavatar] [--seed 0]
        [--split novel_view] [--set quality=draft fit.source=ground_truth ...]
 """
 
@@ -49,6 +49,7 @@ from data_schemas.capture import MASK_LABELS  # noqa: E402
 from data_schemas.cameras import Camera, read_cameras  # noqa: E402
 from data_schemas.metrics import SPLIT_SOURCES  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
+from pipeline.workspace import method_run  # noqa: E402
 from stages.common import (  # noqa: E402
     applied_deformation, load_dynamic, load_gaussians, load_sequence, load_views, templates,
 )
@@ -112,14 +113,15 @@ def main() -> None:
     parser.add_argument("--outputs", type=Path, required=True)
     parser.add_argument("--subject", default="synth_a")
     parser.add_argument("--method", default="interactavatar")
+    parser.add_argument("--seed", type=int, default=0, help="the training run's seed (methods/<method>-seed<k>/)")
     parser.add_argument("--split", default="novel_view", choices=sorted(SPLIT_SOURCES))
     parser.add_argument("--set", nargs="*", default=[], help="config overrides the outputs were made with")
     args = parser.parse_args()
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"subject={args.subject}", f"method={args.method}",
+        cfg = compose("config", overrides=[f"subject={args.subject}", f"method={args.method}", f"seed={args.seed}",
                                            f"paths.outputs={args.outputs}", *args.set])
     root = args.outputs / args.subject
-    method_dir = root / "methods" / args.method
+    method_dir = root / "methods" / method_run(args.method, args.seed)
     model = load_dynamic(method_dir / "dynamic")
     part_names = tuple(json.loads((method_dir / "dynamic" / "model.json").read_text())["part_names"])
     warmup = load_gaussians(method_dir / "warmup", part_names)
@@ -147,7 +149,7 @@ def main() -> None:
         table.append((t, *(f"{v:.2f}" for v in psnr.values()), " ".join(f"{s:.2f}" for s in off)))
     mean = np.nanmean(np.array(rows), axis=0)
     table.append(("mean", *(f"{v:.2f}" for v in mean), ""))
-    print(f"{args.subject}, {args.method}, {args.split}: hand PSNR (dB) per frame; last column: share of the hand "
+    print(f"{args.subject}, {method_run(args.method, args.seed)}, {args.split}: hand PSNR (dB) per frame; last column: share of the hand "
           f"off each training camera's image ({' '.join(c.camera_id for c in train_cameras)})")
     print(format_table(("frame", *VARIANTS, "hand off-image"), table))
 
