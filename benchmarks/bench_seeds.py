@@ -161,6 +161,29 @@ def _cpu() -> str:
     return platform.processor() or "unknown"
 
 
+SUMMARY = (("novel_view", "full", "all"), ("novel_view", "hand", "all"), ("novel_view", "interaction", "contact"),
+           ("self_reenact", "full", "all"), ("self_reenact", "hand", "all"), ("self_reenact", "interaction", "contact"))
+
+
+def summary(rows: list[dict], meta: dict) -> str:
+    """One line per setting and subject: the differences of :data:`SUMMARY`'s cells and the cells that are worse
+    beyond the spread (of every split and region)."""
+    body = []
+    for key, info in meta.items():
+        setting, subject = key.split("/")
+        mine = [r for r in rows if (r["setting"], r["subject"]) == (setting, subject)]
+        cells = []
+        for split, region, group in SUMMARY:
+            r = next((r for r in mine if (r["split"], r["region"], r["group"]) == (split, region, group)), None)
+            cells.append("-" if r is None else f"{r['difference_db']:+.2f} ({r['larger_sd_db']:.2f})")
+        worse = [f"{SPLITS[r['split']]} {r['region']}{' (contact)' if r['group'] == 'contact' else ''}"
+                 for r in mine if r["worse_beyond_spread"]]
+        body.append([f"({setting})", subject, str(len(info["seeds"])), *cells, ", ".join(worse) or "none"])
+    headers = ("setting", "subject", "seeds", *(f"{SPLITS[s]} {r}{' (contact)' if g == 'contact' else ''}"
+                                                 for s, r, g in SUMMARY), "worse beyond the spread")
+    return format_table(headers, body)
+
+
 def table(outputs: Path, results: Path) -> None:
     """Print every setting's table and write the result files."""
     rows, kept, meta = [], {}, {}
@@ -177,9 +200,11 @@ def table(outputs: Path, results: Path) -> None:
             evaluate = _manifest(outputs / setting / subject / "methods" / "interactavatar" / "evaluate")
             meta[f"{setting}/{subject}"] = {"seeds": seeds, "git": evaluate.get("git_sha", "?"),
                                             "what": spec["what"], "overrides": spec["overrides"]}
-    lines = [f"# bench_seeds: InteractAvatar against GaussianAvatars with seeds (issue 40)", "",
+    lines = ["# bench_seeds: InteractAvatar against GaussianAvatars with seeds (issue 40)", "",
              f"Commit of this table: {_commit()}; machine: {_cpu()}, {os.cpu_count()} cores; load now: {_load()}; "
-             f"made {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", ""]
+             f"made {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", "",
+             "## Summary: InteractAvatar's PSNR minus GaussianAvatars' (dB, difference of the seed means; in brackets "
+             "the larger of the two seed standard deviations)", "", summary(rows, meta), ""]
     for key, info in meta.items():
         setting, subject = key.split("/")
         lines += [f"## ({setting}) {subject}: {info['what']}", "",
