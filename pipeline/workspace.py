@@ -22,6 +22,7 @@ killed at any point leaves nothing that a later run takes for whole.
 
 from __future__ import annotations
 
+import glob
 import os
 import re
 import shutil
@@ -39,6 +40,8 @@ __all__ = ["Artifact", "LockTimeout", "METHODS_DIR", "SUBJECT_RULE", "Workspace"
 SUBJECT_RULE = "letters, digits, '-' or '_', starting with a letter or digit"
 _SUBJECT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
 METHODS_DIR = "methods"
+_UNIQUE_HEX = 12        # hex digits naming one temporary dir of an artifact
+_SCRATCH_KEY_HEX = 16   # hex digits of the cache key naming one scratch dir of an artifact
 
 
 def subject_problem(subject: object) -> str | None:
@@ -173,15 +176,14 @@ class Workspace:
     def new_tmp_dir(self, artifact: Artifact) -> Path:
         """A fresh, empty directory for writing ``artifact``; call with its lock held."""
         self.discard_stale_tmp(artifact)
-        path = self._tmp_root / f"{artifact.id}-{uuid.uuid4().hex[:12]}"
+        path = self._tmp_root / f"{artifact.id}-{_unique()}"
         path.mkdir(parents=True)
         return path
 
     def discard_stale_tmp(self, artifact: Artifact) -> None:
-        """Remove leftovers of killed runs of ``artifact`` (safe: the caller holds its lock)."""
-        if self._tmp_root.is_dir():
-            for p in self._tmp_root.glob(f"{artifact.id}-*"):
-                shutil.rmtree(p, ignore_errors=True)
+        """Remove leftovers of killed runs of ``artifact`` (safe: the caller holds its lock), and only its own:
+        ``evaluate@m-seed2-<id>`` belongs to method ``m-seed2``, which another run may be writing now."""
+        _remove_own(self._tmp_root, artifact, rf"(old-)?[0-9a-f]{{{_UNIQUE_HEX}}}")
 
     def scratch_dir(self, artifact: Artifact, key: str) -> Path:
         """Persistent scratch space (checkpoints) of ``artifact`` for one cache ``key``.
@@ -189,16 +191,13 @@ class Workspace:
         It survives a killed run so the next run with the same key can resume; a
         different key (config or inputs changed) never sees it.
         """
-        path = self.root / ".scratch" / f"{artifact.id}-{key[:16]}"
+        path = self.root / ".scratch" / f"{artifact.id}-{key[:_SCRATCH_KEY_HEX]}"
         path.mkdir(parents=True, exist_ok=True)
         return path
 
     def discard_scratch(self, artifact: Artifact) -> None:
         """Remove every scratch dir of ``artifact`` (after it was published or found cached; lock held)."""
-        root = self.root / ".scratch"
-        if root.is_dir():
-            for p in root.glob(f"{artifact.id}-*"):
-                shutil.rmtree(p, ignore_errors=True)
+        _remove_own(self.root / ".scratch", artifact, rf"[0-9a-f]{{{_SCRATCH_KEY_HEX}}}")
 
     def discard_leftovers(self, artifact: Artifact) -> None:
         """Remove what killed or failed runs of ``artifact`` left behind (temporary dirs, checkpoints).
@@ -222,7 +221,7 @@ class Workspace:
         final.parent.mkdir(parents=True, exist_ok=True)
         aside = None
         if final.exists():
-            aside = self._tmp_root / f"{artifact.id}-old-{uuid.uuid4().hex[:12]}"
+            aside = self._tmp_root / f"{artifact.id}-old-{_unique()}"
             os.replace(final, aside)
         os.replace(tmp_dir, final)
         if aside is not None:
@@ -244,3 +243,19 @@ class Workspace:
                 os.link(path, target)
             except OSError:
                 shutil.copy2(path, target)
+
+
+def _unique() -> str:
+    """A fresh name part of ``_UNIQUE_HEX`` hex digits."""
+    return uuid.uuid4().hex[:_UNIQUE_HEX]
+
+
+def _remove_own(root: Path, artifact: Artifact, suffix: str) -> None:
+    """Remove the entries ``<artifact.id>-<suffix>`` of ``root`` (``suffix`` a regex), and no other: a glob on
+    ``<id>-*`` would also take those of an artifact whose id extends this one (method ``m`` and ``m-seed2``)."""
+    if not root.is_dir():
+        return
+    own = re.compile(re.escape(artifact.id) + "-" + suffix)
+    for p in root.glob(f"{glob.escape(artifact.id)}-*"):
+        if own.fullmatch(p.name):
+            shutil.rmtree(p, ignore_errors=True)

@@ -1,0 +1,42 @@
+"""The workspace's leftovers clean-up touches only the artifact it is asked about.
+
+Regression: with seeds, method ``interactavatar`` and run ``interactavatar-seed2`` train side by side; the
+clean-up of ``evaluate@interactavatar`` globbed ``evaluate@interactavatar-*`` and deleted the temporary dir
+that the concurrent seed-2 run was writing (``stage did not write its declared output(s) ['splits.json']``),
+and the seed-2 stage two's checkpoints with it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.workspace import Artifact, Workspace, method_run
+
+
+def test_a_seed_runs_temporary_and_scratch_dirs_survive_the_clean_up_of_seed_zero(tmp_path: Path):
+    ws = Workspace(tmp_path, "synth_a")
+    seed0 = Artifact("evaluate", method_run("interactavatar", 0))
+    seed2 = Artifact("evaluate", method_run("interactavatar", 2))
+    busy_tmp = ws.new_tmp_dir(seed2)
+    (busy_tmp / "splits.json").write_text("{}")
+    busy_scratch = ws.scratch_dir(seed2, "ab" * 32)
+    (busy_scratch / "dynamic.pt").write_bytes(b"checkpoint")
+    stale_tmp, stale_scratch = ws.new_tmp_dir(seed0), ws.scratch_dir(seed0, "cd" * 32)
+
+    fresh = ws.new_tmp_dir(seed0)  # what the runner calls before writing seed 0's artifact
+    ws.discard_leftovers(seed0)  # and after publishing it
+
+    assert (busy_tmp / "splits.json").is_file(), "seed 2's artifact being written was deleted"
+    assert (busy_scratch / "dynamic.pt").is_file(), "seed 2's checkpoint was deleted"
+    assert not stale_tmp.exists() and not stale_scratch.exists() and not fresh.exists()
+
+
+def test_a_published_artifacts_old_version_is_set_aside_and_removed(tmp_path: Path):
+    ws = Workspace(tmp_path, "s")
+    art = Artifact("warmup", "m")
+    for text in ("old", "new"):
+        tmp = ws.new_tmp_dir(art)
+        (tmp / "v.txt").write_text(text)
+        final = ws.publish(art, tmp)
+    assert (final / "v.txt").read_text() == "new"
+    assert not list((tmp_path / "s" / ".tmp").iterdir())
