@@ -22,7 +22,7 @@ from avatar.render.gaussians import resolve_backend
 from avatar.scene import SceneDecision
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.training.data import MeshSequence, ViewSet
-from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
+from avatar.training.dynamic import DynamicTrainConfig, contact_draw_probability, train_dynamic
 from avatar.training.selection import SelectionConfig
 from avatar.training.splatting import train_splatting
 from avatar.training.validation import Validator
@@ -63,6 +63,7 @@ class DynamicConfig:
     lr_point_features: float
     lr_decay: float
     contact_fraction: float
+    max_contact_frame_share: float
     patch_min_size: int
     d_max: float
     deform_threshold_m: float
@@ -84,6 +85,10 @@ class DynamicConfig:
         fraction = float(conf.contact_fraction)  # type: ignore[attr-defined]
         if not 0.0 <= fraction <= 1.0:
             problems.append(f"contact_fraction={fraction:g}: must lie in [0, 1] (the share of steps on contact frames)")
+        share = float(conf.max_contact_frame_share)  # type: ignore[attr-defined]
+        if not 0.0 < share <= 1.0:
+            problems.append(f"max_contact_frame_share={share:g}: must lie in (0, 1] (the most steps one contact frame "
+                            "may take; 1 leaves contact_fraction uncapped)")
         d_max = float(conf.d_max)  # type: ignore[attr-defined]
         if not d_max > 0.0:
             problems.append(f"d_max={d_max:g}: must be positive (metres; the paper uses 0.05)")
@@ -218,7 +223,8 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
         steps=int(q.dynamic_steps), lambda_dssim=conf.lambda_dssim, scale_weight=conf.scale_weight,
         position_weight=conf.position_weight, patch_weight=conf.patch_weight, eps_s=conf.eps_s, eps_mu=conf.eps_mu,
         lr_mlp=conf.lr_mlp, lr_point_features=conf.lr_point_features, lr_decay=conf.lr_decay,
-        contact_fraction=conf.contact_fraction, patch_min_size=conf.patch_min_size,
+        contact_fraction=conf.contact_fraction, max_contact_frame_share=conf.max_contact_frame_share,
+        patch_min_size=conf.patch_min_size,
         checkpoint_every=conf.checkpoint_every, log_every=conf.log_every, seed=conf.seed, backend=conf.backend,
         selection=selection_config(conf))
     contact = contact_flags(ctx.input_dir("pbd"), "train", views.num_frames)
@@ -249,6 +255,8 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
         "interaction_mlp_evaluations": result.interaction_evaluations,
         "interaction_steps": result.interaction_steps,
         "contact_frames": int(contact.sum()),
+        "contact_draw_probability": contact_draw_probability(validator.train_frames, contact, conf.contact_fraction,
+                                                             conf.max_contact_frame_share),
         "rasterizer": resolve_backend(conf.backend, model.mu_cano),
         **selection,
     })

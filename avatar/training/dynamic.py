@@ -4,8 +4,9 @@ Loss (paper, Eq. 13): ``(1 - lambda) L1 + lambda D-SSIM + a L_s + b L_mu + c L_p
 the visible Gaussians' local scales and positions *including their deltas*, and L_patch the LPIPS-VGG
 distance on the hand's box and on the overlap of the hand and face boxes (from the part masks). Adam:
 MLPs (and PointNet++) at 1e-3 and point features at 2.5e-3, both with the 3DGS exponential decay; the
-Gaussians continue at the learning rates the warm-up ended with. Frames with contact are drawn with
-probability ``contact_fraction`` (the paper oversamples them; how much it does not say). Checkpoints
+Gaussians continue at the learning rates the warm-up ended with. Frames with contact are drawn first with
+probability ``contact_fraction`` (the paper oversamples them; how much it does not say), lowered where it would
+give one contact frame more than ``max_contact_frame_share`` of the steps (:func:`contact_draw_probability`). Checkpoints
 resume bit for bit, like the warm-up's.
 """
 
@@ -57,6 +58,7 @@ class DynamicTrainConfig:
     lr_opacity: float = 5e-2
     lr_color: float = 2.5e-3
     contact_fraction: float = 0.5
+    max_contact_frame_share: float = 0.1  # no contact frame takes more of the steps (contact_draw_probability)
     patch_min_size: int = 32
     checkpoint_every: int = 0
     log_every: int = 10
@@ -133,6 +135,28 @@ def patch_boxes(labels: np.ndarray) -> list[np.ndarray]:
     return [b for b in (hand, overlap_box(hand, face)) if b is not None]
 
 
+def contact_draw_probability(frames: np.ndarray, contact: np.ndarray, contact_fraction: float,
+                             max_frame_share: float) -> float:
+    """The probability with which :func:`sample_frame` draws from the contact frames first: ``contact_fraction``,
+    lowered so that no contact frame takes more than ``max_frame_share`` of the steps.
+
+    With ``k`` contact frames among the ``K`` training frames ``frames`` (``contact``: (T,) bool over the
+    sequence) and probability ``p``, a contact frame gets ``p / k + (1 - p) / K`` of the steps. The paper
+    oversamples contact frames because they are rare in a video, to give them enough steps; it does not mean
+    to put most steps on a handful of frames. With few contact frames the uncapped rule does exactly that
+    (one contact frame of six training frames took 58 % of the steps), and with fitted tracking the Gaussians
+    then fit those frames' tracking error instead of the person. Where even uniform drawing gives every
+    frame more than the cap (``K < 1 / max_frame_share``), frames are drawn uniformly (probability 0).
+    """
+    k, total = int(contact[frames].sum()), len(frames)
+    if k == 0 or k == total:  # nothing to oversample: every draw is uniform over the frames either way
+        return contact_fraction
+    uniform = 1.0 / total
+    if max_frame_share <= uniform:
+        return 0.0
+    return min(contact_fraction, (max_frame_share - uniform) / (1.0 / k - uniform))
+
+
 def sample_frame(gen: torch.Generator, frames: np.ndarray, contact: np.ndarray, contact_fraction: float) -> int:
     """One of the training frames ``frames`` (K,): with probability ``contact_fraction`` one of those with
     contact (``contact``: (T,) bool over the whole sequence), if any, else any of them."""
@@ -191,8 +215,10 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
 
     steps = validator.begin(start, cfg.steps, 0, render)
     offer_validation()
+    contact_probability = contact_draw_probability(validator.train_frames, contact, cfg.contact_fraction,
+                                                   cfg.max_contact_frame_share)
     for step in progress(steps):
-        frame = sample_frame(gen, validator.train_frames, contact, cfg.contact_fraction)
+        frame = sample_frame(gen, validator.train_frames, contact, contact_probability)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         _set_learning_rates(optimizer, cfg, step)
         t0 = time.perf_counter()

@@ -8,7 +8,8 @@ import torch
 
 from avatar.losses import patch_perceptual_loss
 from avatar.metrics.lpips import LPIPS
-from avatar.training.dynamic import DynamicTrainConfig, patch_boxes, rasterize, sample_frame, train_dynamic
+from avatar.training.dynamic import (DynamicTrainConfig, contact_draw_probability, patch_boxes, rasterize,
+                                     sample_frame, train_dynamic)
 from avatar.training.selection import SelectionConfig
 from avatar.training.validation import ValidationConfig, Validator
 from tests.dynamic.conftest import NEAR, Scene
@@ -32,7 +33,8 @@ def lpips() -> LPIPS:
 def test_every_network_the_point_features_and_the_gaussians_receive_gradients(scene: Scene, lpips: LPIPS) -> None:
     model = scene.model()
     # two steps move the zero output layers off zero; then every layer upstream of them gets a gradient
-    train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT, _cfg(2, contact_fraction=1.0), lpips=lpips)
+    train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT,
+                  _cfg(2, contact_fraction=1.0, max_contact_frame_share=1.0), lpips=lpips)
     g = model(scene.cond.frame(NEAR), scene.meshes.vertices[NEAR], torch.Generator().manual_seed(0))
     out = rasterize(g, scene.views, 0)
     (out.rgb - scene.views.image(NEAR, 0)).square().mean().backward()
@@ -140,3 +142,43 @@ def test_the_selection_needs_validation_frames(scene: Scene, lpips: LPIPS) -> No
     cfg = _cfg(1, selection=SelectionConfig(enabled=True))
     with pytest.raises(ValueError, match="stage.dynamic.validation.every"):
         train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips)
+
+
+@pytest.mark.parametrize(("contact_ids", "frames", "expected"), [
+    ([2, 7], 10, 0.0),  # uniform already gives each frame 1/10: nothing left to oversample under the cap
+    (list(range(15)), 20, 0.5),  # the synthetic draft captures: many contact frames, the cap does not bite
+    ([0], 6, 0.0),  # one contact frame of six (8 frames, 2 withheld): uniform
+    ([0, 1, 2], 20, (0.1 - 0.05) / (1 / 3 - 0.05)),  # the cap bites: each contact frame gets exactly 0.1
+    ([], 20, 0.5), (list(range(20)), 20, 0.5),  # nothing to oversample: contact_fraction as given (no effect)
+])
+def test_contact_draw_probability_caps_each_contact_frames_share(contact_ids, frames, expected) -> None:
+    contact = np.isin(np.arange(frames), contact_ids)
+    p = contact_draw_probability(np.arange(frames), contact, 0.5, 0.1)
+    assert p == pytest.approx(expected)
+    if 0 < len(contact_ids) < frames and p > 0:  # the closed form, against the share sample_frame realises
+        share = p / len(contact_ids) + (1 - p) / frames
+        assert share <= 0.1 + 1e-12
+        gen = torch.Generator().manual_seed(0)
+        draws = np.array([sample_frame(gen, np.arange(frames), contact, p) for _ in range(20000)])
+        assert abs(np.mean(draws == contact_ids[0]) - share) < 0.01
+    assert contact_draw_probability(np.arange(frames), contact, 0.5, 1.0) == 0.5  # cap 1: the paper's rule
+
+
+def test_a_fully_capped_oversampling_trains_exactly_as_uniform_drawing(scene: Scene, lpips: LPIPS) -> None:
+    """Two frames: the cap (0.1 < 1/2) leaves nothing to oversample, and the run is the contact_fraction=0 run."""
+    runs = []
+    for fraction in (0.0, 0.5):
+        model = scene.model()
+        log = train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT, _cfg(3, contact_fraction=fraction),
+                            lpips=lpips).log
+        runs.append(([r.loss for r in log], model.state_dict()))
+    assert runs[0][0] == runs[1][0]
+    for (name, a), (_, b) in zip(runs[0][1].items(), runs[1][1].items(), strict=True):
+        assert torch.equal(a, b), name
+
+
+def test_the_cap_counts_only_the_training_frames() -> None:
+    """Contact frames withheld for validation are not drawn, so they do not spread the share."""
+    contact = np.isin(np.arange(24), range(12))
+    train = np.arange(8, 24)  # 4 contact frames of 16 left to training
+    assert contact_draw_probability(train, contact, 0.5, 0.1) == pytest.approx((0.1 - 1 / 16) / (1 / 4 - 1 / 16))

@@ -13,6 +13,8 @@ from tests.conftest import compose_cfg
 BAD = [
     ("stage.dynamic.contact_fraction=1.5", "contact_fraction=1.5: must lie in [0, 1]"),
     ("stage.dynamic.contact_fraction=nan", "contact_fraction=nan: must lie in [0, 1]"),
+    ("stage.dynamic.max_contact_frame_share=0", "max_contact_frame_share=0: must lie in (0, 1]"),
+    ("stage.dynamic.max_contact_frame_share=nan", "max_contact_frame_share=nan: must lie in (0, 1]"),
     ("stage.dynamic.d_max=0", "d_max=0: must be positive"),
     ("stage.dynamic.d_max=-0.05", "d_max=-0.05: must be positive"),
     ("quality.dynamic_width=0", "dynamic_width=0: must be between 1 and 4096"),

@@ -95,7 +95,7 @@ def _splatting_loop(label: int) -> Callable[[], None]:
 def _dynamic_loop(label: int) -> Callable[[], None]:
     scene = make_scene([0.08, 1.0])
     cfg = dynamic.DynamicTrainConfig(steps=3, backend="auto", patch_weight=0.1, patch_min_size=16, log_every=1,
-                                     contact_fraction=1.0)
+                                     contact_fraction=1.0, max_contact_frame_share=1.0)
     return lambda: dynamic.train_dynamic(scene.model(), _padded(scene.views, label=label), scene.meshes,
                                          scene.cond, np.array([True, False]), cfg, lpips=LPIPS("vgg"))
 
