@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig
+from avatar.dynamic.model import COLOUR_DELTAS
 from avatar.render.gaussians import resolve_backend
 from avatar.scene import SceneDecision
 from avatar.dynamic.conditioning import SequenceConditioning
@@ -64,6 +65,7 @@ class DynamicConfig:
     lr_decay: float
     contact_fraction: float
     max_contact_frame_share: float
+    colour_delta: str
     patch_min_size: int
     d_max: float
     deform_threshold_m: float
@@ -89,6 +91,9 @@ class DynamicConfig:
         if not 0.0 < share <= 1.0:
             problems.append(f"max_contact_frame_share={share:g}: must lie in (0, 1] (the most steps one contact frame "
                             "may take; 1 leaves contact_fraction uncapped)")
+        if conf.colour_delta not in COLOUR_DELTAS:  # type: ignore[attr-defined]
+            problems.append(f"colour_delta={conf.colour_delta}: must be one of {', '.join(COLOUR_DELTAS)} "  # type: ignore[attr-defined]
+                            "(add: c_i + d_c as the paper; scale: c_i exp(d_c))")
         d_max = float(conf.d_max)  # type: ignore[attr-defined]
         if not d_max > 0.0:
             problems.append(f"d_max={d_max:g}: must be positive (metres; the paper uses 0.05)")
@@ -130,7 +135,7 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
         offset_frequencies=int(conf.offset_frequencies), point_feature_dim=int(conf.point_feature_dim),
         geometry_feature_dim=int(q.geometry_feature_dim), pointnet_centres=tuple(int(c) for c in q.pointnet_centres),
         pointnet_width=float(q.pointnet_width), d_max=float(conf.d_max),
-        deform_threshold_m=float(conf.deform_threshold_m))
+        deform_threshold_m=float(conf.deform_threshold_m), colour_delta=str(conf.colour_delta))
 
 
 @stage(

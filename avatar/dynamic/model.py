@@ -20,7 +20,9 @@ How the deltas enter (the paper's equations, in this project's parameterisation)
   ``s = k exp(log s_i + d_s)``. The paper adds ``d_s`` to the linear scale, which can turn negative;
   in log space the scale stays positive with no clamp, and to first order ``exp(log s + d) = s + s d``;
 - rotation: ``q = R (q_i + d_q)`` (normalised by the rasterizer), as the paper;
-- colour: ``c = c_i + d_c`` on linear RGB, clamped at 0 like the SH evaluation;
+- colour: ``c = c_i + d_c`` on linear RGB, clamped at 0 like the SH evaluation (``colour_delta="add"``, the
+  paper's); or ``c = c_i exp(d_c)`` (``colour_delta="scale"``): shading, a self-shadow, a crease or contact
+  darkening multiply the albedo, so one factor serves every Gaussian whatever its colour;
 - opacity: added to the logit, ``o = sigmoid(logit o_i + d_o)``, so it stays in (0, 1);
 - interaction deltas are multiplied by ``w_i`` first.
 
@@ -48,6 +50,8 @@ HAND_GEO = {"mu": 3, "s": 3, "q": 4}
 HAND_APP = {"c": 3, "o": 1}
 INTERACTION = {"mu": 3, "s": 3, "q": 4, "c": 3, "o": 1}
 _DISTANCE_CHUNK = 4096
+COLOUR_DELTAS = ("add", "scale")  # how d_c enters the colour (DynamicModelConfig.colour_delta)
+_MAX_LOG_SCALE = 10.0  # colour_delta="scale": exp(d_c) stays finite (e^10 is far beyond any shading)
 
 
 @dataclass(frozen=True)
@@ -69,6 +73,7 @@ class DynamicModelConfig:
         pointnet_unit_m: metres per PointNet++ unit.
         d_max: interaction radius (paper: 0.05 m).
         deform_threshold_m: a face triangle deforms when its mean PBD offset exceeds this.
+        colour_delta: how d_c enters: ``add`` (``c_i + d_c``, the paper) or ``scale`` (``c_i exp(d_c)``).
     """
 
     hand_mlp: bool = True
@@ -89,6 +94,7 @@ class DynamicModelConfig:
     pointnet_unit_m: float = 0.1
     d_max: float = 0.05
     deform_threshold_m: float = 1e-4
+    colour_delta: str = "add"
 
     @property
     def uses_geometry_feature(self) -> bool:
@@ -291,8 +297,14 @@ class DynamicAvatar(nn.Module):
         means, scales, world_quats = place_gaussians(frames, g.binding, local_means, local_scales, quats + deltas["q"])
         return DynamicFrame(means=means, scales=scales, quats=world_quats,
                             opacities=torch.sigmoid(logits + deltas["o"][:, 0]),
-                            colors=torch.clamp_min(rgb + deltas["c"], 0.0), local_means=local_means,
+                            colors=self._colour(rgb, deltas["c"]), local_means=local_means,
                             local_scales=local_scales, interaction_evaluations=evaluations)
+
+    def _colour(self, rgb: Tensor, delta: Tensor) -> Tensor:
+        """(N, 3) linear RGB from the Gaussians' own ``rgb`` (N, 3) and the summed deltas ``delta`` (N, 3)."""
+        if self.cfg.colour_delta == "scale":
+            return torch.clamp_min(rgb, 0.0) * torch.exp(torch.clamp_max(delta, _MAX_LOG_SCALE))
+        return torch.clamp_min(rgb + delta, 0.0)
 
     def _interact(self, cond: FrameConditioning, face_means: Tensor, vertices: Tensor, feature: Tensor,
                   deltas: dict[str, Tensor]) -> int:

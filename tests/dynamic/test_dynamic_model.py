@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -11,6 +12,7 @@ from torch import nn
 
 from avatar.dynamic import DynamicModelConfig, interaction_weights, sequence_conditioning
 from avatar.dynamic.model import nearest_distance, sample_one_per_triangle
+from avatar.gaussians.model import SH_C0
 from avatar.nets.encoding import encoded_dim, positional_encoding
 from avatar.nets.mlp import DeltaMLP
 from avatar.templates import procedural_hand, procedural_head
@@ -225,3 +227,30 @@ def _only(scene: Scene, model, keep: torch.Tensor, cfg: DynamicModelConfig):  # 
     dims = {"hand_pose": scene.cond.hand_pose.shape[1], "expression": scene.cond.expression.shape[1]}
     return DynamicAvatar(sub, model.mu_cano[keep], model.faces, scene.meshes.part_names, scene.num_face_vertices,
                          dims, cfg)
+
+
+@pytest.mark.parametrize("colour_delta", ["add", "scale"])
+def test_colour_delta_closed_forms(scene: Scene, colour_delta: str) -> None:
+    """d_c enters as c_i + d_c (add) or c_i exp(d_c) (scale); both render the warm-up's colours at d_c = 0,
+    and the interaction's d_c is weighted by w before either."""
+    model = scene.model(dataclasses.replace(TINY, colour_delta=colour_delta))
+    hand = model.hand_index
+    with torch.no_grad():
+        base = model(scene.cond.frame(NEAR), scene.meshes.vertices[NEAR])
+        rgb = torch.clamp_min(0.5 + SH_C0 * model.gaussians.sh_dc, 0.0)
+        torch.testing.assert_close(base.colors, rgb if colour_delta == "scale" else base.colors)
+        model.hand_app.heads["c"].output.bias.fill_(math.log(0.5))  # a uniform shadow on the hand
+        shaded = model(scene.cond.frame(NEAR), scene.meshes.vertices[NEAR])
+    raw = 0.5 + SH_C0 * model.gaussians.sh_dc[hand]
+    expected = raw.clamp_min(0) * 0.5 if colour_delta == "scale" else (raw + math.log(0.5)).clamp_min(0)
+    torch.testing.assert_close(shaded.colors[hand], expected)
+    face = model.face_index
+    torch.testing.assert_close(shaded.colors[face], base.colors[face])
+
+
+def test_a_huge_colour_log_scale_stays_finite(scene: Scene) -> None:
+    model = scene.model(dataclasses.replace(TINY, colour_delta="scale"))
+    with torch.no_grad():
+        model.hand_app.heads["c"].output.bias.fill_(1e4)
+        g = model(scene.cond.frame(NEAR), scene.meshes.vertices[NEAR])
+    assert torch.isfinite(g.colors).all()
