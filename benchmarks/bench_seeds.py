@@ -6,11 +6,13 @@ Settings (all at ``quality=draft``; every method trained once per seed, the shar
 - ``b``: ``plain`` appearance (no creases, no curl self-shadow, no contact darkening), otherwise as (a); synth_a;
 - ``c``: ``full``, 8 training frames, fitted tracking on MediaPipe detections; synth_a (2 validation frames
   instead of 4: 4 of 8 would halve the training frames);
-- ``d``: the held-out third identity synth_c, ``full``, 24 frames, fitted tracking on MediaPipe detections.
+- ``d``: the held-out third identity synth_c, ``full``, 24 frames, fitted tracking on MediaPipe detections;
+- ``a2``: (a) with two threads per run instead of one (thread counts change the rounding of torch's reductions,
+  which acts like another seed).
 
 ``run`` trains and evaluates one setting's subject (``interactavatar -m method=... seed=...`` then the comparison
-with ``stage.compare.seeds``) in ``<outputs>/<setting>/``; run two at once with ``OMP_NUM_THREADS=1`` on a 2-core
-machine. ``table`` reads every comparison under ``<outputs>`` and prints, per setting, subject, split and region,
+with ``stage.compare.seeds``) in ``<outputs>/<setting>/``, with the setting's thread count (``OMP_NUM_THREADS``:
+1, or 2 for ``a2``); run two one-thread settings at once on a 2-core machine. ``table`` reads every comparison under ``<outputs>`` and prints, per setting, subject, split and region,
 both methods' mean ± standard deviation over the seeds, the difference of the means, the larger of the two
 spreads, Welch's p, and the goal's verdict; and what the selection kept per seed (``kept_hand_mlp``,
 ``kept_interaction``, ``selected_step``). It writes ``benchmarks/results/bench_seeds.{json,md}`` with the commit,
@@ -59,16 +61,22 @@ SETTINGS: dict[str, dict] = {
           "what": "full appearance, 8 frames, fitted tracking (MediaPipe)"},
     "d": {"subjects": ("synth_c",), "overrides": [*MEDIAPIPE, "stage.capture.cross_reenactment=false"],
           "what": "held-out identity synth_c, 24 frames, fitted tracking (MediaPipe)"},
+    "a2": {"subjects": ("synth_a", "synth_b"), "overrides": ["fit.source=ground_truth"], "threads": 2,
+           "what": "as (a), two threads per run"},
 }
 REGIONS = (("full", "all"), ("hand", "all"), ("face", "all"), ("interaction", "all"), ("interaction", "contact"))
 SPLITS = {"novel_view": "NV", "self_reenact": "SR"}
 
 
-def _cli(*args: str) -> None:
-    """One run of the app with this checkout's code (the interpreter that runs this script)."""
+def _threads(spec: dict) -> int:
+    return int(spec.get("threads", 1))
+
+
+def _cli(threads: int, *args: str) -> None:
+    """One run of the app with this checkout's code (the interpreter that runs this script), on ``threads``."""
     command = [sys.executable, "-m", "pipeline.cli", *args]
-    print("$", " ".join(command), flush=True)
-    subprocess.run(command, cwd=REPO, check=True)
+    print(f"$ OMP_NUM_THREADS={threads}", " ".join(command), flush=True)
+    subprocess.run(command, cwd=REPO, check=True, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
 
 
 def run(setting: str, subject: str, seeds: list[int], outputs: Path, extra: list[str]) -> None:
@@ -77,8 +85,8 @@ def run(setting: str, subject: str, seeds: list[int], outputs: Path, extra: list
     common = [f"paths.outputs={outputs / setting}", f"subject={subject}", "quality=draft", "run.progress=false",
               *spec["overrides"], *extra]
     seed_list = ",".join(map(str, seeds))
-    _cli("-m", f"method={','.join(METHODS)}", f"seed={seed_list}", "run.until=evaluate", *common)
-    _cli("run.only=compare", f"stage.compare.methods=[{','.join(METHODS)}]", f"stage.compare.seeds=[{seed_list}]",
+    _cli(_threads(spec), "-m", f"method={','.join(METHODS)}", f"seed={seed_list}", "run.until=evaluate", *common)
+    _cli(_threads(spec), "run.only=compare", f"stage.compare.methods=[{','.join(METHODS)}]", f"stage.compare.seeds=[{seed_list}]",
          *common)
 
 
@@ -199,7 +207,8 @@ def table(outputs: Path, results: Path) -> None:
             kept[f"{setting}/{subject}"] = _kept(outputs / setting / subject, seeds)
             evaluate = _manifest(outputs / setting / subject / "methods" / "interactavatar" / "evaluate")
             meta[f"{setting}/{subject}"] = {"seeds": seeds, "git": evaluate.get("git_sha", "?"),
-                                            "what": spec["what"], "overrides": spec["overrides"]}
+                                            "what": spec["what"], "overrides": spec["overrides"],
+                                            "threads": _threads(spec)}
     lines = ["# bench_seeds: InteractAvatar against GaussianAvatars with seeds (issue 40)", "",
              f"Commit of this table: {_commit()}; machine: {_cpu()}, {os.cpu_count()} cores; load now: {_load()}; "
              f"made {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", "",
@@ -208,7 +217,8 @@ def table(outputs: Path, results: Path) -> None:
     for key, info in meta.items():
         setting, subject = key.split("/")
         lines += [f"## ({setting}) {subject}: {info['what']}", "",
-                  f"quality=draft {' '.join(info['overrides'])}; seeds {info['seeds']}; trained at {info['git']}.", ""]
+                  f"quality=draft {' '.join(info['overrides'])}; seeds {info['seeds']}; {info['threads']} thread(s) per "
+                  f"run; trained at {info['git']}.", ""]
         body = [[SPLITS[r["split"]], r["region"] + (" (contact)" if r["group"] == "contact" else ""),
                  _stat(np.array(r["ia_psnr"]), 2), _stat(np.array(r["ga_psnr"]), 2), f"{r['difference_db']:+.2f}",
                  f"{r['larger_sd_db']:.2f}", "-" if not np.isfinite(r["welch_p"]) else f"{r['welch_p']:.3f}",
