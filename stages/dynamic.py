@@ -91,8 +91,9 @@ class DynamicConfig:
         if not 0.0 < share <= 1.0:
             problems.append(f"max_contact_frame_share={share:g}: must lie in (0, 1] (the most steps one contact frame "
                             "may take; 1 leaves contact_fraction uncapped)")
-        if conf.colour_delta not in COLOUR_DELTAS:  # type: ignore[attr-defined]
-            problems.append(f"colour_delta={conf.colour_delta}: must be one of {', '.join(COLOUR_DELTAS)} "  # type: ignore[attr-defined]
+        colour = conf.colour_delta  # type: ignore[attr-defined]
+        if colour not in COLOUR_DELTAS:
+            problems.append(f"colour_delta={colour}: must be one of {', '.join(COLOUR_DELTAS)} "
                             "(add: c_i + d_c as the paper; scale: c_i exp(d_c))")
         d_max = float(conf.d_max)  # type: ignore[attr-defined]
         if not d_max > 0.0:

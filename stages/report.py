@@ -38,7 +38,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="12", config_schema=ReportConfig, per_method=True,
+       outputs=("report.html",), version="13", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -124,7 +124,24 @@ def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
     saved = ("Left out: " + "; ".join(left_out) + ". benchmarks/bench_scene.py measures the time this saves "
              "against modelling everything (README, \"Model only what a scene requires\").") if left_out else ""
     return _table(("modelled", "", "why"), rows) + f"<p>{html.escape(work)}</p>" + \
-        (f"<p>{html.escape(saved)}</p>" if saved else "") + _selection_paragraph(dynamic)
+        (f"<p>{html.escape(saved)}</p>" if saved else "") + _contact_draws_paragraph(manifests["dynamic"]) + \
+        _selection_paragraph(dynamic)
+
+
+def _contact_draws_paragraph(dynamic: dict) -> str:
+    """How often stage two drew the contact frames (stage.dynamic.contact_fraction, capped by
+    max_contact_frame_share); nothing for a manifest from before the cap or without contact frames."""
+    p = dynamic["metrics"].get("contact_draw_probability")
+    conf = dynamic["config"].get("stage.dynamic", {})
+    if p is None or not dynamic["metrics"].get("contact_frames") or "contact_fraction" not in conf:
+        return ""
+    fraction = float(conf["contact_fraction"])
+    text = f"Stage two drew a contact frame first with probability {p:.2f}, else any training frame"
+    if p < fraction:
+        text += (f" (contact_fraction {fraction:g}, lowered so that no contact frame takes more than "
+                 f"{float(conf['max_contact_frame_share']):g} of the steps: with few contact frames the Gaussians "
+                 "would fit their tracking error)")
+    return f"<p>{html.escape(text)}.</p>"
 
 
 def _selection_paragraph(dynamic: dict) -> str:

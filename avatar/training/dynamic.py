@@ -6,8 +6,8 @@ distance on the hand's box and on the overlap of the hand and face boxes (from t
 MLPs (and PointNet++) at 1e-3 and point features at 2.5e-3, both with the 3DGS exponential decay; the
 Gaussians continue at the learning rates the warm-up ended with. Frames with contact are drawn first with
 probability ``contact_fraction`` (the paper oversamples them; how much it does not say), lowered where it would
-give one contact frame more than ``max_contact_frame_share`` of the steps (:func:`contact_draw_probability`). Checkpoints
-resume bit for bit, like the warm-up's.
+give one contact frame more than ``max_contact_frame_share`` of the steps (:func:`contact_draw_probability`).
+Checkpoints resume bit for bit, like the warm-up's.
 """
 
 from __future__ import annotations

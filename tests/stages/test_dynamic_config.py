@@ -15,6 +15,7 @@ BAD = [
     ("stage.dynamic.contact_fraction=nan", "contact_fraction=nan: must lie in [0, 1]"),
     ("stage.dynamic.max_contact_frame_share=0", "max_contact_frame_share=0: must lie in (0, 1]"),
     ("stage.dynamic.max_contact_frame_share=nan", "max_contact_frame_share=nan: must lie in (0, 1]"),
+    ("stage.dynamic.colour_delta=multiply", "colour_delta=multiply: must be one of add, scale"),
     ("stage.dynamic.d_max=0", "d_max=0: must be positive"),
     ("stage.dynamic.d_max=-0.05", "d_max=-0.05: must be positive"),
     ("quality.dynamic_width=0", "dynamic_width=0: must be between 1 and 4096"),

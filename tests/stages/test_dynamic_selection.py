@@ -38,8 +38,12 @@ def test_the_manifest_and_the_model_say_what_the_selection_kept(tmp_path: Path) 
     assert model["selection"]["selected_step"] == metrics["selected_step"]
     capture = json.loads((tmp_path / "synth_a" / "capture" / "_manifest.json").read_text())["metrics"]
     assert capture["train_frames"] == 8
-    from stages.report import _selection_paragraph  # what the report's "What was modelled, and why" says
+    from stages.report import _contact_draws_paragraph, _selection_paragraph  # "What was modelled, and why"
 
+    dynamic_dir = tmp_path / "synth_a" / "methods" / "interactavatar" / "dynamic"
+    manifest = json.loads((dynamic_dir / "_manifest.json").read_text())
+    draws = _contact_draws_paragraph(manifest)
+    assert (f"probability {metrics['contact_draw_probability']:.2f}" in draws) == (metrics["contact_frames"] > 0)
     text = _selection_paragraph(metrics)
     assert f"kept step {metrics['selected_step']} of 20" in text
     assert ("hand MLPs H: kept" in text) == metrics["kept_hand_mlp"]
