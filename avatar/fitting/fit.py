@@ -228,14 +228,13 @@ def check_world_scale(points: np.ndarray, valid: np.ndarray, template_span_m: fl
     span = float(np.median(spans))
     low, high = FACE_SPAN_M
     if not low <= span <= high:
-        factor = 0.001 if span > high else 1000.0
+        estimate = template_span_m / span
         raise WorldScaleError(
             f"the face landmarks triangulate {span:.4g} world units across, but a face spans about "
             f"{template_span_m:.2f} m: the camera translations are not in metres, which the templates, d_max and "
-            f"PBD assume; multiply the translations of world_to_cam by {factor:g} (e.g. millimetres to metres) and "
-            f"rerun, or, for a COLMAP or nerfstudio calibration (arbitrary units), set "
-            f"dataset.calibration_scale_m={template_span_m / span:.3g} (estimated from the face's size against "
-            f"the head template's; heads differ by about 10 %, a distance measured in the scene is better)")
+            f"PBD assume. Set dataset.calibration_scale_m={estimate:.3g} (metres per calibration unit, estimated "
+            f"from the face's size against the head template's; heads differ by about 10 %, a distance measured "
+            f"in the scene is better), or multiply the translations of world_to_cam by that factor and rerun")
     return span
 
 

@@ -135,7 +135,7 @@ def _deepest(hand_vertices: np.ndarray, face_vertices: np.ndarray) -> float:
     return float(sd.min())
 
 
-@pytest.mark.parametrize("scale", [1000.0, 1e-4], ids=["millimetres", "tiny"])
+@pytest.mark.parametrize("scale", [1000.0, 10.0, 1e-4], ids=["millimetres", "decimetres", "tiny"])
 def test_a_capture_not_in_metres_is_one_clear_error(capture: SyntheticCapture, scale: float) -> None:
     """The same capture with its world in other units projects to the same pixels; the fit names the fix
     instead of fitting a metre-sized template to a world 1000 times larger (or 1e4 times smaller)."""
@@ -151,10 +151,11 @@ def test_a_capture_not_in_metres_is_one_clear_error(capture: SyntheticCapture, s
         scaled.append(replace(cam, world_to_cam=T))
     kp = {c.camera_id: capture.keypoints[c.camera_id] for c in train}
     quick = FitConfig(rigid_iterations=2, coarse_iterations=2, fine_iterations=2)
-    with pytest.raises(WorldScaleError, match="multiply the translations of world_to_cam by") as info:
+    with pytest.raises(WorldScaleError, match="multiply the translations of world_to_cam by that factor") as info:
         fit_sequence(kp, scaled, HEAD, HAND, quick)
-    estimate = float(re.search(r"dataset.calibration_scale_m=([0-9.e+-]+)", str(info.value)).group(1))
+    estimate = float(re.search(r"dataset.calibration_scale_m=([0-9.e+-]+) ", str(info.value)).group(1))
     assert abs(estimate * scale - 1.0) < 0.15  # the scale that undoes the damage, from the face's size (0.90 here)
+    assert "millimetres" not in str(info.value)  # no fixed 0.001 guess, wrong for other units (issue 36, item 4)
     landmarks, _ = _face(capture.params)
     span = check_world_scale(landmarks, np.ones(landmarks.shape[:2], bool))
     assert 0.1 < span < 0.25  # the real face, in metres, passes
