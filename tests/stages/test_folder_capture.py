@@ -358,3 +358,14 @@ def test_crop_padding_past_the_image_is_labelled_unobserved(tmp_path):
         assert (labels[:, outside] == UNOBSERVED).all() and not (labels[:, inside] == UNOBSERVED).any()
         assert (np.abs(rgb[:, outside].astype(int) - 90) <= 6).all()  # the background estimate (codec noise)
         assert fraction == pytest.approx(float((labels == 1).mean()), abs=1e-6)
+
+
+def test_keypoints_of_a_folder_capture_without_a_detector_name_the_keys_to_set(tmp_path):
+    """Issue 36, item 2: the default detector (the synthetic capture's own keypoints) cannot run on footage;
+    the error names the settings that can, and nothing is published."""
+    make_capture(tmp_path / "data")
+    with pytest.raises(StageFailed) as info:
+        run_app(_cfg(tmp_path, "run.until=keypoints"))
+    message = str(info.value)
+    assert "stage.keypoints.detector=mediapipe" in message and "stage.keypoints.detector=provided" in message
+    assert not (tmp_path / "out" / "alice" / "keypoints").exists()
