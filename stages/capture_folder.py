@@ -1,7 +1,9 @@
 """``dataset=folder``: validate a capture on disk and import it into the ``capture`` stage.
 
-Layout (README, "Your own footage"): ``<root>/<subject>/<sequence>/videos/<camera_id>.mp4`` (and
-optionally ``<sequence>/masks/``), with one calibration beside the sequences (``dataset.calibration``):
+Layout (README, "Your own footage"): ``<root>/<subject>/<sequence>/videos/<camera_id>.mp4``, or an image folder
+per camera, ``<sequence>/images/<camera_id>/*.png`` (or ``.jpg``; frames in name order, as many capture rigs and
+COLMAP workflows write them), and optionally ``<sequence>/masks/``, with one calibration beside the sequences
+(``dataset.calibration``):
 
 * ``cameras.parquet`` (``parquet``): this project's own, in metres;
 * a COLMAP sparse model (``colmap``): ``cameras.bin``/``images.bin`` or ``.txt``, in the subject folder,
@@ -18,7 +20,8 @@ every later stage sees pinhole cameras; ``calibration.json`` keeps the coefficie
 from __future__ import annotations
 
 import itertools
-from dataclasses import replace
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,9 +40,55 @@ from data_schemas.writes import write_json
 from stages.frame_selection import selected_frames
 
 CALIBRATIONS = ("auto", "parquet", "colmap", "nerfstudio")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEFAULT_INTRINSICS = "none: default intrinsics"  # source of a single uncalibrated camera (dataset.default_fov_deg)
 PARQUET_HELP = ("cameras.parquet, one row per camera (camera_id, width, height, K, world_to_cam, dist, split; "
                 "data_schemas.cameras.write_cameras writes it), a COLMAP sparse model or a nerfstudio transforms.json")
+
+
+@dataclass(frozen=True)
+class ViewSource:
+    """One camera's frames of a sequence on disk: ``<sequence>/videos/<camera_id>.mp4`` or the images of
+    ``<sequence>/images/<camera_id>/`` in name order."""
+
+    path: Path
+
+    @property
+    def is_video(self) -> bool:
+        return self.path.suffix.lower() == ".mp4"
+
+    def images(self) -> list[Path]:
+        return sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+    def frames(self) -> Iterator[np.ndarray]:
+        """(H, W, 3) uint8 RGB frames, one at a time."""
+        if self.is_video:
+            yield from iter_video(self.path)
+            return
+        for image in self.images():
+            yield read_png(image, 3)
+
+    def frame_rate(self) -> float | None:
+        """Frames per second where the source says (a video's header); None for images."""
+        return video_fps(self.path) if self.is_video else None
+
+
+def view_sources(sequence_dir: Path) -> dict[str, ViewSource]:
+    """camera_id -> its frames in ``sequence_dir``: the videos of ``videos/``, else the image folders of
+    ``images/`` (a sequence has one kind; both is one clear error)."""
+    videos = sequence_dir / "videos"
+    images = sequence_dir / "images"
+    if videos.is_dir() and images.is_dir():
+        raise SchemaError(f"{sequence_dir}: has both videos/ and images/; keep one source of frames per sequence")
+    if videos.is_dir():
+        return {p.stem: ViewSource(p) for p in sorted(videos.iterdir()) if p.suffix.lower() == ".mp4"}
+    if images.is_dir():
+        return {p.name: ViewSource(p) for p in sorted(images.iterdir()) if p.is_dir()}
+    return {}
+
+
+def _is_sequence(path: Path) -> bool:
+    return (path / "videos").is_dir() or (path / "images").is_dir()
 
 
 def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_rate: float) -> CaptureIndex:
@@ -51,9 +100,11 @@ def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_ra
         raise SchemaError(f"{src}: capture folder is empty; put {PARQUET_HELP} and one video per camera in "
                           f"<sequence>/videos/<camera_id>.mp4 in it, as in the README's artifact layout")
     cameras, calibration = read_calibration(src, dataset)
-    seq_names = sorted(p.name for p in src.iterdir() if (p / "videos").is_dir())
+    seq_names = sorted(p.name for p in src.iterdir() if _is_sequence(p))
     if not seq_names:
-        raise SchemaError(f"{src}: no <sequence>/videos/ folder; put one video per camera in e.g. {src}/train/videos/")
+        raise SchemaError(f"{src}: no <sequence>/videos/ or <sequence>/images/ folder; put one video per camera in "
+                          f"e.g. {src}/train/videos/<camera_id>.mp4, or one image folder per camera in "
+                          f"{src}/train/images/<camera_id>/")
     selections = {name: _validate_sequence(src, name, cameras, calibration, dataset, default_frame_rate)
                   for name in seq_names}
     write_cameras(out / "cameras.parquet", [replace(c, dist=np.zeros_like(c.dist)) for c in cameras])
@@ -114,13 +165,14 @@ def _default_camera(src: Path, fov_deg: float) -> Camera | None:
     """The one camera of a monocular capture without calibration: a pinhole with ``fov_deg`` horizontal field of
     view, principal point at the image centre, no distortion, at the world origin (world = camera axes).
     None when the folder has more than one camera (a rig needs its calibration)."""
-    videos = sorted(src.glob("*/videos/*.mp4"))
-    ids = sorted({p.stem for p in videos})
+    sources = [(cam_id, view) for seq in sorted(src.iterdir()) if _is_sequence(seq)
+               for cam_id, view in view_sources(seq).items()]
+    ids = sorted({cam_id for cam_id, _ in sources})
     if len(ids) != 1:
         return None
     if not 1.0 <= fov_deg <= 170.0:
         raise SchemaError(f"dataset.default_fov_deg={fov_deg}: a horizontal field of view in degrees, 1 to 170")
-    first = next(iter_video(videos[0]))
+    first = next(sources[0][1].frames())
     height, width = first.shape[:2]
     focal = (width / 2) / np.tan(np.deg2rad(fov_deg) / 2)
     K = np.array([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]])
@@ -136,15 +188,15 @@ def _scaled(world_to_cam: np.ndarray, scale: float) -> np.ndarray:
 
 def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo, frames: np.ndarray | None,
                  undistort: Undistorter | None) -> None:
-    """Copy one camera's video (and masks) of ``seq``, or re-encode the selected source ``frames`` (T,; None:
-    all), undistorted where the camera is distorted."""
-    source_video = video_path(src, seq, cam.camera_id)
+    """Copy one camera's video (and masks) of ``seq``, or encode the selected source ``frames`` (T,; None:
+    all; from a video or an image folder), undistorted where the camera is distorted."""
+    view = view_sources(src / seq)[cam.camera_id]
     sources = np.arange(info.num_frames) if frames is None else frames
-    if undistort is None and frames is None:
-        copy_into_capture(source_video, video_path(out, seq, cam.camera_id))
+    if undistort is None and frames is None and view.is_video:
+        copy_into_capture(view.path, video_path(out, seq, cam.camera_id))
     else:
         wanted = set(sources.tolist())
-        decoded = itertools.islice(iter_video(source_video), int(sources[-1]) + 1)  # nothing past the last one
+        decoded = itertools.islice(view.frames(), int(sources[-1]) + 1)  # nothing past the last one
         kept = (f for t, f in enumerate(decoded) if t in wanted)
         write_video_stream(video_path(out, seq, cam.camera_id),
                            kept if undistort is None else (undistort.image(f) for f in kept), info.frame_rate)
@@ -158,13 +210,21 @@ def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo
             write_png(target, undistort.labels(read_png(source, 1)))
 
 
-def _scan(path: Path) -> tuple[int, tuple[int, int]]:
-    """Frame count and (height, width) of a video, decoded once, one frame at a time (a long recording never
-    sits in memory); one clear error when the file is damaged."""
+def _scan(view: ViewSource) -> tuple[int, tuple[int, int]]:
+    """Frame count and (height, width) of a view, decoded once, one frame at a time (a long recording never
+    sits in memory); one clear error when a file is damaged, an image folder is empty or its images differ in
+    size."""
+    if not view.is_video and not view.images():
+        raise SchemaError(f"{view.path}: image folder without {'/'.join(IMAGE_SUFFIXES)} images; put the camera's "
+                          f"frames in it (name order is frame order) or remove the folder")
     count, size = 0, (0, 0)
-    for count, frame in enumerate(iter_video(path), start=1):
+    for count, frame in enumerate(view.frames(), start=1):
+        if count > 1 and frame.shape[:2] != size:
+            raise SchemaError(f"{view.images()[count - 1]}: image is {frame.shape[1]}x{frame.shape[0]}, the "
+                              f"camera's earlier frames {size[1]}x{size[0]}; every frame of a camera has one size")
         size = frame.shape[:2]
-    check_fully_decoded(path, count)
+    if view.is_video:
+        check_fully_decoded(view.path, count)
     return count, size
 
 
@@ -172,28 +232,32 @@ def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: 
                        default_frame_rate: float) -> tuple[SequenceInfo, np.ndarray | None]:
     """The sequence's record in the capture and the source frames (T,) it imports (``dataset.start_frame``,
     ``frame_step``, ``max_frames``), None when that is every frame."""
-    videos_dir = src / seq / "videos"
-    on_disk = {p.stem: p for p in videos_dir.iterdir() if p.suffix.lower() == ".mp4"}
+    on_disk = view_sources(src / seq)
+    videos_dir = next(iter(on_disk.values())).path.parent if on_disk else src / seq / "videos"
     ids = {c.camera_id for c in cameras}
     without_video, without_camera = sorted(ids - set(on_disk)), sorted(set(on_disk) - ids)
     if without_video:
         cam_id = without_video[0]
         remove = "the camera's row" if calibration.endswith(".parquet") else "the camera's images from the calibration"
-        raise SchemaError(f"{video_path(src, seq, cam_id)}: camera '{cam_id}' in {calibration} has no video "
-                          f"(videos here: {sorted(on_disk)}); add the video or remove {remove}")
+        images = (src / seq / "images").is_dir()
+        expected = src / seq / "images" / cam_id if images else video_path(src, seq, cam_id)
+        noun = "image folder" if images else "video"
+        raise SchemaError(f"{expected}: camera '{cam_id}' in {calibration} has no {noun} ({noun}s here: "
+                          f"{sorted(on_disk)}); add the {noun} or remove {remove}")
     if without_camera:
         cam_id = without_camera[0]
-        raise SchemaError(f"{on_disk[cam_id]}: video has no camera '{cam_id}' in {calibration} (cameras: "
-                          f"{sorted(ids)}); add its calibration or remove the video")
+        noun = "video" if on_disk[cam_id].is_video else "image folder"
+        raise SchemaError(f"{on_disk[cam_id].path}: {noun} has no camera '{cam_id}' in {calibration} (cameras: "
+                          f"{sorted(ids)}); add its calibration or remove the {noun}")
     counts: dict[str, int] = {}
     for cam in cameras:
-        path = video_path(src, seq, cam.camera_id)
-        counts[cam.camera_id], (height, width) = _scan(path)
+        path = on_disk[cam.camera_id].path
+        counts[cam.camera_id], (height, width) = _scan(on_disk[cam.camera_id])
         if (height, width) != (cam.height, cam.width):
             raise SchemaError(f"{path}: frames are {width}x{height} but {calibration} says "
                               f"{cam.width}x{cam.height}; fix the calibration or the video")
     if len(set(counts.values())) != 1:
-        raise SchemaError(f"{videos_dir}: views disagree on frame count {counts}; trim the videos to the same "
+        raise SchemaError(f"{videos_dir}: views disagree on frame count {counts}; trim the views to the same "
                           f"synchronised range")
     length = next(iter(counts.values()))
     frames = selected_frames(length, dataset, str(videos_dir))
@@ -205,7 +269,7 @@ def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: 
                 if mask.shape != (cam.height, cam.width):
                     raise SchemaError(f"{mask_path(src, seq, cam.camera_id, int(t))}: mask is {mask.shape[::-1]}, "
                                       f"expected {cam.width}x{cam.height}")
-    fps = (video_fps(video_path(src, seq, cameras[0].camera_id)) or float(default_frame_rate)) / int(
+    fps = (on_disk[cameras[0].camera_id].frame_rate() or float(default_frame_rate)) / int(
         dataset.get("frame_step", 1))
     info = SequenceInfo(num_frames=len(frames), frame_rate=fps, width=cameras[0].width, height=cameras[0].height,
                         has_masks=has_masks, has_ground_truth=False)

@@ -369,3 +369,62 @@ def test_keypoints_of_a_folder_capture_without_a_detector_name_the_keys_to_set(t
     message = str(info.value)
     assert "stage.keypoints.detector=mediapipe" in message and "stage.keypoints.detector=provided" in message
     assert not (tmp_path / "out" / "alice" / "keypoints").exists()
+
+
+def _as_image_folders(subject: Path, suffix: str = ".png") -> None:
+    """Turn ``subject``'s train videos into ``train/images/<camera_id>/<frame>.png`` folders (then remove the
+    videos), the layout many rigs and COLMAP workflows write."""
+    videos = subject / "train" / "videos"
+    for video in sorted(videos.glob("*.mp4")):
+        folder = subject / "train" / "images" / video.stem
+        folder.mkdir(parents=True)
+        for t, frame in enumerate(read_video(video)):
+            if suffix == ".png":
+                write_png(folder / f"{t:05d}.png", frame)
+            else:
+                import cv2
+
+                cv2.imwrite(str(folder / f"{t:05d}{suffix}"), frame[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 100])
+    shutil.rmtree(videos)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_image_folders_import_as_the_same_frames_as_videos(tmp_path, suffix):
+    """Issue 36, item 3: <sequence>/images/<camera_id>/*.png (or .jpg), as conf/dataset/folder.yaml promises."""
+    video_root, image_root = tmp_path / "v", tmp_path / "i"
+    make_capture(video_root / "data")
+    subject = make_capture(image_root / "data")
+    _as_image_folders(subject, suffix)
+    for root in (video_root, image_root):
+        reports = run_app(_cfg(root))
+        assert [r.action for r in reports] == ["run", "run"]
+    a = read_table(video_root / "out" / "alice" / "frames" / "index.parquet", FRAMES_INDEX)
+    b = read_table(image_root / "out" / "alice" / "frames" / "index.parquet", FRAMES_INDEX)
+    assert len(b["frame"]) == len(a["frame"]) == 3 * FRAMES
+    index = CaptureIndex.read(image_root / "out" / "alice" / "capture")
+    assert index.sequences["train"].num_frames == FRAMES
+    for cam in ("cam00", "cam01", "cam02"):  # the imported videos hold the same pictures (codec and JPEG aside)
+        original = read_video(video_path(video_root / "out" / "alice" / "capture", "train", cam)).astype(float)
+        imported = read_video(video_path(image_root / "out" / "alice" / "capture", "train", cam)).astype(float)
+        assert imported.shape == original.shape
+        assert np.abs(imported - original).mean() < 3.0
+
+
+def test_image_folder_errors_name_the_folder(tmp_path):
+    subject = make_capture(tmp_path / "data")
+    _as_image_folders(subject)
+    empty = subject / "train" / "images" / "cam01"
+    for image in empty.iterdir():
+        image.unlink()
+    _expect_capture_error(tmp_path, f"{empty}: image folder without")
+    shutil.rmtree(subject)
+    subject = make_capture(tmp_path / "data")
+    _as_image_folders(subject)
+    odd = subject / "train" / "images" / "cam02" / "00001.png"
+    write_png(odd, np.zeros((SIZE + 2, SIZE, 3), np.uint8))
+    _expect_capture_error(tmp_path, f"{odd}: image is {SIZE}x{SIZE + 2}")
+    shutil.rmtree(subject)
+    subject = make_capture(tmp_path / "data")
+    _as_image_folders(subject)
+    make_capture(tmp_path / "data")  # the videos again, beside the images
+    _expect_capture_error(tmp_path, "has both videos/ and images/")
