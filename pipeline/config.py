@@ -136,6 +136,8 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
     problem = subject_problem(cfg.get("subject"))
     if problem:
         errors.append(problem)
+    if cfg.get("dataset") is not None:
+        errors.extend(dataset_problems(cfg))
 
     try:
         stages = registry.topological()
@@ -178,6 +180,37 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
 
 
 _MISSING = object()
+SYNTHETIC_CAMERA_IDS = "cam{:02d}"  # the synthetic rig's camera ids, cam00 .. (avatar/synthetic/rig.py)
+
+
+def _int_problem(key: str, value: object, minimum: int) -> str | None:
+    if isinstance(value, bool) or not isinstance(value, int):
+        return f"{key}={value!r}: must be a whole number >= {minimum}"
+    return f"{key}={value}: must be >= {minimum}" if value < minimum else None
+
+
+def dataset_problems(cfg: DictConfig) -> list[str]:
+    """Problems of the ``dataset`` section's frame selection and training cameras, one line each, before any
+    stage runs: ``start_frame`` (>= 0), ``frame_step`` (>= 1) and ``max_frames`` (null or >= 1) whole numbers;
+    ``train_cameras`` null or a non-empty list of camera ids, and, for the synthetic rig whose ids are known
+    now (``cam00`` .. from ``stage.capture.num_cameras``), some but not all of them."""
+    dataset = cfg.dataset
+    problems = []
+    for key, minimum in (("start_frame", 0), ("frame_step", 1), ("max_frames", 1)):
+        if key in dataset and not (key == "max_frames" and dataset[key] is None):
+            problems.append(_int_problem(f"dataset.{key}", dataset[key], minimum))
+    train = dataset.get("train_cameras")
+    if train is not None:
+        if not OmegaConf.is_list(train) or not train or not all(isinstance(c, (str, int)) and not isinstance(c, bool)
+                                                                 for c in train):
+            problems.append(f"dataset.train_cameras={train}: a non-empty list of camera ids, e.g. [cam04], or null")
+        elif dataset.get("name") == "synthetic":
+            count = int(OmegaConf.select(cfg, "stage.capture.num_cameras", default=0) or 0)
+            ids = [SYNTHETIC_CAMERA_IDS.format(i) for i in range(count)]
+            if not {str(c) for c in train} < set(ids):
+                problems.append(f"dataset.train_cameras={list(train)}: choose some but not all of the synthetic "
+                                f"rig's cameras {ids}")
+    return [p for p in problems if p]
 
 
 def config_subset(cfg: DictConfig, keys: tuple[str, ...], exclude: tuple[str, ...] = ()) -> dict[str, Any]:

@@ -326,8 +326,11 @@ def test_a_video_shorter_than_the_frames_requested_is_one_clear_error(tmp_path):
                                           r"\(dataset.start_frame=3\); lower dataset.start_frame"):
         run_app(_cfg(tmp_path, "dataset.start_frame=3"))
     assert not (tmp_path / "out" / "alice" / "capture").exists()
-    for bad, message in (("dataset.frame_step=0", "must be 1 or more"), ("dataset.max_frames=0", "or null")):
-        with pytest.raises(StageFailed, match=message):
+    from pipeline.config import ConfigError
+
+    for bad, message in (("dataset.frame_step=0", "frame_step=0: must be >= 1"),
+                         ("dataset.max_frames=0", "max_frames=0: must be >= 1")):
+        with pytest.raises(ConfigError, match=message):  # refused before any stage runs
             run_app(_cfg(tmp_path, bad))
 
 

@@ -1,0 +1,37 @@
+"""``dataset.*`` frame selection and training cameras are refused before any stage runs (issue 36, item 6)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import run_app
+from pipeline.config import ConfigError
+from tests.conftest import compose_cfg
+
+BAD = [
+    (["dataset.train_cameras=[]"], "dataset.train_cameras=[]: a non-empty list of camera ids"),
+    (["dataset.train_cameras=[cam99]"], "dataset.train_cameras=['cam99']: choose some but not all"),
+    (["dataset.train_cameras=[cam00,cam01,cam02,cam03,cam04,cam05,cam06,cam07]"], "choose some but not all"),
+    (["dataset=folder", "dataset.root=/nowhere", "dataset.start_frame=abc"], "dataset.start_frame='abc': must be a whole"),
+    (["dataset=folder", "dataset.root=/nowhere", "dataset.frame_step=2.5"], "dataset.frame_step=2.5: must be a whole"),
+    (["dataset=folder", "dataset.root=/nowhere", "dataset.frame_step=0"], "dataset.frame_step=0: must be >= 1"),
+    (["dataset=folder", "dataset.root=/nowhere", "dataset.max_frames=0"], "dataset.max_frames=0: must be >= 1"),
+]
+
+
+@pytest.mark.parametrize(("overrides", "message"), BAD)
+def test_bad_dataset_values_fail_in_the_dry_run_naming_the_key(tmp_path: Path, overrides: list[str],
+                                                               message: str) -> None:
+    cfg = compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", *overrides])
+    with pytest.raises(ConfigError) as info:
+        run_app(cfg)
+    assert sum(message in line for line in str(info.value).splitlines()) == 1, str(info.value)
+    assert not (tmp_path / "out").exists()
+
+
+def test_good_dataset_values_pass(tmp_path: Path) -> None:
+    for overrides in (["dataset.train_cameras=[cam04]"], ["dataset=folder", "dataset.root=/nowhere",
+                                                           "dataset.max_frames=5", "dataset.frame_step=2"]):
+        run_app(compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", *overrides]))
