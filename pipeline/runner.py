@@ -28,6 +28,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from data_schemas.tables import SchemaError
 from pipeline.config import ConfigError, changed_keys, config_subset
 from pipeline.manifest import (
     Manifest,
@@ -154,6 +155,10 @@ class Runner:
                 if a.key in pending or self._verified.get(a.key) or self._verify(a):
                     out[a.key] = a
         other = s.input_subject(self.cfg) if s.input_subject is not None else None
+        if other is not None and other == self.ws.subject:
+            raise ConfigError(f"stage '{s.name}' reads another subject's artifacts, but the config names this run's "
+                              f"own subject '{other}' for them; name a different subject, or 'self' for this "
+                              f"subject's own data (e.g. reenact.driver=self)")
         if other is not None and other != self.ws.subject:
             problem = subject_problem(other)
             if problem:
@@ -227,7 +232,11 @@ class Runner:
         """Digests of the user files the stage imports, or ``None`` when it declares none."""
         if s.sources is None:
             return None
-        return hash_sources(s.sources(self.cfg, self.ws.subject), self.ws.root / ".cache" / "sources.json")
+        try:
+            files = s.sources(self.cfg, self.ws.subject)
+        except SchemaError as exc:  # a setting names a file that is not there: a config error, before any work
+            raise ConfigError(f"stage '{s.name}': {exc}") from exc
+        return hash_sources(files, self.ws.root / ".cache" / "sources.json")
 
     def _check_inputs_unchanged(self, s: Stage, d: _Decision) -> None:
         """Raise if an input artifact or source file differs from what the decision recorded."""

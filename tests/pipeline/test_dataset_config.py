@@ -35,3 +35,18 @@ def test_good_dataset_values_pass(tmp_path: Path) -> None:
     for overrides in (["dataset.train_cameras=[cam04]"], ["dataset=folder", "dataset.root=/nowhere",
                                                            "dataset.max_frames=5", "dataset.frame_step=2"]):
         run_app(compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", *overrides]))
+
+
+@pytest.mark.parametrize(("driver", "message"), [
+    ("synth_a", "names this run's own subject 'synth_a'"),
+    ("/nonexistent/file.parquet", "reenact.driver=/nonexistent/file.parquet: no such file"),
+])
+def test_a_bad_reenactment_driver_is_one_config_error_in_the_dry_run(tmp_path: Path, driver: str,
+                                                                      message: str) -> None:
+    """Issue 36, item 7: the subject itself as its own driver (use reenact.driver=self) and a missing parameter
+    file are config errors (one line, no traceback from the command line), found before any work."""
+    cfg = compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", "subject=synth_a",
+                       f"reenact.driver={driver}"])
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+        run_app(cfg)
+    assert not (tmp_path / "out" / "synth_a" / "capture").exists()
