@@ -148,10 +148,19 @@ def reenact(ctx: StageContext) -> None:
     })
 
 
+def _check_fitted(fit_dir: Path, sequence: str, whose: str) -> None:
+    """One clear error when ``fit_dir`` has no fitted ``sequence``, listing the sequences it has."""
+    if not (fit_dir / sequence / "params.parquet").is_file():
+        there = sorted(p.parent.name for p in fit_dir.glob("*/params.parquet"))
+        raise SchemaError(f"reenact.sequence={sequence}: {whose} has no fitted sequence '{sequence}' ({fit_dir}); "
+                          f"choose one of {there}")
+
+
 def _driving_params(ctx: StageContext) -> tuple[dict[str, np.ndarray], str, float]:
     """(parameters of every output frame on the target, where they came from, head-size ratio target / driver)."""
     driver, sequence = str(ctx.cfg.reenact.driver), str(ctx.cfg.reenact.sequence)
     if driver == "self":
+        _check_fitted(ctx.input_dir("fit"), sequence, "this subject")
         return load_params(ctx.input_dir("fit"), sequence), f"self ({sequence})", 1.0
     if is_parameter_file(driver):
         path = Path(driver)
@@ -159,9 +168,7 @@ def _driving_params(ctx: StageContext) -> tuple[dict[str, np.ndarray], str, floa
         params, label = {k: np.asarray(table[k]) for k in PARAM_COLUMNS}, str(path)
     else:
         path = ctx.subject_input_dir("fit") / sequence / "params.parquet"
-        if not path.is_file():
-            raise SchemaError(f"{path}: the driver '{driver}' has no fitted sequence '{sequence}'; choose "
-                              f"reenact.sequence among its sequences")
+        _check_fitted(ctx.subject_input_dir("fit"), sequence, f"the driver '{driver}'")
         params, label = load_params(ctx.subject_input_dir("fit"), sequence), f"{driver} ({sequence})"
     transferred, scale = transferred_params(ctx.cfg, ctx.input_dir("fit"), params, path)
     return transferred, label, scale
