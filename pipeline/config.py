@@ -6,6 +6,7 @@ all of them at once, before anything is written.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -174,9 +175,46 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
                 if typed is not None:
                     with open_dict(cfg):
                         cfg.stage[s.name] = typed
+    errors.extend(numeric_problems(cfg, errors))
     if errors:
         raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors))
     return cfg
+
+
+#: Root sections the numeric check leaves out: Hydra's own settings.
+NOT_SETTINGS = ("hydra",)
+
+
+def numeric_problems(cfg: DictConfig, known: list[str]) -> list[str]:
+    """Every number of the resolved config, in every section (stages, presets, dataset, reenact, ...): finite
+    and not negative, the ranges of every setting the app has (no shipped value is negative; the counts, sizes,
+    weights, rates, radii, thresholds and times are not). Keys a more specific check already named in
+    ``known`` are left to that message. One line per key."""
+    plain = {k: v for k, v in cfg.items() if k not in NOT_SETTINGS}
+    try:
+        values = OmegaConf.to_container(OmegaConf.create(plain), resolve=True)
+    except OmegaConfBaseException:
+        return []  # an interpolation that does not resolve: reported where the section is checked
+    problems = []
+    for key, value in _numbers(values, ""):
+        if any(f"{key}=" in line or line.startswith(f"{key}:") for line in known):
+            continue
+        if not math.isfinite(value):
+            problems.append(f"{key}={value}: must be a finite number")
+        elif value < 0:
+            problems.append(f"{key}={value}: must not be negative")
+    return problems
+
+
+def _numbers(node: Any, prefix: str) -> list[tuple[str, float]]:
+    """(dotted key, value) of every int and float leaf below ``node`` (bools are not numbers here)."""
+    if isinstance(node, dict):
+        return [item for k, v in node.items() for item in _numbers(v, f"{prefix}{k}.")]
+    if isinstance(node, list):
+        return [item for i, v in enumerate(node) for item in _numbers(v, f"{prefix[:-1]}[{i}].")]
+    if isinstance(node, (int, float)) and not isinstance(node, bool):
+        return [(prefix[:-1], float(node))]
+    return []
 
 
 _MISSING = object()
