@@ -14,7 +14,7 @@ from data_schemas.cameras import read_cameras
 from data_schemas.metrics import METRICS
 from data_schemas.tables import read_table
 from pipeline.cli import run_app
-from pipeline.runner import StageFailed
+from pipeline.config import ConfigError
 from tests.conftest import compose_cfg
 from tests.test_extremes_dag import assert_every_metric_finite
 
@@ -43,7 +43,8 @@ def test_monocular_capture_runs_the_whole_dag(tmp_path: Path) -> None:
 
 def test_train_cameras_naming_no_camera_is_one_clear_error(tmp_path: Path) -> None:
     for bad in ("[cam99]", "[cam00,cam01,cam02,cam03,cam04,cam05,cam06,cam07]"):
-        with pytest.raises(StageFailed, match=r"dataset.train_cameras=\[.*\]: choose some but not all of the cameras"):
+        with pytest.raises(ConfigError, match=r"dataset.train_cameras=\[.*\]: choose some but not all of the synthetic "
+                                              r"rig's cameras"):  # refused before the capture is generated
             run_app(compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "quality.capture_size=32",
                                  "run.progress=false", "run.until=capture", "stage.capture.cross_reenactment=false",
                                  f"dataset.train_cameras={bad}"]))
