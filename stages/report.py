@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex
+from data_schemas.capture import CaptureIndex, SequenceInfo
 from data_schemas.curve import CURVE
 from data_schemas.frames import FRAMES_INDEX, rgb_path
 from data_schemas.gaussians import DYNAMIC_TRAIN_LOG, TRAIN_LOG
@@ -38,7 +38,7 @@ class ReportConfig:
 
 
 @stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="13", config_schema=ReportConfig, per_method=True,
+       outputs=("report.html",), version="14", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -172,10 +172,19 @@ def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, 
     return index.sequences[seq].num_frames // 2, "middle frame"
 
 
+def contact_source(info: SequenceInfo) -> str | None:
+    """Where a sequence's contact labels come from: the generator's ground truth, the contacts the dataset
+    ships (DECAF), or None."""
+    if info.has_ground_truth:
+        return "ground truth"
+    return "shipped with the dataset" if info.has_provided("contacts") else None
+
+
 def _contact_summary(cap_dir: Path, index: CaptureIndex) -> str:
     parts = [f"{seq}: {int(contact_frames(cap_dir, seq, info.num_frames).sum())} of {info.num_frames} frames "
-             f"with contact (ground truth)" for seq, info in index.sequences.items() if info.has_ground_truth]
-    return "<p>" + "; ".join(parts) + "</p>" if parts else "<p>No contact ground truth in this capture.</p>"
+             f"with contact ({source})" for seq, info in index.sequences.items()
+             if (source := contact_source(info)) is not None]
+    return "<p>" + "; ".join(parts) + "</p>" if parts else "<p>No contact labels in this capture.</p>"
 
 
 def _fit_section(fit_dir: Path) -> str:
