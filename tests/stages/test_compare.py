@@ -186,3 +186,15 @@ def test_one_seed_has_no_spread_and_no_seeds_table():
     assert not any(t["title"].startswith("Seeds") for t in tables["tables"])
     assert all("±" not in cell for t in tables["tables"] for row in t["rows"] for cell in row)
     assert np.isnan(welch_p(np.array([1.0]), np.array([2.0, 3.0])))
+
+
+def test_the_shared_stages_compare_checks_are_exactly_those_evaluate_reads():
+    """Derived from the DAG: every stage evaluate reads that is not per-method (scene was missing, so a method
+    evaluated before `stage.scene.*` changed stayed in the tables: issue 36, item 10)."""
+    from pipeline.registry import load_registry
+
+    registry = load_registry("stages")
+    evaluate = registry["evaluate"]
+    shared = {name for name in evaluate.inputs if not registry[name].per_method}
+    assert set(SHARED_STAGES) == shared
+    assert set(registry["compare"].inputs) == shared
