@@ -159,7 +159,7 @@ class Runner:
             raise ConfigError(f"stage '{s.name}' reads another subject's artifacts, but the config names this run's "
                               f"own subject '{other}' for them; name a different subject, or 'self' for this "
                               f"subject's own data (e.g. reenact.driver=self)")
-        if other is not None and other != self.ws.subject:
+        if other is not None:
             problem = subject_problem(other)
             if problem:
                 raise ConfigError(f"stage '{s.name}' reads another subject: {problem}")

@@ -24,7 +24,7 @@ from avatar.training.data import MeshSequence, ViewSet
 from avatar.training.posing import posed_keypoints, posed_meshes
 from avatar.training.validation import FlatStop, ValidationConfig, Validator
 from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex, gt_path, provided_path
+from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, provided_path
 from data_schemas.curve import CURVE
 from data_schemas.gaussians import BOUND_GAUSSIANS
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
@@ -81,13 +81,25 @@ def load_provided_params(capture_dir: Path, sequence: str) -> dict[str, np.ndarr
     return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
 
 
+GROUND_TRUTH_CONTACTS = "ground truth"
+SHIPPED_CONTACTS = "shipped with the dataset"
+
+
+def contact_source(info: SequenceInfo) -> str | None:
+    """Where a sequence's contact labels come from: :data:`GROUND_TRUTH_CONTACTS` (the generator's),
+    :data:`SHIPPED_CONTACTS` (e.g. DECAF's) or None (no labels)."""
+    if info.has_ground_truth:
+        return GROUND_TRUTH_CONTACTS
+    return SHIPPED_CONTACTS if info.has_provided("contacts") else None
+
+
 def contact_frames(capture_dir: Path, sequence: str, num_frames: int) -> np.ndarray:
     """(T,) bool: frames where the hand touches the face, from ground truth or the contacts the dataset
-    ships; all False when unknown."""
-    info = CaptureIndex.read(capture_dir).sequences[sequence]
-    if info.has_ground_truth:
+    ships (:func:`contact_source`); all False when unknown."""
+    source = contact_source(CaptureIndex.read(capture_dir).sequences[sequence])
+    if source == GROUND_TRUTH_CONTACTS:
         return np.asarray(read_table(gt_path(capture_dir, sequence, "deform"), DEFORM)["contact"], dtype=bool)
-    if info.has_provided("contacts"):
+    if source == SHIPPED_CONTACTS:
         return np.asarray(read_table(provided_path(capture_dir, sequence, "contacts"), CONTACTS)["contact"], dtype=bool)
     return np.zeros(num_frames, dtype=bool)
 

@@ -23,7 +23,7 @@ from avatar.render.gaussians import resolve_backend
 from avatar.scene import SceneDecision
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.training.data import MeshSequence, ViewSet
-from avatar.training.dynamic import DynamicTrainConfig, contact_draw_probability, train_dynamic
+from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
 from avatar.training.selection import SelectionConfig
 from avatar.training.splatting import train_splatting
 from avatar.training.validation import Validator
@@ -261,8 +261,7 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
         "interaction_mlp_evaluations": result.interaction_evaluations,
         "interaction_steps": result.interaction_steps,
         "contact_frames": int(contact.sum()),
-        "contact_draw_probability": contact_draw_probability(validator.train_frames, contact, conf.contact_fraction,
-                                                             conf.max_contact_frame_share),
+        "contact_draw_probability": result.contact_probability,
         "rasterizer": resolve_backend(conf.backend, model.mu_cano),
         **selection,
     })

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex, SequenceInfo
+from data_schemas.capture import CaptureIndex
 from data_schemas.curve import CURVE
 from data_schemas.frames import FRAMES_INDEX, rgb_path
 from data_schemas.gaussians import DYNAMIC_TRAIN_LOG, TRAIN_LOG
@@ -25,7 +25,7 @@ from data_schemas.writes import write_bytes
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
-from stages.common import contact_frames
+from stages.common import contact_frames, contact_source
 
 UPSTREAM = ("capture", "frames", "fit", "scene", "pbd", "warmup", "dynamic", "evaluate", "compare", "reenact")
 
@@ -170,14 +170,6 @@ def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, 
     if contact.any():
         return int(np.flatnonzero(contact)[0]), "first frame with hand-face contact"
     return index.sequences[seq].num_frames // 2, "middle frame"
-
-
-def contact_source(info: SequenceInfo) -> str | None:
-    """Where a sequence's contact labels come from: the generator's ground truth, the contacts the dataset
-    ships (DECAF), or None."""
-    if info.has_ground_truth:
-        return "ground truth"
-    return "shipped with the dataset" if info.has_provided("contacts") else None
 
 
 def _contact_summary(cap_dir: Path, index: CaptureIndex) -> str:

@@ -81,14 +81,15 @@ class DynamicLogRow:
 
 @dataclass
 class DynamicTrainResult:
-    """The loss log and the cost counters of a run (``seconds``: forward time per component, summed), and what
-    the selection kept (None when ``cfg.selection`` is off)."""
+    """The loss log and the cost counters of a run (``seconds``: forward time per component, summed), what
+    the selection kept (None when ``cfg.selection`` is off) and the contact-frame draw probability used."""
 
     log: list[DynamicLogRow]
     interaction_evaluations: int
     interaction_steps: int
     seconds: dict[str, float]
     selection: Selection | None = None
+    contact_probability: float = 0.0
 
 
 Progress = Callable[[Iterable[int]], Iterator[int]]
@@ -215,10 +216,10 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
 
     steps = validator.begin(start, cfg.steps, 0, render)
     offer_validation()
-    contact_probability = contact_draw_probability(validator.train_frames, contact, cfg.contact_fraction,
-                                                   cfg.max_contact_frame_share)
+    result.contact_probability = contact_draw_probability(validator.train_frames, contact, cfg.contact_fraction,
+                                                          cfg.max_contact_frame_share)
     for step in progress(steps):
-        frame = sample_frame(gen, validator.train_frames, contact, contact_probability)
+        frame = sample_frame(gen, validator.train_frames, contact, result.contact_probability)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         _set_learning_rates(optimizer, cfg, step)
         t0 = time.perf_counter()
