@@ -63,6 +63,10 @@ SETTINGS: dict[str, dict] = {
           "what": "held-out identity synth_c, 24 frames, fitted tracking (MediaPipe)"},
     "a2": {"subjects": ("synth_a", "synth_b"), "overrides": ["fit.source=ground_truth"], "threads": 2,
            "what": "as (a), two threads per run"},
+    "m0": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=none"],
+           "what": "full appearance, 24 frames, fitted tracking (MediaPipe), keypoint fit only"},
+    "m1": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=silhouette"],
+           "what": "full appearance, 24 frames, fitted tracking (MediaPipe) refined by the train views' silhouettes"},
 }
 REGIONS = (("full", "all"), ("hand", "all"), ("face", "all"), ("interaction", "all"), ("interaction", "contact"))
 SPLITS = {"novel_view": "NV", "self_reenact": "SR"}

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass, fields, replace
+from pathlib import Path
 
 import numpy as np
+import torch
 
 from avatar.fitting.errors import landmark_error, mpjpe, per_vertex_error
-from avatar.fitting.fit import FitConfig, WorldScaleError, fit_sequence
+from avatar.fitting.fit import FitConfig, FitResult, WorldScaleError, fit_sequence
+from avatar.fitting.refine import REFINE_MODES, RefineConfig, RefineResult, evidence_from_views
 from avatar.templates import TemplateModel
 from avatar.training.posing import posed_keypoints
 from data_schemas.cameras import read_cameras
@@ -18,7 +21,7 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import Resources, StageContext, stage
-from stages.common import load_ground_truth_params, load_provided_params, model_sources, templates
+from stages.common import load_ground_truth_params, load_provided_params, load_views, model_sources, templates
 
 SOURCES = ("ground_truth", "provided", "fitted")
 IDENTITY_SPACES = ("auto", "full", "core")
@@ -47,28 +50,46 @@ class FitStageConfig:
     smooth_rotation: float
     smooth_transl_mm: float
     penetration_mm: float
+    refine: str
+    refinement: RefineConfig
+
+    @staticmethod
+    def validate(conf: FitStageConfig) -> list[str]:
+        problems = [] if conf.refine in REFINE_MODES \
+            else [f"refine={conf.refine}: choose one of {', '.join(REFINE_MODES)}"]
+        problems += [f"refinement.{key}={getattr(conf.refinement, key)}: must be at least 1"
+                     for key in ("render_size", "exact_every") if getattr(conf.refinement, key) < 1]
+        return problems
 
 
-@stage("fit", inputs=("capture", "keypoints"),
+@stage("fit", inputs=("capture", "frames", "keypoints"),
        config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
-       outputs=("train/params.parquet", "fit_report.json"), version="7", resources=Resources(cpus=2),
-       config_schema=FitStageConfig, sources=model_sources)
+       outputs=("train/params.parquet", "fit_report.json"),
+       version="8",  # 8: image refinement (stage.fit.refine), keypoint-fit errors kept beside the refined ones
+       resources=Resources(cpus=2), config_schema=FitStageConfig, sources=model_sources)
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors and, per sequence,
-    whether the hand was fitted (false: no hand keypoint to fit, see :data:`ABSENT_HAND_DROP_M`)."""
+    whether the hand was fitted (false: no hand keypoint to fit, see :data:`ABSENT_HAND_DROP_M`). With
+    fit.source=fitted and stage.fit.refine not none, the keypoint fit is refined by the train views' crops
+    (never the held-out camera's) and the report keeps the keypoint fit's errors under ``keypoint_fit``."""
     source = ctx.cfg.fit.source
     if source not in SOURCES:
         raise SchemaError(f"fit.source={source!r}: choose one of {SOURCES}")
+    refine = str(ctx.cfg.stage.fit.refine)
+    refine_cfg = RefineConfig(**ctx.cfg.stage.fit.refinement)
     cap_dir = ctx.input_dir("capture")
     index = CaptureIndex.read(cap_dir)
     head, hand = templates(ctx.cfg.model)
     cameras = [c for c in read_cameras(cap_dir / "cameras.parquet") if c.split == "train"]
-    settings = {f.name: getattr(ctx.cfg.stage.fit, f.name) for f in fields(FitStageConfig)}
+    settings = {f.name: getattr(ctx.cfg.stage.fit, f.name) for f in fields(FitStageConfig)
+                if f.name not in ("refine", "refinement")}
     conf = FitConfig(**{k: v for k, v in settings.items() if k != "identity_space"},
                      face_shape_columns=face_shape_columns(head, settings["identity_space"],
                                                            str(ctx.cfg.stage.keypoints.detector)))
     # train_views: 1 is a monocular fit (avatar.fitting.monocular): depth comes from the templates' sizes.
     report: dict = {"source": source, "train_views": len(cameras), "sequences": {}}
+    if source == "fitted":
+        report["refine"] = refine
     for seq, info in ctx.progress(list(index.sequences.items()), desc="fit: sequences"):
         hand_fitted = True
         if source == "ground_truth":
@@ -83,17 +104,32 @@ def fit(ctx: StageContext) -> None:
             # Only the train views: the held-out camera's detections would leak the novel view into the fit.
             train_kp = {c.camera_id: kp[c.camera_id] for c in cameras if c.camera_id in kp}
             hand_fitted = _sees_hand(train_kp)
+            evidence = None
+            if refine != "none":  # the train views only: the held-out camera never informs the tracking
+                views = load_views(cap_dir, ctx.input_dir("frames"), seq, "train")
+                _check_evidence(views.labels, ctx.input_dir("frames"), seq)
+                evidence = evidence_from_views(views, refine_cfg.render_size)
             # Without any hand keypoint the hand stays where its initialisation puts it, inside the head, and the
             # interpenetration term pushes the face: fit the face alone, then write the placeholder hand.
             try:
                 result = fit_sequence(train_kp, cameras, head, hand,
-                                      conf if hand_fitted else replace(conf, penetration_mm=0.0))
+                                      conf if hand_fitted else replace(conf, penetration_mm=0.0),
+                                      evidence, refine, refine_cfg)
             except WorldScaleError as exc:
                 raise SchemaError(f"{cap_dir / 'cameras.parquet'}: {exc}") from exc
             params = result.params if hand_fitted else _placeholder_hand(result.params)
-            entry = {"reprojection_px": {p: float(np.nanmean(v)) for p, v in result.reprojection_px.items()
-                                         if np.isfinite(v).any()},
-                     "weak_frames": {p: np.flatnonzero(v).tolist() for p, v in result.weak_frames.items()}}
+            entry = _fit_entry(result)
+            if result.refinement is not None:
+                entry["refinement"] = _refinement_entry(result.refinement, hand_fitted)
+                keypoint_only = _fit_entry(result, keypoint_fit=True)
+                if info.has_ground_truth:
+                    keypoint_params = result.keypoint_params if hand_fitted \
+                        else _placeholder_hand(result.keypoint_params)
+                    errors = _errors(keypoint_params, load_ground_truth_params(cap_dir, seq), head, hand)
+                    keypoint_only.update({k: v for k, v in errors.items() if hand_fitted or "hand" not in k})
+                entry["keypoint_fit"] = keypoint_only
+                ctx.metrics[f"{seq}_refine_ms_per_frame_per_view"] = \
+                    1e3 * result.refinement.seconds / info.num_frames / len(cameras)
             # Timings go to the manifest (its metrics), never into an artifact: a rerun must write the same bytes.
             ctx.metrics[f"{seq}_fit_ms_per_frame_per_view"] = \
                 1e3 * result.timing.get("total_s", 0.0) / info.num_frames / len(cameras)
@@ -108,6 +144,41 @@ def fit(ctx: StageContext) -> None:
             if key in entry:
                 ctx.metrics[f"{seq}_{key}"] = entry[key]
     write_json(ctx.out_dir / "fit_report.json", report, "fit report")
+
+
+def _fit_entry(result: FitResult, keypoint_fit: bool = False) -> dict:
+    """The report's reprojection errors and weakly constrained frames of the written parameters (or, with
+    ``keypoint_fit``, of the keypoint fit before the image refinement)."""
+    reprojection = result.keypoint_reprojection_px if keypoint_fit else result.reprojection_px
+    return {"reprojection_px": {p: float(np.nanmean(v)) for p, v in reprojection.items() if np.isfinite(v).any()},
+            "weak_frames": {p: np.flatnonzero(v).tolist() for p, v in result.weak_frames.items()}}
+
+
+def _refinement_entry(refinement: RefineResult, hand_fitted: bool) -> dict:
+    """What the image refinement did, for fit_report.json: silhouette IoU per part and view before and after,
+    and per frame how far each part moved (mean vertex displacement, mm; change of global rotation, degrees).
+    The hand is left out where no hand was fitted."""
+    parts = [p for p in ("face", "hand") if hand_fitted or p != "hand"]
+    return {
+        "iterations": len(refinement.losses),
+        "loss": {"first": float(refinement.losses[0]), "last": float(refinement.losses[-1])}
+        if len(refinement.losses) else {},
+        "silhouette_iou": {stage: {p: iou[p] for p in parts} for stage, iou in
+                           (("keypoint_fit", refinement.silhouette_iou["before"]),
+                            ("refined", refinement.silhouette_iou["after"]))},
+        "moved_mm": {p: np.round(refinement.moved_mm[p], 4).tolist() for p in parts},
+        "rotated_deg": {p: np.round(refinement.rotated_deg[p], 4).tolist() for p in parts},
+        "unseen_frames": {p: refinement.frozen[p] for p in parts},
+    }
+
+
+def _check_evidence(labels: torch.Tensor, frames_dir: Path, sequence: str) -> None:
+    """One clear error when the train views' masks of ``sequence`` (labels (T, C, S, S) uint8) hold no
+    foreground at all: the refinement would pull the meshes out of every view."""
+    if not ((labels >= 1) & (labels <= 3)).any():
+        raise SchemaError(f"{frames_dir / sequence}/<camera>/mask/: every mask of the training cameras is empty "
+                          f"(no face, hand or foreground label): check the segmentation (stage.frames.segmenter, "
+                          f"stage.frames.key_threshold) and rerun frames, or set stage.fit.refine=none")
 
 
 def face_shape_columns(head: TemplateModel, identity_space: str, detector: str) -> int | None:

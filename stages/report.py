@@ -186,17 +186,48 @@ def _fit_section(fit_dir: Path) -> str:
     intro = {"fitted": "fitted to the keypoints of the train views",
              "ground_truth": "the synthetic capture's own parameters (the avatar is measured apart from fitting error)",
              "provided": "the dataset's own fit"}.get(source, source)
-    rows = []
+    refine = report.get("refine", "none")
+    rows, moves = [], []
     for seq, entry in report["sequences"].items():
-        reproj = entry.get("reprojection_px", {})
-        weak = entry.get("weak_frames", {})
-        rows.append((seq, *(format_value(entry[k]) if k in entry else "-"
-                            for k in ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_hand_mm", "vertex_error_face_mm")),
-                     *(format_value(reproj[p]) if p in reproj else "-" for p in ("hand", "face")),
-                     "; ".join(f"{p}: {v}" for p, v in weak.items() if v) or "-"))
+        stages = [(seq, entry)] if "keypoint_fit" not in entry else \
+            [(f"{seq} (keypoint fit)", entry["keypoint_fit"]), (f"{seq} (refined: {refine})", entry)]
+        for name, values in stages:
+            reproj = values.get("reprojection_px", {})
+            weak = values.get("weak_frames", {})
+            rows.append((name, *(format_value(values[k]) if k in values else "-"
+                                 for k in ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_hand_mm",
+                                           "vertex_error_face_mm")),
+                         *(format_value(reproj[p]) if p in reproj else "-" for p in ("hand", "face")),
+                         "; ".join(f"{p}: {v}" for p, v in weak.items() if v) or "-"))
+        if "refinement" in entry:
+            moves.append((seq, *_refinement_cells(entry["refinement"])))
     table = _table(("sequence", "hand MPJPE mm", "face landmarks mm", "hand vertices mm", "face vertices mm",
                     "hand reprojection px", "face reprojection px", "weakly constrained frames"), rows)
-    return f"<p>Parameters: {html.escape(intro)}. Errors against ground truth where the capture has it.</p>{table}"
+    text = f"<p>Parameters: {html.escape(intro)}. Errors against ground truth where the capture has it.</p>{table}"
+    if moves:
+        text += (f"<p>The keypoint fit refined by the train views' {html.escape(refine)} (never the held-out "
+                 f"camera): silhouette IoU of the parts (mean over views, keypoint fit → refined) and how far "
+                 f"each part moved per frame (mean vertex displacement; change of global rotation).</p>"
+                 + _table(("sequence", "face IoU", "hand IoU", "face moved mm (mean / max)",
+                           "hand moved mm (mean / max)", "face rotated deg (max)", "hand rotated deg (max)"), moves))
+    return text
+
+
+def _refinement_cells(refinement: dict) -> list[str]:
+    """The report's cells of one sequence's image refinement (fit_report.json's ``refinement``)."""
+    iou = refinement["silhouette_iou"]
+
+    def mean_iou(stage: str, part: str) -> str:
+        values = list(iou[stage].get(part, {}).values())
+        return format_value(float(np.mean(values))) if values else "-"
+
+    cells = [f"{mean_iou('keypoint_fit', p)} → {mean_iou('refined', p)}" for p in ("face", "hand")]
+    for p in ("face", "hand"):
+        moved = refinement["moved_mm"].get(p)
+        cells.append(f"{format_value(float(np.mean(moved)))} / {format_value(float(np.max(moved)))}" if moved else "-")
+    cells += [format_value(float(np.max(refinement["rotated_deg"][p]))) if refinement["rotated_deg"].get(p) else "-"
+              for p in ("face", "hand")]
+    return cells
 
 
 def _pbd_section(pbd_dir: Path) -> str:

@@ -38,6 +38,7 @@ from avatar.fitting.models import DTYPE, FaceParams, HandParams
 from avatar.fitting.monocular import PALM, place_rest_points
 from avatar.fitting.observations import PART_SIZES, Observations, pack_part
 from avatar.fitting.penetration import ContactPairs, contact_depth, find_contact_pairs
+from avatar.fitting.refine import Evidence, RefineConfig, RefineResult, refine_parameters
 from avatar.fitting.rigid import MIN_RIGID_POINTS
 from avatar.fitting.triangulation import projection_matrices, triangulate
 from avatar.templates import TemplateModel
@@ -93,7 +94,10 @@ class FitResult:
             neighbouring frames.
         timing: seconds per phase ("triangulation_s", "optimisation_s", "total_s")
             and "per_frame_per_view_ms".
-        final_loss: total loss at the end of the optimisation.
+        final_loss: total loss at the end of the keypoint optimisation.
+        keypoint_params, keypoint_reprojection_px: ``params`` and ``reprojection_px`` of the keypoint fit
+            before the image refinement (the same objects as those when there was none).
+        refinement: what the image refinement did (None: none ran).
     """
 
     params: dict[str, np.ndarray]
@@ -101,6 +105,9 @@ class FitResult:
     weak_frames: dict[str, np.ndarray]
     timing: dict[str, float] = field(default_factory=dict)
     final_loss: float = float("nan")
+    keypoint_params: dict[str, np.ndarray] = field(default_factory=dict)
+    keypoint_reprojection_px: dict[str, np.ndarray] = field(default_factory=dict)
+    refinement: RefineResult | None = None
 
 
 def project(P: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -269,7 +276,9 @@ def _reprojection_px(P: torch.Tensor, points: torch.Tensor, obs: Observations, w
 
 
 def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Sequence[Camera],
-                 head: TemplateModel, hand: TemplateModel, cfg: FitConfig | None = None) -> FitResult:
+                 head: TemplateModel, hand: TemplateModel, cfg: FitConfig | None = None,
+                 evidence: Evidence | None = None, refine: str = "none", refine_cfg: RefineConfig | None = None
+                 ) -> FitResult:
     """Fit FLAME (``head``) and MANO (``hand``) to multi-view keypoints of a sequence.
 
     Args:
@@ -279,6 +288,9 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
         cameras: the calibrated cameras to use (typically the train split).
         head, hand: the FLAME and MANO templates.
         cfg: settings and loss weights (defaults: :class:`FitConfig`).
+        evidence, refine, refine_cfg: the training views' crops of the sequence, the mode and the settings of
+            the image refinement that follows the keypoint fit (:mod:`avatar.fitting.refine`); none without
+            evidence or with ``refine`` none.
 
     Returns:
         :class:`FitResult`; parameters are finite for any input.
@@ -316,16 +328,30 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
     problem.minimise(everything, cfg.coarse_iterations, cfg.robust_scale_start_px, penetration=True)
     final_loss = problem.minimise(everything, cfg.fine_iterations, cfg.robust_scale_px, penetration=True)
     done = time.perf_counter()
+    keypoint_params, keypoint_reprojection = _result(hand_params, face_params, P, obs, weights)
+    params, reprojection, refinement = keypoint_params, keypoint_reprojection, None
+    if evidence is not None and refine != "none":
+        pairs = problem._contact_pairs(penetration=True)
+        refinement = refine_parameters(hand_params, face_params, lambda: problem.loss(cfg.robust_scale_px, pairs),
+                                       evidence, refine, refine_cfg or RefineConfig())
+        params, reprojection = _result(hand_params, face_params, P, obs, weights)
+    return FitResult(
+        params=params, reprojection_px=reprojection, weak_frames=weak, final_loss=final_loss,
+        keypoint_params=keypoint_params, keypoint_reprojection_px=keypoint_reprojection, refinement=refinement,
+        timing={"triangulation_s": triangulated - start, "optimisation_s": done - triangulated,
+                "refinement_s": 0.0 if refinement is None else refinement.seconds,
+                "total_s": time.perf_counter() - start,
+                "per_frame_per_view_ms": (done - start) * 1000.0 / max(T * len(cameras), 1)},
+    )
 
+
+def _result(hand_params: HandParams, face_params: FaceParams, P: torch.Tensor, obs: dict[str, Observations],
+            weights: dict[str, torch.Tensor]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The parameter columns and per-part reprojection errors (T,) at the parameters' current values."""
     with torch.no_grad():
         posed = {"hand": hand_params.keypoints(), "face": face_params.keypoints()}
     reprojection = {part: _reprojection_px(P, posed[part], obs[part], weights[part].numpy()) for part in obs}
     params = {**face_params.columns(), **hand_params.columns()}
     if not all(np.isfinite(v).all() for v in params.values()):
         raise FloatingPointError("fit produced non-finite parameters")
-    return FitResult(
-        params=params, reprojection_px=reprojection, weak_frames=weak, final_loss=final_loss,
-        timing={"triangulation_s": triangulated - start, "optimisation_s": done - triangulated,
-                "total_s": done - start,
-                "per_frame_per_view_ms": (done - start) * 1000.0 / max(T * len(cameras), 1)},
-    )
+    return params, reprojection

@@ -3,13 +3,20 @@
 from __future__ import annotations
 
 import json
+import re
+from pathlib import Path
 
 import numpy as np
+import pytest
 
+from data_schemas.cameras import read_cameras
+from data_schemas.images import read_png
 from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import read_table
 from pipeline.cli import run_app
+from pipeline.runner import StageFailed
+import stages.common
 from tests.conftest import compose_cfg
 
 
@@ -34,3 +41,61 @@ def test_ground_truth_source_reproduces_the_capture_and_noise_is_applied(tmp_pat
     assert 0.6 < kept.sum() / (b[:, 2] > 0).sum() < 0.95  # about 20% dropped
     err = np.linalg.norm(a[kept, :2] - b[kept, :2], axis=1)
     assert 1.5 < np.sqrt((err**2).mean() / 2) < 2.5  # 2 px per axis
+
+
+def _refine_cfg(tmp_path, *extra: str):
+    return compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "run.progress=false", "fit.source=fitted",
+                        "stage.fit.refine=silhouette", "stage.fit.refinement.iterations=3",
+                        "stage.fit.refinement.render_size=32", *extra])
+
+
+def _upstream_of_fit(tmp_path) -> None:
+    run_app(_refine_cfg(tmp_path, "run.until=keypoints"))
+    run_app(_refine_cfg(tmp_path, "run.only=frames"))
+
+
+def test_refined_fit_reads_only_the_train_views_and_reports_both_fits(tmp_path, monkeypatch):
+    _upstream_of_fit(tmp_path)
+    root = tmp_path / "synth_a"
+    held_out = [c.camera_id for c in read_cameras(root / "capture" / "cameras.parquet") if c.split == "test"]
+    assert held_out
+    read = []
+
+    def recording_read_png(path, channels):
+        read.append(Path(path))
+        return read_png(path, channels)
+
+    monkeypatch.setattr(stages.common, "read_png", recording_read_png)  # every crop the fit stage reads
+    run_app(_refine_cfg(tmp_path, "run.only=fit"))
+    assert read, "the refinement read no crop"
+    assert not [p for p in read if set(p.parts) & set(held_out)], "the fit read the held-out camera's crops"
+    report = json.loads((root / "fit" / "fit_report.json").read_text())
+    assert report["refine"] == "silhouette"
+    entry = report["sequences"]["train"]
+    for key in ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_face_mm", "reprojection_px"):
+        assert key in entry and key in entry["keypoint_fit"], key
+    refinement = entry["refinement"]
+    assert refinement["iterations"] == 3
+    for stage in ("keypoint_fit", "refined"):
+        views = set(refinement["silhouette_iou"][stage]["face"])
+        assert views and not views & set(held_out), views
+    assert len(refinement["moved_mm"]["hand"]) == len(refinement["rotated_deg"]["face"]) == 6
+    assert max(refinement["moved_mm"]["face"]) > 0
+
+
+def test_empty_masks_are_one_clear_error(tmp_path, monkeypatch):
+    _upstream_of_fit(tmp_path)
+    frames = tmp_path / "synth_a" / "frames"
+
+    def empty_masks(path, channels):  # a segmentation that found nothing (the artifact itself stays intact)
+        image = read_png(path, channels)
+        return np.zeros_like(image) if Path(path).parent.name == "mask" else image
+
+    monkeypatch.setattr(stages.common, "read_png", empty_masks)
+    with pytest.raises(StageFailed) as info:
+        run_app(_refine_cfg(tmp_path, "run.only=fit"))
+    message = str(info.value)
+    expected = rf"{re.escape(str(frames))}/\w+/<camera>/mask/: every mask of the training cameras is empty"
+    assert re.search(expected, message), message
+    assert "stage.fit.refine=none" in message
+    assert not (tmp_path / "synth_a" / "fit").exists()
