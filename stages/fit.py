@@ -63,7 +63,7 @@ class FitStageConfig:
 
 
 @stage("fit", inputs=("capture", "frames", "keypoints"),
-       config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
+       config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector", "stage.frames.segmenter"),
        outputs=("train/params.parquet", "fit_report.json"),
        version="8",  # 8: image refinement (stage.fit.refine), keypoint-fit errors kept beside the refined ones
        resources=Resources(cpus=2), config_schema=FitStageConfig, sources=model_sources)
@@ -108,7 +108,9 @@ def fit(ctx: StageContext) -> None:
             if refine != "none":  # the train views only: the held-out camera never informs the tracking
                 views = load_views(cap_dir, ctx.input_dir("frames"), seq, "train")
                 _check_evidence(views.labels, ctx.input_dir("frames"), seq)
-                evidence = evidence_from_views(views, refine_cfg.render_size)
+                # MediaPipe labels the rest of the person (hair, neck, torso, arm) as unknown part: not compared
+                evidence = evidence_from_views(views, refine_cfg.render_size,
+                                               unknown_modelled=ctx.cfg.stage.frames.segmenter != "mediapipe")
             # Without any hand keypoint the hand stays where its initialisation puts it, inside the head, and the
             # interpenetration term pushes the face: fit the face alone, then write the placeholder hand.
             try:
