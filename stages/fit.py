@@ -24,6 +24,8 @@ from pipeline.stage import Resources, StageContext, stage
 from stages.common import load_ground_truth_params, load_provided_params, load_views, model_sources, templates
 
 SOURCES = ("ground_truth", "provided", "fitted")
+#: stage.fit.refine: a mode of avatar.fitting.refine, or auto (see :func:`refine_mode`)
+REFINE_CHOICES = ("auto", *REFINE_MODES)
 IDENTITY_SPACES = ("auto", "full", "core")
 #: keypoint detectors whose landmarks sit where the template's embedding puts them, up to noise (the synthetic
 #: ground truth); identity_space=auto fits the full identity space only to these (README, "The built-in head").
@@ -55,15 +57,15 @@ class FitStageConfig:
 
     @staticmethod
     def validate(conf: FitStageConfig) -> list[str]:
-        problems = [] if conf.refine in REFINE_MODES \
-            else [f"refine={conf.refine}: choose one of {', '.join(REFINE_MODES)}"]
+        problems = [] if conf.refine in REFINE_CHOICES \
+            else [f"refine={conf.refine}: choose one of {', '.join(REFINE_CHOICES)}"]
         problems += [f"refinement.{key}={getattr(conf.refinement, key)}: must be at least 1"
                      for key in ("render_size", "exact_every") if getattr(conf.refinement, key) < 1]
         return problems
 
 
 @stage("fit", inputs=("capture", "frames", "keypoints"),
-       config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector", "stage.frames.segmenter"),
+       config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
        outputs=("train/params.parquet", "fit_report.json"),
        version="8",  # 8: image refinement (stage.fit.refine), keypoint-fit errors kept beside the refined ones
        resources=Resources(cpus=2), config_schema=FitStageConfig, sources=model_sources)
@@ -75,7 +77,6 @@ def fit(ctx: StageContext) -> None:
     source = ctx.cfg.fit.source
     if source not in SOURCES:
         raise SchemaError(f"fit.source={source!r}: choose one of {SOURCES}")
-    refine = str(ctx.cfg.stage.fit.refine)
     refine_cfg = RefineConfig(**ctx.cfg.stage.fit.refinement)
     cap_dir = ctx.input_dir("capture")
     index = CaptureIndex.read(cap_dir)
@@ -88,8 +89,10 @@ def fit(ctx: StageContext) -> None:
                                                            str(ctx.cfg.stage.keypoints.detector)))
     # train_views: 1 is a monocular fit (avatar.fitting.monocular): depth comes from the templates' sizes.
     report: dict = {"source": source, "train_views": len(cameras), "sequences": {}}
+    refine = refine_mode(str(ctx.cfg.stage.fit.refine), str(ctx.cfg.stage.keypoints.detector), len(cameras))
     if source == "fitted":
         report["refine"] = refine
+        report["refine_setting"] = str(ctx.cfg.stage.fit.refine)
     for seq, info in ctx.progress(list(index.sequences.items()), desc="fit: sequences"):
         hand_fitted = True
         if source == "ground_truth":
@@ -108,9 +111,7 @@ def fit(ctx: StageContext) -> None:
             if refine != "none":  # the train views only: the held-out camera never informs the tracking
                 views = load_views(cap_dir, ctx.input_dir("frames"), seq, "train")
                 _check_evidence(views.labels, ctx.input_dir("frames"), seq)
-                # MediaPipe labels the rest of the person (hair, neck, torso, arm) as unknown part: not compared
-                evidence = evidence_from_views(views, refine_cfg.render_size,
-                                               unknown_modelled=ctx.cfg.stage.frames.segmenter != "mediapipe")
+                evidence = evidence_from_views(views, refine_cfg.render_size)
             # Without any hand keypoint the hand stays where its initialisation puts it, inside the head, and the
             # interpenetration term pushes the face: fit the face alone, then write the placeholder hand.
             try:
@@ -146,6 +147,18 @@ def fit(ctx: StageContext) -> None:
             if key in entry:
                 ctx.metrics[f"{seq}_{key}"] = entry[key]
     write_json(ctx.out_dir / "fit_report.json", report, "fit report")
+
+
+def refine_mode(setting: str, detector: str, train_views: int) -> str:
+    """The image refinement ``stage.fit.refine=setting`` asks for: a mode as given, or for ``auto`` the
+    silhouettes where they were measured to help (README, "Tracking refined by the images"): keypoints from a
+    real detector (MediaPipe, a dataset's own) seen by two or more training views. Not with the synthetic
+    ground-truth keypoints (:data:`UNBIASED_DETECTORS`: at 1 px their fit is finer than 64 px silhouettes, which
+    made it worse: hand 1.9 -> 2.5 mm) and not from one view (the outline does not fix the distance: the face
+    went from 58 to 71 mm)."""
+    if setting != "auto":
+        return setting
+    return "silhouette" if detector not in UNBIASED_DETECTORS and train_views >= 2 else "none"
 
 
 def _fit_entry(result: FitResult, keypoint_fit: bool = False) -> dict:

@@ -9,11 +9,11 @@ renders the posed meshes and compares them with the frames stage's crops:
   times its frame scale k, see :mod:`avatar.gaussians.frames`) coloured by its part (face red, hand green,
   background black). The project's differentiable Gaussian rasterizer turns that into soft part
   silhouettes with occlusion, compared (squared error) with the crops' part labels, area-averaged to
-  ``render_size``. Pixels of an unknown foreground part compare the union where that label means "face or
-  hand" (keyed masks of a capture that shows only them) and nothing where it means "the rest of the person"
-  (MediaPipe's selfie segmentation: hair, neck, torso, arm); pixels no camera saw (crop padding) compare
-  nothing. Background pixels keep the meshes out, face and hand pixels pull them in: MediaPipe's face label
-  (the hull of the face mesh) lies inside the head's silhouette, so it asks for coverage only where it is.
+  ``render_size``. Pixels of an unknown foreground part compare nothing: on real footage that label is the
+  rest of the person (keyed masks, MediaPipe's selfie segmentation: hair, neck, torso, arm), not a mesh's.
+  Pixels no camera saw (crop padding) compare nothing either. Background pixels keep the meshes out, face and
+  hand pixels pull them in: MediaPipe's face label (the hull of the face mesh) lies inside the head's
+  silhouette, so it asks for coverage only where it is.
 * ``photometric``: the silhouette term plus an L1 colour term: the same proxy Gaussians carry one colour each,
   shared by every frame (an albedo, first fitted alone for ``colour_steps`` with the parameters held), and
   the render over the capture's background colour is compared with the crops' colours.
@@ -98,8 +98,6 @@ class Evidence:
         pixel_area: crop pixels per render pixel (image terms are in crop pixels).
         visible: part -> (T,) bool, the part is seen by some view in that frame.
         camera_ids: the C camera names.
-        unknown_modelled: whether the unknown-part foreground is face or hand (compared as their union) or may
-            be anything else of the person (not compared).
     """
 
     fractions: dict[str, Tensor]
@@ -111,7 +109,6 @@ class Evidence:
     pixel_area: float
     visible: dict[str, Tensor]
     camera_ids: list[str]
-    unknown_modelled: bool = True
 
     @property
     def num_frames(self) -> int:
@@ -152,9 +149,8 @@ def _area_average(x: Tensor, r: int) -> Tensor:
     return y.reshape(*lead, *y.shape[-2:])
 
 
-def evidence_from_views(views: ViewSet, render_size: int, unknown_modelled: bool = True) -> Evidence:
-    """The targets of the refinement from a sequence's training crops (:class:`ViewSet`); ``unknown_modelled``:
-    see :class:`Evidence`."""
+def evidence_from_views(views: ViewSet, render_size: int) -> Evidence:
+    """The targets of the refinement from a sequence's training crops (:class:`ViewSet`)."""
     r = downsample_factor(views.size, render_size)
     labels = views.labels
     fractions = {part: _area_average((labels == label).float(), r) for part, label in PART_LABELS.items()}
@@ -166,25 +162,20 @@ def evidence_from_views(views: ViewSet, render_size: int, unknown_modelled: bool
     return Evidence(fractions=fractions, observed=_area_average((labels != UNOBSERVED_LABEL).float(), r),
                     colours=colours.contiguous(), K=scaled_intrinsics(views.K.double(), r).float(),
                     world_to_cam=views.world_to_cam.float(), background=views.background.float(),
-                    pixel_area=float(r * r), visible=visible, camera_ids=list(views.camera_ids),
-                    unknown_modelled=unknown_modelled)
+                    pixel_area=float(r * r), visible=visible, camera_ids=list(views.camera_ids))
 
 
-def silhouette_error(rendered: Tensor, fractions: dict[str, Tensor], observed: Tensor,
-                     unknown_modelled: bool = True) -> Tensor:
-    """Per-pixel squared error (R, R) of a part render against the labels of one view.
+def silhouette_error(rendered: Tensor, fractions: dict[str, Tensor], observed: Tensor) -> Tensor:
+    """Per-pixel squared error (R, R) of a part render against the labels of one view; a pixel holding any
+    unknown-part foreground compares nothing.
 
     Args:
         rendered: (R, R, 3) render of the part colours over black: channel 0 face, channel 1 hand coverage.
         fractions: part -> (R, R) labelled share ("face", "hand", "unknown").
         observed: (R, R) share of the pixel the camera saw.
-        unknown_modelled: unknown-part pixels compare the union of face and hand (True) or nothing (False).
     """
-    face, hand = rendered[..., 0], rendered[..., 1]
-    unknown = fractions["unknown"]
-    per_part = (face - fractions["face"]).pow(2) + (hand - fractions["hand"]).pow(2)
-    union = (face + hand - fractions["face"] - fractions["hand"] - unknown).pow(2)
-    return torch.where(unknown > 0, union if unknown_modelled else torch.zeros_like(union), per_part) * observed
+    per_part = (rendered[..., 0] - fractions["face"]).pow(2) + (rendered[..., 1] - fractions["hand"]).pow(2)
+    return torch.where(fractions["unknown"] > 0, torch.zeros_like(per_part), per_part) * observed
 
 
 @dataclass
@@ -341,8 +332,7 @@ class _Renderer:
                     if refresh:
                         self.corrections[t][c] = exact_coverage - coverage.detach()
                     frac = {k: v[t, c] for k, v in ev.fractions.items()}
-                    error = silhouette_error(coverage + self.corrections[t][c], frac, ev.observed[t, c],
-                                             ev.unknown_modelled)
+                    error = silhouette_error(coverage + self.corrections[t][c], frac, ev.observed[t, c])
                     total = total + silhouette_weight * error.sum()
                 if colour:
                     proxy = render_gaussians(*parts[:4], albedo, K, w2c, R, R, ev.background).rgb

@@ -150,7 +150,7 @@ def test_ground_truth_is_where_the_silhouette_term_is_smallest(capture: Syntheti
     assert losses["truth"] < 0.3 * losses["perturbed"], losses
 
 
-def test_silhouette_error_compares_unknown_foreground_as_a_union() -> None:
+def test_silhouette_error_leaves_unknown_foreground_and_unobserved_pixels_out() -> None:
     rendered = torch.zeros(2, 2, 3)
     rendered[0, 0, 0] = 1.0  # face
     rendered[0, 1, 1] = 1.0  # hand
@@ -158,14 +158,12 @@ def test_silhouette_error_compares_unknown_foreground_as_a_union() -> None:
     fractions["unknown"][0, :] = 1.0  # keyed mask: foreground, part unknown
     fractions["face"][1, 0] = 1.0
     observed = torch.tensor([[1.0, 1.0], [1.0, 0.0]])
+    rendered[1, 1, 1] = 1.0  # a hand where the camera saw nothing
     error = silhouette_error(rendered, fractions, observed)
-    # the union matches on the unknown row, the face is missing at (1, 0), and (1, 1) was not observed
+    # the unknown row (the rest of a person: neither required nor refused), the face missing at (1, 0)
     torch.testing.assert_close(error, torch.tensor([[0.0, 0.0], [1.0, 0.0]]))
-    rendered[0, 1, 1] = 0.0  # the hand's pixel empty: the union misses it
-    torch.testing.assert_close(silhouette_error(rendered, fractions, observed)[0, 1], torch.tensor(1.0))
-    # the rest of the person (MediaPipe's label 3): neither required nor refused
-    ignored = silhouette_error(rendered, fractions, observed, unknown_modelled=False)
-    torch.testing.assert_close(ignored, torch.tensor([[0.0, 0.0], [1.0, 0.0]]))
+    rendered[0] = 0.0
+    torch.testing.assert_close(silhouette_error(rendered, fractions, observed), error)
 
 
 def test_downsampled_intrinsics_keep_pixel_centres() -> None:

@@ -17,6 +17,7 @@ from data_schemas.tables import read_table
 from pipeline.cli import run_app
 from pipeline.runner import StageFailed
 import stages.common
+from stages.fit import refine_mode
 from tests.conftest import compose_cfg
 
 
@@ -99,3 +100,11 @@ def test_empty_masks_are_one_clear_error(tmp_path, monkeypatch):
     assert re.search(expected, message), message
     assert "stage.fit.refine=none" in message
     assert not (tmp_path / "synth_a" / "fit").exists()
+
+
+def test_auto_refines_real_detections_seen_by_several_views():
+    assert refine_mode("auto", "mediapipe", 7) == "silhouette"
+    assert refine_mode("auto", "provided", 2) == "silhouette"
+    assert refine_mode("auto", "ground_truth", 7) == "none"  # finer than the silhouettes already
+    assert refine_mode("auto", "mediapipe", 1) == "none"  # one view: the outline does not fix the distance
+    assert refine_mode("photometric", "ground_truth", 1) == "photometric"  # a mode set by hand is kept
