@@ -11,11 +11,15 @@ import torch
 
 from avatar.fitting.errors import landmark_error, mpjpe, per_vertex_error
 from avatar.fitting.fit import FitConfig, FitResult, WorldScaleError, fit_sequence
-from avatar.fitting.refine import REFINE_MODES, RefineConfig, RefineResult, evidence_from_views
+from avatar.fitting.refine import (
+    REFINE_MODES, RefineConfig, RefineResult, evidence_from_views, mesh_coverage, outline_overlay,
+)
 from avatar.templates import TemplateModel
+from avatar.training.data import ViewSet
 from avatar.training.posing import posed_keypoints
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
+from data_schemas.images import write_png
 from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
@@ -26,6 +30,8 @@ from stages.common import load_ground_truth_params, load_provided_params, load_v
 SOURCES = ("ground_truth", "provided", "fitted")
 #: stage.fit.refine: a mode of avatar.fitting.refine, or auto (see :func:`refine_mode`)
 REFINE_CHOICES = ("auto", *REFINE_MODES)
+#: <sequence>/refinement.png: the keypoint fit's and the refined meshes' outlines over a training crop
+REFINEMENT_FIGURE = "refinement.png"
 IDENTITY_SPACES = ("auto", "full", "core")
 #: keypoint detectors whose landmarks sit where the template's embedding puts them, up to noise (the synthetic
 #: ground truth); identity_space=auto fits the full identity space only to these (README, "The built-in head").
@@ -124,6 +130,7 @@ def fit(ctx: StageContext) -> None:
             entry = _fit_entry(result)
             if result.refinement is not None:
                 entry["refinement"] = _refinement_entry(result.refinement, hand_fitted)
+                _write_overlay(ctx.out_dir / seq / REFINEMENT_FIGURE, views, result, head, hand, hand_fitted)
                 keypoint_only = _fit_entry(result, keypoint_fit=True)
                 if info.has_ground_truth:
                     keypoint_params = result.keypoint_params if hand_fitted \
@@ -159,6 +166,26 @@ def refine_mode(setting: str, detector: str, train_views: int) -> str:
     if setting != "auto":
         return setting
     return "silhouette" if detector not in UNBIASED_DETECTORS and train_views >= 2 else "none"
+
+
+def _write_overlay(path: Path, views: ViewSet, result: FitResult, head: TemplateModel, hand: TemplateModel,
+                   hand_fitted: bool) -> None:
+    """The keypoint fit's (red) and the refined (green) mesh outlines over the first training view's crop, in the
+    frame where the refinement moved the meshes most."""
+    moved = result.refinement.moved_mm["hand"] if hand_fitted else result.refinement.moved_mm["face"]
+    frame = int(np.argmax(moved))
+    faces = {"face": torch.as_tensor(np.asarray(head.faces), dtype=torch.long),
+             "hand": torch.as_tensor(np.asarray(hand.faces), dtype=torch.long)}
+    masks = []
+    for params in (result.keypoint_params, result.params):
+        posed = posed_keypoints({k: v[frame:frame + 1] for k, v in params.items()}, head, hand)
+        meshes = {"face": torch.as_tensor(posed["face_vertices"][0])}
+        if hand_fitted:
+            meshes["hand"] = torch.as_tensor(posed["hand_vertices"][0])
+        masks.append(mesh_coverage(meshes, {p: faces[p] for p in meshes}, views.K[0], views.world_to_cam[0],
+                                   views.size).numpy())
+    image = outline_overlay(views.images[frame, 0].numpy(), masks, [(255, 64, 64), (64, 255, 64)])
+    write_png(path, image)
 
 
 def _fit_entry(result: FitResult, keypoint_fit: bool = False) -> dict:

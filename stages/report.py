@@ -187,7 +187,7 @@ def _fit_section(fit_dir: Path) -> str:
              "ground_truth": "the synthetic capture's own parameters (the avatar is measured apart from fitting error)",
              "provided": "the dataset's own fit"}.get(source, source)
     refine = report.get("refine", "none")
-    rows, moves = [], []
+    rows, moves, figures = [], [], []
     for seq, entry in report["sequences"].items():
         stages = [(seq, entry)] if "keypoint_fit" not in entry else \
             [(f"{seq} (keypoint fit)", entry["keypoint_fit"]), (f"{seq} (refined: {refine})", entry)]
@@ -201,6 +201,12 @@ def _fit_section(fit_dir: Path) -> str:
                          "; ".join(f"{p}: {v}" for p, v in weak.items() if v) or "-"))
         if "refinement" in entry:
             moves.append((seq, *_refinement_cells(entry["refinement"])))
+            figure = fit_dir / seq / "refinement.png"
+            if figure.is_file():
+                figures.append(f"<figure><img alt='{html.escape(seq)}: keypoint fit and refined meshes' "
+                               f"src='data:image/png;base64,{_base64_file(figure)}'><figcaption>{html.escape(seq)}: "
+                               f"keypoint fit (red) and refined (green) mesh outlines, the frame that moved most"
+                               f"</figcaption></figure>")
     table = _table(("sequence", "hand MPJPE mm", "face landmarks mm", "hand vertices mm", "face vertices mm",
                     "hand reprojection px", "face reprojection px", "weakly constrained frames"), rows)
     text = f"<p>Parameters: {html.escape(intro)}. Errors against ground truth where the capture has it.</p>{table}"
@@ -209,7 +215,8 @@ def _fit_section(fit_dir: Path) -> str:
                  f"camera): silhouette IoU of the parts (mean over views, keypoint fit → refined) and how far "
                  f"each part moved per frame (mean vertex displacement; change of global rotation).</p>"
                  + _table(("sequence", "face IoU", "hand IoU", "face moved mm (mean / max)",
-                           "hand moved mm (mean / max)", "face rotated deg (max)", "hand rotated deg (max)"), moves))
+                           "hand moved mm (mean / max)", "face rotated deg (max)", "hand rotated deg (max)"), moves)
+                 + "".join(figures))
     return text
 
 

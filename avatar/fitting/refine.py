@@ -468,3 +468,23 @@ def refine_parameters(hand: HandParams, face: FaceParams, anchor: Callable[[], T
         moved_mm={p: 1e3 * (after[p] - before[p]).norm(dim=-1).mean(-1).numpy() for p in PARTS},
         rotated_deg={p: _rotation_angle_deg(orient_before[p], orient_after[p]) for p in PARTS},
         frozen={p: np.flatnonzero(~evidence.visible[p].numpy()).tolist() for p in PARTS})
+
+
+def mesh_coverage(meshes: dict[str, Tensor], faces: dict[str, Tensor], K: Tensor, world_to_cam: Tensor,
+                  size: int) -> Tensor:
+    """(S, S) bool: the pixels (centres, renderer convention) that the posed ``meshes`` (part -> (V, 3)) cover
+    in a view of intrinsics ``K`` (3, 3) and extrinsics ``world_to_cam`` (4, 4)."""
+    camera = PinholeCamera(K=_mesh_raster_K(K), world_to_cam=world_to_cam.double().numpy(), width=size, height=size)
+    scene = [Mesh(meshes[p], faces[p], torch.zeros(meshes[p].shape[0], 1), i + 1) for i, p in enumerate(meshes)]
+    return rasterize(scene, camera, 1)[0].covered
+
+
+def outline_overlay(image: np.ndarray, masks: list[np.ndarray], colours: list[tuple[int, int, int]]) -> np.ndarray:
+    """``image`` (S, S, 3) uint8, dimmed, with each of ``masks`` ((S, S) bool) drawn as its one-pixel outline
+    in the matching colour (later masks on top)."""
+    out = (image.astype(np.float32) * 0.6).astype(np.uint8)
+    for mask, colour in zip(masks, colours):
+        padded = np.pad(mask, 1, mode="edge")
+        interior = padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:]
+        out[mask & ~interior] = colour
+    return out

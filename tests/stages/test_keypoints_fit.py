@@ -82,6 +82,9 @@ def test_refined_fit_reads_only_the_train_views_and_reports_both_fits(tmp_path, 
         assert views and not views & set(held_out), views
     assert len(refinement["moved_mm"]["hand"]) == len(refinement["rotated_deg"]["face"]) == 6
     assert max(refinement["moved_mm"]["face"]) > 0
+    overlay = read_png(root / "fit" / "train" / "refinement.png", 3)  # keypoint fit red, refined green
+    assert overlay.shape == (64, 64, 3)
+    assert ((overlay == (255, 64, 64)).all(-1).any() and (overlay == (64, 255, 64)).all(-1).any())
 
 
 def test_empty_masks_are_one_clear_error(tmp_path, monkeypatch):
