@@ -158,14 +158,15 @@ def fit(ctx: StageContext) -> None:
 
 def refine_mode(setting: str, detector: str, train_views: int) -> str:
     """The image refinement ``stage.fit.refine=setting`` asks for: a mode as given, or for ``auto`` the
-    silhouettes where they were measured to help (README, "Tracking refined by the images"): keypoints from a
-    real detector (MediaPipe, a dataset's own) seen by two or more training views. Not with the synthetic
-    ground-truth keypoints (:data:`UNBIASED_DETECTORS`: at 1 px their fit is finer than 64 px silhouettes, which
-    made it worse: hand 1.9 -> 2.5 mm) and not from one view (the outline does not fix the distance: the face
-    went from 58 to 71 mm)."""
+    silhouettes where they were measured to help (README, "Tracking refined by the images"): MediaPipe's
+    keypoints seen by two or more training views. Not with the synthetic ground-truth keypoints (at 1 px their
+    fit is finer than 64 px silhouettes, which made it worse: hand 1.9 -> 2.5 mm), not from one view (the
+    outline does not fix the distance: the face went from 58 to 71 mm), and not with a dataset's own keypoints
+    (``provided``: DECAF's masks label the whole matte but the hand as face, neck and shoulders too, which no
+    head mesh covers)."""
     if setting != "auto":
         return setting
-    return "silhouette" if detector not in UNBIASED_DETECTORS and train_views >= 2 else "none"
+    return "silhouette" if detector == "mediapipe" and train_views >= 2 else "none"
 
 
 def _write_overlay(path: Path, views: ViewSet, result: FitResult, head: TemplateModel, hand: TemplateModel,

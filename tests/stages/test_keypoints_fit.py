@@ -107,7 +107,8 @@ def test_empty_masks_are_one_clear_error(tmp_path, monkeypatch):
 
 def test_auto_refines_real_detections_seen_by_several_views():
     assert refine_mode("auto", "mediapipe", 7) == "silhouette"
-    assert refine_mode("auto", "provided", 2) == "silhouette"
+    assert refine_mode("auto", "mediapipe", 2) == "silhouette"
+    assert refine_mode("auto", "provided", 7) == "none"  # DECAF's masks label neck and shoulders as face
     assert refine_mode("auto", "ground_truth", 7) == "none"  # finer than the silhouettes already
     assert refine_mode("auto", "mediapipe", 1) == "none"  # one view: the outline does not fix the distance
     assert refine_mode("photometric", "ground_truth", 1) == "photometric"  # a mode set by hand is kept
