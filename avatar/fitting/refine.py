@@ -5,18 +5,18 @@ The keypoint fit (:mod:`avatar.fitting.fit`) sees a few dozen 2D points per view
 offsets and one camera's missing depth leave the meshes a centimetre or more from the skin. This module
 renders the posed meshes and compares them with the frames stage's crops:
 
-* ``silhouette``: each triangle carries one flat Gaussian (a disc in the triangle's plane, ``proxy_sigma``
-  times its frame scale k, see :mod:`avatar.gaussians.frames`) coloured by its part (face red, hand green,
-  background black). The project's differentiable Gaussian rasterizer turns that into soft part
-  silhouettes with occlusion, compared (squared error) with the crops' part labels, area-averaged to
-  ``render_size``. Pixels of an unknown foreground part compare nothing: on real footage that label is the
-  rest of the person (keyed masks, MediaPipe's selfie segmentation: hair, neck, torso, arm), not a mesh's.
+* ``silhouette``: the part silhouettes of the posed meshes, compared (squared error) with the crops' part
+  labels, area-averaged to ``render_size``. Their values come from the exact z-buffer rasterizer, their
+  gradients from one flat Gaussian per triangle (a disc in the triangle's plane, ``proxy_sigma`` times its
+  frame scale k, see :mod:`avatar.gaussians.frames`) coloured by its part on the project's differentiable
+  rasterizer (see :class:`_Renderer` for why both). Pixels of an unknown foreground part compare nothing: on
+  real footage that label is the rest of the person (keyed masks, MediaPipe's selfie segmentation: hair, neck, torso, arm), not a mesh's.
   Pixels no camera saw (crop padding) compare nothing either. Background pixels keep the meshes out, face and
   hand pixels pull them in: MediaPipe's face label (the hull of the face mesh) lies inside the head's
   silhouette, so it asks for coverage only where it is.
-* ``photometric``: the silhouette term plus an L1 colour term: the same proxy Gaussians carry one colour each,
-  shared by every frame (an albedo, first fitted alone for ``colour_steps`` with the parameters held), and
-  the render over the capture's background colour is compared with the crops' colours.
+* ``photometric``: the silhouette term plus an L1 colour term: the meshes carry one colour per vertex, shared
+  by every frame (an albedo, first fitted alone for ``colour_steps`` with the parameters held, learnt from the
+  exact render), and the render over the capture's background colour is compared with the crops' colours.
 
 The keypoint objective (reprojection, priors, temporal smoothness, interpenetration) stays in the loss as
 the anchor. What moves: every frame's rotations, translations and articulation (FLAME: global rotation,
@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.spatial.transform import Rotation
 from torch import Tensor
 
 from avatar.fitting.models import FaceParams, HandParams
@@ -217,8 +218,8 @@ class RefineResult:
     Attributes:
         seconds: wall time.
         losses: (iterations,) total loss per step.
-        silhouette_iou: {"before"/"after": part -> camera_id -> IoU} of the proxy silhouettes (render > 0.5)
-            against the labels (share > 0.5) at the render size, over the frames where the part is seen.
+        silhouette_iou: {"before"/"after": part -> camera_id -> IoU} of the exact mesh silhouettes (coverage
+            > 0.5) against the labels (share > 0.5) at the render size, over the frames where the part is seen.
         moved_mm: part -> (T,) mean vertex displacement from the keypoint fit, mm.
         rotated_deg: part -> (T,) angle of the global rotation's change, degrees.
         frozen: part -> list of frames left as fitted (the part is seen by no training view there).
@@ -254,8 +255,7 @@ class _Renderer:
         self.hand, self.face, self.ev, self.cfg = hand, face, evidence, cfg
         self.proxies = proxy_meshes(face.faces, hand.layer.faces, cfg.proxy_sigma)
         self.counts = {p: self.proxies.faces[p].shape[0] for p in PARTS}
-        self.part_colours = torch.cat([torch.tensor(PART_COLOURS[p]).expand(self.counts[p], 3) for p in PARTS])
-        self.opacity = torch.full((sum(self.counts.values()),), cfg.proxy_opacity)
+        self.corrections: list[list[Tensor]] = []  # per frame and view: exact minus proxy coverage (R, R, 2)
         self.cameras = [PinholeCamera(K=_mesh_raster_K(evidence.K[c]),
                                       world_to_cam=evidence.world_to_cam[c].double().numpy(),
                                       width=evidence.size, height=evidence.size) for c in range(evidence.num_cameras)]
@@ -311,15 +311,17 @@ class _Renderer:
         """The image terms summed over frames and views, in crop pixels, averaged over (frame, view).
 
         Silhouettes: the proxies' coverage plus each view's correction (exact minus proxy), recomputed when
-        ``refresh``. Colours (photometric): the exact render's values and albedo gradient, the proxies' gradient
-        for the geometry (the albedo learns from the exact colours, so it is rendered exactly every step)."""
+        ``refresh`` (the first call with a silhouette term must refresh). Colours (photometric): the exact
+        render's values and albedo gradient, the proxies' gradient for the geometry (the albedo learns from the
+        exact colours, so it is rendered exactly every step)."""
         ev, R = self.ev, self.ev.size
         vertices = self._posed()
         total = vertices["face"].new_zeros(())
-        colour = photometric_weight > 0
+        silhouette, colour = silhouette_weight > 0, photometric_weight > 0
+        refresh = refresh and silhouette
         black = torch.zeros(3)
         if refresh:
-            self.corrections = [[None] * ev.num_cameras for _ in range(ev.num_frames)]
+            self.corrections = [[] for _ in range(ev.num_frames)]
         for t in range(ev.num_frames):
             parts = self._proxies(vertices, t)
             albedo = self._proxy_albedo(t) if colour else None
@@ -327,10 +329,10 @@ class _Renderer:
                 K, w2c = ev.K[c], ev.world_to_cam[c]
                 exact_coverage, exact_rgb = self._exact(vertices, t, c, colour) if refresh or colour \
                     else (None, None)
-                if silhouette_weight > 0 or refresh:
+                if silhouette:
                     coverage = render_gaussians(*parts, K, w2c, R, R, black).rgb[..., :2]
                     if refresh:
-                        self.corrections[t][c] = exact_coverage - coverage.detach()
+                        self.corrections[t].append(exact_coverage - coverage.detach())
                     frac = {k: v[t, c] for k, v in ev.fractions.items()}
                     error = silhouette_error(coverage + self.corrections[t][c], frac, ev.observed[t, c])
                     total = total + silhouette_weight * error.sum()
@@ -393,8 +395,6 @@ def _freeze_unseen(hand: HandParams, face: FaceParams, visible: dict[str, Tensor
 
 def _rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(T,) angle of R(a)^T R(b) for axis-angle rows (T, 3)."""
-    from scipy.spatial.transform import Rotation
-
     rel = Rotation.from_rotvec(a).inv() * Rotation.from_rotvec(b)
     return np.degrees(rel.magnitude())
 
@@ -427,9 +427,9 @@ def refine_parameters(hand: HandParams, face: FaceParams, anchor: Callable[[], T
         for p in movable:
             p.requires_grad_(False)
         colour_opt = torch.optim.Adam([renderer.albedo], lr=cfg.lr_colour)
-        for step in range(cfg.colour_steps):
+        for _ in range(cfg.colour_steps):
             colour_opt.zero_grad()
-            renderer.loss(0.0, photometric, refresh=step % cfg.exact_every == 0).backward()
+            renderer.loss(0.0, photometric, refresh=False).backward()
             colour_opt.step()
         for p in movable:
             p.requires_grad_(True)
