@@ -11,9 +11,9 @@ renders the posed meshes and compares them with the frames stage's crops:
   frame scale k, see :mod:`avatar.gaussians.frames`) coloured by its part on the project's differentiable
   rasterizer (see :class:`_Renderer` for why both). Pixels of an unknown foreground part compare nothing: on
   real footage that label is the rest of the person (keyed masks, MediaPipe's selfie segmentation: hair,
-  neck, torso, arm), not a mesh's. Pixels no camera saw (crop padding) compare nothing either. Background pixels keep the meshes out, face and
-  hand pixels pull them in: MediaPipe's face label (the hull of the face mesh) lies inside the head's
-  silhouette, so it asks for coverage only where it is.
+  neck, torso, arm), not a mesh's. Pixels no camera saw (crop padding) compare nothing either. Background
+  pixels keep the meshes out, face and hand pixels pull them in: MediaPipe's face label (the hull of the face
+  mesh) lies inside the head's silhouette, so it asks for coverage only where it is.
 * ``photometric``: the silhouette term plus an L1 colour term: the meshes carry one colour per vertex, shared
   by every frame (an albedo, first fitted alone for ``colour_steps`` with the parameters held, learnt from the
   exact render), and the render over the capture's background colour is compared with the crops' colours.
