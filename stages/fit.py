@@ -158,7 +158,7 @@ def fit(ctx: StageContext) -> None:
 
 def refine_mode(setting: str, detector: str, train_views: int) -> str:
     """The image refinement ``stage.fit.refine=setting`` asks for: a mode as given, or for ``auto`` the
-    silhouettes where they were measured to help (README, "Tracking refined by the images"): MediaPipe's
+    silhouettes where they were measured to help (docs/tracking-refinement.md): MediaPipe's
     keypoints seen by two or more training views. Not with the synthetic ground-truth keypoints (at 1 px their
     fit is finer than 64 px silhouettes, which made it worse: hand 1.9 -> 2.5 mm), not from one view (the
     outline does not fix the distance: the face went from 58 to 71 mm), and not with a dataset's own keypoints
