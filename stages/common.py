@@ -21,6 +21,7 @@ from avatar.splatting import EmbeddedGaussians
 from avatar.training.splatting import SplattingConfig
 from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
 from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.frame_params import FrameParams, ParamLearningRates, parameter_movement
 from avatar.training.posing import posed_keypoints, posed_meshes
 from avatar.training.validation import FlatStop, ValidationConfig, Validator
 from data_schemas.cameras import read_cameras
@@ -106,8 +107,7 @@ def contact_frames(capture_dir: Path, sequence: str, num_frames: int) -> np.ndar
 
 def load_params(fit_dir: Path, sequence: str) -> dict[str, np.ndarray]:
     """The fit stage's per-frame FLAME/MANO parameters of ``sequence`` (the columns of ``params.parquet``)."""
-    table = read_table(fit_dir / sequence / "params.parquet", PARAMS)
-    return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
+    return read_params(fit_dir / sequence / "params.parquet")
 
 
 def contact_flags(pbd_dir: Path, sequence: str, num_frames: int) -> np.ndarray:
@@ -119,39 +119,139 @@ def contact_flags(pbd_dir: Path, sequence: str, num_frames: int) -> np.ndarray:
     return contact
 
 
-def load_meshes(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path | None) -> MeshSequence:
-    """Posed face + hand meshes of every frame of ``sequence`` from the fit stage's ``params.parquet``,
-    the face deformed by the pbd stage's contact offsets (``pbd_dir``; None: undeformed)."""
-    return _posed_sequence(fit_dir, sequence, cfg, pbd_dir)[0]
-
-
 def applied_deformation(cfg: DictConfig, pbd_dir: Path) -> Path | None:
     """``pbd_dir`` when the method deforms the face with the pbd stage's offsets (``method.pbd``), else
     ``None``: the "w/o PBD" ablation and the baselines pose undeformed meshes and give I ``d_j = 0``."""
     return pbd_dir if bool(cfg.method.pbd) else None
 
 
-def load_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path | None
-                  ) -> tuple[MeshSequence, Conditioning]:
-    """:func:`load_meshes` and the dynamic model's conditioning of every frame, each artifact read once."""
-    head, hand = templates(cfg.model)
-    meshes, params, offsets = _posed_sequence(fit_dir, sequence, cfg, pbd_dir)
-    return meshes, sequence_conditioning(params, head, hand, torch.from_numpy(offsets))
+def load_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path | None,
+                  params: dict[str, np.ndarray] | None = None) -> tuple[MeshSequence, Conditioning]:
+    """Posed face + hand meshes of every frame of ``sequence`` from the fit stage's ``params.parquet`` (or from
+    ``params``, e.g. a method's refined ones: :func:`method_params`), the face deformed by the pbd stage's contact
+    offsets (``pbd_dir``; None: undeformed), and the dynamic model's conditioning of every frame."""
+    posed = posed_sequence(fit_dir, sequence, cfg, pbd_dir, params)
+    return posed.meshes, posed.conditioning(cfg)
 
 
-def _posed_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, pbd_dir: Path | None
-                    ) -> tuple[MeshSequence, dict[str, np.ndarray], np.ndarray]:
-    """(meshes with the face offsets added, the parameters, the offsets (T, V_face, 3); zeros without pbd)."""
+@dataclass
+class PosedSequence:
+    """A sequence's parameters (the params.parquet columns), its posed meshes (the face's contact offsets added)
+    and those offsets (T, V_face, 3) in metres (zeros without pbd)."""
+
+    params: dict[str, np.ndarray]
+    meshes: MeshSequence
+    offsets: np.ndarray
+
+    def conditioning(self, cfg: DictConfig) -> Conditioning:
+        """The dynamic model's conditioning of every frame."""
+        head, hand = templates(cfg.model)
+        return sequence_conditioning(self.params, head, hand, torch.from_numpy(self.offsets))
+
+
+def posed_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, pbd_dir: Path | None,
+                   params: dict[str, np.ndarray] | None = None) -> PosedSequence:
+    """``sequence`` posed with ``params`` (default: the fit stage's) and the pbd stage's offsets (``pbd_dir``)."""
     head, hand = templates(cfg.model)
-    params = load_params(fit_dir, sequence)
+    params = load_params(fit_dir, sequence) if params is None else params
     meshes = posed_meshes(params, head, hand)
     num_frames = meshes.vertices.shape[0]
     if pbd_dir is None:
-        return meshes, params, np.zeros((num_frames, head.num_vertices, 3))
+        return PosedSequence(params, meshes, np.zeros((num_frames, head.num_vertices, 3)))
     offsets = load_face_offsets(pbd_dir, sequence, num_frames, head.num_vertices)
     # posed_meshes concatenates the parts in order, face first: its vertices are the first V
     meshes.vertices[:, :head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
-    return meshes, params, offsets
+    return PosedSequence(params, meshes, offsets)
+
+
+TRAIN_SEQUENCE = "train"
+REFINE_PARAMS = ("auto", "true", "false")
+
+
+def method_params(trained_dir: Path, fit_dir: Path, sequence: str) -> dict[str, np.ndarray]:
+    """The parameters a trained method poses ``sequence`` with: for the train motion, those its training refined
+    (``params.parquet`` of its warmup or dynamic stage ``trained_dir``; the fit's where it refined nothing); for
+    any other sequence the fit's (the held-out motion is never refined against its images)."""
+    if sequence != TRAIN_SEQUENCE:
+        return load_params(fit_dir, sequence)
+    return read_params(trained_dir / "params.parquet")
+
+
+def read_params(path: Path) -> dict[str, np.ndarray]:
+    """The FLAME/MANO columns of a ``params.parquet``."""
+    table = read_table(path, PARAMS)
+    return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
+
+
+def write_params(path: Path, params: dict[str, np.ndarray]) -> None:
+    """``params.parquet`` of T frames (:data:`PARAMS`; the inverse of :func:`read_params`)."""
+    num_frames = len(params["flame_global_orient"])
+    write_table(path, PARAMS, {"frame": np.arange(num_frames), **{k: params[k] for k in PARAM_COLUMNS}})
+
+
+def refines_params(cfg: DictConfig, section: DictConfig) -> bool:
+    """Whether a training stage (``section``: ``stage.warmup`` or ``stage.dynamic``) refines the train motion's
+    parameters (``refine_params``): ``auto`` whenever they were fitted or provided (``fit.source``), never with the
+    ground truth, which has nothing to correct; never for SplattingAvatar (``method.representation=embedded``:
+    ``true`` there is an error)."""
+    value = str(section.refine_params).lower()
+    if value not in REFINE_PARAMS:
+        raise ValueError(f"refine_params={section.refine_params}: use one of {', '.join(REFINE_PARAMS)}")
+    embedded = representation(cfg) == "embedded"
+    if value == "auto":
+        return str(cfg.fit.source) != "ground_truth" and not embedded
+    if value == "true" and embedded:
+        raise ValueError("refine_params=true: SplattingAvatar (method.representation=embedded) does not refine the "
+                         "tracking; set refine_params=auto or false")
+    return value == "true"
+
+
+def param_learning_rates(section: DictConfig) -> ParamLearningRates:
+    """The :class:`ParamLearningRates` of a training stage's ``params_lr`` block."""
+    return ParamLearningRates(**{k: float(v) for k, v in section.params_lr.items()})
+
+
+def refinement_problems(section: DictConfig) -> list[str]:
+    """Range problems of a training stage's ``refine_params`` and ``params_lr``, keyed relative to the stage."""
+    problems = [] if str(section.refine_params).lower() in REFINE_PARAMS else \
+        [f"refine_params={section.refine_params}: use one of {', '.join(REFINE_PARAMS)}"]
+    return problems + [f"params_lr.{p}" for p in param_learning_rates(section).problems()]
+
+
+@dataclass
+class ParamsLrSchema:
+    """Types of ``stage.<warmup|dynamic>.params_lr`` (:class:`ParamLearningRates`)."""
+
+    rotation: float
+    pose: float
+    translation: float
+    expression: float
+
+
+def record_refinement(ctx: StageContext, fitted: dict[str, np.ndarray], trained_on: dict[str, np.ndarray],
+                      params: FrameParams | None) -> None:
+    """Write the stage's ``params.parquet``: the train motion as this stage left it (``params`` refined here, or
+    ``trained_on`` unchanged when None), and the manifest's summary of how far it lies from the fit's ``fitted``
+    (``params_refined``: whether this stage refined; ``params_moved_<part>_mm_mean``/``_max``: mean vertex
+    displacement per frame; ``params_rotated_<part>_deg_max``)."""
+    after = params.arrays() if params is not None else trained_on
+    write_params(ctx.out_dir / "params.parquet", after)
+    ctx.metrics["params_refined"] = params is not None
+    head, hand = templates(ctx.cfg.model)
+    moved = parameter_movement(fitted, after, head, hand)
+    for part in ("face", "hand"):
+        ctx.metrics[f"params_moved_{part}_mm_mean"] = float(np.mean(moved["moved_mm"][part]))
+        ctx.metrics[f"params_moved_{part}_mm_max"] = float(np.max(moved["moved_mm"][part]))
+        ctx.metrics[f"params_rotated_{part}_deg_max"] = float(np.max(moved["rotated_deg"][part]))
+
+
+def frame_params(cfg: DictConfig, section: DictConfig, posed: PosedSequence) -> FrameParams | None:
+    """The train motion's parameters to refine while training (:class:`FrameParams`), or None when
+    :func:`refines_params` says no."""
+    if not refines_params(cfg, section):
+        return None
+    head, hand = templates(cfg.model)
+    return FrameParams(posed.params, head, hand, torch.from_numpy(posed.offsets), param_learning_rates(section))
 
 
 def load_face_offsets(pbd_dir: Path, sequence: str, num_frames: int, num_vertices: int) -> np.ndarray:

@@ -33,10 +33,11 @@ from data_schemas.tables import write_table
 from data_schemas.writes import write_bytes, write_json
 from pipeline.stage import Resources, StageContext, stage
 from stages.common import (
-    TrainedModel, applied_deformation, contact_flags, load_embedded_gaussians, posed_gaussians, representation,
-    splatting_config, write_embedded_gaussians, load_gaussians, load_scene, load_sequence, load_views, model_sources,
-    templates, write_bound_gaussians, write_frame_ply,
-    ValidationSchema, record_validation, validation_config, validation_problems,
+    ParamsLrSchema, PosedSequence, TRAIN_SEQUENCE, TrainedModel, ValidationSchema, applied_deformation, contact_flags,
+    frame_params, load_embedded_gaussians, load_gaussians, load_params, load_scene, load_sequence, load_views,
+    method_params, model_sources, posed_gaussians, posed_sequence, record_refinement, record_validation,
+    refinement_problems, representation, splatting_config, templates, validation_config, validation_problems,
+    write_bound_gaussians, write_embedded_gaussians, write_frame_ply,
 )
 
 
@@ -77,6 +78,8 @@ class DynamicConfig:
     ply_frames: list[int]
     backend: str
     seed: int
+    refine_params: str
+    params_lr: ParamsLrSchema
     select: SelectSchema
     validation: ValidationSchema
 
@@ -103,7 +106,7 @@ class DynamicConfig:
         if select.enabled and int(conf.validation.every) <= 0:  # type: ignore[attr-defined]
             problems.append("select.enabled=true needs validation frames: set stage.dynamic.validation.every > 0 "
                             "(e.g. 50), or select.enabled=false")
-        return problems + validation_problems(conf)
+        return problems + validation_problems(conf) + refinement_problems(conf)
 
 
 def selection_config(conf: object) -> SelectionConfig:
@@ -145,9 +148,10 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
     config_keys=("quality.dynamic_steps", "quality.dynamic_width", "quality.dynamic_hand_depth",
                  "quality.dynamic_interaction_depth", "quality.geometry_feature_dim", "quality.pointnet_width",
                  "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
-                 "splatting", "stage.warmup"),  # SplattingAvatar's recipe and schedule
-    outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet"),
-    version="8",  # 8: stage.dynamic.select (the kept step and modules); 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
+                 "splatting", "stage.warmup", "fit.source"),  # SplattingAvatar's recipe and schedule
+    outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet",
+             "params.parquet"),
+    version="9",  # 9: refine_params, stage two posed from the warm-up's params.parquet; 8: stage.dynamic.select (the kept step and modules); 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
     # rasterizer's alpha as a power of two (rounding-level)
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
@@ -159,16 +163,20 @@ def dynamic(ctx: StageContext) -> None:
     """Stage two on every train camera and frame: H, I, PointNet++, the point features and the Gaussians
     (the ablations and GaussianAvatars: what of it the method keeps), or SplattingAvatar trained on. With
     ``stage.dynamic.validation.every`` > 0 it withholds ``validation.frames`` train frames, validates on them and
-    may stop early (``curve.parquet``; README, "Quality during training")."""
+    may stop early (``curve.parquet``; README, "Quality during training"). The train motion is posed with the
+    warm-up's ``params.parquet`` and, with ``stage.dynamic.refine_params``, refined further; ``params.parquet`` holds
+    it as trained on, which ``evaluate``, ``reenact`` and the PLY export pose the train motion with."""
     conf = ctx.cfg.stage.dynamic
     torch.manual_seed(conf.seed)
     fit_dir, pbd_dir = ctx.input_dir("fit"), ctx.input_dir("pbd")
     views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train")
-    meshes, cond = load_sequence(fit_dir, "train", ctx.cfg, pbd_dir=applied_deformation(ctx.cfg, pbd_dir))
+    posed = posed_sequence(fit_dir, TRAIN_SEQUENCE, ctx.cfg, applied_deformation(ctx.cfg, pbd_dir),
+                           method_params(ctx.input_dir("warmup"), fit_dir, TRAIN_SEQUENCE))
     if representation(ctx.cfg) == "embedded":
-        _train_embedded(ctx, views, meshes, cond)
+        _train_embedded(ctx, views, posed.meshes, posed.conditioning(ctx.cfg))
+        record_refinement(ctx, load_params(fit_dir, TRAIN_SEQUENCE), posed.params, None)
     else:
-        _train_bound(ctx, views, meshes, cond)
+        _train_bound(ctx, views, posed)
 
 
 def _train_embedded(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: SequenceConditioning) -> None:
@@ -214,9 +222,10 @@ def _write_plys(ctx: StageContext, model: TrainedModel, cond: SequenceConditioni
                             posed_gaussians(model, cond, meshes.vertices[frame], frame))
 
 
-def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: SequenceConditioning) -> None:
+def _train_bound(ctx: StageContext, views: ViewSet, posed: PosedSequence) -> None:
     """The InteractAvatar model (or what of it the method keeps) on top of the warm-up's bound Gaussians."""
     conf, q = ctx.cfg.stage.dynamic, ctx.cfg.quality
+    meshes, cond, params = posed.meshes, posed.conditioning(ctx.cfg), frame_params(ctx.cfg, conf, posed)
     if conf.select.enabled:
         check_withheld_by_warmup(ctx.cfg)
     head, _ = templates(ctx.cfg.model)
@@ -237,7 +246,11 @@ def _train_bound(ctx: StageContext, views: ViewSet, meshes: MeshSequence, cond: 
     validator = Validator(validation_config(conf.validation), views)
     result = train_dynamic(model, views, meshes, cond, contact, train_cfg, checkpoint_dir=ctx.scratch_dir,
                            progress=lambda steps: ctx.progress(steps, desc="dynamic", total=len(steps)),
-                           validator=validator)
+                           validator=validator, params=params)
+    record_refinement(ctx, load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE), posed.params, params)
+    if params is not None:  # the PLYs pose the train motion as refined
+        meshes, cond = load_sequence(ctx.input_dir("fit"), TRAIN_SEQUENCE, ctx.cfg,
+                                     pbd_dir=applied_deformation(ctx.cfg, ctx.input_dir("pbd")), params=params.arrays())
     write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model.gaussians, meshes.part_names)
     buffer = io.BytesIO()
     torch.save(model.network_state(), buffer)

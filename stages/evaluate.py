@@ -26,7 +26,7 @@ from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
 from stages.common import (
     applied_deformation, contact_frames, contact_sources, drive, driver_subject, load_params, load_scene,
-    load_sequence, load_trained, load_views, posed_gaussians, transferred_params,
+    load_sequence, load_trained, method_params, load_views, posed_gaussians, transferred_params,
 )
 
 
@@ -46,7 +46,7 @@ Renderer = Callable[[int, int], torch.Tensor]
 # version 9: SSIM filtered by shifted sums instead of conv2d (rounding-level changes)
 @stage("evaluate", inputs=("capture", "frames", "fit", "scene", "pbd", "dynamic"),
        config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
-       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="9", config_schema=EvaluateConfig,
+       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="10", config_schema=EvaluateConfig,
        sources=contact_sources, per_method=True, subject_inputs=("fit",), input_subject=driver_subject)
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion (and, when reenact.driver names another subject
@@ -124,12 +124,13 @@ def _splits(ctx: StageContext) -> dict[str, tuple[str, str]]:
 
 def _split_sequence(ctx: StageContext, split: str, sequence: str, num_frames: int
                     ) -> tuple[MeshSequence, SequenceConditioning]:
-    """The meshes and conditioning a split renders: the fit of its sequence (with the pbd stage's offsets when
-    the method uses them), or for cross-actor reenactment the driver's motion transferred onto this subject
+    """The meshes and conditioning a split renders: the fit of its sequence (the train motion as the method refined
+    it: :func:`method_params`; with the pbd stage's offsets when the method uses them), or for cross-actor reenactment the driver's motion transferred onto this subject
     with its contact simulated, exactly as stage reenact does."""
     if split != "cross_reenact":
-        pbd_dir = applied_deformation(ctx.cfg, ctx.input_dir("pbd"))
-        return load_sequence(ctx.input_dir("fit"), sequence, ctx.cfg, pbd_dir=pbd_dir)
+        pbd_dir, fit_dir = applied_deformation(ctx.cfg, ctx.input_dir("pbd")), ctx.input_dir("fit")
+        return load_sequence(fit_dir, sequence, ctx.cfg, pbd_dir=pbd_dir,
+                             params=method_params(ctx.input_dir("dynamic"), fit_dir, sequence))
     driver_sequence = str(ctx.cfg.reenact.sequence)
     path = ctx.subject_input_dir("fit") / driver_sequence / "params.parquet"
     params = load_params(ctx.subject_input_dir("fit"), driver_sequence)

@@ -5,7 +5,8 @@ Usage::
     python -m stages.export_ply --outputs outputs --subject synth_a --method interactavatar --sequence test \
         --frame 3 --out frame3.ply
 
-The frame is posed with the fit stage's parameters of ``--sequence`` and, when the method uses them, the pbd
+The frame is posed with the fit stage's parameters of ``--sequence`` (of the train motion: as the method refined
+them while training, its ``dynamic/params.parquet``) and, when the method uses them, the pbd
 stage's offsets, exactly as ``evaluate`` renders it; splat viewers open the file directly.
 """
 
@@ -20,7 +21,7 @@ from omegaconf import OmegaConf
 
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.workspace import METHODS_DIR
-from stages.common import load_sequence, load_trained, posed_gaussians, write_frame_ply
+from stages.common import load_sequence, load_trained, method_params, posed_gaussians, write_frame_ply
 
 
 def export_frame(subject_dir: Path, sequence: str, frame: int, out: Path, method: str = "interactavatar",
@@ -33,7 +34,8 @@ def export_frame(subject_dir: Path, sequence: str, frame: int, out: Path, method
     uses_pbd = bool(json.loads((dynamic_dir / MANIFEST_NAME).read_text())["config"]["method.pbd"])
     cfg = OmegaConf.create({"model": {"flame_path": flame_path, "mano_path": mano_path}})
     fit_dir = subject_dir / "fit"
-    meshes, cond = load_sequence(fit_dir, sequence, cfg, pbd_dir=subject_dir / "pbd" if uses_pbd else None)
+    meshes, cond = load_sequence(fit_dir, sequence, cfg, pbd_dir=subject_dir / "pbd" if uses_pbd else None,
+                                 params=method_params(dynamic_dir, fit_dir, sequence))
     num_frames = meshes.vertices.shape[0]
     if not 0 <= frame < num_frames:
         raise SystemExit(f"{fit_dir / sequence / 'params.parquet'}: frame {frame} out of range; "

@@ -12,7 +12,7 @@ import torch
 from avatar.fitting.errors import landmark_error, mpjpe, per_vertex_error
 from avatar.fitting.fit import FitConfig, FitResult, WorldScaleError, fit_sequence
 from avatar.fitting.refine import (
-    REFINE_MODES, RefineConfig, RefineResult, evidence_from_views, mesh_coverage, outline_overlay,
+    REFINE_MODES, RefineConfig, RefineResult, evidence_from_views, tracking_outlines,
 )
 from avatar.templates import TemplateModel
 from avatar.training.data import ViewSet
@@ -175,18 +175,8 @@ def _write_overlay(path: Path, views: ViewSet, result: FitResult, head: Template
     frame where the refinement moved the meshes most."""
     moved = result.refinement.moved_mm["hand"] if hand_fitted else result.refinement.moved_mm["face"]
     frame = int(np.argmax(moved))
-    faces = {"face": torch.as_tensor(np.asarray(head.faces), dtype=torch.long),
-             "hand": torch.as_tensor(np.asarray(hand.faces), dtype=torch.long)}
-    masks = []
-    for params in (result.keypoint_params, result.params):
-        posed = posed_keypoints({k: v[frame:frame + 1] for k, v in params.items()}, head, hand)
-        meshes = {"face": torch.as_tensor(posed["face_vertices"][0])}
-        if hand_fitted:
-            meshes["hand"] = torch.as_tensor(posed["hand_vertices"][0])
-        masks.append(mesh_coverage(meshes, {p: faces[p] for p in meshes}, views.K[0], views.world_to_cam[0],
-                                   views.size).numpy())
-    image = outline_overlay(views.images[frame, 0].numpy(), masks, [(255, 64, 64), (64, 255, 64)])
-    write_png(path, image)
+    write_png(path, tracking_outlines(views.images[frame, 0].numpy(), views.K[0], views.world_to_cam[0],
+                                      [result.keypoint_params, result.params], frame, head, hand, hand_fitted))
 
 
 def _fit_entry(result: FitResult, keypoint_fit: bool = False) -> dict:

@@ -43,7 +43,7 @@ from data_schemas.writes import write_json
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
 from stages.common import (
-    contact_sources, drive, driver_subject, is_parameter_file, load_params, load_scene, load_trained,
+    contact_sources, drive, driver_subject, is_parameter_file, load_params, load_scene, load_trained, method_params,
     posed_gaussians, transferred_params, write_frame_ply,
 )
 
@@ -78,7 +78,7 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
 @stage("reenact", inputs=("capture", "fit", "scene", "dynamic"),
        config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
        outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
-       version="4", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
+       version="5", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
        input_subject=driver_subject, sources=_sources)
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
@@ -161,7 +161,8 @@ def _driving_params(ctx: StageContext) -> tuple[dict[str, np.ndarray], str, floa
     driver, sequence = str(ctx.cfg.reenact.driver), str(ctx.cfg.reenact.sequence)
     if driver == "self":
         _check_fitted(ctx.input_dir("fit"), sequence, "this subject")
-        return load_params(ctx.input_dir("fit"), sequence), f"self ({sequence})", 1.0
+        # the train motion as the method refined it while training (the fit's for any other sequence)
+        return method_params(ctx.input_dir("dynamic"), ctx.input_dir("fit"), sequence), f"self ({sequence})", 1.0
     if is_parameter_file(driver):
         path = Path(driver)
         table = read_table(path, PARAMS)

@@ -12,6 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from avatar.fitting.refine import tracking_outlines
+from avatar.training.frame_params import parameter_movement
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
 from data_schemas.curve import CURVE
@@ -25,7 +27,9 @@ from data_schemas.writes import write_bytes
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
-from stages.common import contact_frames, contact_source
+from stages.common import (
+    TRAIN_SEQUENCE, contact_frames, contact_source, load_params, load_views, read_params, templates,
+)
 
 UPSTREAM = ("capture", "frames", "fit", "scene", "pbd", "warmup", "dynamic", "evaluate", "compare", "reenact")
 
@@ -37,8 +41,9 @@ class ReportConfig:
     thumbnail_px: int
 
 
-@stage("report", inputs=UPSTREAM, config_keys=("quality.name", "method.name", "method.label", "stage.report"),
-       outputs=("report.html",), version="14", config_schema=ReportConfig, per_method=True,
+@stage("report", inputs=UPSTREAM,
+       config_keys=("quality.name", "method.name", "method.label", "stage.report", "model"),
+       outputs=("report.html",), version="15", config_schema=ReportConfig, per_method=True,
        reads_manifests=True)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
@@ -74,6 +79,7 @@ def report(ctx: StageContext) -> None:
                  np.array2string(c.cam_to_world[:3, 3], precision=3)) for c in cameras]),
         "<h2>Fitted meshes</h2>",
         _fit_section(ctx.input_dir("fit")),
+        _trained_tracking_section(ctx, manifests),
         "<h2>Contact deformation</h2>",
         _pbd_section(ctx.input_dir("pbd")),
         "<h2>Image quality (held-out camera and held-out motion)</h2>",
@@ -235,6 +241,39 @@ def _refinement_cells(refinement: dict) -> list[str]:
     cells += [format_value(float(np.max(refinement["rotated_deg"][p]))) if refinement["rotated_deg"].get(p) else "-"
               for p in ("face", "hand")]
     return cells
+
+
+def _trained_tracking_section(ctx: StageContext, manifests: dict[str, dict]) -> str:
+    """How training refined the train motion's parameters (``refine_params``): per frame, how far each part of the
+    method's ``dynamic/params.parquet`` lies from the fit's (mean vertex displacement, change of global rotation),
+    and the fitted (red) against the refined (green) meshes over the first training view, in the frame that moved
+    most. Empty for runs that wrote no params.parquet."""
+    trained = ctx.input_dir("dynamic") / "params.parquet"
+    if not trained.is_file():
+        return ""
+    refined = [name for name in ("warmup", "dynamic") if manifests[name]["metrics"].get("params_refined")]
+    if not refined:
+        return ("<p>Training used these parameters as they are (stage.warmup.refine_params and "
+                "stage.dynamic.refine_params off; <code>auto</code> is off with ground-truth tracking).</p>")
+    head, hand = templates(ctx.cfg.model)
+    fitted = load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE)
+    after = read_params(trained)
+    moved = parameter_movement(fitted, after, head, hand)
+    rows = [(t, *(format_value(float(moved[kind][part][t])) for part in ("face", "hand")
+                  for kind in ("moved_mm", "rotated_deg"))) for t in range(len(moved["moved_mm"]["face"]))]
+    views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), TRAIN_SEQUENCE, "train")
+    frame = int(np.argmax(moved["moved_mm"]["face"] + moved["moved_mm"]["hand"]))
+    figure = tracking_outlines(views.images[frame, 0].numpy(), views.K[0], views.world_to_cam[0], [fitted, after],
+                               frame, head, hand)
+    return (f"<p>Training refined the train motion's parameters with the avatar ({' and '.join(refined)}; "
+            f"GaussianAvatars' fine-tuning of the tracking, against the train views only; the frames withheld for "
+            f"validation and the held-out motion stay as fitted). Per frame, how far each part moved from the fit "
+            f"(mean vertex displacement, mm; change of global rotation, degrees):</p>"
+            + _table(("frame", "face mm", "face deg", "hand mm", "hand deg"), rows)
+            + f"<figure><img alt='fitted and refined meshes, train frame {frame}' src='data:image/png;base64,"
+              f"{_image_png(figure)}'><figcaption>Train frame {frame}, camera "
+              f"{html.escape(views.camera_ids[0])}: fitted (red) and refined in training (green) mesh outlines"
+              f"</figcaption></figure>")
 
 
 def _pbd_section(pbd_dir: Path) -> str:
@@ -444,7 +483,12 @@ def _contact_sheet(frames_dir: Path, seq: str, camera_ids: list[str], frame: int
     tiles = [cv2.resize(read_png(rgb_path(frames_dir, seq, cid, frame), 3), (px, px), interpolation=cv2.INTER_AREA)
              for cid in camera_ids]
     sheet = np.concatenate(tiles, axis=1)
-    ok, png = cv2.imencode(".png", np.ascontiguousarray(sheet[..., ::-1]))
+    return _image_png(sheet)
+
+
+def _image_png(image: np.ndarray) -> str:
+    """Base64 PNG of an (H, W, 3) uint8 RGB image."""
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(image[..., ::-1]))
     assert ok
     return base64.b64encode(png.tobytes()).decode()
 

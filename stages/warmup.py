@@ -20,9 +20,10 @@ from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import write_table
 from pipeline.stage import Resources, StageContext, stage
 from stages.common import (
-    applied_deformation, load_meshes, load_scene, load_views, model_sources, representation, splatting_config,
-    write_bound_gaussians, write_embedded_gaussians,
-    ValidationSchema, record_validation, validation_config, validation_problems,
+    TRAIN_SEQUENCE, applied_deformation, frame_params, load_scene, load_views, model_sources, posed_sequence,
+    record_refinement, refinement_problems, representation, splatting_config, write_bound_gaussians,
+    write_embedded_gaussians, ParamsLrSchema, ValidationSchema, record_validation, validation_config,
+    validation_problems,
 )
 
 
@@ -44,6 +45,8 @@ class WarmupConfig:
     ply_frame: int
     backend: str
     seed: int
+    refine_params: str
+    params_lr: ParamsLrSchema
     validation: ValidationSchema
 
     def __post_init__(self) -> None:
@@ -60,16 +63,18 @@ class WarmupConfig:
         if not 0.0 < opacity < 1.0:  # also refuses NaN
             problems.append(f"init_opacity={opacity:g}: must lie strictly between 0 and 1 (the opacity logit is "
                             f"infinite at 0 and 1); use e.g. 0.1, the 3DGS default")
-        return problems + validation_problems(conf)
+        return problems + validation_problems(conf) + refinement_problems(conf)
 
 
 @stage(
     "warmup",
     inputs=("capture", "frames", "fit", "scene", "pbd"),
     config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup",
-                 "method.representation", "method.pbd", "splatting"),
-    outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet"),
-    version="7",  # 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
+                 "method.representation", "method.pbd", "splatting", "fit.source"),
+    outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet", "params.parquet"),
+    version="8",
+    # 8: refine_params (the train motion's parameters refined with the Gaussians; params.parquet);
+    # 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
     # rasterizer's alpha as a power of two (rounding-level)
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
@@ -81,13 +86,17 @@ def warmup(ctx: StageContext) -> None:
     """Stage one on every train camera and train frame: static Gaussians bound to the triangles (GaussianAvatars,
     InteractAvatar's warm-up) or, for method.representation=embedded, SplattingAvatar's embedded Gaussians.
     With ``stage.warmup.validation.every`` > 0 it withholds ``validation.frames`` train frames, validates on them
-    and may stop early (``curve.parquet``; README, "Quality during training")."""
+    and may stop early (``curve.parquet``; README, "Quality during training"). With ``stage.warmup.refine_params``
+    (``auto``: fitted or provided tracking) each step also refines the rendered frame's FLAME/MANO parameters
+    (:mod:`avatar.training.frame_params`); ``params.parquet`` holds the train motion's parameters as trained on
+    (the fit's where nothing was refined), which stage two starts from."""
     conf, q = ctx.cfg.stage.warmup, ctx.cfg.quality
     torch.manual_seed(conf.seed)
     cap_dir = ctx.input_dir("capture")
     views = load_views(cap_dir, ctx.input_dir("frames"), "train", "train")
-    meshes = load_meshes(ctx.input_dir("fit"), "train", ctx.cfg,
-                         pbd_dir=applied_deformation(ctx.cfg, ctx.input_dir("pbd")))
+    posed = posed_sequence(ctx.input_dir("fit"), TRAIN_SEQUENCE, ctx.cfg,
+                           applied_deformation(ctx.cfg, ctx.input_dir("pbd")))
+    meshes, params = posed.meshes, frame_params(ctx.cfg, conf, posed)
     canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
     embedded = representation(ctx.cfg) == "embedded"
     kind = EmbeddedGaussians if embedded else BoundGaussians
@@ -116,16 +125,18 @@ def warmup(ctx: StageContext) -> None:
                            max_gaussians=conf.max_gaussians, checkpoint_every=conf.checkpoint_every,
                            log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
         log = train_static(model, views, meshes, cfg, checkpoint_dir=ctx.scratch_dir, progress=progress,
-                           validator=validator)
+                           validator=validator, params=params)
         write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
         write_table(ctx.out_dir / "train_log.parquet", TRAIN_LOG,
                     {name: np.array([getattr(r, name) for r in log]) for name in TRAIN_LOG.column_names})
     frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
     with torch.no_grad():
-        means, scales, quats = model.world(meshes.vertices[frame], meshes.faces)
+        vertices = params.vertices(frame) if params is not None else meshes.vertices[frame]
+        means, scales, quats = model.world(vertices, meshes.faces)
         cloud = GaussianCloud.from_rgb(means.numpy(), torch.log(scales).numpy(), quats.numpy(),
                                        model.opacity_logits.numpy(), model.colors().numpy())
     write_gaussians_ply(ctx.out_dir / "gaussians.ply", cloud)
+    record_refinement(ctx, posed.params, posed.params, params)
     ctx.metrics["gaussians"] = model.num_gaussians
     ctx.metrics["final_loss"] = log[-1].loss
     record_validation(ctx, validator)

@@ -89,22 +89,32 @@ def sequence_conditioning(params: Mapping[str, np.ndarray], head: TemplateModel,
             ``deform.parquet``), or None for none.
     """
     _, face, _, hand_out = pose_layers(params, head, hand, torch.float32)
-    as_t = lambda name: torch.tensor(np.array(params[name]), dtype=torch.float32)  # noqa: E731
-    R_head = batch_rodrigues(as_t("flame_global_orient"))
-    R_hand = batch_rodrigues(as_t("mano_global_orient"))
-    head_origin, wrist = face.joints[:, 0], hand_out.joints[:, 0]
-    T = R_head.shape[0]
+    t = {name: torch.tensor(np.array(params[name]), dtype=torch.float32) for name in params}
     if face_offsets is None:
         face_offsets = torch.zeros_like(face.vertices)
-    face_offsets = face_offsets.to(torch.float32)
+    return conditioning_from_posed(t, face.joints[:, 0], hand_out.joints[:, 0], face_offsets)
+
+
+def conditioning_from_posed(t: Mapping[str, Tensor], head_origin: Tensor, wrist: Tensor, face_offsets: Tensor
+                            ) -> SequenceConditioning:
+    """The conditioning of T posed frames.
+
+    Args:
+        t: the params.parquet columns as float32 tensors (T, D).
+        head_origin: (T, 3) FLAME's posed root joint; wrist: (T, 3) MANO's posed root joint (metres).
+        face_offsets: (T, V_face, 3) world-frame PBD offsets added to the posed face.
+    """
+    R_head = batch_rodrigues(t["flame_global_orient"])
+    R_hand = batch_rodrigues(t["mano_global_orient"])
+    T = R_head.shape[0]
     return SequenceConditioning(
-        hand_pose=as_t("mano_hand_pose"),
+        hand_pose=t["mano_hand_pose"],
         hand_rotation=rotation_6d(R_hand),
-        face_pose=torch.cat([as_t("flame_neck_pose"), as_t("flame_jaw_pose"), as_t("flame_eye_pose")], dim=1),
-        expression=as_t("flame_expression").reshape(T, -1),
+        face_pose=torch.cat([t["flame_neck_pose"], t["flame_jaw_pose"], t["flame_eye_pose"]], dim=1),
+        expression=t["flame_expression"].reshape(T, -1),
         rel_rotation=rotation_6d(R_head.transpose(-1, -2) @ R_hand),
         rel_translation=((wrist - head_origin)[:, None, :] @ R_head)[:, 0] / TRANSLATION_UNIT_M,
         head_rotation=R_head,
         head_origin=head_origin,
-        face_offsets=face_offsets @ R_head,  # row vectors: d R = (R^T d^T)^T
+        face_offsets=face_offsets.to(torch.float32) @ R_head,  # row vectors: d R = (R^T d^T)^T
     )

@@ -32,13 +32,12 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from scipy.spatial.transform import Rotation
 from torch import Tensor
 
 from avatar.fitting.models import FaceParams, HandParams
@@ -46,6 +45,9 @@ from avatar.gaussians.frames import place_gaussians, triangle_frames
 from avatar.render.gaussians import render_gaussians
 from avatar.render.mesh_raster import Mesh, PinholeCamera, box_downsample, interpolate, rasterize
 from avatar.training.data import UNOBSERVED_LABEL, ViewSet
+from avatar.templates import TemplateModel
+from avatar.training.frame_params import rotation_angle_deg
+from avatar.training.posing import posed_keypoints
 
 REFINE_MODES = ("none", "silhouette", "photometric")
 PARTS = ("face", "hand")
@@ -393,12 +395,6 @@ def _freeze_unseen(hand: HandParams, face: FaceParams, visible: dict[str, Tensor
     return handles
 
 
-def _rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(T,) angle of R(a)^T R(b) for axis-angle rows (T, 3)."""
-    rel = Rotation.from_rotvec(a).inv() * Rotation.from_rotvec(b)
-    return np.degrees(rel.magnitude())
-
-
 def refine_parameters(hand: HandParams, face: FaceParams, anchor: Callable[[], Tensor], evidence: Evidence,
                       mode: str, cfg: RefineConfig) -> RefineResult:
     """Refine ``hand`` and ``face`` (modified in place) against ``evidence``.
@@ -466,7 +462,7 @@ def refine_parameters(hand: HandParams, face: FaceParams, anchor: Callable[[], T
         seconds=time.perf_counter() - start, losses=np.asarray(losses),
         silhouette_iou={"before": iou_before, "after": iou_after},
         moved_mm={p: 1e3 * (after[p] - before[p]).norm(dim=-1).mean(-1).numpy() for p in PARTS},
-        rotated_deg={p: _rotation_angle_deg(orient_before[p], orient_after[p]) for p in PARTS},
+        rotated_deg={p: rotation_angle_deg(orient_before[p], orient_after[p]) for p in PARTS},
         frozen={p: np.flatnonzero(~evidence.visible[p].numpy()).tolist() for p in PARTS})
 
 
@@ -477,6 +473,23 @@ def mesh_coverage(meshes: dict[str, Tensor], faces: dict[str, Tensor], K: Tensor
     camera = PinholeCamera(K=_mesh_raster_K(K), world_to_cam=world_to_cam.double().numpy(), width=size, height=size)
     scene = [Mesh(meshes[p], faces[p], torch.zeros(meshes[p].shape[0], 1), i + 1) for i, p in enumerate(meshes)]
     return rasterize(scene, camera, 1)[0].covered
+
+
+def tracking_outlines(image: np.ndarray, K: Tensor, world_to_cam: Tensor,
+                      param_sets: Sequence[Mapping[str, np.ndarray]], frame: int, head: TemplateModel, hand: TemplateModel, with_hand: bool = True) -> np.ndarray:
+    """``image`` (S, S, 3) uint8 of one view (intrinsics ``K`` (3, 3), extrinsics ``world_to_cam`` (4, 4)), dimmed,
+    with the outline of the face (and hand) mesh that each of ``param_sets`` (params.parquet columns, T rows) poses
+    at ``frame``: the first red, the second green (e.g. before and after a refinement)."""
+    faces = {"face": torch.as_tensor(np.asarray(head.faces), dtype=torch.long),
+             "hand": torch.as_tensor(np.asarray(hand.faces), dtype=torch.long)}
+    masks = []
+    for params in param_sets:
+        posed = posed_keypoints({k: np.asarray(v)[frame:frame + 1] for k, v in params.items()}, head, hand)
+        meshes = {"face": torch.as_tensor(posed["face_vertices"][0])}
+        if with_hand:
+            meshes["hand"] = torch.as_tensor(posed["hand_vertices"][0])
+        masks.append(mesh_coverage(meshes, {p: faces[p] for p in meshes}, K, world_to_cam, image.shape[0]).numpy())
+    return outline_overlay(image, masks, [(255, 64, 64), (64, 255, 64)][:len(masks)])
 
 
 def outline_overlay(image: np.ndarray, masks: list[np.ndarray], colours: list[tuple[int, int, int]]) -> np.ndarray:

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.dynamic.model import DynamicAvatar, DynamicFrame
 from avatar.losses import patch_perceptual_loss, reconstruction_loss, reconstruction_terms
 from avatar.metrics.lpips import LPIPS
@@ -29,6 +29,7 @@ from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import render_gaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.frame_params import FrameParams
 from avatar.training.schedule import exponential_lr
 from avatar.training.selection import BestStep, Selection, SelectionConfig, select
 from avatar.training.static import gaussian_param_groups
@@ -171,7 +172,7 @@ def sample_frame(gen: torch.Generator, frames: np.ndarray, contact: np.ndarray, 
 def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, cond: SequenceConditioning,
                   contact: np.ndarray, cfg: DynamicTrainConfig, checkpoint_dir: Path | None = None,
                   progress: Progress = iter, lpips: LPIPS | None = None,
-                  validator: Validator | None = None) -> DynamicTrainResult:
+                  validator: Validator | None = None, params: FrameParams | None = None) -> DynamicTrainResult:
     """Optimise ``model`` in place for ``cfg.steps`` steps (fewer when ``validator`` stops it) on the frames of
     ``views``/``meshes``/``cond`` that ``validator`` leaves to training (default: no validation, every frame).
 
@@ -182,6 +183,9 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         validator: validates the model as evaluated (:func:`render_dynamic`) on its withheld frames; with
             ``cfg.selection.enabled`` the model left in ``model`` is the one the selection kept
             (:mod:`avatar.training.selection`), which needs validation.
+        params: pose the meshes and the conditioning from it and refine the rendered frame's parameters each
+            step (:mod:`avatar.training.frame_params`); with the selection, the parameters of the kept step
+            are kept with it.
     """
     gen = torch.Generator().manual_seed(cfg.seed)
     validator = validator if validator is not None else Validator(ValidationConfig(), views)
@@ -205,14 +209,21 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         validator.load_state(state["validation"])
         if best is not None and state["best"] is not None:
             best.load_state(state["best"])
+        if params is not None:
+            params.load_state(state["params"])
+
+    def inputs(frame: int) -> tuple[Conditioning, Tensor]:  # the frame's conditioning and posed vertices
+        if params is None:
+            return cond.frame(frame), meshes.vertices[frame]
+        return params.conditioning(frame), params.vertices(frame)
 
     def render(frame: int) -> Tensor:  # as evaluated: the most probable PointNet++ sample, posed once
-        g = model(cond.frame(frame), meshes.vertices[frame])
+        g = model(*inputs(frame))
         return torch.stack([rasterize(g, views, c, cfg.backend).rgb for c in range(views.num_cameras)])
 
     def offer_validation() -> None:  # a new validation point is a candidate of the selection
         if best is not None and validator.curve and validator.curve[-1].step > best.offered:
-            best.offer(validator.curve[-1].step, validator.curve[-1].psnr, model)
+            best.offer(validator.curve[-1].step, validator.curve[-1].psnr, model, params)
 
     steps = validator.begin(start, cfg.steps, 0, render)
     offer_validation()
@@ -223,7 +234,7 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         _set_learning_rates(optimizer, cfg, step)
         t0 = time.perf_counter()
-        g = model(cond.frame(frame), meshes.vertices[frame], gen)
+        g = model(*inputs(frame), gen)
         t1 = time.perf_counter()
         out = rasterize(g, views, camera, cfg.backend)
         t2 = time.perf_counter()
@@ -235,6 +246,8 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         loss.backward()
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
+        if params is not None:
+            params.step(frame)
         t4 = time.perf_counter()
         for key, seconds in (("model", t1 - t0), ("render", t2 - t1), ("loss", t3 - t2), ("backward", t4 - t3)):
             result.seconds[key] += seconds
@@ -251,16 +264,18 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
                                         "rng": gen.get_state(), "log": [asdict(r) for r in result.log],
                                         "interaction": (result.interaction_evaluations, result.interaction_steps),
                                         "validation": validator.state(),
-                                        "best": best.state() if best is not None else None})
+                                        "best": best.state() if best is not None else None,
+                                        "params": params.state() if params is not None else None})
         if stop:
             break
     if best is not None:
+        best.restore(model, params)
         result.selection = select(model, best, validator.end, validator.curve[-1].psnr,
                                   lambda: validator.measure(render), cfg.selection.margin_db)
     return result
 
 
-_CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction", "validation", "best")
+_CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction", "validation", "best", "params")
 
 
 def _loss_terms(pred: Tensor, gt: Tensor, labels: np.ndarray, g: DynamicFrame, visible: Tensor,

@@ -11,16 +11,27 @@ from avatar.templates import FLAMELayer, LayerOutput, MANOLayer, TemplateModel
 from avatar.training.data import MeshSequence, concat_meshes
 
 
+def template_layers(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel
+                    ) -> tuple[FLAMELayer, MANOLayer]:
+    """The FLAME and MANO layers for parameters as wide as ``params`` holds."""
+    return FLAMELayer.for_params(head, params), MANOLayer(hand)
+
+
+def run_layers(flame: FLAMELayer, mano: MANOLayer, t: Mapping[str, torch.Tensor]) -> tuple[LayerOutput, LayerOutput]:
+    """(face, hand) layer outputs of the B frames of ``t`` (the params.parquet columns as (B, D) tensors);
+    differentiable in every column."""
+    face = flame(t["flame_shape"], t["flame_expression"], t["flame_global_orient"], t["flame_neck_pose"],
+                 t["flame_jaw_pose"], t["flame_eye_pose"], t["flame_transl"])
+    return face, mano(t["mano_shape"], t["mano_hand_pose"], t["mano_global_orient"], t["mano_transl"])
+
+
 def pose_layers(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel, dtype: torch.dtype
-          ) -> tuple[FLAMELayer, LayerOutput, MANOLayer, LayerOutput]:
+                ) -> tuple[FLAMELayer, LayerOutput, MANOLayer, LayerOutput]:
     """Run the FLAME and MANO layers on every frame of ``params`` (no gradients)."""
     t = {k: torch.tensor(np.asarray(v), dtype=dtype) for k, v in params.items()}
-    flame = FLAMELayer.for_params(head, t)
-    mano = MANOLayer(hand)
+    flame, mano = template_layers(t, head, hand)
     with torch.no_grad():
-        face = flame(t["flame_shape"], t["flame_expression"], t["flame_global_orient"], t["flame_neck_pose"],
-                     t["flame_jaw_pose"], t["flame_eye_pose"], t["flame_transl"])
-        hand_out = mano(t["mano_shape"], t["mano_hand_pose"], t["mano_global_orient"], t["mano_transl"])
+        face, hand_out = run_layers(flame, mano, t)
     return flame, face, mano, hand_out
 
 

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from avatar.nets.mlp import DeltaHeads
+from avatar.training.frame_params import FrameParams
 
 #: a module's name -> the model attributes it consists of (the stage-two networks whose deltas it adds)
 MODULES = {"hand_mlp": ("hand_geo", "hand_app"), "interaction": ("interaction",)}
@@ -53,26 +54,32 @@ class BestStep:
     def __init__(self) -> None:
         self.step, self.psnr, self.offered = -1, float("-inf"), -1
         self._state: dict[str, Tensor] | None = None
+        self._params: dict[str, Any] | None = None
 
-    def offer(self, step: int, psnr: float, model: nn.Module) -> None:
-        """Keep a copy of ``model``'s state if ``psnr`` beats the best so far."""
+    def offer(self, step: int, psnr: float, model: nn.Module, params: FrameParams | None = None) -> None:
+        """Keep a copy of ``model``'s state (and of the refined ``params``, if any) if ``psnr`` beats the best
+        so far."""
         self.offered = step
         if psnr > self.psnr:
             self.step, self.psnr = step, psnr
             self._state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            self._params = params.state() if params is not None else None
 
-    def restore(self, model: nn.Module) -> None:
-        """Load the best state into ``model`` (nothing when no point was offered)."""
+    def restore(self, model: nn.Module, params: FrameParams | None = None) -> None:
+        """Load the best state into ``model`` and ``params`` (nothing when no point was offered)."""
         if self._state is not None:
             model.load_state_dict(self._state)
+        if params is not None and self._params is not None:
+            params.load_state(self._params)
 
     def state(self) -> dict[str, Any]:
         """What a checkpoint keeps to resume the choice bit for bit."""
-        return {"step": self.step, "psnr": self.psnr, "offered": self.offered, "model": self._state}
+        return {"step": self.step, "psnr": self.psnr, "offered": self.offered, "model": self._state,
+                "params": self._params}
 
     def load_state(self, state: dict[str, Any]) -> None:
         self.step, self.psnr, self.offered = int(state["step"]), float(state["psnr"]), int(state["offered"])
-        self._state = state["model"]
+        self._state, self._params = state["model"], state["params"]
 
 
 @dataclass

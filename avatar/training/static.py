@@ -21,6 +21,7 @@ from avatar.losses import reconstruction_loss, reconstruction_terms
 from avatar.render.gaussians import render_gaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.frame_params import FrameParams
 from avatar.training.schedule import exponential_lr, scaled_interval
 from avatar.training.validation import ValidationConfig, Validator
 
@@ -100,9 +101,11 @@ def _optimizer(model: BoundGaussians, cfg: StaticConfig) -> torch.optim.Adam:
 
 
 def render_frame(model: BoundGaussians, meshes: MeshSequence, views: ViewSet, frame: int, camera: int,
-                 backend: str = "auto"):  # noqa: ANN201 - returns the rasterizer's RenderOutput
-    """Render the model on frame ``frame``'s meshes from view ``camera`` of ``views``."""
-    means, scales, quats = model.world(meshes.vertices[frame], meshes.faces)
+                 backend: str = "auto", vertices: Tensor | None = None):  # noqa: ANN201 - the RenderOutput
+    """Render the model on frame ``frame``'s meshes from view ``camera`` of ``views`` (``vertices`` (V, 3):
+    that frame's posed vertices when they differ from ``meshes``', e.g. refined by :class:`FrameParams`)."""
+    vertices = meshes.vertices[frame] if vertices is None else vertices
+    means, scales, quats = model.world(vertices, meshes.faces)
     return render_gaussians(means, quats, scales, model.opacities(), model.colors(), views.K[camera],
                             views.world_to_cam[camera], views.size, views.size, views.background,
                             backend=backend), scales
@@ -133,9 +136,10 @@ def colors_from_views(means: Tensor, part_labels: Tensor, views: ViewSet, frame:
 
 def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cfg: StaticConfig,
                  checkpoint_dir: Path | None = None, progress: Progress = iter,
-                 validator: Validator | None = None) -> list[LogRow]:
+                 validator: Validator | None = None, params: FrameParams | None = None) -> list[LogRow]:
     """Optimise ``model`` in place for ``cfg.steps`` steps (fewer when ``validator`` stops it); returns the
-    loss log.
+    loss log. With ``params`` the meshes are posed from it and each step also refines the rendered frame's
+    parameters (:mod:`avatar.training.frame_params`); the frames ``validator`` withholds are never refined.
 
     Samples one (frame, camera) pair per step uniformly over the frames ``validator`` leaves to training
     (default: no validation, every frame). With ``checkpoint_dir`` it resumes from ``warmup.pt`` there when
@@ -155,9 +159,15 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
         optimizer = _optimizer(model, cfg)
         optimizer.load_state_dict(state["optimizer"])
         validator.load_state(state["validation"])
+        if params is not None:
+            params.load_state(state["params"])
+
+    def posed(frame: int) -> Tensor | None:
+        return params.vertices(frame) if params is not None else None
 
     def render(frame: int) -> Tensor:
-        return torch.stack([render_frame(model, meshes, views, frame, c, cfg.backend)[0].rgb
+        vertices = posed(frame)
+        return torch.stack([render_frame(model, meshes, views, frame, c, cfg.backend, vertices)[0].rgb
                             for c in range(views.num_cameras)])
 
     for step in progress(validator.begin(start, cfg.steps, density.cfg.densify_until, render)):
@@ -166,7 +176,7 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
         for group in optimizer.param_groups:
             if group["name"] == "local_means":
                 group["lr"] = exponential_lr(step, cfg.lr_position_init, cfg.lr_position_final, cfg.steps)
-        out, world_scales = render_frame(model, meshes, views, frame, camera, cfg.backend)
+        out, world_scales = render_frame(model, meshes, views, frame, camera, cfg.backend, posed(frame))
         visible = out.radii > 0
         gt, pred = views.target_and_render(out.rgb, frame, camera)
         terms = reconstruction_terms(pred, gt, torch.exp(model.log_scales), model.local_means, visible,
@@ -176,28 +186,32 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
         density.accumulate(out.grad2d_norm(), visible, views.size)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
+        if params is not None:
+            params.step(frame)
         density.step(step, model, optimizer, world_scales.detach(), extent)
         stop = validator.after_step(step, render)
         if step % cfg.log_every == 0 or step == validator.end:
             log.append(LogRow(step, loss.item(), *(terms[k].item() for k in terms), model.num_gaussians))
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-            _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log, validator)
+            _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log, validator, params)
         if stop:
             break
     return log
 
 
-_CHECKPOINT_KEYS = ("step", "model", "optimizer", "grad_sum", "count", "rng", "density_rng", "log", "validation")
+_CHECKPOINT_KEYS = ("step", "model", "optimizer", "grad_sum", "count", "rng", "density_rng", "log", "validation",
+                    "params")
 
 
 def _save_checkpoint(path: Path, step: int, model: BoundGaussians, optimizer: torch.optim.Optimizer,
                      density: DensityController, gen: torch.Generator, log: list[LogRow],
-                     validator: Validator) -> None:
+                     validator: Validator, params: FrameParams | None) -> None:
     """Everything needed to resume bit for bit (verified on load: :mod:`avatar.training.checkpoint`)."""
     save_checkpoint(path, {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                            "grad_sum": density.grad_sum, "count": density.count, "rng": gen.get_state(),
                            "density_rng": density.generator.get_state(), "log": [asdict(r) for r in log],
-                           "validation": validator.state()})
+                           "validation": validator.state(),
+                           "params": params.state() if params is not None else None})
 
 
 def _restore(state: dict, model: BoundGaussians, density: DensityController,

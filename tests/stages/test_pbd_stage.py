@@ -14,7 +14,7 @@ import pytest
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.tables import read_table
 from pipeline.cli import run_app
-from stages.common import load_meshes, templates
+from stages.common import posed_sequence, templates
 from tests.conftest import compose_cfg
 
 SMALL = ["quality=smoke", "quality.capture_size=48", "stage.capture.num_cameras=3", "fit.source=ground_truth",
@@ -61,8 +61,8 @@ def test_shared_loader_adds_the_offsets_to_the_face_only(simulated: tuple[Path, 
     out, _ = simulated
     root = out / "synth_a"
     cfg = compose_cfg([f"paths.outputs={out}", *SMALL])
-    plain = load_meshes(root / "fit", "train", cfg, pbd_dir=None)
-    dented = load_meshes(root / "fit", "train", cfg, pbd_dir=root / "pbd")
+    plain = posed_sequence(root / "fit", "train", cfg, None).meshes
+    dented = posed_sequence(root / "fit", "train", cfg, root / "pbd").meshes
     num_face = templates(cfg.model)[0].num_vertices
     offsets = np.asarray(read_table(root / "pbd" / "train" / "deform.parquet", DEFORM)["offsets"])
     np.testing.assert_allclose((dented.vertices - plain.vertices)[:, :num_face].numpy(),

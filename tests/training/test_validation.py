@@ -98,9 +98,9 @@ def test_training_never_draws_a_withheld_frame(monkeypatch):
     drawn: list[tuple[int, bool]] = []
     real_render = static.render_frame
 
-    def spy(model, meshes, views, frame, camera, backend="auto"):  # noqa: ANN001, ANN202
+    def spy(model, meshes, views, frame, camera, backend="auto", vertices=None):  # noqa: ANN001, ANN202
         drawn.append((frame, torch.is_grad_enabled()))
-        return real_render(model, meshes, views, frame, camera, backend)
+        return real_render(model, meshes, views, frame, camera, backend, vertices)
 
     monkeypatch.setattr(static, "render_frame", spy)
     train_static(_model(meshes), views, meshes, CFG, validator=validator)

@@ -1,0 +1,85 @@
+"""stage.warmup.refine_params / stage.dynamic.refine_params on the smoke capture: the training refinement reads the
+train cameras only, stays at the ground truth when it starts there, and writes what it trained on."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+import stages.common
+from data_schemas.cameras import read_cameras
+from data_schemas.images import read_png
+from pipeline.cli import run_app
+from stages.common import load_params, read_params, refines_params
+from tests.conftest import compose_cfg
+
+
+def _cfg(tmp_path: Path, *extra: str):
+    return compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "run.progress=false",
+                        "fit.source=ground_truth", *extra])
+
+
+def _metrics(stage_dir: Path) -> dict:
+    return json.loads((stage_dir / "_manifest.json").read_text())["metrics"]
+
+
+def test_refinement_from_the_truth_reads_only_train_views_and_does_not_drift(tmp_path, monkeypatch):
+    run_app(_cfg(tmp_path, "run.until=pbd"))
+    root = tmp_path / "synth_a"
+    method = root / "methods" / "interactavatar"
+    held_out = [c.camera_id for c in read_cameras(root / "capture" / "cameras.parquet") if c.split == "test"]
+    assert held_out
+    read = []
+
+    def recording_read_png(path, channels):
+        read.append(Path(path))
+        return read_png(path, channels)
+
+    monkeypatch.setattr(stages.common, "read_png", recording_read_png)  # every crop the training stages read
+    on = ("stage.warmup.refine_params=true", "stage.dynamic.refine_params=true")
+    run_app(_cfg(tmp_path, "run.only=warmup", *on))
+    run_app(_cfg(tmp_path, "run.only=dynamic", *on))
+    assert read, "training read no crop"
+    assert not [p for p in read if set(p.parts) & set(held_out)], "training read the held-out camera's crops"
+    truth = load_params(root / "fit", "train")
+    for stage in ("warmup", "dynamic"):
+        metrics = _metrics(method / stage)
+        assert metrics["params_refined"] is True
+        # no drift: the views agree with the true meshes, so the refinement has nothing to correct
+        assert metrics["params_moved_face_mm_mean"] < 0.5 and metrics["params_moved_hand_mm_mean"] < 0.5, metrics
+        assert metrics["params_rotated_face_deg_max"] < 0.5 and metrics["params_rotated_hand_deg_max"] < 0.5, metrics
+        written = read_params(method / stage / "params.parquet")
+        assert written["flame_transl"].shape == truth["flame_transl"].shape
+        assert not np.array_equal(written["flame_transl"], truth["flame_transl"])  # it did refine
+        np.testing.assert_array_equal(written["flame_shape"], truth["flame_shape"])  # never the identity
+
+
+def test_auto_leaves_ground_truth_tracking_as_it_is(tmp_path):
+    run_app(_cfg(tmp_path, "run.until=warmup"))
+    root = tmp_path / "synth_a"
+    warmup = root / "methods" / "interactavatar" / "warmup"
+    assert _metrics(warmup)["params_refined"] is False
+    written, truth = read_params(warmup / "params.parquet"), load_params(root / "fit", "train")
+    for k, v in truth.items():
+        np.testing.assert_array_equal(written[k], v)
+
+
+@pytest.mark.parametrize(("source", "representation", "setting", "expected"), [
+    ("fitted", "bound", "auto", True), ("provided", "bound", "auto", True), ("ground_truth", "bound", "auto", False),
+    ("ground_truth", "bound", True, True), ("fitted", "bound", False, False), ("fitted", "embedded", "auto", False),
+])
+def test_auto_refines_fitted_or_provided_tracking_of_bound_gaussians(source, representation, setting, expected):
+    cfg = OmegaConf.create({"fit": {"source": source}, "method": {"representation": representation}})
+    assert refines_params(cfg, OmegaConf.create({"refine_params": setting})) is expected
+
+
+def test_refining_splatting_avatar_or_an_unknown_setting_is_one_clear_error():
+    cfg = OmegaConf.create({"fit": {"source": "fitted"}, "method": {"representation": "embedded"}})
+    with pytest.raises(ValueError, match="SplattingAvatar"):
+        refines_params(cfg, OmegaConf.create({"refine_params": "true"}))
+    with pytest.raises(ValueError, match="use one of auto, true, false"):
+        refines_params(cfg, OmegaConf.create({"refine_params": "maybe"}))
