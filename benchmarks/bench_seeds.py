@@ -50,6 +50,8 @@ from stages.compare import welch_p  # noqa: E402
 
 METHODS = ("interactavatar", "gaussian_avatars")
 MEDIAPIPE = ["fit.source=fitted", "stage.keypoints.detector=mediapipe"]
+# (m0) and (m1) predate refine_params and were measured without it (the code path without it is unchanged)
+NO_TRAIN_REFINE = ["stage.warmup.refine_params=false", "stage.dynamic.refine_params=false"]
 SETTINGS: dict[str, dict] = {
     "a": {"subjects": ("synth_a", "synth_b"), "overrides": ["fit.source=ground_truth"],
           "what": "full appearance, 24 frames, ground-truth tracking"},
@@ -63,10 +65,15 @@ SETTINGS: dict[str, dict] = {
           "what": "held-out identity synth_c, 24 frames, fitted tracking (MediaPipe)"},
     "a2": {"subjects": ("synth_a", "synth_b"), "overrides": ["fit.source=ground_truth"], "threads": 2,
            "what": "as (a), two threads per run"},
-    "m0": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=none"],
+    "m0": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=none", *NO_TRAIN_REFINE],
            "what": "full appearance, 24 frames, fitted tracking (MediaPipe), keypoint fit only"},
-    "m1": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=silhouette"],
+    "m1": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=silhouette",
+                                                             *NO_TRAIN_REFINE],
            "what": "full appearance, 24 frames, fitted tracking (MediaPipe) refined by the train views' silhouettes"},
+    "m2": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=silhouette",
+                                                             "stage.warmup.refine_params=true",
+                                                             "stage.dynamic.refine_params=true"],
+           "what": "as (m1), and the train motion refined with the avatar in training (refine_params)"},
 }
 REGIONS = (("full", "all"), ("hand", "all"), ("face", "all"), ("interaction", "all"), ("interaction", "contact"))
 SPLITS = {"novel_view": "NV", "self_reenact": "SR"}

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Protocol
 
@@ -208,7 +208,7 @@ def refines_params(cfg: DictConfig, section: DictConfig) -> bool:
 
 def param_learning_rates(section: DictConfig) -> ParamLearningRates:
     """The :class:`ParamLearningRates` of a training stage's ``params_lr`` block."""
-    return ParamLearningRates(**{k: float(v) for k, v in section.params_lr.items()})
+    return ParamLearningRates(**{f.name: float(getattr(section.params_lr, f.name)) for f in fields(ParamLearningRates)})
 
 
 def refinement_problems(section: DictConfig) -> list[str]:
@@ -251,7 +251,8 @@ def frame_params(cfg: DictConfig, section: DictConfig, posed: PosedSequence) -> 
     if not refines_params(cfg, section):
         return None
     head, hand = templates(cfg.model)
-    return FrameParams(posed.params, head, hand, torch.from_numpy(posed.offsets), param_learning_rates(section))
+    return FrameParams(posed.params, head, hand, torch.from_numpy(posed.offsets), param_learning_rates(section),
+                       centred=bool(section.params_centred))
 
 
 def load_face_offsets(pbd_dir: Path, sequence: str, num_frames: int, num_vertices: int) -> np.ndarray:

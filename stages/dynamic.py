@@ -80,6 +80,7 @@ class DynamicConfig:
     seed: int
     refine_params: str
     params_lr: ParamsLrSchema
+    params_centred: bool
     select: SelectSchema
     validation: ValidationSchema
 

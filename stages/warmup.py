@@ -47,6 +47,7 @@ class WarmupConfig:
     seed: int
     refine_params: str
     params_lr: ParamsLrSchema
+    params_centred: bool
     validation: ValidationSchema
 
     def __post_init__(self) -> None:

@@ -247,7 +247,7 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         if params is not None:
-            params.step(frame)
+            params.step(frame, validator.train_frames)
         t4 = time.perf_counter()
         for key, seconds in (("model", t1 - t0), ("render", t2 - t1), ("loss", t3 - t2), ("backward", t4 - t3)):
             result.seconds[key] += seconds

@@ -100,11 +100,13 @@ class FrameParams(nn.Module):
         head, hand: their templates.
         face_offsets: (T, V_face, 3) world-frame contact offsets added to the posed face (None: none).
         lrs: the learning rate of each group of :data:`REFINED_COLUMNS`.
+        centred: keep the corrections' mean over the refined frames at zero (:meth:`step`).
     """
 
     def __init__(self, params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel,
-                 face_offsets: Tensor | None, lrs: ParamLearningRates) -> None:
+                 face_offsets: Tensor | None, lrs: ParamLearningRates, centred: bool = False) -> None:
         super().__init__()
+        self.centred = centred
         t = {k: torch.tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
         self.flame, self.mano = template_layers(t, head, hand)
         refined = {c for columns in REFINED_COLUMNS.values() for c in columns}
@@ -113,6 +115,7 @@ class FrameParams(nn.Module):
             if k not in refined:
                 self.register_buffer(k, v)
         self.fixed = tuple(k for k in t if k not in refined)
+        self.start = {k: v.clone() for k, v in t.items() if k in refined}  # the parameters as given
         num_frames = next(iter(t.values())).shape[0]
         offsets = torch.zeros(num_frames, head.num_vertices, 3) if face_offsets is None else face_offsets.float()
         self.register_buffer("face_offsets", offsets)
@@ -143,9 +146,22 @@ class FrameParams(nn.Module):
         return conditioning_from_posed(t, face.joints[:, 0], hand.joints[:, 0],
                                        self.face_offsets[frame:frame + 1]).frame(0)
 
-    def step(self, frame: int) -> None:
-        """Move row ``frame`` by its gradient (:class:`FrameAdam`) and clear the gradients."""
+    def step(self, frame: int, frames: np.ndarray) -> None:
+        """Move row ``frame`` by its gradient (:class:`FrameAdam`) and clear the gradients. ``centred``: then
+        subtract the mean correction over ``frames`` (the frames training refines) from each of them.
+
+        The Gaussians and the parameters together have a gauge freedom: moving every frame's mesh one way and the
+        Gaussians' offsets the other renders the same images. Left free, the refinement drifts along it, and the
+        frames it never refines (validation frames, the held-out motion), posed as fitted, no longer match the
+        Gaussians. Centred, it corrects each frame relative to the others and leaves what all frames share, which
+        the held-out motion's fit shares too, to the Gaussians."""
         self.optimizer.step(frame)
+        if not self.centred or len(frames) == 0:
+            return
+        index = torch.as_tensor(np.asarray(frames), dtype=torch.long)
+        with torch.no_grad():
+            for k, p in self.rows.items():
+                p[index] -= (p[index] - self.start[k][index]).mean(0)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Every column as a (T, D) float32 array (the params.parquet columns)."""

@@ -187,7 +187,7 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         if params is not None:
-            params.step(frame)
+            params.step(frame, validator.train_frames)
         density.step(step, model, optimizer, world_scales.detach(), extent)
         stop = validator.after_step(step, render)
         if step % cfg.log_every == 0 or step == validator.end:

@@ -79,7 +79,7 @@ def test_translation_gradient_is_the_vertex_count_and_only_the_rendered_row_move
     np.testing.assert_allclose(grad_hand[2].numpy(), [HAND.num_vertices, 0, 0], atol=1e-3)
     assert not grad_face[[0, 1, 3]].any()
     before = {k: v.copy() for k, v in frames.arrays().items()}
-    frames.step(2)
+    frames.step(2, np.arange(4))
     after = frames.arrays()
     for k in before:
         np.testing.assert_array_equal(np.delete(after[k], 2, 0), np.delete(before[k], 2, 0))
@@ -94,7 +94,7 @@ def test_refined_parameters_round_trip_through_params_parquet(tmp_path):
     frames = FrameParams(params, HEAD, HAND, None, ParamLearningRates(translation=1e-3, rotation=1e-2))
     for t in (0, 3):
         (frames.vertices(t) ** 2).sum().backward()
-        frames.step(t)
+        frames.step(t, np.arange(4))
     written = frames.arrays()
     write_params(tmp_path / "params.parquet", written)
     back = read_params(tmp_path / "params.parquet")
@@ -106,6 +106,21 @@ def test_refined_parameters_round_trip_through_params_parquet(tmp_path):
     moved = parameter_movement(params, back, HEAD, HAND)
     assert moved["moved_mm"]["face"][[1, 2]].max() == 0 and moved["moved_mm"]["face"][[0, 3]].min() > 0
     np.testing.assert_allclose(moved["rotated_deg"]["hand"][[1, 2]], 0, atol=1e-6)
+
+
+def test_centred_corrections_have_zero_mean_over_the_refined_frames_and_leave_the_others():
+    params = _params()
+    frames = FrameParams(params, HEAD, HAND, None, ParamLearningRates(translation=1e-3, rotation=1e-2), centred=True)
+    refined = np.array([0, 1, 3])  # frame 2 withheld (a validation frame): never rendered, never moved
+    for t in (0, 3, 3, 1):
+        (frames.vertices(t)[:, 1] * (t + 1)).sum().backward()
+        frames.step(t, refined)
+    after = frames.arrays()
+    for k in frames.rows:
+        correction = after[k][refined] - params[k][refined]
+        np.testing.assert_allclose(correction.mean(0), 0, atol=1e-6)
+        np.testing.assert_array_equal(after[k][2], params[k][2])
+    assert np.abs(after["flame_transl"][refined] - params["flame_transl"][refined]).max() > 1e-4  # it did move
 
 
 def test_learning_rates_refuse_negative_and_nan():
