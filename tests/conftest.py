@@ -71,3 +71,22 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float = 60.0) -> None:
         if time.time() > deadline:
             raise TimeoutError("condition not met in time")
         time.sleep(0.05)
+
+
+def record_crop_reads(monkeypatch: pytest.MonkeyPatch, capture_dir: Path) -> tuple[list[Path], list[str]]:
+    """(every image path the stages read through ``stages.common.read_png`` from now on, the capture's held-out
+    camera ids): a test that the held-out camera is never read checks that no path names one of them."""
+    import stages.common
+    from data_schemas.cameras import read_cameras
+    from data_schemas.images import read_png
+
+    held_out = [c.camera_id for c in read_cameras(capture_dir / "cameras.parquet") if c.split == "test"]
+    assert held_out, f"{capture_dir}: no held-out camera to check"
+    read: list[Path] = []
+
+    def recording_read_png(path, channels):  # noqa: ANN001, ANN202 - read_png's signature
+        read.append(Path(path))
+        return read_png(path, channels)
+
+    monkeypatch.setattr(stages.common, "read_png", recording_read_png)
+    return read, held_out

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data_schemas.cameras import read_cameras
 from data_schemas.images import read_png
 from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
@@ -18,7 +17,7 @@ from pipeline.cli import run_app
 from pipeline.runner import StageFailed
 import stages.common
 from stages.fit import refine_mode
-from tests.conftest import compose_cfg
+from tests.conftest import compose_cfg, record_crop_reads
 
 
 def test_ground_truth_source_reproduces_the_capture_and_noise_is_applied(tmp_path):
@@ -58,15 +57,7 @@ def _upstream_of_fit(tmp_path) -> None:
 def test_refined_fit_reads_only_the_train_views_and_reports_both_fits(tmp_path, monkeypatch):
     _upstream_of_fit(tmp_path)
     root = tmp_path / "synth_a"
-    held_out = [c.camera_id for c in read_cameras(root / "capture" / "cameras.parquet") if c.split == "test"]
-    assert held_out
-    read = []
-
-    def recording_read_png(path, channels):
-        read.append(Path(path))
-        return read_png(path, channels)
-
-    monkeypatch.setattr(stages.common, "read_png", recording_read_png)  # every crop the fit stage reads
+    read, held_out = record_crop_reads(monkeypatch, root / "capture")  # every crop the fit stage reads
     run_app(_refine_cfg(tmp_path, "run.only=fit"))
     assert read, "the refinement read no crop"
     assert not [p for p in read if set(p.parts) & set(held_out)], "the fit read the held-out camera's crops"
