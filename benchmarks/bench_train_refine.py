@@ -12,9 +12,11 @@ scored on what the training views allow:
   of the held-out camera (novel view).
 * with a synthetic capture, the train frames' 3D errors against the generator's parameters (information only).
 
-Writes ``benchmarks/results/bench_train_refine.json`` (commit, machine, load, rows).
+``--cost`` measures instead what the refinement adds to a warm-up step (interleaved runs, medians) and what its
+parts cost. Appends to ``benchmarks/results/bench_train_refine.json`` (commit, machine, load, rows).
 
-    .venv/bin/python benchmarks/bench_train_refine.py --workspace /work/bench/m1/synth_a --scales 0 3 10 30
+    .venv/bin/python benchmarks/bench_train_refine.py --workspace outputs/synth_a --scales 0 3 10 30 --centred
+    .venv/bin/python benchmarks/bench_train_refine.py --workspace outputs/synth_a --cost
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from stages.common import load_ground_truth_params, load_views, posed_sequence, 
 
 DRAFT = StaticConfig(steps=2000, opacity_reset_interval=0.25, max_gaussians=100_000, seed=0)  # conf/quality/draft
 GAUSSIANS_PER_TRIANGLE, INIT_OPACITY, VALIDATION = 2, 0.3, ValidationConfig(every=200, frames=4)
-BASE = ParamLearningRates()  # GaussianAvatars' values (conf/stage/warmup.yaml)
+BASE = ParamLearningRates()  # GaussianAvatars' values (the defaults of conf/stage/warmup.yaml are 10x these)
 
 
 def _cameras(views: ViewSet, index: list[int]) -> ViewSet:
@@ -105,6 +107,51 @@ def arm(workspace: Path, scale: float, centred: bool, hold: str, steps: int) -> 
     return row
 
 
+def cost(workspace: Path, steps: int, repeats: int) -> dict:
+    """Milliseconds per warm-up step without and with the refinement (``repeats`` runs of ``steps`` steps each,
+    interleaved; medians), and of the refinement's own parts on one frame: posing with its gradient and the
+    row-wise Adam step (both stages), the conditioning from the refined parameters (stage two)."""
+    cfg = OmegaConf.create({"model": {"flame_path": None, "mano_path": None}})
+    head, hand = templates(cfg.model)
+    views = load_views(workspace / "capture", workspace / "frames", "train", "train")
+    posed = posed_sequence(workspace / "fit", "train", cfg, None)
+    meshes, frames = posed.meshes, np.arange(views.num_frames)
+    timings: dict[str, list[float]] = {"off": [], "on": []}
+    warm = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, GAUSSIANS_PER_TRIANGLE,
+                                       init_opacity=INIT_OPACITY, seed=0)
+    train_static(warm, views, meshes, dataclasses.replace(DRAFT, steps=10))  # caches and allocator, not timed
+    for _ in range(repeats):
+        for name in timings:
+            params = FrameParams(posed.params, head, hand, None, ParamLearningRates(), centred=True) \
+                if name == "on" else None
+            model = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part,
+                                                GAUSSIANS_PER_TRIANGLE, init_opacity=INIT_OPACITY, seed=0)
+            start = time.perf_counter()
+            train_static(model, views, meshes, dataclasses.replace(DRAFT, steps=steps), params=params)
+            timings[name].append(1e3 * (time.perf_counter() - start) / steps)
+    params = FrameParams(posed.params, head, hand, None, ParamLearningRates(), centred=True)
+    parts: dict[str, list[float]] = {"posing_forward_backward_step": [], "conditioning": []}
+    for t in range(4 * views.num_frames):
+        frame = t % views.num_frames
+        start = time.perf_counter()
+        params.vertices(frame).square().sum().backward()
+        params.step(frame, frames)
+        middle = time.perf_counter()
+        params.conditioning(frame)
+        parts["posing_forward_backward_step"].append(1e3 * (middle - start))
+        parts["conditioning"].append(1e3 * (time.perf_counter() - middle))
+    out = {f"warmup_step_ms_{k}": float(np.median(v)) for k, v in timings.items()}
+    out["warmup_step_ratio"] = out["warmup_step_ms_on"] / out["warmup_step_ms_off"]
+    return out | {f"{k}_ms": float(np.median(v)) for k, v in parts.items()}
+
+
+def _cpu() -> str:
+    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").is_file() else []:
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
 def _commit() -> str:
     return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True
                           ).stdout.strip() or "unknown"
@@ -118,22 +165,31 @@ def main() -> None:
     parser.add_argument("--centred", action="store_true", help="also run each scale > 0 centred")
     parser.add_argument("--hold", default=None, help="the training camera withheld (default: the last)")
     parser.add_argument("--steps", type=int, default=DRAFT.steps)
+    parser.add_argument("--cost", action="store_true", help="measure the cost instead of the arms")
+    parser.add_argument("--repeats", type=int, default=3, help="--cost: interleaved runs per arm")
     parser.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results")
     args = parser.parse_args()
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
-    train_ids = load_views(args.workspace / "capture", args.workspace / "frames", "train", "train").camera_ids
-    hold = args.hold or train_ids[-1]
-    arms = [(s, False) for s in args.scales] + [(s, True) for s in args.scales if args.centred and s > 0]
-    rows = [arm(args.workspace, s, c, hold, args.steps) for s, c in arms]
-    keys = ("scale", "centred", "withheld_frames_psnr", "withheld_camera_psnr", "refined_hand_mm", "refined_face_mm",
-            "train_seconds")
-    print(format_table(keys, [[f"{r.get(k, float('nan')):.2f}" if isinstance(r.get(k), float) else str(r.get(k))
-                               for k in keys] for r in rows]))
+    load_before = os.getloadavg()
+    if args.cost:
+        rows = [cost(args.workspace, min(args.steps, 200), args.repeats)]
+        print(format_table(tuple(rows[0]), [[f"{v:.2f}" for v in rows[0].values()]]))
+    else:
+        train_ids = load_views(args.workspace / "capture", args.workspace / "frames", "train", "train").camera_ids
+        hold = args.hold or train_ids[-1]
+        arms = [(s, False) for s in args.scales] + [(s, True) for s in args.scales if args.centred and s > 0]
+        rows = [arm(args.workspace, s, c, hold, args.steps) for s, c in arms]
+        keys = ("scale", "centred", "withheld_frames_psnr", "withheld_camera_psnr", "refined_hand_mm",
+                "refined_face_mm", "train_seconds")
+        print(format_table(keys, [[f"{r.get(k, float('nan')):.2f}" if isinstance(r.get(k), float) else str(r.get(k))
+                                   for k in keys] for r in rows]))
     args.results.mkdir(parents=True, exist_ok=True)
     out = args.results / "bench_train_refine.json"
     previous = json.loads(out.read_text()) if out.is_file() else {"runs": []}
-    previous["runs"].append({"commit": _commit(), "machine": platform.processor() or platform.machine(),
-                             "load": os.getloadavg(), "threads": torch.get_num_threads(), "rows": rows})
+    previous["runs"].append({"commit": _commit(), "machine": _cpu(), "workspace": str(args.workspace),
+                             "load_before": load_before, "load_after": os.getloadavg(),
+                             "threads": torch.get_num_threads(), "kind": "cost" if args.cost else "arms",
+                             "rows": rows})
     out.write_text(json.dumps(previous, indent=1))
     print(out)
 
