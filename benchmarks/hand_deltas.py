@@ -51,7 +51,7 @@ from data_schemas.metrics import SPLIT_SOURCES  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from pipeline.workspace import method_run  # noqa: E402
 from stages.common import (  # noqa: E402
-    applied_deformation, load_dynamic, load_gaussians, load_sequence, load_views, templates,
+    applied_deformation, load_dynamic, load_gaussians, load_sequence, load_views, method_params, templates,
 )
 
 #: variant -> {module of the dynamic model: its heads switched off}; ``None``: the warm-up model instead
@@ -127,7 +127,8 @@ def main() -> None:
     warmup = load_gaussians(method_dir / "warmup", part_names)
     sequence, camera_split = SPLIT_SOURCES[args.split]
     views = load_views(root / "capture", root / "frames", sequence, camera_split)
-    meshes, cond = load_sequence(root / "fit", sequence, cfg, pbd_dir=applied_deformation(cfg, root / "pbd"))
+    meshes, cond = load_sequence(root / "fit", sequence, cfg, pbd_dir=applied_deformation(cfg, root / "pbd"),
+                                 params=method_params(method_dir / "dynamic", root / "fit", sequence))
     train_cameras = sorted((c for c in read_cameras(root / "capture" / "cameras.parquet") if c.split == "train"),
                            key=lambda c: c.camera_id)
     face_vertices = templates(cfg.model)[0].num_vertices

@@ -480,8 +480,8 @@ def tracking_outlines(image: np.ndarray, K: Tensor, world_to_cam: Tensor,
     """``image`` (S, S, 3) uint8 of one view (intrinsics ``K`` (3, 3), extrinsics ``world_to_cam`` (4, 4)), dimmed,
     with the outline of the face (and hand) mesh that each of ``param_sets`` (params.parquet columns, T rows) poses
     at ``frame``: the first red, the second green (e.g. before and after a refinement)."""
-    faces = {"face": torch.as_tensor(np.asarray(head.faces), dtype=torch.long),
-             "hand": torch.as_tensor(np.asarray(hand.faces), dtype=torch.long)}
+    faces = {"face": torch.tensor(np.array(head.faces), dtype=torch.long),
+             "hand": torch.tensor(np.array(hand.faces), dtype=torch.long)}
     masks = []
     for params in param_sets:
         posed = posed_keypoints({k: np.asarray(v)[frame:frame + 1] for k, v in params.items()}, head, hand)
