@@ -8,30 +8,45 @@ import functools
 from dataclasses import fields
 
 import numpy as np
+import pytest
 import torch
 
 from avatar.dynamic.conditioning import sequence_conditioning
-from avatar.synthetic import SyntheticConfig, generate
+from avatar.gaussians.model import BoundGaussians
+from avatar.synthetic import SyntheticCapture, SyntheticConfig, generate
+from avatar.training import static
+from avatar.training.data import ViewSet
 from avatar.templates import procedural_hand, procedural_head
 from avatar.training.frame_params import (
     REFINED_COLUMNS, FrameAdam, FrameParams, ParamLearningRates, parameter_movement,
 )
 from avatar.training.posing import posed_meshes
+from avatar.training.static import StaticConfig, train_static
 from stages.common import read_params, write_params
 
 HEAD, HAND = procedural_head(), procedural_hand()
 
 
 @functools.cache
-def _capture_params() -> dict[str, np.ndarray]:
-    capture = generate(SyntheticConfig(subject="synth_a", sequence="train", image_size=32, num_frames=4,
-                                       supersample=1))
-    return {k: np.asarray(v, dtype=np.float32) for k, v in capture.params.items()}
+def _capture() -> SyntheticCapture:
+    return generate(SyntheticConfig(subject="synth_a", sequence="train", image_size=32, num_frames=4, supersample=1))
 
 
 def _params() -> dict[str, np.ndarray]:
-    """Four frames of synth_a's train motion (a fresh copy)."""
-    return {k: v.copy() for k, v in _capture_params().items()}
+    """Four frames of synth_a's train motion (a fresh float32 copy)."""
+    return {k: np.asarray(v, dtype=np.float32).copy() for k, v in _capture().params.items()}
+
+
+def _views(cameras: int = 2) -> ViewSet:
+    """The capture's first ``cameras`` full 32 px images of every frame."""
+    capture = _capture()
+    cams = capture.cameras[:cameras]
+    images = np.stack([capture.frames[c.camera_id] for c in cams], 1)
+    labels = np.stack([capture.masks[c.camera_id] for c in cams], 1)
+    return ViewSet(torch.from_numpy(images), torch.from_numpy(labels),
+                   torch.tensor(np.stack([c.K for c in cams]), dtype=torch.float32),
+                   torch.tensor(np.stack([c.world_to_cam for c in cams]), dtype=torch.float32),
+                   [c.camera_id for c in cams], torch.tensor([0.5, 0.5, 0.5]))
 
 
 def test_frame_adam_is_torch_adam_on_each_row_alone():
@@ -127,3 +142,38 @@ def test_learning_rates_refuse_negative_and_nan():
     assert ParamLearningRates().problems() == []
     problems = ParamLearningRates(rotation=-1.0, expression=float("nan")).problems()
     assert len(problems) == 2 and problems[0].startswith("rotation=-1")
+
+
+def test_a_killed_warmup_resumes_the_refinement_to_the_same_result(tmp_path, monkeypatch):
+    """The refined parameters and their per-frame Adam state are in the checkpoint: killed after the checkpoint
+    of step 10 and resumed, the run ends with the parameters of the run that was never killed (to float32 rounding,
+    as the warm-up's own resume test)."""
+    params, views = _params(), _views(cameras=1)
+    meshes = posed_meshes(params, HEAD, HAND)
+    cfg = StaticConfig(steps=20, densify_from=0.5, densify_until=0.9, densify_interval=0.5, opacity_reset_interval=1.0,
+                       log_every=4, checkpoint_every=10)
+    lrs = ParamLearningRates(translation=1e-4, rotation=1e-3, pose=1e-3, expression=1e-2)
+
+    def run(checkpoint_dir=None) -> FrameParams:  # noqa: ANN001
+        model = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, 1, init_opacity=0.3)
+        frames = FrameParams(params, HEAD, HAND, None, lrs, centred=True)
+        train_static(model, views, meshes, cfg, checkpoint_dir=checkpoint_dir, params=frames)
+        return frames
+
+    reference = run().arrays()
+    real_render, calls = static.render_frame, {"n": 0}
+
+    def dying_render(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        calls["n"] += 1
+        if calls["n"] == 13:
+            raise KeyboardInterrupt("killed")
+        return real_render(*args, **kwargs)
+
+    monkeypatch.setattr(static, "render_frame", dying_render)
+    with pytest.raises(KeyboardInterrupt):
+        run(tmp_path)
+    monkeypatch.setattr(static, "render_frame", real_render)
+    resumed = run(tmp_path).arrays()
+    assert any(not np.array_equal(reference[k], params[k]) for k in reference)  # it refined
+    for k in reference:
+        np.testing.assert_allclose(resumed[k], reference[k], rtol=1e-5, atol=1e-6)
