@@ -109,6 +109,8 @@ class FrameParams(nn.Module):
         self.centred = centred
         t = {k: torch.tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
         self.flame, self.mano = template_layers(t, head, hand)
+        self.flame.float()  # the templates' float64 buffers, cast once instead of in every forward
+        self.mano.float()
         refined = {c for columns in REFINED_COLUMNS.values() for c in columns}
         self.rows = nn.ParameterDict({k: nn.Parameter(v) for k, v in t.items() if k in refined})
         for k, v in t.items():
