@@ -149,7 +149,7 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
     config_keys=("quality.dynamic_steps", "quality.dynamic_width", "quality.dynamic_hand_depth",
                  "quality.dynamic_interaction_depth", "quality.geometry_feature_dim", "quality.pointnet_width",
                  "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
-                 "splatting", "stage.warmup", "fit.source"),  # SplattingAvatar's recipe and schedule
+                 "splatting", "stage.warmup", "fit.source", "stage.keypoints.detector"),  # refines_params
     outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet",
              "params.parquet"),
     version="9",  # 9: refine_params, stage two posed from the warm-up's params.parquet; 8: stage.dynamic.select (the kept step and modules); 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled

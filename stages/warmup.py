@@ -71,7 +71,8 @@ class WarmupConfig:
     "warmup",
     inputs=("capture", "frames", "fit", "scene", "pbd"),
     config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup",
-                 "method.representation", "method.pbd", "splatting", "fit.source"),
+                 "method.representation", "method.pbd", "splatting", "fit.source",
+                 "stage.keypoints.detector"),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet", "params.parquet"),
     version="8",
     # 8: refine_params (the train motion's parameters refined with the Gaussians; params.parquet);

@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from data_schemas.gaussians_ply import read_gaussians_ply
 from pipeline.cli import run_app
+from stages.export_ply import export_frame
+from stages.report import _trained_tracking_section
 from stages.common import load_params, read_params, refines_params
 from tests.conftest import compose_cfg, record_crop_reads
 
@@ -34,6 +38,18 @@ def test_refinement_from_the_truth_reads_only_train_views_and_does_not_drift(tmp
     run_app(_cfg(tmp_path, "run.only=dynamic", *on))
     assert read, "training read no crop"
     assert not [p for p in read if set(p.parts) & set(held_out)], "training read the held-out camera's crops"
+    # the report shows the correction per frame and both meshes over a training view
+    cfg = _cfg(tmp_path, *on)
+    ctx = SimpleNamespace(cfg=cfg,
+                          input_dir=lambda name: method / name if name in ("warmup", "dynamic") else root / name)
+    page = _trained_tracking_section(ctx, {name: json.loads((method / name / "_manifest.json").read_text())
+                                           for name in ("warmup", "dynamic")})
+    assert "Training refined the train motion's parameters with the avatar (warmup and dynamic" in page
+    assert page.count("<tr>") == 1 + 6 and "data:image/png;base64" in page  # a row per frame, the outline figure
+    # what consumes the train motion poses it as refined: the export of a train frame is stage two's own PLY
+    export_frame(root, "train", 0, tmp_path / "train_0.ply")
+    np.testing.assert_array_equal(read_gaussians_ply(tmp_path / "train_0.ply").means,
+                                  read_gaussians_ply(method / "dynamic" / "ply" / "train_0.ply").means)
     truth = load_params(root / "fit", "train")
     for stage in ("warmup", "dynamic"):
         metrics = _metrics(method / stage)
@@ -60,17 +76,23 @@ def test_auto_leaves_ground_truth_tracking_as_it_is(tmp_path):
         np.testing.assert_array_equal(written[k], v)
 
 
-@pytest.mark.parametrize(("source", "representation", "setting", "expected"), [
-    ("fitted", "bound", "auto", True), ("provided", "bound", "auto", True), ("ground_truth", "bound", "auto", False),
-    ("ground_truth", "bound", True, True), ("fitted", "bound", False, False), ("fitted", "embedded", "auto", False),
+def _rule_cfg(source: str, detector: str = "mediapipe", representation: str = "bound"):
+    return OmegaConf.create({"fit": {"source": source}, "stage": {"keypoints": {"detector": detector}},
+                             "method": {"representation": representation}})
+
+
+@pytest.mark.parametrize(("cfg", "setting", "expected"), [
+    (_rule_cfg("fitted"), "auto", True), (_rule_cfg("provided", "ground_truth"), "auto", True),
+    (_rule_cfg("fitted", "ground_truth"), "auto", False), (_rule_cfg("ground_truth"), "auto", False),
+    (_rule_cfg("ground_truth"), True, True), (_rule_cfg("fitted"), False, False),
+    (_rule_cfg("fitted", representation="embedded"), "auto", False),
 ])
-def test_auto_refines_fitted_or_provided_tracking_of_bound_gaussians(source, representation, setting, expected):
-    cfg = OmegaConf.create({"fit": {"source": source}, "method": {"representation": representation}})
+def test_auto_refines_detected_or_provided_tracking_of_bound_gaussians(cfg, setting, expected):
     assert refines_params(cfg, OmegaConf.create({"refine_params": setting})) is expected
 
 
 def test_refining_splatting_avatar_or_an_unknown_setting_is_one_clear_error():
-    cfg = OmegaConf.create({"fit": {"source": "fitted"}, "method": {"representation": "embedded"}})
+    cfg = _rule_cfg("fitted", representation="embedded")
     with pytest.raises(ValueError, match="SplattingAvatar"):
         refines_params(cfg, OmegaConf.create({"refine_params": "true"}))
     with pytest.raises(ValueError, match="use one of auto, true, false"):
