@@ -28,10 +28,16 @@ def _metrics(stage_dir: Path) -> dict:
     return json.loads((stage_dir / "_manifest.json").read_text())["metrics"]
 
 
-def test_refinement_from_the_truth_reads_only_train_views_and_does_not_drift(tmp_path, monkeypatch):
-    run_app(_cfg(tmp_path, "run.until=pbd"))
+def test_auto_leaves_the_truth_and_a_forced_refinement_reads_only_train_views_and_does_not_drift(tmp_path, monkeypatch):
+    run_app(_cfg(tmp_path, "run.until=warmup"))
     root = tmp_path / "synth_a"
     method = root / "methods" / "interactavatar"
+    truth = load_params(root / "fit", "train")
+    # auto leaves ground-truth tracking as it is, and still writes what it trained on
+    assert _metrics(method / "warmup")["params_refined"] is False
+    written = read_params(method / "warmup" / "params.parquet")
+    for k, v in truth.items():
+        np.testing.assert_array_equal(written[k], v)
     read, held_out = record_crop_reads(monkeypatch, root / "capture")  # every crop the training stages read
     on = ("stage.warmup.refine_params=true", "stage.dynamic.refine_params=true")
     run_app(_cfg(tmp_path, "run.only=warmup", *on))
@@ -50,7 +56,6 @@ def test_refinement_from_the_truth_reads_only_train_views_and_does_not_drift(tmp
     export_frame(root, "train", 0, tmp_path / "train_0.ply")
     np.testing.assert_array_equal(read_gaussians_ply(tmp_path / "train_0.ply").means,
                                   read_gaussians_ply(method / "dynamic" / "ply" / "train_0.ply").means)
-    truth = load_params(root / "fit", "train")
     for stage in ("warmup", "dynamic"):
         metrics = _metrics(method / stage)
         assert metrics["params_refined"] is True
@@ -64,16 +69,6 @@ def test_refinement_from_the_truth_reads_only_train_views_and_does_not_drift(tmp
         assert written["flame_transl"].shape == truth["flame_transl"].shape
         assert not np.array_equal(written["flame_transl"], truth["flame_transl"])  # it did refine
         np.testing.assert_array_equal(written["flame_shape"], truth["flame_shape"])  # never the identity
-
-
-def test_auto_leaves_ground_truth_tracking_as_it_is(tmp_path):
-    run_app(_cfg(tmp_path, "run.until=warmup"))
-    root = tmp_path / "synth_a"
-    warmup = root / "methods" / "interactavatar" / "warmup"
-    assert _metrics(warmup)["params_refined"] is False
-    written, truth = read_params(warmup / "params.parquet"), load_params(root / "fit", "train")
-    for k, v in truth.items():
-        np.testing.assert_array_equal(written[k], v)
 
 
 def _rule_cfg(source: str, detector: str = "mediapipe", representation: str = "bound"):
