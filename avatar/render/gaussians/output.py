@@ -38,7 +38,7 @@ class RenderOutput:
         grad = self.grad_holder.grad
         if grad is None:
             return torch.zeros_like(self.means2d)
-        return grad.reshape(self.means2d.shape)
+        return grad.reshape(self.means2d.shape).to(self.means2d.device)
 
     def grad2d_norm(self) -> Tensor:
         """(N,) norm of ``grad2d()``: the per-view screen-space positional gradient that 3DGS
