@@ -90,7 +90,7 @@ def run_arm(arm: str, outputs: Path) -> dict:
     for split in ("novel_view", "self_reenact"):
         values = [p for p, s, r, m in zip(metrics["psnr"], metrics["split"], metrics["region"], metrics["method"])
                   if s == split and r == "full" and m == method]
-        psnr[split] = sum(values) / len(values)
+        psnr[split] = float(sum(values) / len(values))
     return {"wall_s": wall, "warmup_ms_per_step": 1000 * warm["timings"]["wall_s"] / warm["metrics"]["steps"],
             "dynamic_ms_per_step": manifests["dynamic"]["metrics"]["ms_per_step"],
             "psnr_novel_view": psnr["novel_view"], "psnr_self_reenact": psnr["self_reenact"]}
