@@ -97,8 +97,12 @@ def run_arm(arm: str, outputs: Path) -> dict:
 
 
 def commit() -> str:
-    proc = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
-    return proc.stdout.strip() or "unknown"
+    """The checkout's commit; ``BENCH_COMMIT`` where the copy has no git history."""
+    try:
+        proc = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
+    except OSError:
+        return os.environ.get("BENCH_COMMIT", "unknown")
+    return proc.stdout.strip() or os.environ.get("BENCH_COMMIT", "unknown")
 
 
 def main() -> None:
