@@ -14,7 +14,8 @@
 Never part of the default suite (CI has no GPU). Writes ``--json`` (default
 ``benchmarks/results/bench_gpu.json``) with the commit, machine and every figure.
 
-Usage: python benchmarks/bench_gpu.py [--outputs DIR] [--json PATH] [--skip-dag] [--quick]
+Usage: python benchmarks/bench_gpu.py [--outputs DIR] [--json PATH] [--skip-dag] [--quick] [--set KEY=VALUE ...]
+       [--deadline-s S]
 """
 
 from __future__ import annotations
@@ -61,10 +62,12 @@ def run_cuda_tests() -> dict:
                            "tests/render/gaussians"], cwd=REPO, capture_output=True, text=True)
     print(proc.stdout[-6000:], proc.stderr[-2000:])
     summary = (proc.stdout.strip().splitlines() or [""])[-1]
+    if proc.returncode < 0:  # killed by a signal: the summary line is the progress dots so far
+        summary = f"CRASHED (signal {-proc.returncode}) after {summary.count('.')} passed: {proc.stderr[:300]}"
     return {"tests_rc": proc.returncode, "tests_summary": summary, "tests_s": time.perf_counter() - t0}
 
 
-def run_arm(arm: str, outputs: Path) -> dict:
+def run_arm(arm: str, outputs: Path, extra: list[str] = ()) -> dict:
     """The smoke DAG up to evaluate for one arm; its wall time, ms per step and held-out PSNR."""
     from hydra import compose, initialize_config_dir
 
@@ -77,7 +80,7 @@ def run_arm(arm: str, outputs: Path) -> dict:
     method, overrides = ARMS[arm]
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["quality=smoke", f"paths.outputs={outputs}", "run.until=evaluate",
-                                           "run.progress=false", *overrides])
+                                           "run.progress=false", *overrides, *extra])
     cfg = validate_config(cfg, REGISTRY)
     t0 = time.perf_counter()
     Runner(cfg, REGISTRY, log=lambda _m: None).run()
@@ -111,6 +114,8 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "bench_gpu.json")
     parser.add_argument("--skip-dag", action="store_true", help="no smoke DAG (build, tests and rasterizer only)")
     parser.add_argument("--quick", action="store_true", help="the rasterizer at its --quick sizes, 3 repeats")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="overrides for both DAG arms, e.g. stage.dynamic.patch_weight=0")
     parser.add_argument("--deadline-s", type=float, default=None,
                         help="start no DAG arm after this many seconds (the arms left are recorded as skipped)")
     args = parser.parse_args()
@@ -119,7 +124,7 @@ def main() -> None:
         raise SystemExit("bench_gpu needs a CUDA GPU (torch.cuda.is_available() is False)")
     from avatar.render.gaussians import available_backends
 
-    result: dict = {"commit": commit(), "machine": platform.node(), "gpu": torch.cuda.get_device_name(),
+    result: dict = {"commit": commit(), "dag_overrides": args.set, "machine": platform.node(), "gpu": torch.cuda.get_device_name(),
                     "torch": torch.__version__, "cuda": torch.version.cuda, "cpus": os.cpu_count(),
                     "load_start": os.getloadavg()}
     def save() -> None:
@@ -150,7 +155,7 @@ def main() -> None:
                 result["dag"][arm] = {"skipped": f"past the {args.deadline_s:.0f} s deadline"}
                 continue
             try:
-                result["dag"][arm] = run_arm(arm, args.outputs)
+                result["dag"][arm] = run_arm(arm, args.outputs, args.set)
             except Exception as exc:  # noqa: BLE001 - recorded; the other arm still runs
                 result["dag"][arm] = {"skipped": f"failed: {type(exc).__name__}: {exc}"}
             print(f"smoke DAG, {arm} arm: {result['dag'][arm]}", flush=True)

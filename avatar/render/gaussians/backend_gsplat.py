@@ -15,6 +15,8 @@ Conventions, and where they differ from the project's ``torch`` and ``cpu`` back
   plane does not cull it a second time;
 * quaternions are normalised here, robustly (a zero or denormal quaternion is the identity, as in the
   project's backends; gsplat's own normalisation of ``[1e-30, 0, 0, 0]`` underflows);
+* no Gaussians at all: gsplat 1.5.3's CUDA launcher divides by their number (SIGFPE, the whole process
+  dies); the adapter returns the background image itself;
 * huge scales: gsplat works in float32 throughout, and a 2D covariance past ~1e19 px^2 overflows its
   determinant; the adapter caps a Gaussian's world scale at :data:`MAX_STD_PX` pixels of standard deviation
   at its depth, where it is already one flat colour over any image (its scale gradient is 0 beyond).
@@ -87,6 +89,17 @@ def gsplat_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
     return means, quats, scales, opacities
 
 
+def _background_only(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, width: int,
+                     height: int, background: Tensor) -> RenderOutput:
+    """The image of no Gaussians: the background everywhere, alpha and depth 0; (0, 2) means2d. The zero sums
+    keep the (empty) inputs in the graph, so that ``backward()`` works as with Gaussians."""
+    zero = sum(t.sum() for t in (means, quats, scales, opacities, colors)) * 0
+    holder = means.new_zeros(0, 2).requires_grad_(means.requires_grad)
+    return RenderOutput(rgb=background.expand(height, width, 3) + zero, alpha=means.new_zeros(height, width) + zero,
+                        depth=means.new_zeros(height, width) + zero, means2d=holder,
+                        radii=torch.zeros(0, dtype=torch.int32, device=means.device), grad_holder=holder)
+
+
 def render_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
                   K: Tensor, world_to_cam: Tensor, width: int, height: int, background: Tensor,
                   near: float = 0.01, far: float = 100.0) -> RenderOutput:
@@ -98,6 +111,8 @@ def render_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
     """
     import gsplat
 
+    if means.shape[0] == 0:  # gsplat 1.5.3's CUDA launcher divides by N (SIGFPE): nothing to draw anyway
+        return _background_only(means, quats, scales, opacities, colors, width, height, background)
     device = means.device
     if device.type != "cuda" and torch.cuda.is_available():
         out = render_gsplat(*(t.cuda() for t in (means, quats, scales, opacities, colors, K, world_to_cam)),
