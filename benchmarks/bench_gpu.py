@@ -55,12 +55,14 @@ def build_gsplat() -> dict:
     return {"gsplat_build_s": time.perf_counter() - t0, "gsplat_loaded": loaded, "gsplat_error": error[-2000:]}
 
 
-def run_cuda_tests() -> dict:
-    """The cuda-marked tests of the rasterizer; their pytest summary line and exit code."""
+def run_cuda_tests(log: Path) -> dict:
+    """The cuda-marked tests of the rasterizer; their pytest summary line and exit code, the whole output in
+    ``log``."""
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider",
                            "tests/render/gaussians"], cwd=REPO, capture_output=True, text=True)
-    print(proc.stdout[-6000:], proc.stderr[-2000:])
+    log.write_text(proc.stdout + proc.stderr)
+    print("\n".join(line for line in proc.stdout.splitlines() if line.startswith(("FAILED", "ERROR", "E   "))))
     summary = (proc.stdout.strip().splitlines() or [""])[-1]
     if proc.returncode < 0:  # killed by a signal: the summary line is the progress dots so far
         summary = f"CRASHED (signal {-proc.returncode}) after {summary.count('.')} passed: {proc.stderr[:300]}"
@@ -114,6 +116,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "bench_gpu.json")
     parser.add_argument("--skip-dag", action="store_true", help="no smoke DAG (build, tests and rasterizer only)")
     parser.add_argument("--quick", action="store_true", help="the rasterizer at its --quick sizes, 3 repeats")
+    parser.add_argument("--skip-rasterizer", action="store_true", help="no gsplat-beside-cpu timing")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="overrides for both DAG arms, e.g. stage.dynamic.patch_weight=0")
     parser.add_argument("--deadline-s", type=float, default=None,
@@ -136,10 +139,10 @@ def main() -> None:
           f"{result['gsplat_error']}", flush=True)
     result["backends"] = available_backends()
     save()
-    result.update(run_cuda_tests())
+    result.update(run_cuda_tests(args.json.with_name(args.json.stem + "_tests.log")))
     print(f"cuda tests: {result['tests_summary']} ({result['tests_s']:.0f} s)", flush=True)
     save()
-    if "gsplat" in result["backends"]:
+    if "gsplat" in result["backends"] and not args.skip_rasterizer:
         import bench_rasterizer
 
         configs = bench_rasterizer.QUICK if args.quick else bench_rasterizer.FULL

@@ -5,6 +5,9 @@ Conventions, and where they differ from the project's ``torch`` and ``cpu`` back
 * pixel centres: gsplat puts pixel ``(i, j)``'s centre at ``(j + 0.5, i + 0.5)``, this project at ``(j, i)``
   (OpenCV): the adapter shifts the principal point by +0.5 before calling gsplat and its ``means2d`` by -0.5;
 * radii: gsplat returns per-axis radii (N, 2), the adapter their maximum, as the project's (N,);
+* 2D means of culled Gaussians (radius 0): gsplat's CUDA projection never writes them (uninitialised memory,
+  seen as 6.6e9 px on an H200); the adapter returns 0 there (the project's backends, the projection of a
+  safe point): they are defined only where the radius is positive, in every backend;
 * alpha: gsplat clamps at 0.999 (the project's backends at 0.99, as 3DGS), so the two differ where
   ``opacity * G > 0.99``; it stops a pixel once ``T <= 1e-4`` (the project's: ``< 1e-4``);
 * culling: the adapter culls before gsplat what the project's backends cull (camera depth outside
@@ -135,5 +138,7 @@ def render_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
     radii = meta["radii"][0]
     if radii.dim() == 2:  # gsplat >= 1.5: per-axis radii (N, 2)
         radii = radii.amax(-1)
+    radii = radii.to(torch.int32)
+    means2d = torch.where(radii[:, None] > 0, holder[0] - 0.5, torch.zeros_like(holder[0]))  # see the docstring
     return RenderOutput(rgb=colors_depth[0, ..., :3], alpha=alphas[0, ..., 0], depth=colors_depth[0, ..., 3],
-                        means2d=holder[0] - 0.5, radii=radii.to(torch.int32), grad_holder=holder)
+                        means2d=means2d, radii=radii, grad_holder=holder)
