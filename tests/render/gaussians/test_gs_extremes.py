@@ -28,6 +28,10 @@ from avatar.render.gaussians.extension import cpu_extension_available, unavailab
 
 F32 = torch.float32
 NAMES = ("means", "quats", "scales", "opacities", "colors")
+#: gradient tolerance relative to the largest entry where it is not 1e-5: gsplat's CUDA kernels (fast math,
+#: atomics: 2.6e-5 to 6.7e-5 measured on an H200; where T crosses the 1e-4 stop, __expf can blend one Gaussian
+#: more or less, about 1e-4 x alpha in its colour gradient)
+GRAD_TOL = {"gsplat-cuda": 1e-4}
 
 
 @pytest.fixture(params=["torch", "cpu", "gsplat-reference", pytest.param("gsplat-cuda", marks=pytest.mark.cuda)])
@@ -37,17 +41,21 @@ def backend(request: pytest.FixtureRequest) -> str:
         pytest.skip(f"compiled CPU rasterizer not built: {unavailable_reason()}")
     if request.param.startswith("gsplat-"):
         request.getfixturevalue(request.param.replace("-", "_"))
-        return "gsplat"
     return request.param
 
 
+def _name(backend: str) -> str:
+    """The ``render_gaussians`` backend of a fixture value (``gsplat-reference`` and ``gsplat-cuda``: gsplat)."""
+    return backend.split("-")[0]
+
+
 def _render(scene: Scene, backend: str = "torch") -> RenderOutput:
-    return render_gaussians(*scene.params(), *scene.camera(), backend=backend)
+    return render_gaussians(*scene.params(), *scene.camera(), backend=_name(backend))
 
 
 def _backward(scene: Scene, backend: str) -> tuple[RenderOutput, list[torch.Tensor]]:
     params = [p.detach().clone().requires_grad_(True) for p in scene.params()]
-    out = render_gaussians(*params, *scene.camera(), backend=backend)
+    out = render_gaussians(*params, *scene.camera(), backend=_name(backend))
     (out.rgb.sum() + out.alpha.sum() + out.depth.sum()).backward()
     return out, [p.grad for p in params]
 
@@ -67,9 +75,9 @@ def _render_and_backward(scene: Scene, backend: str, ill_conditioned: tuple[int,
     for name, g in zip(NAMES, grads):
         assert g is not None and torch.isfinite(g).all(), f"d/d{name}"
     assert torch.isfinite(out.grad2d()).all()
-    if backend == "gsplat" and ill_conditioned:
+    if _name(backend) == "gsplat" and ill_conditioned:
         return out, grads
-    if backend == "gsplat" and depth_ties:
+    if _name(backend) == "gsplat" and depth_ties:
         ref = _render(scene, "torch")
         assert torch.allclose(out.alpha, ref.alpha, rtol=0, atol=1e-5)
         _assert_same_radii(out, ref, backend)
@@ -83,14 +91,14 @@ def _render_and_backward(scene: Scene, backend: str, ill_conditioned: tuple[int,
         for name, g, r in zip((*NAMES, "means2d"), [*grads, out.grad2d()], [*ref_grads, ref.grad2d()]):
             g, r = g[compared], r[compared]
             # 1e-5 of the largest entry; the 1e-6 floor covers inputs whose gradient is float32 rounding noise.
-            tol = 1e-5 * r.abs().amax(dim=None) + 1e-6 if r.numel() else 0.0
+            tol = GRAD_TOL.get(backend, 1e-5) * r.abs().amax(dim=None) + 1e-6 if r.numel() else 0.0
             assert ((g - r).abs() <= tol).all(), f"d/d{name} differs from the torch backend"
     return out, grads
 
 
 def _assert_same_radii(out: RenderOutput, ref: RenderOutput, backend: str) -> None:
     """The compiled backend's radii are the torch backend's; gsplat's too, below the scale cap's radius."""
-    if backend != "gsplat":
+    if _name(backend) != "gsplat":
         assert torch.equal(out.radii, ref.radii)
         return
     huge = ref.radii > 1_000_000

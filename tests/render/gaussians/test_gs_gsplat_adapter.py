@@ -10,7 +10,8 @@ it is not built), float32, opacities below 0.95 (neither alpha clamp reached):
   float32, the project in float64); radii equal, except a faint Gaussian whose box holds no pixel centre: gsplat keeps it (drawing
   nothing), the project's backends cull it;
 * gradients of means, quats, scales, opacities, colors, background and the 2D means within 1e-5 of the
-  largest entry (+1e-6), as the compiled backend against the torch backend.
+  largest entry (+1e-6), as the compiled backend against the torch backend; 1e-4 through the CUDA kernels
+  (fast math and atomics; measured 2.6e-5 to 6.7e-5 on an H200).
 
 The extremes run through gsplat too (``test_gs_extremes.py``). The documented differences (alpha clamp,
 depth ties) are asserted here as such, so that a change of either side shows.
@@ -28,6 +29,9 @@ from avatar.render.gaussians.extension import cpu_extension_available
 
 pytestmark = pytest.mark.usefixtures("gsplat_kernels")
 F32 = torch.float32
+#: gradient tolerance relative to the largest entry: gsplat's CUDA kernels use fast math and atomics
+#: (2.6e-5 to 6.7e-5 measured on an H200)
+GRAD_TOL = {"reference": 1e-5, "cuda": 1e-4}
 PROJECT = "cpu" if cpu_extension_available() else "torch"
 
 
@@ -41,7 +45,7 @@ def _backward(scene: Scene, backend: str) -> tuple[RenderOutput, list[torch.Tens
     return out, [p.grad for p in params]
 
 
-def _assert_same(scene: Scene) -> None:
+def _assert_same(scene: Scene, kernels: str) -> None:
     theirs, their_grads = _backward(scene, "gsplat")
     ours, our_grads = _backward(scene, PROJECT)
     for name in ("rgb", "alpha", "depth"):
@@ -55,29 +59,29 @@ def _assert_same(scene: Scene) -> None:
     assert (ours.radii[differ] == 0).all() and (their_grads[4][differ] == 0).all()
     names = ("means", "quats", "scales", "opacities", "colors", "background", "means2d")
     for name, a, b in zip(names, [*their_grads, theirs.grad2d()], [*our_grads, ours.grad2d()]):
-        tol = 1e-5 * b.abs().max() + 1e-6
+        tol = GRAD_TOL[kernels] * b.abs().max() + 1e-6
         assert ((a - b).abs() <= tol).all(), f"d/d{name}: {(a - b).abs().max():.2e} > {tol:.2e}"
 
 
 @pytest.mark.parametrize("seed,n", [(0, 10), (1, 60), (2, 200)])
-def test_random_scenes_match_the_project_backend(seed: int, n: int) -> None:
-    _assert_same(random_scene(n, seed, dtype=F32, max_opacity=0.95))
+def test_random_scenes_match_the_project_backend(seed: int, n: int, gsplat_kernels: str) -> None:
+    _assert_same(random_scene(n, seed, dtype=F32, max_opacity=0.95), gsplat_kernels)
 
 
-def test_a_larger_scene_over_many_tiles() -> None:
+def test_a_larger_scene_over_many_tiles(gsplat_kernels: str) -> None:
     """Image sizes that are not multiples of gsplat's 16-px tiles, a principal point off the centre."""
     scene = random_scene(1500, 4, width=70, height=45, focal=60.0, dtype=F32, max_opacity=0.95, scale=0.05)
     scene.K[0, 2], scene.K[1, 2] = 30.25, 25.5
-    _assert_same(scene)
+    _assert_same(scene, gsplat_kernels)
 
 
 @pytest.mark.parametrize("pixel", [(11.0, 9.0), (3.5, 2.25), (0.0, 0.0)])
-def test_pixel_centres_and_principal_point(pixel: tuple[float, float]) -> None:
+def test_pixel_centres_and_principal_point(pixel: tuple[float, float], gsplat_kernels: str) -> None:
     """A small Gaussian centred on ``pixel`` (OpenCV coordinates): the same 2D mean and the same image."""
     scene = single_gaussian(pixel=pixel, depth=2.0, sigma_px=1.3, opacity=0.8, dtype=F32)
     theirs = render_gaussians(*scene.params(), *scene.camera(), backend="gsplat")
     assert torch.allclose(theirs.means2d[0], torch.tensor(pixel), atol=1e-4)
-    _assert_same(scene)
+    _assert_same(scene, gsplat_kernels)
 
 
 def test_alpha_clamp_is_a_documented_difference() -> None:
