@@ -102,7 +102,9 @@ def run_arm(arm: str, outputs: Path, extra: list[str] = ()) -> dict:
 
 
 def commit() -> str:
-    """The checkout's commit; ``BENCH_COMMIT`` where the copy has no git history."""
+    """``BENCH_COMMIT`` when set (a copy of the working tree sent to a GPU machine), else the checkout's commit."""
+    if os.environ.get("BENCH_COMMIT"):
+        return os.environ["BENCH_COMMIT"]
     try:
         proc = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
     except OSError:
