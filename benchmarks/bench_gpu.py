@@ -129,8 +129,8 @@ def main() -> None:
         raise SystemExit("bench_gpu needs a CUDA GPU (torch.cuda.is_available() is False)")
     from avatar.render.gaussians import available_backends
 
-    result: dict = {"commit": commit(), "dag_overrides": args.set, "machine": platform.node(), "gpu": torch.cuda.get_device_name(),
-                    "torch": torch.__version__, "cuda": torch.version.cuda, "cpus": os.cpu_count(),
+    result: dict = {"commit": commit(), "dag_overrides": args.set, "machine": platform.node(),
+                    "gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda, "cpus": os.cpu_count(),
                     "load_start": os.getloadavg()}
     def save() -> None:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -7,8 +7,8 @@ GPU and back). Against the project's compiled ``cpu`` backend (the torch backend
 it is not built), float32, opacities below 0.95 (neither alpha clamp reached):
 
 * rgb, alpha and depth within 1e-5; ``means2d`` of the drawn Gaussians within 1e-4 px (gsplat projects in
-  float32, the project in float64); radii equal, except a faint Gaussian whose box holds no pixel centre: gsplat keeps it (drawing
-  nothing), the project's backends cull it;
+  float32, the project in float64); radii equal, except a faint Gaussian whose box holds no pixel centre:
+  gsplat keeps it (drawing nothing), the project's backends cull it;
 * gradients of means, quats, scales, opacities, colors, background and the 2D means within 1e-5 of the
   largest entry (+1e-6), as the compiled backend against the torch backend; 1e-4 through the CUDA kernels
   (fast math and atomics; measured 2.6e-5 to 6.7e-5 on an H200).
