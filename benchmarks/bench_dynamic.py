@@ -372,7 +372,11 @@ def write_costs(results: Path, preset: str, subject: str, costs: dict, load: tup
     previous = json.loads(path.read_text()) if path.is_file() else {"runs": []}
     previous["runs"].append(run)
     path.write_text(json.dumps(previous, indent=1))
-    with (results / "bench_dynamic.md").open("a") as md:
+    md_path = results / "bench_dynamic.md"
+    if not md_path.is_file():
+        md_path.write_text("# bench_dynamic: the stage-two step against the warm-up step (issue 33)\n\n"
+                           "Appended by `benchmarks/bench_dynamic.py`, one section per subject, preset and run.\n")
+    with md_path.open("a") as md:
         md.write(f"\n## {subject} at {preset}: commit {run['commit']}, {run['machine']}, {run['threads']} threads, "
                  f"load {' '.join(f'{x:.2f}' for x in load[0])} -> {' '.join(f'{x:.2f}' for x in load[1])}, "
                  f"{run['made']}\n\n```\n{format_table(('cost', 'value'), rows)}\n```\n")
