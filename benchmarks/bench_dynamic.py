@@ -12,29 +12,37 @@ and prints PSNR / SSIM / LPIPS of both on the held-out camera (novel view) and t
 (self-reenactment), on the full image and the hand, face and interaction regions, contact and non-contact
 frames apart, with the differences; the error budget (how each variant's full-image squared error splits into
 hand, face and background pixels, and the full-image PSNR of an oracle that is perfect on the hand, or on hand
-and face: how much a better hand model could still gain); then the cost: ms per step of stage two against the
-warm-up's, and a split of one stage-two step into PointNet++, MLPs and rendering (forward + backward, medians).
+and face: how much a better hand model could still gain); then the cost table: the warm-up step and the
+stage-two step measured side by side from the same warm-up (interleaved rounds, medians), their RATIO, the
+stage-two step split into PointNet++, MLPs, posing/glue, rasterizer, loss, backward and optimizer, and the load;
+appended to ``benchmarks/results/bench_dynamic.json`` and ``.md`` (commit, preset, machine, load).
 
 Nothing here is tuned on the held-out camera or motion: the stage's defaults were chosen on the training
 views (see README).
 
 Usage: python benchmarks/bench_dynamic.py [--subjects synth_a synth_b] [--presets draft] [--outputs DIR]
-       [--set stage.dynamic.seed=1 ...] [--no-run]
+       [--set stage.dynamic.seed=1 ...] [--no-run] [--cost-only [--cost-steps 20 --cost-rounds 3]]
 
 ``--no-run`` trains nothing: it prints the quality tables and the error budget of the variants already in
 ``--outputs`` (e.g. of an earlier run, or one made with the CLI and ``method.name=static_same_steps``).
+``--cost-only`` runs the DAG until the warm-up (cached in ``--outputs``) and prints only the cost table.
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
+import platform
 import shutil
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -45,11 +53,13 @@ sys.path.insert(0, str(REPO))
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 
-from avatar.gaussians.frames import place_gaussians, triangle_frames  # noqa: E402
-from avatar.render.gaussians import render_gaussians  # noqa: E402
-from avatar.training.dynamic import rasterize  # noqa: E402
+from torch.optim.optimizer import register_optimizer_step_post_hook, register_optimizer_step_pre_hook  # noqa: E402
+
+from avatar.dynamic import DynamicAvatar  # noqa: E402
+from avatar.metrics.lpips import LPIPS  # noqa: E402
+from avatar.training.dynamic import DynamicTrainConfig, train_dynamic  # noqa: E402
+from avatar.training.static import StaticConfig, train_static  # noqa: E402
 from data_schemas.capture import MASK_LABELS  # noqa: E402
-from data_schemas.deform import DEFORM  # noqa: E402
 from data_schemas.frames import UNOBSERVED  # noqa: E402
 from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
@@ -57,7 +67,11 @@ from pipeline.config import validate_config  # noqa: E402
 from pipeline.runner import Runner  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from stages import REGISTRY  # noqa: E402
-from stages.common import load_dynamic, load_sequence, load_views  # noqa: E402
+from stages.common import (  # noqa: E402
+    TRAIN_SEQUENCE, applied_deformation, contact_flags, load_gaussians, load_scene, load_views, method_params,
+    posed_sequence, templates,
+)
+from stages.dynamic import model_config  # noqa: E402
 
 #: variant -> (method name, overrides): the static variant is a method defined on the command line (the
 #: full model's warm-up and PBD, H and I off, no patch loss), so it shares the full model's warm-up.
@@ -68,10 +82,11 @@ VARIANTS = {
 }
 
 
-def compose_cfg(preset: str, subject: str, outputs: Path, extra: list[str]):  # noqa: ANN201 - DictConfig
+def compose_cfg(preset: str, subject: str, outputs: Path, extra: list[str],
+                until: str = "evaluate"):  # noqa: ANN201 - DictConfig
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=[f"quality={preset}", f"subject={subject}", f"paths.outputs={outputs}",
-                                           "run.until=evaluate", "run.progress=false", "fit.source=ground_truth",
+                                           f"run.until={until}", "run.progress=false", "fit.source=ground_truth",
                                            *extra])
     return validate_config(cfg, REGISTRY)
 
@@ -156,52 +171,89 @@ def error_budget(root: Path, variant: str, metrics: dict) -> list[tuple]:
     return rows
 
 
-def _median_ms(fn, repeats: int = 5) -> float:  # noqa: ANN001
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(1000 * (time.perf_counter() - t0))
-    return statistics.median(times)
+@contextmanager
+def _forward_timers(modules: dict[str, torch.nn.Module | None], seconds: dict[str, float]) -> Iterator[None]:
+    """Add each module's forward wall time to ``seconds[name]`` while inside (``None`` modules are skipped)."""
+    started: dict[str, float] = {}
+    handles = []
+    for name, module in modules.items():
+        if module is None:
+            continue
+        handles.append(module.register_forward_pre_hook(
+            lambda *_a, n=name: started.__setitem__(n, time.perf_counter())))
+        handles.append(module.register_forward_hook(
+            lambda *_a, n=name: seconds.__setitem__(n, seconds.get(n, 0.0) + time.perf_counter() - started[n])))
+    handles.append(register_optimizer_step_pre_hook(lambda *_a: started.__setitem__("optimizer", time.perf_counter())))
+    handles.append(register_optimizer_step_post_hook(lambda *_a: seconds.__setitem__(
+        "optimizer", seconds.get("optimizer", 0.0) + time.perf_counter() - started["optimizer"])))
+    try:
+        yield
+    finally:
+        for handle in handles:
+            handle.remove()
 
 
-def step_split(preset: str, subject: str, outputs: Path, extra: list[str]) -> dict[str, float]:
-    """Forward + backward ms of PointNet++, the MLPs (H and I) and rendering on a contact frame of the trained
-    full model, median of 5 each (the same camera and frame for all)."""
+def step_costs(preset: str, subject: str, outputs: Path, extra: list[str], steps: int = 20,
+               rounds: int = 3) -> dict[str, float]:
+    """ms per training step of the warm-up and of stage two from the same cached warm-up, side by side.
+
+    Each round trains a copy of the warm-up Gaussians ``steps`` warm-up steps (``train_static`` without density
+    control) and then the full model, built from them as the stage builds it, ``steps`` stage-two steps
+    (``train_dynamic``: frames drawn as in training, contact frames oversampled); the rounds alternate the two, and
+    every figure is the median over the rounds (after one untimed round of two steps each). The stage-two step is
+    split into the forward passes of PointNet++, the MLPs (H_geo, H_app, I) and the rest of the model (posing,
+    sampling, the delta glue), the rasterizer, the loss, the backward pass and the optimizer step.
+    """
     cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"][1] + extra)
     root = outputs / subject
-    model = load_dynamic(root / "methods" / VARIANTS["full"][0] / "dynamic")
+    warm = root / "methods" / VARIANTS["full"][0] / "warmup"
     views = load_views(root / "capture", root / "frames", "train", "train")
-    meshes, cond = load_sequence(root / "fit", "train", cfg, pbd_dir=root / "pbd")
-    deform = read_table(root / "pbd" / "train" / "deform.parquet", DEFORM)
-    frame = int(np.flatnonzero(deform["contact"])[0]) if np.any(deform["contact"]) else 0
-    c = cond.frame(frame)
-    verts = meshes.vertices[frame]
+    posed = posed_sequence(root / "fit", TRAIN_SEQUENCE, cfg, applied_deformation(cfg, root / "pbd"),
+                           method_params(warm, root / "fit", TRAIN_SEQUENCE))
+    meshes, cond = posed.meshes, posed.conditioning(cfg)
+    contact = contact_flags(root / "pbd", "train", views.num_frames)
+    gaussians = load_gaussians(warm, meshes.part_names)
+    arch = model_config(cfg, load_scene(root / "scene"))
+    head, _ = templates(cfg.model)
+    frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
+    conf = cfg.stage.dynamic
+    lpips = LPIPS("vgg") if float(conf.patch_weight) > 0 else None
 
-    def whole() -> None:
-        g = model(c, verts)
-        rasterize(g, views, 0).rgb.sum().backward()
-        model.zero_grad(set_to_none=True)
+    def warmup_round(n: int, seed: int) -> float:
+        model = copy.deepcopy(gaussians)
+        t0 = time.perf_counter()
+        train_static(model, views, meshes, StaticConfig(steps=n, densify_from=1.0, densify_until=0.0, seed=seed))
+        return 1000 * (time.perf_counter() - t0) / n
 
-    def pointnet() -> None:
-        with torch.no_grad():
-            g = model.gaussians
-            m, s, _ = place_gaussians(triangle_frames(verts, model.faces), g.binding, g.local_means,
-                                      torch.exp(g.log_scales), g.quats)
-            pts = model.geometry_points(c, m, s, torch.sigmoid(g.opacity_logits), None)
-        model.geometry_feature(pts).sum().backward()
-        model.zero_grad(set_to_none=True)
+    def dynamic_round(n: int, seed: int) -> dict[str, float]:
+        model = DynamicAvatar.from_warmup(copy.deepcopy(gaussians), meshes.vertices[0], meshes.faces,
+                                          meshes.part_names, head.num_vertices, frame_dims, arch, seed=seed)
+        seconds: dict[str, float] = {}
+        train_cfg = DynamicTrainConfig(steps=n, patch_weight=float(conf.patch_weight), seed=seed)
+        modules = {"pointnet": model.pointnet, "hand_geo": model.hand_geo, "hand_app": model.hand_app,
+                   "interaction": model.interaction}
+        t0 = time.perf_counter()
+        with _forward_timers(modules, seconds):
+            result = train_dynamic(model, views, meshes, cond, contact, train_cfg, lpips=lpips)
+        wall = time.perf_counter() - t0
+        mlp = sum(seconds.get(k, 0.0) for k in ("hand_geo", "hand_app", "interaction"))
+        parts = {"step": wall, "pointnet": seconds.get("pointnet", 0.0), "mlps": mlp,
+                 "posing_glue": result.seconds["model"] - mlp - seconds.get("pointnet", 0.0),
+                 "render": result.seconds["render"], "loss": result.seconds["loss"],
+                 "backward": result.seconds["backward"] - seconds.get("optimizer", 0.0),
+                 "optimizer": seconds.get("optimizer", 0.0)}
+        return {k: 1000 * v / n for k, v in parts.items()} | {"interaction_steps": result.interaction_steps / n}
 
-    def no_nets() -> None:
-        g = model.gaussians
-        means, scales, quats = g.world(verts, model.faces)
-        render_gaussians(means, quats, scales, g.opacities(), g.colors(), views.K[0], views.world_to_cam[0],
-                         views.size, views.size, views.background).rgb.sum().backward()
-        model.zero_grad(set_to_none=True)
-
-    whole_ms, pointnet_ms, render_ms = _median_ms(whole), _median_ms(pointnet), _median_ms(no_nets)
-    return {"frame": frame, "whole_ms": whole_ms, "pointnet_ms": pointnet_ms, "render_ms": render_ms,
-            "mlp_ms": whole_ms - pointnet_ms - render_ms}
+    warmup_round(2, 0)
+    dynamic_round(2, 0)
+    warm_ms, dyn = [], []
+    for r in range(rounds):
+        warm_ms.append(warmup_round(steps, r))
+        dyn.append(dynamic_round(steps, r))
+    out = {"gaussians": gaussians.num_gaussians, "hand_gaussians": int((gaussians.part == meshes.part_names.index(
+        "hand")).sum()), "steps": steps, "rounds": rounds, "warmup_ms": statistics.median(warm_ms)}
+    out |= {f"{k}_ms" if k != "interaction_steps" else k: statistics.median(d[k] for d in dyn) for k in dyn[0]}
+    return out | {"ratio": out["step_ms"] / out["warmup_ms"]}
 
 
 def main() -> None:
@@ -213,6 +265,12 @@ def main() -> None:
                         help="extra config overrides for both variants, e.g. stage.dynamic.seed=1 (noise)")
     parser.add_argument("--no-run", action="store_true",
                         help="train nothing: the tables of the variants already in --outputs")
+    parser.add_argument("--cost-only", action="store_true",
+                        help="run the DAG until the warm-up (cached) and print only the cost table")
+    parser.add_argument("--cost-steps", type=int, default=20, help="steps per round of the step costs")
+    parser.add_argument("--cost-rounds", type=int, default=3, help="interleaved rounds of the step costs")
+    parser.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results",
+                        help="append the step costs to bench_dynamic.json and bench_dynamic.md here")
     args = parser.parse_args()
     if args.no_run and args.outputs is None:
         parser.error("--no-run reads the variants of an earlier run: give its --outputs")
@@ -223,51 +281,77 @@ def main() -> None:
             for subject in args.subjects:
                 outputs = base / preset
                 keep = base / "results" / preset / subject
-                load0 = os.getloadavg()[0]
-                if args.no_run:
-                    full, static, split = (load_variant(outputs, subject, "full"), load_variant(outputs, subject, "static"),
-                                           None)
+                load0 = os.getloadavg()
+                full = static = costs = None
+                if args.cost_only:
+                    cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"][1] + args.set, until="warmup")
+                    Runner(cfg, REGISTRY, log=lambda _m: None).run()
+                elif args.no_run:
+                    full, static = load_variant(outputs, subject, "full"), load_variant(outputs, subject, "static")
                 else:
                     full = run_variant(preset, subject, outputs, "full", keep, args.set)
-                    split = step_split(preset, subject, outputs, args.set)
                     static = run_variant(preset, subject, outputs, "static", keep, args.set)
-                print(f"\n## {subject} at {preset} {' '.join(args.set)} (load average {load0:.1f} -> {os.getloadavg()[0]:.1f})\n")
-                steps_w = full["manifests"]["warmup"]["metrics"]["steps"]
-                steps_d = full["manifests"]["dynamic"]["metrics"]["steps"]
-                print(f"warm-up {steps_w} steps, stage two {steps_d} steps; static = warm-up + {steps_d} static "
-                      f"steps (same total {steps_w + steps_d})\n")
-                print(format_table(("split", "region", "frames", "PSNR static", "PSNR full", "dPSNR", "SSIM static",
-                                    "SSIM full", "LPIPS static", "LPIPS full", "dLPIPS"), region_rows(full, static)))
-                print()
-                print(format_table(("split", "variant", "full-image PSNR", "perfect hand", "perfect hand and face",
-                                    "squared error: hand / face / background", "hand pixels"),
-                                   [row for variant, v in (("static", static), ("full", full))
-                                    for row in error_budget(outputs / subject, variant, v["metrics"])]))
-                print()
-                print(format_table(("cost", "value"), cost_rows(full, static, split)))
+                if not args.no_run:
+                    costs = step_costs(preset, subject, outputs, args.set, args.cost_steps, args.cost_rounds)
+                load = (load0, os.getloadavg())
+                print(f"\n## {subject} at {preset} {' '.join(args.set)} (load average {load[0][0]:.1f} -> "
+                      f"{load[1][0]:.1f})\n")
+                if full is not None:
+                    print_quality(full, static, outputs / subject)
+                rows = cost_rows(full, static, costs)
+                print(format_table(("cost", "value"), rows))
+                if costs is not None:
+                    write_costs(args.results, preset, subject, costs, load, rows)
                 sys.stdout.flush()
 
 
-def cost_rows(full: dict, static: dict, split: dict | None) -> list[tuple]:
-    """The cost table: ms per step of the warm-up and both stage twos, the full model's step split (``split``,
-    from ``step_split``; None: not measured), evaluations of I, peak memory and the DAG wall times."""
+def print_quality(full: dict, static: dict, subject_dir: Path) -> None:
+    """The quality tables of the two variants and their error budget."""
+    steps_w = full["manifests"]["warmup"]["metrics"]["steps"]
+    steps_d = full["manifests"]["dynamic"]["metrics"]["steps"]
+    print(f"warm-up {steps_w} steps, stage two {steps_d} steps; static = warm-up + {steps_d} static "
+          f"steps (same total {steps_w + steps_d})\n")
+    print(format_table(("split", "region", "frames", "PSNR static", "PSNR full", "dPSNR", "SSIM static",
+                        "SSIM full", "LPIPS static", "LPIPS full", "dLPIPS"), region_rows(full, static)))
+    print()
+    print(format_table(("split", "variant", "full-image PSNR", "perfect hand", "perfect hand and face",
+                        "squared error: hand / face / background", "hand pixels"),
+                       [row for variant, v in (("static", static), ("full", full))
+                        for row in error_budget(subject_dir, variant, v["metrics"])]))
+    print()
+
+
+def cost_rows(full: dict | None, static: dict | None, costs: dict | None) -> list[tuple]:
+    """The cost table: the side-by-side step costs (``costs`` from :func:`step_costs`; None: not measured), then
+    from the trained variants (None: not trained) ms per step of the warm-up and both stage twos as the stages
+    timed them, evaluations of I, peak memory and the DAG wall times."""
+    rows = []
+    if costs is not None:
+        rows += [
+            (f"side by side ({costs['rounds']} rounds of {costs['steps']} steps, medians; {costs['gaussians']} "
+             f"Gaussians, {costs['hand_gaussians']} on the hand): warm-up ms/step", f"{costs['warmup_ms']:.0f}"),
+            ("stage two ms/step", f"{costs['step_ms']:.0f}"),
+            ("RATIO stage two / warm-up", f"{costs['ratio']:.2f}"),
+            ("  PointNet++ forward ms", f"{costs['pointnet_ms']:.0f}"),
+            ("  MLPs forward ms (H_geo, H_app, I)", f"{costs['mlps_ms']:.0f}"),
+            ("  posing / glue forward ms (the rest of the model)", f"{costs['posing_glue_ms']:.0f}"),
+            ("  rasterizer forward ms", f"{costs['render_ms']:.0f}"),
+            ("  loss ms", f"{costs['loss_ms']:.0f}"),
+            ("  backward ms (everything)", f"{costs['backward_ms']:.0f}"),
+            ("  optimizer step ms", f"{costs['optimizer_ms']:.0f}"),
+            ("  steps with I evaluated", f"{costs['interaction_steps']:.0%}"),
+        ]
+    if full is None or static is None:
+        return rows
     steps_w = full["manifests"]["warmup"]["metrics"]["steps"]
     warm_ms = 1000 * full["manifests"]["warmup"]["timings"]["wall_s"] / steps_w
     dm, sm = full["manifests"]["dynamic"]["metrics"], static["manifests"]["dynamic"]["metrics"]
-    rows = [
-        ("warm-up ms/step (stage wall / steps, incl. density control)", f"{warm_ms:.0f}"),
-        ("stage two full ms/step", f"{dm['ms_per_step']:.0f}"),
-        ("stage two static ms/step", f"{sm['ms_per_step']:.0f}"),
+    rows += [
+        ("DAG run: warm-up ms/step (stage wall / steps, incl. density control and validation)", f"{warm_ms:.0f}"),
+        ("DAG run: stage two full ms/step", f"{dm['ms_per_step']:.0f}"),
+        ("DAG run: stage two static ms/step", f"{sm['ms_per_step']:.0f}"),
         ("  full: model forward / render / loss / backward ms",
          " / ".join(f"{dm[k + '_ms_per_step']:.0f}" for k in ("model", "render", "loss", "backward"))),
-    ]
-    if split is not None:
-        rows += [
-            (f"one step on contact frame {split['frame']}, fwd+bwd: PointNet++ ms", f"{split['pointnet_ms']:.0f}"),
-            ("  MLPs ms (whole - PointNet++ - render)", f"{split['mlp_ms']:.0f}"),
-            ("  render ms", f"{split['render_ms']:.0f}"),
-        ]
-    rows += [
         ("interaction-MLP evaluations (Gaussians, all steps)", dm["interaction_mlp_evaluations"]),
         ("steps with I evaluated", dm["interaction_steps"]),
         ("peak MB (dynamic stage)", f"{full['manifests']['dynamic']['peak_memory_mb']:.0f}"),
@@ -275,6 +359,39 @@ def cost_rows(full: dict, static: dict, split: dict | None) -> list[tuple]:
     if full["wall_s"] is not None:
         rows.append(("DAG wall s: full / static rerun", f"{full['wall_s']:.0f} / {static['wall_s']:.0f}"))
     return rows
+
+
+def write_costs(results: Path, preset: str, subject: str, costs: dict, load: tuple, rows: list[tuple]) -> None:
+    """Append the step costs to ``results/bench_dynamic.json`` and the cost table to ``bench_dynamic.md``
+    (commit, preset, machine, threads, load before and after)."""
+    results.mkdir(parents=True, exist_ok=True)
+    run = {"commit": _commit(), "preset": preset, "subject": subject, "machine": _cpu(),
+           "threads": torch.get_num_threads(), "load_before": list(load[0]), "load_after": list(load[1]),
+           "made": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "costs": costs}
+    path = results / "bench_dynamic.json"
+    previous = json.loads(path.read_text()) if path.is_file() else {"runs": []}
+    previous["runs"].append(run)
+    path.write_text(json.dumps(previous, indent=1))
+    md_path = results / "bench_dynamic.md"
+    if not md_path.is_file():
+        md_path.write_text("# bench_dynamic: the stage-two step against the warm-up step (issue 33)\n\n"
+                           "Appended by `benchmarks/bench_dynamic.py`, one section per subject, preset and run.\n")
+    with md_path.open("a") as md:
+        md.write(f"\n## {subject} at {preset}: commit {run['commit']}, {run['machine']}, {run['threads']} threads, "
+                 f"load {' '.join(f'{x:.2f}' for x in load[0])} -> {' '.join(f'{x:.2f}' for x in load[1])}, "
+                 f"{run['made']}\n\n```\n{format_table(('cost', 'value'), rows)}\n```\n")
+
+
+def _cpu() -> str:
+    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").is_file() else []:
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def _commit() -> str:
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True
+                          ).stdout.strip() or "unknown"
 
 
 if __name__ == "__main__":

@@ -152,8 +152,11 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
                  "splatting", "stage.warmup", "fit.source", "stage.keypoints.detector"),  # refines_params
     outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet",
              "params.parquet"),
-    version="9",  # 9: refine_params, stage two posed from the warm-up's params.parquet; 8: stage.dynamic.select (the kept step and modules); 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
-    # rasterizer's alpha as a power of two (rounding-level)
+    # 10: issue 33's faster step (fused layers, fused Adam; rounding-level changes); 9: refine_params, stage two posed
+    # from the warm-up's params.parquet; 8: stage.dynamic.select (the kept step and modules); 7: SSIM filtered by
+    # shifted sums instead of conv2d (rounding-level changes); 6: the compiled rasterizer's alpha as a power of two
+    # (rounding-level)
+    version="10",
     per_method=True,
     resources=Resources(cpus=2, gpus=0),
     config_schema=DynamicConfig,

@@ -116,6 +116,16 @@ def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
     ], dim=-1)
 
 
+def place_means(frames: TriangleFrames, binding: Tensor, local_means: Tensor,
+                local_scales: Tensor) -> tuple[Tensor, Tensor]:
+    """World means (..., N, 3) and scales (..., N, 3) of bound Gaussians: :func:`place_gaussians` without the
+    rotations, for callers that need only where the Gaussians are and how large (the arguments as there)."""
+    R = frames.rotation[..., binding, :, :]
+    k = frames.scale[..., binding, None]
+    means = k * (R @ local_means[..., None])[..., 0] + frames.origin[..., binding, :]
+    return means, k * local_scales
+
+
 def place_gaussians(frames: TriangleFrames, binding: Tensor, local_means: Tensor, local_scales: Tensor,
                     local_quats: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """World means (..., N, 3), scales (..., N, 3) and quaternions (..., N, 4) of bound Gaussians.
@@ -127,11 +137,8 @@ def place_gaussians(frames: TriangleFrames, binding: Tensor, local_means: Tensor
         local_scales: (N, 3) linear scale in units of k.
         local_quats: (N, 4) rotation relative to the frame (need not be normalised).
     """
-    R = frames.rotation[..., binding, :, :]
-    k = frames.scale[..., binding, None]
-    means = k * (R @ local_means[..., None])[..., 0] + frames.origin[..., binding, :]
+    means, scales = place_means(frames, binding, local_means, local_scales)
     # per triangle, then gathered: the same values as per Gaussian, bit for bit, for fewer conversions (one
     # draft warm-up step: 2.5 ms for 11k triangles instead of 9.8 ms for their 36k Gaussians, 1 thread)
     frame_quats = rotation_to_quaternion(frames.rotation)[..., binding, :]
-    quats = quaternion_multiply(frame_quats, local_quats)
-    return means, k * local_scales, quats
+    return means, scales, quaternion_multiply(frame_quats, local_quats)

@@ -8,25 +8,48 @@ the layers that read the input (the first layer and the skip into the middle lay
 ``W [p; f] + b = W_p p + (W_f f + b)``, and ``W_f f`` is computed once per frame instead of once per
 Gaussian. This is the same function as the concatenated MLP (a test checks it), at a fraction of the cost
 when F is wide.
+
+On a CPU these networks are bound by memory traffic over (N, width) tensors as much as by the products, so
+each layer makes as few passes as it can: the per-frame term is the bias of the point product (``addmm``),
+the skip's product is the input of the middle layer's (no separate sums), the leaky ReLU works in place on
+the layer norm's fresh output, and point inputs that need no gradient are multiplied apart from those that
+do. Same function, to rounding (tests/dynamic/test_delta_mlp.py); evaluating a module's heads as one batched
+network (stacked weights, ``baddbmm``) measured no faster and was dropped (docs/notes/2026-12-04-stage-two-speed.md).
 """
 
 from __future__ import annotations
 
+import torch
+import torch.nn.functional as fn
 from torch import Tensor, nn
+
+PointInputs = Tensor | tuple[Tensor, ...]  # (N, P), or its column blocks (N, P_1), (N, P_2), ...
 
 
 class SplitLinear(nn.Module):
-    """``Linear`` on ``[point (N, P); frame (Fd,) broadcast]`` without materialising the concatenation."""
+    """``Linear`` on ``[point (N, P); frame (Fd,) broadcast]`` without materialising the concatenation.
+
+    The point inputs may come in parts, ``(N, P_1), (N, P_2), ...`` with ``sum P_k = P``, each multiplied by its
+    own columns of the weight: a part that needs no gradient (a fixed encoding) then costs none in the backward
+    pass, where the concatenation would have its gradient computed whole and then cut."""
 
     def __init__(self, point_dim: int, frame_dim: int, out_dim: int) -> None:
         super().__init__()
         self.point = nn.Linear(point_dim, out_dim)
         self.frame = nn.Linear(frame_dim, out_dim, bias=False) if frame_dim > 0 else None
 
-    def forward(self, point: Tensor, frame: Tensor) -> Tensor:
-        """point (N, P), frame (Fd,) -> (N, out_dim)."""
-        out = self.point(point)
-        return out + self.frame(frame) if self.frame is not None else out
+    def forward(self, point: PointInputs, frame: Tensor, shift: Tensor | None = None) -> Tensor:
+        """point (N, P) or its parts, frame (Fd,), shift (out_dim,) added too -> (N, out_dim)."""
+        bias = self.point.bias if shift is None else self.point.bias + shift
+        if self.frame is not None:  # W_f f + b: once per frame, then the bias of one product
+            bias = bias + self.frame(frame)
+        parts = (point,) if isinstance(point, Tensor) else point
+        out, start = None, 0
+        for part in parts:
+            weight = self.point.weight[:, start:start + part.shape[1]]
+            out = torch.addmm(bias, part, weight.T) if out is None else torch.addmm(out, part, weight.T)
+            start += part.shape[1]
+        return out
 
 
 class DeltaMLP(nn.Module):
@@ -51,15 +74,21 @@ class DeltaMLP(nn.Module):
         nn.init.zeros_(self.output.weight)
         nn.init.zeros_(self.output.bias)
 
-    def forward(self, point: Tensor, frame: Tensor) -> Tensor:
-        """point (N, P) per-Gaussian inputs, frame (Fd,) per-frame inputs -> (N, out_dim) deltas."""
-        h = self.act(self.norms[0](self.input_layer(point, frame)))
+    def forward(self, point: PointInputs, frame: Tensor) -> Tensor:
+        """point (N, P) per-Gaussian inputs (or their parts, see :class:`SplitLinear`), frame (Fd,) per-frame
+        inputs -> (N, out_dim) deltas."""
+        h = self._activate(self.input_layer(point, frame), 0)
         for i, layer in enumerate(self.hidden, start=1):
-            z = layer(h)
-            if i == self.skip_at:
-                z = z + self.skip(point, frame)  # == Linear([h; input]) split in two
-            h = self.act(self.norms[i](z))
+            if i == self.skip_at:  # == Linear([h; input]) split in two; the skip's product carries the layer's bias
+                z = torch.addmm(self.skip(point, frame, layer.bias), h, layer.weight.T)
+            else:
+                z = layer(h)
+            h = self._activate(z, i)
         return self.output(h)
+
+    def _activate(self, z: Tensor, layer: int) -> Tensor:
+        """LayerNorm ``layer``, then LeakyReLU in place on the fresh normalised tensor: (N, width) -> (N, width)."""
+        return fn.leaky_relu_(self.norms[layer](z), self.act.negative_slope)
 
 
 class DeltaHeads(nn.Module):
@@ -70,6 +99,6 @@ class DeltaHeads(nn.Module):
         self.heads = nn.ModuleDict({name: DeltaMLP(point_dim, frame_dim, dim, width, depth)
                                     for name, dim in outputs.items()})
 
-    def forward(self, point: Tensor, frame: Tensor) -> dict[str, Tensor]:
-        """point (N, P), frame (Fd,) -> {name: (N, dim)}."""
+    def forward(self, point: PointInputs, frame: Tensor) -> dict[str, Tensor]:
+        """point (N, P) or its parts, frame (Fd,) -> {name: (N, dim)}."""
         return {name: head(point, frame) for name, head in self.heads.items()}

