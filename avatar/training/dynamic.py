@@ -195,7 +195,8 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         raise ValueError("stage two selects what it keeps on validation frames: set stage.dynamic.validation.every "
                          "> 0, or stage.dynamic.select.enabled=false")
     best = BestStep() if cfg.selection.enabled else None
-    lpips = lpips if lpips is not None else LPIPS("vgg")
+    if lpips is None and cfg.patch_weight > 0:  # the VGG layers cost time to build: only where L_patch counts
+        lpips = LPIPS("vgg")
     optimizer = _optimizer(model, cfg)
     result = DynamicTrainResult([], 0, 0, {"model": 0.0, "render": 0.0, "loss": 0.0, "backward": 0.0})
     start = 0
@@ -281,7 +282,7 @@ _CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction", "
 
 
 def _loss_terms(pred: Tensor, gt: Tensor, labels: np.ndarray, g: DynamicFrame, visible: Tensor,
-                cfg: DynamicTrainConfig, lpips: LPIPS) -> dict[str, Tensor]:
+                cfg: DynamicTrainConfig, lpips: LPIPS | None) -> dict[str, Tensor]:
     """The terms of the paper's loss for one rendered crop (pred, gt: (S, S, 3); labels: (S, S))."""
     return {
         **reconstruction_terms(pred, gt, g.local_scales, g.local_means, visible, cfg.eps_s, cfg.eps_mu),
