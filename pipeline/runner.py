@@ -347,6 +347,7 @@ class Runner:
             self._log_decision(report)
             tmp = self.ws.new_tmp_dir(a)
             scratch = self.ws.scratch_dir(a, d.key)
+            resumed_s = self.ws.begin_attempt(scratch)
             try:
                 regular, cross, other_subject = self._context_inputs(s, d.inputs)
                 ctx = StageContext(
@@ -374,7 +375,8 @@ class Runner:
                     config=d.config,
                     upstream=d.upstream,
                     outputs=hash_outputs(tmp),
-                    timings={"wall_s": usage.wall_s},
+                    # resumed_s: earlier killed runs' work this one resumed from (up to their last checkpoint)
+                    timings={"wall_s": usage.wall_s, **({"resumed_s": resumed_s} if resumed_s > 0 else {})},
                     peak_memory_mb=usage.peak_rss_mb,
                     metrics=dict(ctx.metrics),
                     git_sha=_git_sha(),

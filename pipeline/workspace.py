@@ -23,9 +23,11 @@ killed at any point leaves nothing that a later run takes for whole.
 from __future__ import annotations
 
 import glob
+import json
 import os
 import re
 import shutil
+import time
 import uuid
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -42,6 +44,7 @@ _SUBJECT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
 METHODS_DIR = "methods"
 _UNIQUE_HEX = 12        # hex digits naming one temporary dir of an artifact
 _SCRATCH_KEY_HEX = 16   # hex digits of the cache key naming one scratch dir of an artifact
+ATTEMPT_FILE = "_attempt.json"  # in a scratch dir: when the run now using it started, and what it carries
 
 
 def subject_problem(subject: object) -> str | None:
@@ -210,10 +213,37 @@ class Workspace:
 
     def discard_empty_scratch(self, scratch: Path) -> None:
         """Remove ``scratch`` if the stage left nothing in it to resume from (after a failure)."""
+        if [p.name for p in scratch.iterdir()] == [ATTEMPT_FILE]:
+            (scratch / ATTEMPT_FILE).unlink(missing_ok=True)
         try:
             scratch.rmdir()
         except OSError:
             pass  # not empty: a checkpoint the next run with the same key resumes from
+
+    @staticmethod
+    def begin_attempt(scratch: Path) -> float:
+        """Record in ``scratch`` that a run of its stage starts now; return the seconds of earlier runs that this
+        one resumes from (0 for a fresh start).
+
+        An earlier run that was killed or failed left its checkpoints here and :data:`ATTEMPT_FILE` with its
+        start time: the work it saved took from that start to the newest checkpoint's modification time (the
+        steps after it are lost and redone, so they do not count), plus what that run itself carried from
+        runs before it. With no checkpoint left nothing is reused and nothing is carried.
+        """
+        marker = scratch / ATTEMPT_FILE
+        saved = [p.stat().st_mtime for p in scratch.iterdir()
+                 if p.is_file() and ATTEMPT_FILE not in p.name and not p.name.endswith(".tmp")]
+        carried = 0.0
+        if saved and marker.exists():
+            try:
+                earlier = json.loads(marker.read_text())
+                carried = max(0.0, max(saved) - float(earlier["start"])) + float(earlier["carried_s"])
+            except (ValueError, KeyError, TypeError):  # a torn marker: the time is unknown, the checkpoint still good
+                carried = 0.0
+        tmp = marker.with_name(f".{ATTEMPT_FILE}.{_unique()}")
+        tmp.write_text(json.dumps({"start": time.time(), "carried_s": carried}))
+        os.replace(tmp, marker)
+        return carried
 
     def publish(self, artifact: Artifact, tmp_dir: Path) -> Path:
         """Move a completed ``tmp_dir`` to the artifact's final path, replacing any old version."""

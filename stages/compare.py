@@ -91,9 +91,16 @@ class MethodRun:
     @property
     def train_wall_s(self) -> float:
         """Wall time of the warm-up and stage two, without their validation passes (``validation_s``, when
-        ``stage.<stage>.validation.every`` > 0): training, not measuring it."""
+        ``stage.<stage>.validation.every`` > 0): training, not measuring it. A stage resumed after a kill counts
+        the earlier run's work it resumed from too (``timings.resumed_s``: up to that run's last checkpoint)."""
         stages = [self.manifests[s] for s in ("warmup", "dynamic")]
-        return sum(float(m["timings"]["wall_s"]) - float(m["metrics"].get("validation_s", 0.0)) for m in stages)
+        return sum(float(m["timings"]["wall_s"]) + float(m["timings"].get("resumed_s", 0.0))
+                   - float(m["metrics"].get("validation_s", 0.0)) for m in stages)
+
+    @property
+    def resumed(self) -> bool:
+        """Whether the warm-up or stage two resumed after a kill (its time partly estimated, see train_wall_s)."""
+        return any("resumed_s" in self.manifests[s]["timings"] for s in ("warmup", "dynamic"))
 
     @property
     def gaussians(self) -> int:
@@ -103,7 +110,7 @@ class MethodRun:
 @stage("compare", inputs=SHARED_STAGES, config_keys=("stage.compare",),
        outputs=("comparison.parquet", "tables.json", "tables.md", "figures"), config_schema=CompareConfig,
        cross_method_inputs=("warmup", "dynamic", "evaluate"), methods_key="stage.compare.methods",
-       seeds_key="stage.compare.seeds", reads_manifests=True, version="4")  # 4: scene checked; 3: seeds
+       seeds_key="stage.compare.seeds", reads_manifests=True, version="5")  # 5: resumed time; 4: scene; 3: seeds
 def compare(ctx: StageContext) -> None:
     """Tables 1 and 2 and the image rows of the paper for every evaluated method of stage.compare.methods and
     training seed of stage.compare.seeds (mean and spread over the seeds)."""
@@ -315,7 +322,8 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
                *(_stat(_seed_values(rows, m, split, region)["lpips"], 4) for region in ("full", "hand", "interaction")),
                _stat(_seed_values(rows, m, split, "interaction", "contact")["psnr"], 2), *paper_cells(m, split)]
               for split in splits for m in ABLATIONS if m in present]
-    budget = [[r.label, str(r.seed), str(r.train_steps), f"{r.train_wall_s:.0f}", str(r.gaussians)] for r in runs]
+    budget = [[r.label, str(r.seed), str(r.train_steps), f"{r.train_wall_s:.0f}" + (" (resumed)" if r.resumed else ""),
+               str(r.gaussians)] for r in runs]
     steps = {r.train_steps for r in runs}
     notes = [
         f"Training seeds: {', '.join(map(str, seeds))}. A cell is the mean over the seeds' runs, with ± the sample "
@@ -333,6 +341,10 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
         f"{cost['warmups_trained']:.0f} distinct warm-ups), against {cost['unshared_wall_s']:.0f} s with every "
         f"method computed from scratch.",
     ]
+    if any(r.resumed for r in runs):
+        notes.append("Training seconds marked (resumed): the warm-up or stage two was killed and resumed from its "
+                     "checkpoint; the time counts the killed run up to its last checkpoint (the steps it lost after "
+                     "that were redone and count once).")
     crossed = {r.label: r.manifests["evaluate"]["config"].get("reenact", {}).get("driver", "self") for r in runs
                if "cross_reenact" in set(r.metrics["split"])}
     if crossed:

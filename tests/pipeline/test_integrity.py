@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import subprocess
 from pathlib import Path
 
@@ -170,3 +171,28 @@ def test_warmup_key_leaves_out_the_checkpoint_interval_and_every_preset_checkpoi
     for preset in ("smoke", "draft", "standard", "paper"):
         cfg = compose_cfg([f"quality={preset}"])
         assert 0 < cfg.stage.warmup.checkpoint_every < cfg.quality.warmup_steps, preset
+
+
+def test_a_resumed_stage_counts_the_killed_runs_work_up_to_its_checkpoint(toy_cfg):
+    """Issue 36 item 13: a resumed stage's manifest carries the earlier run's time up to its checkpoint
+    (``timings.resumed_s``); a stage that ran in one go has none; nothing is left in scratch."""
+    cfg = toy_cfg("++stage.a.fail_once=true", "++stage.a.sleep_s=0.4")
+    with pytest.raises(StageFailed):
+        run_app(cfg)
+    run_app(cfg)
+    root = Path(cfg.paths.outputs) / "synth_a"
+    timings = json.loads((root / "a" / "_manifest.json").read_text())["timings"]
+    assert 0.4 <= timings["resumed_s"] < 0.4 + 5.0  # the first run slept 0.4 s before its checkpoint
+    assert timings["wall_s"] >= 0.4  # the resumed run's own time, apart
+    assert "resumed_s" not in json.loads((root / "b" / "_manifest.json").read_text())["timings"]
+    assert not list((root / ".scratch").glob("a-*"))
+
+
+def test_a_failure_before_any_checkpoint_leaves_no_scratch_and_carries_nothing(toy_cfg):
+    cfg = toy_cfg("++stage.a.fail=true")
+    with pytest.raises(StageFailed):
+        run_app(cfg)
+    root = Path(cfg.paths.outputs) / "synth_a"
+    assert not list((root / ".scratch").glob("a-*"))  # the attempt marker alone is not worth keeping
+    run_app(toy_cfg())
+    assert "resumed_s" not in json.loads((root / "a" / "_manifest.json").read_text())["timings"]

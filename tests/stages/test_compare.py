@@ -74,6 +74,19 @@ def test_shared_warmups_count_once_in_the_cost():
     assert cost["unshared_wall_s"] == pytest.approx(3 * 100 + 3 * 10 + 3 * (5 + 2))
 
 
+def test_a_resumed_run_counts_the_killed_runs_work_and_is_marked():
+    """Issue 36 item 13: after a resume the training time counted only the resumed part."""
+    run = _run("interactavatar")
+    run.manifests["dynamic"]["timings"]["resumed_s"] = 7.0
+    assert run.train_wall_s == pytest.approx(15.0 + 7.0) and run.resumed and not _run("no_pbd").resumed
+    runs = [run, _run("gaussian_avatars")]
+    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
+                                                        "unshared_wall_s": 2.0})
+    budget = next(t for t in tables["tables"] if t["title"] == "Training budget")
+    assert [row[3] for row in budget["rows"]] == ["22 (resumed)", "15"]
+    assert any("(resumed)" in n for n in tables["notes"])
+
+
 def test_tables_say_whether_the_budget_was_the_same_and_what_is_missing():
     same = _tables([_run("interactavatar"), _run("gaussian_avatars")],
                    _comparison_rows([_run("interactavatar"), _run("gaussian_avatars")]), [("no_pbd", 0)],
