@@ -146,14 +146,9 @@ class Runner:
         cross-method inputs as ``stage@method`` for each configured method with a complete artifact (or
         one this run plans to write)."""
         out = {name: self.artifact(name) for name in s.inputs}
-        methods = OmegaConf.select(self.cfg, s.methods_key) if s.methods_key else None
-        seeds = OmegaConf.select(self.cfg, s.seeds_key) if s.seeds_key else None
-        runs = [method_run(str(m), int(seed)) for m in methods or () for seed in seeds or (0,)]
-        for name in s.cross_method_inputs:
-            for run in runs:
-                a = Artifact(name, run)
-                if a.key in pending or self._verified.get(a.key) or self._verify(a):
-                    out[a.key] = a
+        for a in self._cross_method_artifacts(s):
+            if a.key in pending or self._verified.get(a.key) or self._verify(a):
+                out[a.key] = a
         other = s.input_subject(self.cfg) if s.input_subject is not None else None
         if other is not None and other == self.ws.subject:
             raise ConfigError(f"stage '{s.name}' reads another subject's artifacts, but the config names this run's "
@@ -165,6 +160,26 @@ class Runner:
                 raise ConfigError(f"stage '{s.name}' reads another subject: {problem}")
             out.update({a.key: a for a in (Artifact(name, None, other) for name in s.subject_inputs)})
         return out
+
+    def _cross_method_artifacts(self, s: Stage) -> list[Artifact]:
+        """Every cross-method artifact ``s`` may read: each of its cross-method stages for each configured
+        method and seed, whether or not it is on disk."""
+        methods = OmegaConf.select(self.cfg, s.methods_key) if s.methods_key else None
+        seeds = OmegaConf.select(self.cfg, s.seeds_key) if s.seeds_key else None
+        runs = [method_run(str(m), int(seed)) for m in methods or () for seed in seeds or (0,)]
+        return [Artifact(name, run) for name in s.cross_method_inputs for run in runs]
+
+    def _cross_method_problems(self, s: Stage, inputs: dict[str, Artifact]) -> dict[str, str]:
+        """Run folder -> why its cross-method artifact of ``s`` is on disk but unusable (corrupt, unreadable)."""
+        problems: dict[str, str] = {}
+        for a in self._cross_method_artifacts(s):
+            if a.key in inputs or not self.ws.artifact_dir(a).exists():
+                continue
+            manifest = self._readable_manifest(a)
+            why = ("no readable manifest" if manifest is None else
+                   verify_outputs(self.ws.artifact_dir(a), manifest, self.registry[a.stage].outputs))
+            problems.setdefault(str(a.method), f"{a.stage}: {why}")
+        return problems
 
     def _context_inputs(self, s: Stage, inputs: dict[str, Artifact]
                         ) -> tuple[dict[str, Path], dict[str, dict[str, Path]], dict[str, Path]]:
@@ -359,6 +374,7 @@ class Runner:
                     show_progress=self.show_progress,
                     method=self.method,
                     method_inputs=cross,
+                    method_problems=self._cross_method_problems(s, d.inputs),
                     subject_inputs=other_subject,
                 )
                 with ResourceMonitor() as monitor:

@@ -71,6 +71,9 @@ class StageContext:
         metrics: scalar results the stage wants recorded in its manifest and
             shown in the final table (e.g. ``{"frames": 12}``).
         show_progress: whether progress bars are drawn.
+        method_problems: for the cross-method inputs, run folder -> why an artifact that is on disk could not
+            be used (``"dynamic: file ... does not match its manifest"``); such runs are absent from
+            ``method_inputs``.
     """
 
     cfg: DictConfig
@@ -83,6 +86,7 @@ class StageContext:
     method: str | None = None
     method_inputs: Mapping[str, Mapping[str, Path]] = field(default_factory=dict)
     subject_inputs: Mapping[str, Path] = field(default_factory=dict)
+    method_problems: Mapping[str, str] = field(default_factory=dict)
 
     def input_dir(self, stage: str) -> Path:
         """Artifact directory of a declared upstream stage (of this run's method where it is per-method)."""

@@ -123,12 +123,20 @@ def compare(ctx: StageContext) -> None:
     stale = {r.run: (why, _run_args(r.name, r.seed)) for r in found
              if (why := stale_reason(r.manifests, shared)) is not None}
     runs = [r for r in found if r.run not in stale]
-    missing = [(m, seed) for m, seed in listed if method_run(m, seed) not in {r.run for r in found}]
+    corrupt = {method_run(m, seed): (ctx.method_problems[method_run(m, seed)], _run_args(m, seed))
+               for m, seed in listed if method_run(m, seed) in ctx.method_problems}
+    if not runs and (corrupt or stale):  # publishing would replace the last good comparison with an empty one
+        raise RuntimeError("nothing left to compare, so the last comparison is kept: " + "; ".join(
+            f"{run} is {kind} ({why}): rerun it with `interactavatar {fix} run.until=evaluate`"
+            for kind, problems in (("corrupted", corrupt), ("stale", stale))
+            for run, (why, fix) in problems.items()))
+    missing = [(m, seed) for m, seed in listed
+               if method_run(m, seed) not in {r.run for r in found} and method_run(m, seed) not in corrupt]
     rows = _comparison_rows(runs)
     write_table(ctx.out_dir / "comparison.parquet", COMPARISON,
                 {c.name: (rows[c.name] if c.kind == "string" else np.asarray(rows[c.name])) for c in COMPARISON.columns})
     cost = _cost(runs, shared)
-    tables = _tables(runs, rows, missing, cost, stale)
+    tables = _tables(runs, rows, missing, cost, stale, corrupt)
     write_json(ctx.out_dir / "tables.json", tables, "the comparison tables")
     write_bytes(ctx.out_dir / "tables.md", _markdown(tables).encode(), "the comparison tables")
     (ctx.out_dir / "figures").mkdir()
@@ -141,6 +149,7 @@ def compare(ctx: StageContext) -> None:
     ctx.metrics.update({"methods_compared": len(runs),
                         "methods_missing": ",".join(method_run(m, seed) for m, seed in missing) or "-",
                         "methods_stale": ",".join(stale) or "-",
+                        "methods_corrupt": ",".join(corrupt) or "-",
                         "seeds": ",".join(str(int(seed)) for seed in conf.seeds),
                         "same_train_steps": int(len({r.train_steps for r in runs}) <= 1), **cost})
 
@@ -308,7 +317,8 @@ def _run_args(method: str, seed: int) -> str:
 
 
 def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[str, int]], cost: dict[str, float],
-            stale: dict[str, tuple[str, str]] | None = None) -> dict[str, Any]:
+            stale: dict[str, tuple[str, str]] | None = None,
+            corrupt: dict[str, tuple[str, str]] | None = None) -> dict[str, Any]:
     """The comparison as titled tables (headers, rows of strings) plus notes, for tables.md and the report."""
     present = {r.name: r for r in runs}  # method -> one of its runs (label, ...)
     seeds = sorted({r.seed for r in runs})
@@ -333,7 +343,8 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
         "training motion; self-reenactment: the training cameras on the held-out motion; cross-reenactment "
         "(when reenact.driver names another subject): the training cameras on that subject's held-out motion "
         "transferred onto this one, against the synthetic ground truth of this identity performing it.",
-        ("Every method trained the same number of optimisation steps (warm-up plus stage two: "
+        ("No method to compare yet." if not steps else
+         "Every method trained the same number of optimisation steps (warm-up plus stage two: "
          f"{next(iter(steps))}) on the same frames and views." if len(steps) == 1 else
          f"The methods trained different numbers of steps ({sorted(steps)}): the comparison is not fair."),
         "Paper: InteractAvatar (ICCV 2025) on DECAF at 512x512; it gives no numbers for w/o PBD and w/o L_patch.",
@@ -358,6 +369,8 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
         notes.append(f"Not evaluated yet: {', '.join(method_run(m, seed) for m, seed in missing)}. Add them with "
                      f"`interactavatar -m method={methods}" + (f" seed={missing_seeds}" if missing_seeds != "0" else "") +
                      "` (same subject and preset), then `interactavatar run.only=compare`, or run `make compare`.")
+    for run, (why, fix) in (corrupt or {}).items():  # run -> (why, the overrides that select it)
+        notes.append(f"Left out, corrupted: {run}: {why} (`interactavatar {fix} run.until=evaluate` recomputes it).")
     for run, (why, fix) in (stale or {}).items():  # run -> (why, the overrides that select it)
         notes.append(f"Left out, stale: {run}: {why} (`interactavatar {fix} run.until=evaluate`, "
                      f"then `interactavatar run.only=compare`).")

@@ -39,9 +39,11 @@ def q(ctx: StageContext) -> None:
 @stage("cmp", config_keys=("stage.cmp",), outputs=("cmp.txt",), cross_method_inputs=("q",),
        methods_key="stage.cmp.methods", seeds_key="stage.cmp.seeds")
 def cmp(ctx: StageContext) -> None:
-    """Shared stage reading every listed method's q."""
+    """Shared stage reading every listed method's q (and naming the listed ones whose q is on disk but unusable)."""
     dirs = ctx.method_dirs("q")
-    (ctx.out_dir / "cmp.txt").write_text("".join(f"{m}: {Path(d, 'q.txt').read_text()}" for m, d in sorted(dirs.items())))
+    read = "".join(f"{m}: {Path(d, 'q.txt').read_text()}" for m, d in sorted(dirs.items()))
+    unusable = "".join(f"unusable {m}: {why}\n" for m, why in ctx.method_problems.items())
+    (ctx.out_dir / "cmp.txt").write_text(read + unusable)
     ctx.metrics["methods"] = len(dirs)
 
 

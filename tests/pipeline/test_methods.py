@@ -67,6 +67,18 @@ def test_each_seed_is_a_run_of_its_own_beside_the_others(method_cfg, tmp_path):
         run_app(method_cfg("m1", 1, "stage.cmp.seeds=[]"))
 
 
+def test_a_cross_method_reader_is_told_which_listed_artifacts_are_corrupt(method_cfg, tmp_path):
+    """Issue 36 item 11: a corrupt artifact was indistinguishable from a missing one for the comparison."""
+    root = tmp_path / "out" / "synth_a"
+    run_app(method_cfg("m1"))
+    run_app(method_cfg("m2"))
+    (root / "methods" / "m2" / "q" / "q.txt").write_text("tampered\n")
+    run_app(method_cfg("m1", 1, "run.only=cmp"))
+    text = (root / "cmp" / "cmp.txt").read_text()
+    assert text.startswith("m1: ") and "m2: a=" not in text
+    assert "unusable m2: q: " in text and "q.txt" in text
+
+
 def test_a_method_s_change_reruns_only_that_method(method_cfg, tmp_path):
     run_app(method_cfg("m1"))
     run_app(method_cfg("m2"))

@@ -211,3 +211,39 @@ def test_the_shared_stages_compare_checks_are_exactly_those_evaluate_reads():
     shared = {name for name in evaluate.inputs if not registry[name].per_method}
     assert set(SHARED_STAGES) == shared
     assert set(registry["compare"].inputs) == shared
+
+
+def test_a_corrupt_method_is_named_with_the_fix_and_an_empty_comparison_is_never_published(tmp_path):
+    """Issue 36 item 11: a corrupt stage two made `run.only=compare` publish a comparison with no rows, saying
+    "Not evaluated yet" and calling zero methods not fair."""
+    from pipeline.stage import StageContext
+    from stages import REGISTRY
+    from tests.conftest import compose_cfg
+
+    shared = {}
+    for name in SHARED_STAGES:
+        shared[name] = tmp_path / name
+        shared[name].mkdir()
+        (shared[name] / "_manifest.json").write_text('{"output_digest": "x"}')
+    out = tmp_path / "out"
+    out.mkdir()
+    ctx = StageContext(cfg=compose_cfg(["stage.compare.methods=[interactavatar]"]), subject="synth_a", out_dir=out,
+                       inputs=shared, method_inputs={"warmup": {}, "dynamic": {}, "evaluate": {}},
+                       method_problems={"interactavatar": "dynamic: gaussians.parquet does not match its manifest"})
+    with pytest.raises(RuntimeError, match="last comparison is kept") as err:
+        REGISTRY["compare"].fn(ctx)
+    assert "interactavatar is corrupted (dynamic: gaussians.parquet" in str(err.value)
+    assert "`interactavatar method=interactavatar run.until=evaluate`" in str(err.value)
+    assert not list(out.iterdir())  # nothing written: the runner keeps the published comparison
+
+    runs = [_run("gaussian_avatars")]
+    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
+                                                        "unshared_wall_s": 2.0},
+                     corrupt={"interactavatar": ("dynamic: gaussians.parquet does not match its manifest",
+                                                 "method=interactavatar")})
+    assert any(n.startswith("Left out, corrupted: interactavatar: dynamic:") and "method=interactavatar" in n
+               for n in tables["notes"])
+    empty = _tables([], _comparison_rows([]), [("no_pbd", 0)], {"total_wall_s": 0.0, "warmups_trained": 0,
+                                                                 "unshared_wall_s": 0.0})
+    assert any(n == "No method to compare yet." for n in empty["notes"]) and not any("not fair" in n
+                                                                                   for n in empty["notes"])
