@@ -20,11 +20,11 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.config import ConfigError, validate_config
+from pipeline.config import ConfigError, fix_command, validate_config
 from pipeline.registry import RegistryError, load_registry
 from pipeline.runner import MissingUpstream, Runner, StageFailed, StageReport
 from pipeline.summary import metrics_table, stage_table
-from pipeline.workspace import LockTimeout, outputs_problem
+from pipeline.workspace import LockTimeout, outputs_problem, run_overrides
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 USER_ERRORS = (ConfigError, RegistryError, MissingUpstream, StageFailed, LockTimeout)
@@ -59,15 +59,32 @@ def run_app(cfg: DictConfig) -> list[StageReport]:
     print(stage_table(reports))
     print()
     print(metrics_table(reports))
+    for line in comparison_fixes(cfg, reports):
+        print(line)
     report_html = runner.artifact_dir("report") / "report.html" if "report" in registry else None
     if report_html is not None and report_html.is_file():
         print(f"\nreport: {report_html.resolve()}")
     return reports
 
 
+def comparison_fixes(cfg: DictConfig, reports: list[StageReport]) -> list[str]:
+    """One line per training run the comparison left out (stale, corrupted), with the command that recomputes
+    it in this DAG: this command line's overrides repeated (:func:`pipeline.config.fix_command`)."""
+    metrics = next((r.metrics for r in reports if r.stage == "compare"), {})
+    lines = []
+    for key, kind in (("methods_stale", "stale"), ("methods_corrupt", "corrupted")):
+        value = str(metrics.get(key, "-"))
+        for run in [] if value == "-" else value.split(","):
+            lines.append(f"comparison: {run} left out ({kind}); recompute it with "
+                         f"`{fix_command(cfg, *run_overrides(run), 'run.until=evaluate')}`, then "
+                         f"`{fix_command(cfg, 'run.only=compare')}`")
+    return lines
+
+
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> None:
     """Console entry point (``interactavatar``)."""
+    OmegaConf.update(cfg, "run.overrides", list(HydraConfig.get().overrides.task))  # fix commands repeat them
     try:
         run_app(cfg)
     except USER_ERRORS as exc:

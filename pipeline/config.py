@@ -7,7 +7,8 @@ all of them at once, before anything is written.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import shlex
+from dataclasses import dataclass, field
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -32,6 +33,22 @@ class RunConfig:
     dry: bool = False  # print the plan and the reason per stage, run nothing
     progress: bool = True  # progress bars for long loops
     lock_timeout_s: float = 3600.0  # how long to wait for another run holding a stage lock
+    overrides: list[str] = field(default_factory=list)  # set by the CLI: the command line's overrides
+
+
+#: overrides a fix command sets itself, or that select what to run rather than what is computed
+_NOT_REPEATED = ("run.", "+run.", "method=", "method.", "+method.", "seed=", "hydra.", "hydra/", "~")
+
+
+def fix_command(cfg: DictConfig, *args: str) -> str:
+    """A shell command for a message that tells the user how to fix something: ``interactavatar``, this run's
+    own command-line overrides (``run.overrides``; those that decide where and from what the stages compute:
+    ``paths.outputs``, ``subject``, ``quality``, ``fit.source``, ...; not ``run.*``, ``method``, ``seed``) and
+    ``args``, which win over an override of the same key. Run as printed, it computes in the same DAG."""
+    own = {arg.split("=", 1)[0].lstrip("+") for arg in args}
+    kept = [o for o in (OmegaConf.select(cfg, "run.overrides") or ())
+            if not str(o).startswith(_NOT_REPEATED) and str(o).split("=", 1)[0].lstrip("+") not in own]
+    return " ".join(["interactavatar", *(shlex.quote(str(o)) for o in kept), *(shlex.quote(a) for a in args)])
 
 
 @dataclass

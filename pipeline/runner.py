@@ -29,7 +29,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from data_schemas.tables import SchemaError
-from pipeline.config import ConfigError, changed_keys, config_subset
+from pipeline.config import ConfigError, changed_keys, config_subset, fix_command
 from pipeline.manifest import (
     Manifest,
     ManifestError,
@@ -43,7 +43,7 @@ from pipeline.monitor import ResourceMonitor
 from pipeline.registry import StageRegistry
 from pipeline.sources import changed_sources, hash_sources
 from pipeline.stage import Stage, StageContext
-from pipeline.workspace import Artifact, LockTimeout, Workspace, method_run, subject_problem
+from pipeline.workspace import Artifact, LockTimeout, Workspace, method_run, run_overrides, subject_problem
 
 Log = Callable[[str], None]
 
@@ -208,12 +208,10 @@ class Runner:
             manifest = self._verified.get(a.key) or self._verify(a)
             if manifest is None:
                 up_dir = self.ws.artifact_dir(a)
-                method = f" method={a.method}" if a.method else ""
-                raise MissingUpstream(
-                    f"stage '{s.name}' reads '{a.key}', which has no complete artifact in {up_dir}; "
-                    f"run it first (e.g. interactavatar subject={a.subject or self.ws.subject}{method} "
-                    f"run.until={a.stage})"
-                )
+                fix = fix_command(self.cfg, f"subject={a.subject or self.ws.subject}",
+                                  *(run_overrides(a.method) if a.method else ()), f"run.until={a.stage}")
+                raise MissingUpstream(f"stage '{s.name}' reads '{a.key}', which has no complete artifact in {up_dir}; "
+                                      f"run it first (e.g. {fix})")
             digests[key] = _input_digest(s, manifest)
         return digests, rerunning
 

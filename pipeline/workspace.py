@@ -37,7 +37,7 @@ from pathlib import Path
 from pipeline.locks import LockTimeout, flock, flock_all
 
 __all__ = ["Artifact", "LockTimeout", "METHODS_DIR", "SUBJECT_RULE", "Workspace", "method_problem", "method_run",
-           "outputs_problem", "seed_problem", "subject_problem"]
+           "outputs_problem", "run_overrides", "seed_problem", "subject_problem"]
 
 SUBJECT_RULE = "letters, digits, '-' or '_', starting with a letter or digit"
 _SUBJECT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
@@ -65,6 +65,15 @@ def method_run(method: str, seed: int = 0) -> str:
     """The name of one training run of ``method`` (its artifact folder under ``methods/``): the method's own name
     for seed 0, the default run, and ``<method>-seed<k>`` for seed k (``make compare SEEDS=0,1,2``)."""
     return method if int(seed) == 0 else f"{method}-seed{int(seed)}"
+
+
+def run_overrides(run: str) -> list[str]:
+    """The overrides that select the training run folder ``run`` (:func:`method_run`'s inverse):
+    ``["method=m"]`` for ``m``, ``["method=m", "seed=2"]`` for ``m-seed2``."""
+    method, sep, seed = run.rpartition("-seed")
+    if sep and seed.isdigit() and method:
+        return [f"method={method}", f"seed={int(seed)}"]
+    return [f"method={run}"]
 
 
 def seed_problem(seed: object, key: str = "seed") -> str | None:

@@ -21,7 +21,9 @@ reason, in the notes and the ``methods_stale`` metric: its row would compare res
 
 from __future__ import annotations
 
+import functools
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,6 +39,7 @@ from data_schemas.images import read_png, write_png
 from data_schemas.metrics import COMPARISON, CONTACT_GROUPS, METRICS, REGIONS, SPLIT_SOURCES, SPLITS, showcase_path
 from data_schemas.tables import read_table, write_table
 from data_schemas.writes import write_bytes, write_json
+from pipeline.config import fix_command
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.workspace import method_run
@@ -125,9 +128,10 @@ def compare(ctx: StageContext) -> None:
     runs = [r for r in found if r.run not in stale]
     corrupt = {method_run(m, seed): (ctx.method_problems[method_run(m, seed)], _run_args(m, seed))
                for m, seed in listed if method_run(m, seed) in ctx.method_problems}
+    command = functools.partial(fix_command, ctx.cfg)
     if not runs and (corrupt or stale):  # publishing would replace the last good comparison with an empty one
         raise RuntimeError("nothing left to compare, so the last comparison is kept: " + "; ".join(
-            f"{run} is {kind} ({why}): rerun it with `interactavatar {fix} run.until=evaluate`"
+            f"{run} is {kind} ({why}): rerun it with `{command(*fix.split(), 'run.until=evaluate')}`"
             for kind, problems in (("corrupted", corrupt), ("stale", stale))
             for run, (why, fix) in problems.items()))
     missing = [(m, seed) for m, seed in listed
@@ -136,7 +140,7 @@ def compare(ctx: StageContext) -> None:
     write_table(ctx.out_dir / "comparison.parquet", COMPARISON,
                 {c.name: (rows[c.name] if c.kind == "string" else np.asarray(rows[c.name])) for c in COMPARISON.columns})
     cost = _cost(runs, shared)
-    tables = _tables(runs, rows, missing, cost, stale, corrupt)
+    tables = _tables(runs, rows, missing, cost, stale, corrupt)  # artifacts hold no run's command line: see _tables
     write_json(ctx.out_dir / "tables.json", tables, "the comparison tables")
     write_bytes(ctx.out_dir / "tables.md", _markdown(tables).encode(), "the comparison tables")
     (ctx.out_dir / "figures").mkdir()
@@ -317,9 +321,13 @@ def _run_args(method: str, seed: int) -> str:
 
 
 def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[str, int]], cost: dict[str, float],
-            stale: dict[str, tuple[str, str]] | None = None,
-            corrupt: dict[str, tuple[str, str]] | None = None) -> dict[str, Any]:
-    """The comparison as titled tables (headers, rows of strings) plus notes, for tables.md and the report."""
+            stale: dict[str, tuple[str, str]] | None = None, corrupt: dict[str, tuple[str, str]] | None = None,
+            command: Callable[..., str] = lambda *args: " ".join(["interactavatar", *args])) -> dict[str, Any]:
+    """The comparison as titled tables (headers, rows of strings) plus notes, for tables.md and the report.
+    ``stale``, ``corrupt``: run -> (why, the overrides that select it); ``command``: the fix command of some
+    overrides. The published notes use the default, without this run's command line (an artifact is a function
+    of its cache key, which no command line is part of); the CLI prints the full commands after the run
+    (``pipeline.cli``) and errors carry them (:func:`pipeline.config.fix_command`)."""
     present = {r.name: r for r in runs}  # method -> one of its runs (label, ...)
     seeds = sorted({r.seed for r in runs})
     paper_cells = lambda m, split: _metric_cells(dict(zip(METRIC_NAMES, PAPER[m][split]))) \
@@ -366,14 +374,16 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
     if missing:
         methods = ",".join(dict.fromkeys(m for m, _ in missing))
         missing_seeds = ",".join(dict.fromkeys(str(seed) for _, seed in missing))
+        seeds_arg = [f"seed={missing_seeds}"] if missing_seeds != "0" else []
         notes.append(f"Not evaluated yet: {', '.join(method_run(m, seed) for m, seed in missing)}. Add them with "
-                     f"`interactavatar -m method={methods}" + (f" seed={missing_seeds}" if missing_seeds != "0" else "") +
-                     "` (same subject and preset), then `interactavatar run.only=compare`, or run `make compare`.")
-    for run, (why, fix) in (corrupt or {}).items():  # run -> (why, the overrides that select it)
-        notes.append(f"Left out, corrupted: {run}: {why} (`interactavatar {fix} run.until=evaluate` recomputes it).")
-    for run, (why, fix) in (stale or {}).items():  # run -> (why, the overrides that select it)
-        notes.append(f"Left out, stale: {run}: {why} (`interactavatar {fix} run.until=evaluate`, "
-                     f"then `interactavatar run.only=compare`).")
+                     f"`{command('-m', f'method={methods}', *seeds_arg)}`, then `{command('run.only=compare')}`, with "
+                     "this comparison's paths.outputs, subject, preset and capture settings.")
+    for run, (why, fix) in (corrupt or {}).items():
+        notes.append(f"Left out, corrupted: {run}: {why} (`{command(*fix.split(), 'run.until=evaluate')}` "
+                     "recomputes it).")
+    for run, (why, fix) in (stale or {}).items():
+        notes.append(f"Left out, stale: {run}: {why} (`{command(*fix.split(), 'run.until=evaluate')}`, "
+                     f"then `{command('run.only=compare')}`).")
     return {"tables": [
         {"title": "Table 1: baselines against the full model (full image)",
          "headers": ["split", "method", "PSNR", "SSIM", "LPIPS", "paper PSNR", "paper SSIM", "paper LPIPS"],
