@@ -78,11 +78,13 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
 @stage("reenact", inputs=("capture", "fit", "scene", "dynamic"),
        config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
        outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
-       version="5", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
+       version="6", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
        input_subject=driver_subject, sources=_sources)
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
     conf, cfg = ctx.cfg.stage.reenact, ctx.cfg
+    sequence, sequence_note = (self_sequence(ctx.input_dir("capture"), str(cfg.reenact.sequence))
+                               if str(cfg.reenact.driver) == "self" else (str(cfg.reenact.sequence), ""))
     params, driver_label, scale = _driving_params(ctx)
     driven = drive(cfg, params, load_scene(ctx.input_dir("scene")), scale)
     meshes, cond, offsets, pbd_frames = driven.meshes, driven.cond, driven.offsets, driven.pbd_frames
@@ -134,7 +136,7 @@ def reenact(ctx: StageContext) -> None:
     timings["frames_per_second"] = 1000 / (timings["model_ms_per_frame"] + timings["render_ms_per_view"])
     simulated = [f for f in pbd_frames if f["simulated"]]
     write_json(ctx.out_dir / "reenact_report.json", {
-        "driver": driver_label, "sequence": str(cfg.reenact.sequence), "frames": T, "head_scale": scale,
+        "driver": driver_label, "sequence": sequence, "sequence_note": sequence_note, "frames": T, "head_scale": scale,
         "views": {name: {"K": K.tolist(), "world_to_cam": w2c.tolist()} for name, (K, w2c) in views.items()},
         "views_note": "per frame: K (T, 3, 3) and world_to_cam (T, 4, 4)",
         "pbd": {"simulated": bool(cfg.method.pbd), "stiffness": driven.stiffness_source, "frames": pbd_frames},
@@ -146,6 +148,21 @@ def reenact(ctx: StageContext) -> None:
         "penetration_max_mm": max((f["penetration_max_mm"] for f in simulated), default=0.0),
         **timings, "rasterizer": resolve_backend(conf.backend, meshes.vertices),
     })
+
+
+HELD_OUT = "test"  # the held-out motion reenact.sequence names by default; a capture of one's own may lack it
+TRAIN = "train"
+
+
+def self_sequence(capture_dir: Path, requested: str) -> tuple[str, str]:
+    """(the sequence ``reenact.driver=self`` drives the avatar with, why). The requested one, except that a
+    capture without the held-out ``test`` sequence (optional for a folder capture) reenacts its training motion
+    instead of failing at the end of the DAG; any other sequence the capture lacks stays an error (listed)."""
+    sequences = CaptureIndex.read(capture_dir).sequences
+    if requested == HELD_OUT and HELD_OUT not in sequences and TRAIN in sequences:
+        return TRAIN, (f"the capture has no held-out '{HELD_OUT}' sequence: the avatar reenacts the training "
+                       f"motion '{TRAIN}' instead (add <capture>/{HELD_OUT}/ for a held-out motion)")
+    return requested, ""
 
 
 def _check_fitted(fit_dir: Path, sequence: str, whose: str) -> None:
@@ -160,6 +177,7 @@ def _driving_params(ctx: StageContext) -> tuple[dict[str, np.ndarray], str, floa
     """(parameters of every output frame on the target, where they came from, head-size ratio target / driver)."""
     driver, sequence = str(ctx.cfg.reenact.driver), str(ctx.cfg.reenact.sequence)
     if driver == "self":
+        sequence = self_sequence(ctx.input_dir("capture"), sequence)[0]
         _check_fitted(ctx.input_dir("fit"), sequence, "this subject")
         # the train motion as the method refined it while training (the fit's for any other sequence)
         return method_params(ctx.input_dir("dynamic"), ctx.input_dir("fit"), sequence), f"self ({sequence})", 1.0
@@ -213,7 +231,8 @@ def _ground_truth_sequence(ctx: StageContext, num_frames: int) -> tuple[str | No
     driver = str(ctx.cfg.reenact.driver)
     if is_parameter_file(driver):
         return None, "driven by a parameter file: no capture of this identity performing it"
-    sequence = str(ctx.cfg.reenact.sequence) if driver == "self" else cross_sequence(driver)
+    sequence = self_sequence(ctx.input_dir("capture"), str(ctx.cfg.reenact.sequence))[0] if driver == "self" \
+        else cross_sequence(driver)
     info = CaptureIndex.read(ctx.input_dir("capture")).sequences.get(sequence)
     if info is None:
         return None, f"the capture has no sequence '{sequence}' (synthetic captures render it with " \

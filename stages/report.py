@@ -326,6 +326,8 @@ def _reenact_section(reenact_dir: Path) -> str:
             + f"; {metrics['frames_per_second']:.1f} frames per second at {metrics['image_size']} px "
               f"(model {metrics['model_ms_per_frame']:.0f} ms per frame, rasterizer "
               f"{metrics['render_ms_per_view']:.0f} ms per view).")
+    if info.get("sequence_note"):  # e.g. a capture without the held-out motion reenacts its training motion
+        text += f" {info['sequence_note'][0].upper()}{info['sequence_note'][1:]}."
     truth = info["ground_truth"]
     text += (f" Beside the ground truth ({truth['sequence']}) on camera(s) {', '.join(truth['cameras'])}."
              if truth["cameras"] else f" No ground truth to show: {truth['note']}.")
