@@ -34,10 +34,8 @@ import argparse
 import copy
 import json
 import os
-import platform
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -49,6 +47,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from benchmarks.provenance import commit, cpu_name  # noqa: E402
 
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
@@ -365,7 +364,7 @@ def write_costs(results: Path, preset: str, subject: str, costs: dict, load: tup
     """Append the step costs to ``results/bench_dynamic.json`` and the cost table to ``bench_dynamic.md``
     (commit, preset, machine, threads, load before and after)."""
     results.mkdir(parents=True, exist_ok=True)
-    run = {"commit": _commit(), "preset": preset, "subject": subject, "machine": _cpu(),
+    run = {"commit": commit(), "preset": preset, "subject": subject, "machine": cpu_name(),
            "threads": torch.get_num_threads(), "load_before": list(load[0]), "load_after": list(load[1]),
            "made": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "costs": costs}
     path = results / "bench_dynamic.json"
@@ -380,18 +379,6 @@ def write_costs(results: Path, preset: str, subject: str, costs: dict, load: tup
         md.write(f"\n## {subject} at {preset}: commit {run['commit']}, {run['machine']}, {run['threads']} threads, "
                  f"load {' '.join(f'{x:.2f}' for x in load[0])} -> {' '.join(f'{x:.2f}' for x in load[1])}, "
                  f"{run['made']}\n\n```\n{format_table(('cost', 'value'), rows)}\n```\n")
-
-
-def _cpu() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").is_file() else []:
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
-
-
-def _commit() -> str:
-    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True
-                          ).stdout.strip() or "unknown"
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from benchmarks.provenance import commit, cpu_name  # noqa: E402
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 import torch  # noqa: E402
@@ -101,17 +102,6 @@ def run_arm(arm: str, outputs: Path, extra: list[str] = ()) -> dict:
             "psnr_novel_view": psnr["novel_view"], "psnr_self_reenact": psnr["self_reenact"]}
 
 
-def commit() -> str:
-    """``BENCH_COMMIT`` when set (a copy of the working tree sent to a GPU machine), else the checkout's commit."""
-    if os.environ.get("BENCH_COMMIT"):
-        return os.environ["BENCH_COMMIT"]
-    try:
-        proc = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
-    except OSError:
-        return os.environ.get("BENCH_COMMIT", "unknown")
-    return proc.stdout.strip() or os.environ.get("BENCH_COMMIT", "unknown")
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--outputs", type=Path, default=REPO / "outputs" / "gpu_check")
@@ -129,7 +119,7 @@ def main() -> None:
         raise SystemExit("bench_gpu needs a CUDA GPU (torch.cuda.is_available() is False)")
     from avatar.render.gaussians import available_backends
 
-    result: dict = {"commit": commit(), "dag_overrides": args.set, "machine": platform.node(),
+    result: dict = {"commit": commit(), "dag_overrides": args.set, "machine": platform.node(), "cpu": cpu_name(),
                     "gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda, "cpus": os.cpu_count(),
                     "load_start": os.getloadavg()}
     def save() -> None:

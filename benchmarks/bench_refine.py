@@ -16,8 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import sys
 from dataclasses import asdict
 from pathlib import Path
@@ -27,6 +25,7 @@ import torch
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from benchmarks.provenance import commit, cpu_name  # noqa: E402
 
 from avatar.fitting.fit import FitConfig, fit_sequence  # noqa: E402
 from avatar.fitting.refine import REFINE_MODES, RefineConfig, evidence_from_views  # noqa: E402
@@ -79,10 +78,6 @@ def measure(workspace: Path, sequence: str, modes: list[str], cameras: list[str]
     return rows
 
 
-def _commit() -> str:
-    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workspace", type=Path, required=True, help="a subject's folder under paths.outputs")
@@ -97,7 +92,7 @@ def main() -> None:
     print(format_table(list(rows[0]), [[str(r.get(k, "-")) for k in rows[0]] for r in rows]))
     args.results.mkdir(parents=True, exist_ok=True)
     (args.results / "bench_refine.json").write_text(json.dumps(
-        {"commit": _commit(), "machine": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+        {"commit": commit(), "machine": cpu_name(), "cores": os.cpu_count(),
          "load": os.getloadavg(), "workspace": str(args.workspace), "sequence": args.sequence,
          "cameras": args.cameras, "settings": asdict(RefineConfig()), "rows": rows}, indent=1))
 

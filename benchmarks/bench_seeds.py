@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -41,6 +40,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from benchmarks.provenance import commit, cpu_name  # noqa: E402
 
 from data_schemas.metrics import COMPARISON  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
@@ -162,24 +162,6 @@ def _load() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 SUMMARY = (("novel_view", "full", "all"), ("novel_view", "hand", "all"), ("novel_view", "interaction", "contact"),
            ("self_reenact", "full", "all"), ("self_reenact", "hand", "all"), ("self_reenact", "interaction", "contact"))
 
@@ -221,7 +203,7 @@ def table(outputs: Path, results: Path) -> None:
                                             "what": spec["what"], "overrides": spec["overrides"],
                                             "threads": _threads(spec)}
     lines = ["# bench_seeds: InteractAvatar against GaussianAvatars with seeds (issue 40)", "",
-             f"Commit of this table: {_commit()}; machine: {_cpu()}, {os.cpu_count()} cores; load now: {_load()}; "
+             f"Commit of this table: {commit()}; machine: {cpu_name()}, {os.cpu_count()} cores; load now: {_load()}; "
              f"made {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", "",
              "## Summary: InteractAvatar's PSNR minus GaussianAvatars' (dB, difference of the seed means; in brackets "
              "the larger of the two seed standard deviations)", "", summary(rows, meta), ""]
@@ -249,7 +231,7 @@ def table(outputs: Path, results: Path) -> None:
     results.mkdir(parents=True, exist_ok=True)
     (results / "bench_seeds.md").write_text(text)
     (results / "bench_seeds.json").write_text(json.dumps(
-        {"commit": _commit(), "machine": _cpu(), "cores": os.cpu_count(), "load": _load(), "settings": meta,
+        {"commit": commit(), "machine": cpu_name(), "cores": os.cpu_count(), "load": _load(), "settings": meta,
          "rows": rows, "kept": kept}, indent=1))
 
 

@@ -25,8 +25,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -37,6 +35,7 @@ from omegaconf import OmegaConf
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from benchmarks.provenance import commit, cpu_name  # noqa: E402
 
 from avatar.gaussians.model import BoundGaussians  # noqa: E402
 from avatar.training.data import ViewSet  # noqa: E402
@@ -145,18 +144,6 @@ def cost(workspace: Path, steps: int, repeats: int) -> dict:
     return out | {f"{k}_ms": float(np.median(v)) for k, v in parts.items()}
 
 
-def _cpu() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").is_file() else []:
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
-
-
-def _commit() -> str:
-    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True
-                          ).stdout.strip() or "unknown"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workspace", type=Path, required=True, help="a subject's folder under paths.outputs")
@@ -186,7 +173,7 @@ def main() -> None:
     args.results.mkdir(parents=True, exist_ok=True)
     out = args.results / "bench_train_refine.json"
     previous = json.loads(out.read_text()) if out.is_file() else {"runs": []}
-    previous["runs"].append({"commit": _commit(), "machine": _cpu(), "workspace": str(args.workspace),
+    previous["runs"].append({"commit": commit(), "machine": cpu_name(), "workspace": str(args.workspace),
                              "load_before": load_before, "load_after": os.getloadavg(),
                              "threads": torch.get_num_threads(), "kind": "cost" if args.cost else "arms",
                              "rows": rows})
