@@ -175,10 +175,7 @@ class Runner:
         for a in self._cross_method_artifacts(s):
             if a.key in inputs or not self.ws.artifact_dir(a).exists():
                 continue
-            manifest = self._readable_manifest(a)
-            why = ("no readable manifest" if manifest is None else
-                   verify_outputs(self.ws.artifact_dir(a), manifest, self.registry[a.stage].outputs))
-            problems.setdefault(str(a.method), f"{a.stage}: {why}")
+            problems.setdefault(str(a.method), f"{a.stage}: {self._integrity(a)[1]}")
         return problems
 
     def _context_inputs(self, s: Stage, inputs: dict[str, Artifact]
@@ -222,13 +219,19 @@ class Runner:
         except ManifestError:
             return None
 
+    def _integrity(self, a: Artifact) -> tuple[Manifest | None, str | None]:
+        """(the artifact's manifest, None) if it and every output on disk are whole, else (None, why not)."""
+        manifest = self._readable_manifest(a)
+        if manifest is None:
+            return None, "no readable manifest"
+        why = verify_outputs(self.ws.artifact_dir(a), manifest, self.registry[a.stage].outputs)
+        return (None, why) if why is not None else (manifest, None)
+
     def _verify(self, a: Artifact) -> Manifest | None:
         """The artifact's manifest if it and every output on disk are whole (remembered for this run)."""
-        manifest = self._readable_manifest(a)
-        if manifest is None or verify_outputs(self.ws.artifact_dir(a), manifest,
-                                              self.registry[a.stage].outputs) is not None:
-            return None
-        self._verified[a.key] = manifest
+        manifest = self._integrity(a)[0]
+        if manifest is not None:
+            self._verified[a.key] = manifest
         return manifest
 
     def _forget_replaced_inputs(self, inputs: dict[str, Artifact]) -> None:

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import functools
 import json
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -321,13 +320,13 @@ def _run_args(method: str, seed: int) -> str:
 
 
 def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[str, int]], cost: dict[str, float],
-            stale: dict[str, tuple[str, str]] | None = None, corrupt: dict[str, tuple[str, str]] | None = None,
-            command: Callable[..., str] = lambda *args: " ".join(["interactavatar", *args])) -> dict[str, Any]:
+            stale: dict[str, tuple[str, str]] | None = None,
+            corrupt: dict[str, tuple[str, str]] | None = None) -> dict[str, Any]:
     """The comparison as titled tables (headers, rows of strings) plus notes, for tables.md and the report.
-    ``stale``, ``corrupt``: run -> (why, the overrides that select it); ``command``: the fix command of some
-    overrides. The published notes use the default, without this run's command line (an artifact is a function
-    of its cache key, which no command line is part of); the CLI prints the full commands after the run
-    (``pipeline.cli``) and errors carry them (:func:`pipeline.config.fix_command`)."""
+    ``stale``, ``corrupt``: run -> (why, the overrides that select it). The notes' commands carry no run's
+    command line (an artifact is a function of its cache key, which no command line is part of); the CLI prints
+    the full commands after the run (``pipeline.cli``) and errors carry them (:func:`pipeline.config.fix_command`)."""
+    command = lambda *args: " ".join(["interactavatar", *args])  # noqa: E731
     present = {r.name: r for r in runs}  # method -> one of its runs (label, ...)
     seeds = sorted({r.seed for r in runs})
     paper_cells = lambda m, split: _metric_cells(dict(zip(METRIC_NAMES, PAPER[m][split]))) \

@@ -44,7 +44,7 @@ from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
 from stages.common import (
     contact_sources, drive, driver_subject, is_parameter_file, load_params, load_scene, load_trained, method_params,
-    posed_gaussians, transferred_params, write_frame_ply,
+    TRAIN_SEQUENCE, posed_gaussians, transferred_params, write_frame_ply,
 )
 
 
@@ -85,7 +85,7 @@ def reenact(ctx: StageContext) -> None:
     conf, cfg = ctx.cfg.stage.reenact, ctx.cfg
     sequence, sequence_note = (self_sequence(ctx.input_dir("capture"), str(cfg.reenact.sequence))
                                if str(cfg.reenact.driver) == "self" else (str(cfg.reenact.sequence), ""))
-    params, driver_label, scale = _driving_params(ctx)
+    params, driver_label, scale = _driving_params(ctx, sequence)
     driven = drive(cfg, params, load_scene(ctx.input_dir("scene")), scale)
     meshes, cond, offsets, pbd_frames = driven.meshes, driven.cond, driven.offsets, driven.pbd_frames
     T = offsets.shape[0]
@@ -119,7 +119,7 @@ def reenact(ctx: StageContext) -> None:
             write_png(ctx.out_dir / "frames" / name / f"{t:05d}.png", image)
     if not conf.ply:
         (ctx.out_dir / "ply").mkdir()
-    truth_sequence, truth_note = _ground_truth_sequence(ctx, T)
+    truth_sequence, truth_note = _ground_truth_sequence(ctx, T, sequence)
     truth_cameras = [] if truth_sequence is None else [name for name in views if name != "orbit"]
     capture_K = {c.camera_id: c.K for c in read_cameras(ctx.input_dir("capture") / "cameras.parquet")}
     for name in truth_cameras:
@@ -151,7 +151,6 @@ def reenact(ctx: StageContext) -> None:
 
 
 HELD_OUT = "test"  # the held-out motion reenact.sequence names by default; a capture of one's own may lack it
-TRAIN = "train"
 
 
 def self_sequence(capture_dir: Path, requested: str) -> tuple[str, str]:
@@ -159,9 +158,10 @@ def self_sequence(capture_dir: Path, requested: str) -> tuple[str, str]:
     capture without the held-out ``test`` sequence (optional for a folder capture) reenacts its training motion
     instead of failing at the end of the DAG; any other sequence the capture lacks stays an error (listed)."""
     sequences = CaptureIndex.read(capture_dir).sequences
-    if requested == HELD_OUT and HELD_OUT not in sequences and TRAIN in sequences:
-        return TRAIN, (f"the capture has no held-out '{HELD_OUT}' sequence: the avatar reenacts the training "
-                       f"motion '{TRAIN}' instead (add <capture>/{HELD_OUT}/ for a held-out motion)")
+    if requested == HELD_OUT and HELD_OUT not in sequences and TRAIN_SEQUENCE in sequences:
+        return TRAIN_SEQUENCE, (f"the capture has no held-out '{HELD_OUT}' sequence: the avatar reenacts the "
+                                f"training motion '{TRAIN_SEQUENCE}' instead (add <capture>/{HELD_OUT}/ for a "
+                                "held-out motion)")
     return requested, ""
 
 
@@ -173,11 +173,11 @@ def _check_fitted(fit_dir: Path, sequence: str, whose: str) -> None:
                           f"choose one of {there}")
 
 
-def _driving_params(ctx: StageContext) -> tuple[dict[str, np.ndarray], str, float]:
-    """(parameters of every output frame on the target, where they came from, head-size ratio target / driver)."""
-    driver, sequence = str(ctx.cfg.reenact.driver), str(ctx.cfg.reenact.sequence)
+def _driving_params(ctx: StageContext, sequence: str) -> tuple[dict[str, np.ndarray], str, float]:
+    """(parameters of every output frame on the target, where they came from, head-size ratio target / driver);
+    ``sequence``: the driver's sequence (for ``self``, :func:`self_sequence`'s)."""
+    driver = str(ctx.cfg.reenact.driver)
     if driver == "self":
-        sequence = self_sequence(ctx.input_dir("capture"), sequence)[0]
         _check_fitted(ctx.input_dir("fit"), sequence, "this subject")
         # the train motion as the method refined it while training (the fit's for any other sequence)
         return method_params(ctx.input_dir("dynamic"), ctx.input_dir("fit"), sequence), f"self ({sequence})", 1.0
@@ -226,13 +226,14 @@ def _views(ctx: StageContext, points: np.ndarray, params: dict[str, np.ndarray],
     return views
 
 
-def _ground_truth_sequence(ctx: StageContext, num_frames: int) -> tuple[str | None, str]:
-    """(the capture sequence that shows this identity performing the driving motion, or None; why)."""
+def _ground_truth_sequence(ctx: StageContext, num_frames: int, sequence: str) -> tuple[str | None, str]:
+    """(the capture sequence that shows this identity performing the driving motion, or None; why).
+    ``sequence``: the driver's (for ``self``, the capture sequence itself)."""
     driver = str(ctx.cfg.reenact.driver)
     if is_parameter_file(driver):
         return None, "driven by a parameter file: no capture of this identity performing it"
-    sequence = self_sequence(ctx.input_dir("capture"), str(ctx.cfg.reenact.sequence))[0] if driver == "self" \
-        else cross_sequence(driver)
+    if driver != "self":
+        sequence = cross_sequence(driver)
     info = CaptureIndex.read(ctx.input_dir("capture")).sequences.get(sequence)
     if info is None:
         return None, f"the capture has no sequence '{sequence}' (synthetic captures render it with " \

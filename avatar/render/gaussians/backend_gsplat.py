@@ -24,7 +24,7 @@ Conventions, and where they differ from the project's ``torch`` and ``cpu`` back
   determinant; the adapter caps a Gaussian's world scale at :data:`MAX_STD_PX` pixels of standard deviation
   at its depth, where it is already one flat colour over any image (its scale gradient is 0 beyond).
 
-``tests/render/gaussians/test_gs_gsplat_reference.py`` runs this adapter on the CPU through gsplat's PyTorch
+``tests/render/gaussians/test_gs_gsplat_adapter.py`` runs this adapter on the CPU through gsplat's PyTorch
 reference and compares it with the project's backends; ``test_gs_gsplat.py`` runs the CUDA kernels
 (``make test-gpu``).
 """
