@@ -8,7 +8,11 @@ Settings (all at ``quality=draft``; every method trained once per seed, the shar
   instead of 4: 4 of 8 would halve the training frames);
 - ``d``: the held-out third identity synth_c, ``full``, 24 frames, fitted tracking on MediaPipe detections;
 - ``a2``: (a) with two threads per run instead of one (thread counts change the rounding of torch's reductions,
-  which acts like another seed).
+  which acts like another seed);
+- ``p``: (a)'s captures and tracking, InteractAvatar against w/o PBD (issue 35: the methods table's "w/o PBD" rows
+  against the contact ground truth of capture version 8); ``table --settings p --name bench_seeds_pbd``.
+
+A setting compares InteractAvatar with GaussianAvatars unless it names another pair (``methods``).
 
 ``run`` trains and evaluates one setting's subject (``interactavatar -m method=... seed=...`` then the comparison
 with ``stage.compare.seeds``) in ``<outputs>/<setting>/``, with the setting's thread count (``OMP_NUM_THREADS``:
@@ -23,7 +27,7 @@ on the mean, at least +0.8 dB on the novel view's full image and +1.5 dB on its 
 interaction region still gains.
 
 Usage: python benchmarks/bench_seeds.py run --setting a --subject synth_a [--seeds 0 1 2] [--outputs DIR]
-       python benchmarks/bench_seeds.py table [--outputs DIR]
+       python benchmarks/bench_seeds.py table [--outputs DIR] [--settings a b ...] [--name bench_seeds]
 """
 
 from __future__ import annotations
@@ -74,6 +78,10 @@ SETTINGS: dict[str, dict] = {
                                                              "stage.warmup.refine_params=true",
                                                              "stage.dynamic.refine_params=true"],
            "what": "as (m1), and the train motion refined with the avatar in training (refine_params)"},
+    "p": {"subjects": ("synth_a", "synth_b"), "overrides": ["fit.source=ground_truth"],
+          "methods": ("interactavatar", "no_pbd"),
+          "what": "full appearance, 24 frames, ground-truth tracking, capture version 8: "
+                  "InteractAvatar against w/o PBD"},
 }
 REGIONS = (("full", "all"), ("hand", "all"), ("face", "all"), ("interaction", "all"), ("interaction", "contact"))
 SPLITS = {"novel_view": "NV", "self_reenact": "SR"}
@@ -81,6 +89,11 @@ SPLITS = {"novel_view": "NV", "self_reenact": "SR"}
 
 def _threads(spec: dict) -> int:
     return int(spec.get("threads", 1))
+
+
+def _methods(spec: dict) -> tuple[str, str]:
+    """The setting's (full model, baseline) pair."""
+    return tuple(spec.get("methods", METHODS))
 
 
 def _cli(threads: int, *args: str) -> None:
@@ -95,9 +108,9 @@ def run(setting: str, subject: str, seeds: list[int], outputs: Path, extra: list
     spec = SETTINGS[setting]
     common = [f"paths.outputs={outputs / setting}", f"subject={subject}", "quality=draft", "run.progress=false",
               *spec["overrides"], *extra]
-    seed_list = ",".join(map(str, seeds))
-    _cli(_threads(spec), "-m", f"method={','.join(METHODS)}", f"seed={seed_list}", "run.until=evaluate", *common)
-    _cli(_threads(spec), "run.only=compare", f"stage.compare.methods=[{','.join(METHODS)}]", f"stage.compare.seeds=[{seed_list}]",
+    seed_list, methods = ",".join(map(str, seeds)), ",".join(_methods(spec))
+    _cli(_threads(spec), "-m", f"method={methods}", f"seed={seed_list}", "run.until=evaluate", *common)
+    _cli(_threads(spec), "run.only=compare", f"stage.compare.methods=[{methods}]", f"stage.compare.seeds=[{seed_list}]",
          *common)
 
 
@@ -105,10 +118,10 @@ def _manifest(path: Path) -> dict:
     return json.loads((path / "_manifest.json").read_text())
 
 
-def _kept(subject_dir: Path, seeds: list[int]) -> list[list[str]]:
+def _kept(subject_dir: Path, seeds: list[int], methods: tuple[str, str]) -> list[list[str]]:
     """What the selection kept, per method and seed."""
     rows = []
-    for method in METHODS:
+    for method in methods:
         for seed in seeds:
             folder = subject_dir / "methods" / method_run(method, seed) / "dynamic"
             if not (folder / "_manifest.json").is_file():
@@ -136,14 +149,15 @@ def _stat(v: np.ndarray, digits: int) -> str:
     return f"{v.mean():.{digits}f}" + (f" ± {v.std(ddof=1):.{digits}f}" if v.size > 1 else "")
 
 
-def _setting_rows(setting: str, subject: str, table: dict) -> list[dict]:
-    """Per split and region: both methods' PSNR and LPIPS over the seeds, the difference and the verdicts."""
+def _setting_rows(setting: str, subject: str, table: dict, methods: tuple[str, str]) -> list[dict]:
+    """Per split and region: both methods' PSNR and LPIPS over the seeds, the difference and the verdicts
+    (``ia_*`` the full model's, ``ga_*`` the baseline's: ``methods``)."""
     out = []
     for split in SPLITS:
         for region, group in REGIONS:
-            psnr = {m: _values(table, m, split, region, group, "psnr") for m in METHODS}
-            lpips = {m: _values(table, m, split, region, group, "lpips") for m in METHODS}
-            full, base = psnr["interactavatar"], psnr["gaussian_avatars"]
+            psnr = {m: _values(table, m, split, region, group, "psnr") for m in methods}
+            lpips = {m: _values(table, m, split, region, group, "lpips") for m in methods}
+            full, base = psnr[methods[0]], psnr[methods[1]]
             if not (full.size and base.size):
                 continue
             diff = float(full.mean() - base.mean())
@@ -152,7 +166,7 @@ def _setting_rows(setting: str, subject: str, table: dict) -> list[dict]:
             out.append({"setting": setting, "subject": subject, "split": split, "region": region, "group": group,
                         "seeds": int(min(full.size, base.size)),
                         "ia_psnr": full.tolist(), "ga_psnr": base.tolist(),
-                        "ia_lpips": lpips["interactavatar"].tolist(), "ga_lpips": lpips["gaussian_avatars"].tolist(),
+                        "ia_lpips": lpips[methods[0]].tolist(), "ga_lpips": lpips[methods[1]].tolist(),
                         "difference_db": diff, "larger_sd_db": spread, "welch_p": welch_p(full, base),
                         "worse_beyond_spread": bool(diff < -spread)})
     return out
@@ -185,10 +199,21 @@ def summary(rows: list[dict], meta: dict) -> str:
     return format_table(headers, body)
 
 
-def table(outputs: Path, results: Path) -> None:
-    """Print every setting's table and write the result files."""
+#: Labels of the methods a setting may compare.
+LABELS = {"interactavatar": "InteractAvatar", "gaussian_avatars": "GaussianAvatars", "no_pbd": "w/o PBD"}
+
+
+def table(outputs: Path, results: Path, settings: list[str], name: str) -> None:
+    """Print the tables of ``settings`` (each compares one pair of methods; all of them the same pair) and write
+    ``results/<name>.{md,json}``."""
+    pairs = {_methods(SETTINGS[s]) for s in settings}
+    if len(pairs) != 1:
+        raise SystemExit(f"settings {settings} compare different method pairs {sorted(pairs)}: table them separately")
+    methods = pairs.pop()
+    full_label, base_label = (LABELS.get(m, m) for m in methods)
     rows, kept, meta = [], {}, {}
-    for setting, spec in SETTINGS.items():
+    for setting in settings:
+        spec = SETTINGS[setting]
         for subject in spec["subjects"]:
             compare_dir = outputs / setting / subject / "compare"
             if not (compare_dir / "comparison.parquet").is_file():
@@ -196,16 +221,16 @@ def table(outputs: Path, results: Path) -> None:
             manifest = _manifest(compare_dir)
             seeds = [int(s) for s in manifest["config"]["stage.compare"]["seeds"]]
             t = read_table(compare_dir / "comparison.parquet", COMPARISON)
-            rows += _setting_rows(setting, subject, t)
-            kept[f"{setting}/{subject}"] = _kept(outputs / setting / subject, seeds)
-            evaluate = _manifest(outputs / setting / subject / "methods" / "interactavatar" / "evaluate")
+            rows += _setting_rows(setting, subject, t, methods)
+            kept[f"{setting}/{subject}"] = _kept(outputs / setting / subject, seeds, methods)
+            evaluate = _manifest(outputs / setting / subject / "methods" / methods[0] / "evaluate")
             meta[f"{setting}/{subject}"] = {"seeds": seeds, "git": evaluate.get("git_sha", "?"),
                                             "what": spec["what"], "overrides": spec["overrides"],
-                                            "threads": _threads(spec)}
-    lines = ["# bench_seeds: InteractAvatar against GaussianAvatars with seeds (issue 40)", "",
+                                            "threads": _threads(spec), "methods": list(methods)}
+    lines = [f"# {name}: {full_label} against {base_label} with seeds", "",
              f"Commit of this table: {commit()}; machine: {cpu_name()}, {os.cpu_count()} cores; load now: {_load()}; "
              f"made {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", "",
-             "## Summary: InteractAvatar's PSNR minus GaussianAvatars' (dB, difference of the seed means; in brackets "
+             f"## Summary: {full_label}'s PSNR minus {base_label}'s (dB, difference of the seed means; in brackets "
              "the larger of the two seed standard deviations)", "", summary(rows, meta), ""]
     for key, info in meta.items():
         setting, subject = key.split("/")
@@ -219,18 +244,18 @@ def table(outputs: Path, results: Path) -> None:
                                                           else "level"),
                  _stat(np.array(r["ia_lpips"]), 4), _stat(np.array(r["ga_lpips"]), 4)]
                 for r in rows if (r["setting"], r["subject"]) == (setting, subject)]
-        lines += [format_table(("split", "region", "InteractAvatar PSNR", "GaussianAvatars PSNR", "diff", "larger sd",
-                                "Welch p", "verdict", "IA LPIPS", "GA LPIPS"), body), ""]
+        lines += [format_table(("split", "region", f"{full_label} PSNR", f"{base_label} PSNR", "diff", "larger sd",
+                                "Welch p", "verdict", f"{full_label} LPIPS", f"{base_label} LPIPS"), body), ""]
         lines += ["What stage two's selection kept:", "",
                   format_table(("method", "seed", "kept step", "of", "H kept", "I kept", "val PSNR kept",
                                 "val PSNR last", "val w/o H", "val w/o I"), kept[key]), ""]
-    lines += ["verdict: WORSE where InteractAvatar's mean is below GaussianAvatars' by more than the larger of the two "
+    lines += [f"verdict: WORSE where {full_label}'s mean is below {base_label}'s by more than the larger of the two "
               "seed standard deviations; gain where it is above with Welch's p < 0.05; level otherwise."]
     text = "\n".join(lines) + "\n"
     print(text)
     results.mkdir(parents=True, exist_ok=True)
-    (results / "bench_seeds.md").write_text(text)
-    (results / "bench_seeds.json").write_text(json.dumps(
+    (results / f"{name}.md").write_text(text)
+    (results / f"{name}.json").write_text(json.dumps(
         {"commit": commit(), "machine": cpu_name(), "cores": os.cpu_count(), "load": _load(), "settings": meta,
          "rows": rows, "kept": kept}, indent=1))
 
@@ -247,13 +272,16 @@ def main() -> None:
     t = sub.add_parser("table")
     t.add_argument("--outputs", type=Path, default=REPO / "outputs" / "bench_seeds")
     t.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results")
+    t.add_argument("--settings", nargs="+", default=[k for k, v in SETTINGS.items() if "methods" not in v],
+                   choices=sorted(SETTINGS), help="settings to table (one method pair)")
+    t.add_argument("--name", default="bench_seeds", help="result file name under --results")
     args = parser.parse_args()
     if args.command == "run":
         if args.subject not in SETTINGS[args.setting]["subjects"]:
             parser.error(f"setting {args.setting} is measured on {SETTINGS[args.setting]['subjects']}")
         run(args.setting, args.subject, args.seeds, args.outputs.resolve(), args.extra)
     else:
-        table(args.outputs.resolve(), args.results)
+        table(args.outputs.resolve(), args.results, args.settings, args.name)
 
 
 if __name__ == "__main__":

@@ -77,7 +77,7 @@ def _files_below(folder: Path) -> tuple[Path, ...]:
     config_keys=("dataset", "quality.capture_size", "quality.num_frames_train", "quality.num_frames_test",
                  "quality.supersample", "stage.capture"),
     outputs=("cameras.parquet", "capture.json"),
-    version="7",
+    version="8",
     resources=Resources(cpus=2),
     config_schema=CaptureConfig,
     sources=capture_sources,

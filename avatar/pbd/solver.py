@@ -19,8 +19,8 @@ Per frame (:func:`solve_frame`), on the posed, undeformed face ``rest`` (V, 3):
 
 Stiffnesses are relative to a unit particle mass: XPBD's implicit inertia term ties each free
 vertex to its start position with stiffness 1, small next to the attachments (``attach_stiffness``
-times the relative stiffness, 30-120 on the procedural face). The defaults were calibrated on the
-synthetic capture (README, "Contact deformation (pbd)").
+times the relative stiffness, 360-1440 on the procedural face). The defaults were calibrated on
+the synthetic capture synth_a (README, "Contact deformation (pbd)").
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ class PBDConfig:
     direct_outer: int = 6  # method=direct: active-set rounds of collision planes
     direct_inner: int = 10  # method=direct: local/global solves per round
     volume_stiffness: float = 0.0  # method=direct: tissue-volume preservation (0: off; it did not help)
-    shear_stiffness: float = 30.0  # tissue shear: couples neighbouring displacements (0: off)
+    shear_stiffness: float = 350.0  # tissue shear: couples neighbouring displacements (0: off)
     warm_start: bool = False
     margin_m: float = 0.01
     free_radius_m: float = 0.03
@@ -65,7 +65,7 @@ class PBDConfig:
     contact_tolerance_m: float = 0.001
     edge_stiffness: float = 10.0
     bend_stiffness: float = 3.0e-4
-    attach_stiffness: float = 60.0
+    attach_stiffness: float = 720.0
     reference_thickness_m: float = 0.01
     stiffness_power: float = 2.0
 

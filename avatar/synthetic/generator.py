@@ -115,9 +115,9 @@ def _scene(subject: _Subject, face: np.ndarray, hand: np.ndarray, hand_pose: np.
 def _soft_tissue(subject: _Subject, perf: Performance) -> np.ndarray:
     """(T, Vf, 3) soft-tissue offsets of every frame."""
     inner = torch.as_tensor(subject.inner_distance)
-    hand_faces = torch.as_tensor(subject.hand_faces)
+    hand_faces, face_faces = torch.as_tensor(subject.hand_faces), torch.as_tensor(subject.face_faces)
     return np.stack([
-        contact_offsets(torch.as_tensor(face), inner, torch.as_tensor(hand), hand_faces).numpy()
+        contact_offsets(torch.as_tensor(face), face_faces, inner, torch.as_tensor(hand), hand_faces).numpy()
         for face, hand in zip(perf.face_vertices, perf.hand_vertices)
     ])
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.optimize
 import torch
 import trimesh
 
@@ -12,7 +13,7 @@ from avatar.synthetic.keypoints import project_keypoints
 from avatar.synthetic.noise import fbm, value_noise
 from avatar.synthetic.rig import make_rig
 from avatar.synthetic.shading import BACKGROUND_LINEAR, srgb_decode, srgb_encode
-from avatar.synthetic.soft_tissue import FALLOFF_SIGMA_M, contact_offsets
+from avatar.synthetic.soft_tissue import CLEARANCE_M, REACH_M, contact_offsets, membrane_matrix, signorini_magnitudes
 
 
 def test_tone_curve_round_trip_and_background_code() -> None:
@@ -74,40 +75,90 @@ def test_signed_distance_matches_a_sphere() -> None:
     assert torch.equal((winding_number(p, verts, faces) > 0.5)[clear], (exact < 0)[clear])
 
 
-def _plane(half: float = 0.035, step: float = 0.0025) -> tuple[torch.Tensor, np.ndarray]:
+def _plane(half: float = 0.035, step: float = 0.0025) -> tuple[torch.Tensor, torch.Tensor]:
+    """A triangulated square (V, 3) in z = 0 and its faces (F, 3), normals along +z."""
     xs = np.arange(-half, half + 1e-9, step)
     gx, gy = np.meshgrid(xs, xs)
-    return torch.as_tensor(np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])), xs
+    n = xs.size
+    corner = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None]).ravel()
+    faces = np.concatenate([np.stack([corner, corner + 1, corner + n + 1], 1),
+                            np.stack([corner, corner + n + 1, corner + n], 1)])
+    return torch.as_tensor(np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])), torch.as_tensor(faces)
+
+
+def _press(depth: float, inner: float = 0.02) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A plane pressed by a 12 mm sphere ``depth`` deep: the plane, its offsets, and the sphere (vertices, faces)."""
+    face, faces = _plane()
+    hand, hand_faces = _sphere(0.012, (0.0, 0.0, 0.012 - depth))
+    offsets = contact_offsets(face, faces, torch.full((face.shape[0],), inner, dtype=torch.float64), hand, hand_faces)
+    return face, offsets, hand, hand_faces
 
 
 @pytest.mark.parametrize("depth", [0.002, 0.006])
-def test_soft_tissue_resolves_penetration_with_a_smooth_dent(depth: float) -> None:
-    face, _ = _plane()
-    hand, hand_faces = _sphere(0.012, (0.0, 0.0, 0.012 - depth))  # presses into the plane
-    inner = torch.full((face.shape[0],), 0.02, dtype=torch.float64)
-    offsets = contact_offsets(face, inner, hand, hand_faces)
-    moved = face + offsets
-    sdf, _, _ = signed_distance(moved, hand, hand_faces)
-    assert sdf.min() > -1e-4  # no vertex left inside the hand
+def test_soft_tissue_conforms_to_the_hand_with_a_smooth_dent(depth: float) -> None:
+    face, offsets, hand, hand_faces = _press(depth)
+    before, _, _ = signed_distance(face, hand, hand_faces)
+    after, _, _ = signed_distance(face + offsets, hand, hand_faces)
+    assert after.min() >= CLEARANCE_M - 1e-9  # no vertex inside the hand, nor closer than the clearance
     assert offsets[:, 2].max() <= 1e-12  # pushed away from the hand (-z), never towards it
-    assert -offsets[:, 2].min() >= depth * 0.9
+    pressed = before < 0
+    # The deepest vertices are pushed by the hand: on its surface, at the clearance.
+    deep = pressed & (-before > 0.5 * depth)
+    assert deep.any() and torch.allclose(after[deep], torch.full_like(after[deep], CLEARANCE_M), atol=1e-9)
+    # Near the rim of the overlap the tension may hold the skin below the sphere (Hertz): a small gap only.
+    assert after[pressed].max() < CLEARANCE_M + 0.5 * depth
     r = face[:, :2].norm(dim=1)
     contact_radius = np.sqrt(0.012**2 - (0.012 - depth) ** 2)
-    assert (offsets[r > contact_radius + 3 * FALLOFF_SIGMA_M + 1e-9] == 0).all()
-    # The dent reaches beyond the contact patch (soft tissue drags its neighbours).
+    assert (offsets[r > contact_radius + REACH_M + 1e-9] == 0).all()
+    # The dent reaches beyond the contact patch (soft tissue drags its neighbours), deepest at the contact.
     ring = (r > contact_radius + 0.002) & (r < contact_radius + 0.004)
     assert (offsets[ring, 2] < -1e-4).all()
+    assert -offsets[ring, 2].max() < -offsets[:, 2].min()
 
 
 def test_soft_tissue_compliance_and_no_contact() -> None:
-    face, _ = _plane()
-    hand, hand_faces = _sphere(0.012, (0.0, 0.0, 0.008))
-    soft = contact_offsets(face, torch.full((face.shape[0],), 0.02, dtype=torch.float64), hand, hand_faces)
-    stiff = contact_offsets(face, torch.full((face.shape[0],), 0.002, dtype=torch.float64), hand, hand_faces)
+    _, soft, _, _ = _press(0.004, inner=0.02)
+    _, stiff, _, _ = _press(0.004, inner=0.002)
     assert soft.norm(dim=1).sum() > 2 * stiff.norm(dim=1).sum()
+    face, faces = _plane()
     far, far_faces = _sphere(0.012, (0.0, 0.0, 0.0125))
-    assert (contact_offsets(face, torch.full((face.shape[0],), 0.02, dtype=torch.float64),
+    assert (contact_offsets(face, faces, torch.full((face.shape[0],), 0.02, dtype=torch.float64),
                             far, far_faces) == 0).all()
+
+
+def test_membrane_matrix_is_a_symmetric_m_matrix() -> None:
+    face, faces = _plane(half=0.01)
+    region = torch.arange(0, face.shape[0], 2)
+    hessian = membrane_matrix(face, faces, region, torch.linspace(0.0, 0.03, face.shape[0], dtype=torch.float64))
+    off = hessian - torch.diag(hessian.diagonal())
+    assert torch.equal(hessian, hessian.T) and (off <= 0).all()
+    assert (hessian.diagonal() + off.sum(dim=1) > 0).all()  # strictly diagonally dominant
+
+
+def test_signorini_magnitudes_solve_the_contact_problem() -> None:
+    """Against an independent bound-constrained minimiser (L-BFGS-B) and the KKT conditions."""
+    face, faces = _plane(half=0.015)
+    region = torch.arange(face.shape[0])
+    hessian = membrane_matrix(face, faces, region, torch.full((face.shape[0],), 0.02, dtype=torch.float64))
+    pressed = torch.tensor([70, 71, 72, 83, 84, 85, 96, 97, 98, 110])  # around the centre of the 13 x 13 grid
+    minimum = torch.tensor([2.0, 0.1, 1.5, 0.2, 3.0, 0.3, 1.0, 2.5, 0.05, 0.4], dtype=torch.float64) * 1e-3
+    w = signorini_magnitudes(hessian, pressed, minimum)
+    force = hessian @ w
+    scale = force.abs().max()
+    assert (w[pressed] >= minimum - 1e-15).all()
+    contact = torch.isclose(w[pressed], minimum, rtol=0, atol=1e-15)
+    assert contact.any() and not contact.all()  # some lift off near shallow ones
+    assert (force[pressed][contact] >= -1e-9 * scale).all()  # the hand only pushes
+    free = torch.ones(w.numel(), dtype=torch.bool)
+    free[pressed[contact]] = False
+    assert force[free].abs().max() < 1e-9 * scale  # equilibrium wherever the hand does not touch
+    H = hessian.numpy()
+    bounds = [(None, None)] * w.numel()
+    for i, m in zip(pressed.tolist(), minimum.tolist()):
+        bounds[i] = (m, None)
+    ref = scipy.optimize.minimize(lambda v: (0.5 * v @ H @ v, H @ v), np.full(w.numel(), 1e-3), jac=True,
+                                  method="L-BFGS-B", bounds=bounds, options={"ftol": 1e-15, "gtol": 1e-12})
+    np.testing.assert_allclose(w.numpy(), ref.x, atol=2e-6)
 
 
 def test_keypoint_visibility_uses_depth_labels_and_image_bounds() -> None:
