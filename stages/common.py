@@ -15,7 +15,7 @@ from avatar.dynamic import DynamicAvatar, DynamicModelConfig, sequence_condition
 from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.gaussians.model import BoundGaussians
 from avatar.pbd import PBDConfig, StiffnessFileError, face_relative_stiffness, simulate_sequence
-from avatar.reenact import MotionTransferError, transfer_motion
+from avatar.reenact import PLACEMENTS, MotionTransfer, MotionTransferError, transfer_motion
 from avatar.scene import SceneDecision
 from avatar.splatting import EmbeddedGaussians
 from avatar.training.splatting import SplattingConfig
@@ -363,14 +363,30 @@ def drive(cfg: DictConfig, params: dict[str, np.ndarray], scene: SceneDecision, 
 
 
 def transferred_params(cfg: DictConfig, target_fit_dir: Path, driver: dict[str, np.ndarray], source: Path
-                       ) -> tuple[dict[str, np.ndarray], float]:
-    """The driver's motion on the target whose fit is ``target_fit_dir`` (its train sequence's identity) and
-    the head-size ratio; one error naming ``source`` when the driver cannot drive it."""
+                       ) -> MotionTransfer:
+    """The driver's motion on the target whose fit is ``target_fit_dir`` (its train sequence's identity), placed
+    as ``reenact.placement`` says; one error naming ``source`` when the driver cannot drive it."""
+    placement = str(cfg.reenact.placement)
+    if placement not in PLACEMENTS:
+        raise SchemaError(f"reenact.placement={placement}: use one of {', '.join(PLACEMENTS)}")
     head, hand = templates(cfg.model)
     try:
-        return transfer_motion(load_params(target_fit_dir, "train"), driver, head, hand)
+        return transfer_motion(load_params(target_fit_dir, "train"), driver, head, hand, placement)
     except MotionTransferError as exc:
         raise SchemaError(f"{source}: cannot drive the avatar: {exc}") from exc
+
+
+def transfer_summary(frames: list[dict]) -> dict[str, float]:
+    """Manifest metrics of a contact-preserving transfer's per-frame report (empty for the scaled placement):
+    frames whose driver's hand touches its face, the fraction of the touching points that touch the target's face
+    too, and their mean residual distance from the same surface points (mm, over the touching frames)."""
+    if not frames:
+        return {}
+    touching = [f for f in frames if f["touching_points"]]
+    return {"transfer_touch_frames": len(touching),
+            "transfer_kept_fraction": (sum(f["kept_points"] for f in touching)
+                                       / max(1, sum(f["touching_points"] for f in touching))),
+            "transfer_residual_mm": float(np.mean([f["residual_mm"] for f in touching])) if touching else 0.0}
 
 
 REPRESENTATIONS = ("bound", "embedded")

@@ -26,7 +26,8 @@ from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
 from stages.common import (
     applied_deformation, contact_frames, contact_sources, drive, driver_subject, load_params, load_scene,
-    load_sequence, load_trained, method_params, load_views, posed_gaussians, transferred_params,
+    load_sequence, load_trained, method_params, load_views, posed_gaussians, transfer_summary,
+    transferred_params,
 )
 
 
@@ -46,7 +47,7 @@ Renderer = Callable[[int, int], torch.Tensor]
 # version 9: SSIM filtered by shifted sums instead of conv2d (rounding-level changes)
 @stage("evaluate", inputs=("capture", "frames", "fit", "scene", "pbd", "dynamic"),
        config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
-       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="10", config_schema=EvaluateConfig,
+       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="11", config_schema=EvaluateConfig,
        sources=contact_sources, per_method=True, subject_inputs=("fit",), input_subject=driver_subject)
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion (and, when reenact.driver names another subject
@@ -137,9 +138,10 @@ def _split_sequence(ctx: StageContext, split: str, sequence: str, num_frames: in
     if len(params["flame_global_orient"]) != num_frames:
         raise SchemaError(f"{path}: {len(params['flame_global_orient'])} frames, but the ground truth "
                           f"'{sequence}' of the capture has {num_frames}; fit the driver at the same preset")
-    transferred, scale = transferred_params(ctx.cfg, ctx.input_dir("fit"), params, path)
-    driven = drive(ctx.cfg, transferred, load_scene(ctx.input_dir("scene")), scale)
-    ctx.metrics["cross_reenact_head_scale"] = scale
+    transfer = transferred_params(ctx.cfg, ctx.input_dir("fit"), params, path)
+    driven = drive(ctx.cfg, transfer.params, load_scene(ctx.input_dir("scene")), transfer.head_scale)
+    ctx.metrics["cross_reenact_head_scale"] = transfer.head_scale
+    ctx.metrics.update({f"cross_reenact_{k}": v for k, v in transfer_summary(transfer.frames).items()})
     return driven.meshes, driven.cond
 
 

@@ -44,7 +44,7 @@ from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
 from stages.common import (
     contact_sources, drive, driver_subject, is_parameter_file, load_params, load_scene, load_trained, method_params,
-    TRAIN_SEQUENCE, posed_gaussians, transferred_params, write_frame_ply,
+    TRAIN_SEQUENCE, posed_gaussians, transfer_summary, transferred_params, write_frame_ply,
 )
 
 
@@ -78,14 +78,14 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
 @stage("reenact", inputs=("capture", "fit", "scene", "dynamic"),
        config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
        outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
-       version="6", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
+       version="7", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
        input_subject=driver_subject, sources=_sources)
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
     conf, cfg = ctx.cfg.stage.reenact, ctx.cfg
     sequence, sequence_note = (self_sequence(ctx.input_dir("capture"), str(cfg.reenact.sequence))
                                if str(cfg.reenact.driver) == "self" else (str(cfg.reenact.sequence), ""))
-    params, driver_label, scale = _driving_params(ctx, sequence)
+    params, driver_label, scale, transfer_frames = _driving_params(ctx, sequence)
     driven = drive(cfg, params, load_scene(ctx.input_dir("scene")), scale)
     meshes, cond, offsets, pbd_frames = driven.meshes, driven.cond, driven.offsets, driven.pbd_frames
     T = offsets.shape[0]
@@ -141,12 +141,15 @@ def reenact(ctx: StageContext) -> None:
         "views_note": "per frame: K (T, 3, 3) and world_to_cam (T, 4, 4)",
         "pbd": {"simulated": bool(cfg.method.pbd), "stiffness": driven.stiffness_source, "frames": pbd_frames},
         "ground_truth": {"sequence": truth_sequence, "cameras": truth_cameras, "note": truth_note},
+        "transfer": {"placement": str(cfg.reenact.placement) if transfer_frames else "none",
+                     "frames": transfer_frames},
         "video_fps": fps}, "reenactment report")
     ctx.metrics.update({
         "frames": T, "views": len(views), "head_scale": scale, "contact_frames": int(contact.sum()),
         "simulated_frames": len(simulated), "ground_truth_videos": len(truth_cameras),
         "penetration_max_mm": max((f["penetration_max_mm"] for f in simulated), default=0.0),
         **timings, "rasterizer": resolve_backend(conf.backend, meshes.vertices),
+        **transfer_summary(transfer_frames),
     })
 
 
@@ -173,14 +176,15 @@ def _check_fitted(fit_dir: Path, sequence: str, whose: str) -> None:
                           f"choose one of {there}")
 
 
-def _driving_params(ctx: StageContext, sequence: str) -> tuple[dict[str, np.ndarray], str, float]:
-    """(parameters of every output frame on the target, where they came from, head-size ratio target / driver);
+def _driving_params(ctx: StageContext, sequence: str) -> tuple[dict[str, np.ndarray], str, float, list[dict]]:
+    """(parameters of every output frame on the target, where they came from, head-size ratio target / driver,
+    the transfer's per-frame report of the hand's contacts: empty for ``self`` and ``reenact.placement=scaled``);
     ``sequence``: the driver's sequence (for ``self``, :func:`self_sequence`'s)."""
     driver = str(ctx.cfg.reenact.driver)
     if driver == "self":
         _check_fitted(ctx.input_dir("fit"), sequence, "this subject")
         # the train motion as the method refined it while training (the fit's for any other sequence)
-        return method_params(ctx.input_dir("dynamic"), ctx.input_dir("fit"), sequence), f"self ({sequence})", 1.0
+        return method_params(ctx.input_dir("dynamic"), ctx.input_dir("fit"), sequence), f"self ({sequence})", 1.0, []
     if is_parameter_file(driver):
         path = Path(driver)
         table = read_table(path, PARAMS)
@@ -189,8 +193,8 @@ def _driving_params(ctx: StageContext, sequence: str) -> tuple[dict[str, np.ndar
         path = ctx.subject_input_dir("fit") / sequence / "params.parquet"
         _check_fitted(ctx.subject_input_dir("fit"), sequence, f"the driver '{driver}'")
         params, label = load_params(ctx.subject_input_dir("fit"), sequence), f"{driver} ({sequence})"
-    transferred, scale = transferred_params(ctx.cfg, ctx.input_dir("fit"), params, path)
-    return transferred, label, scale
+    transfer = transferred_params(ctx.cfg, ctx.input_dir("fit"), params, path)
+    return transfer.params, label, transfer.head_scale, transfer.frames
 
 
 def _views(ctx: StageContext, points: np.ndarray, params: dict[str, np.ndarray], size: int

@@ -326,6 +326,13 @@ def _reenact_section(reenact_dir: Path) -> str:
             + f"; {metrics['frames_per_second']:.1f} frames per second at {metrics['image_size']} px "
               f"(model {metrics['model_ms_per_frame']:.0f} ms per frame, rasterizer "
               f"{metrics['render_ms_per_view']:.0f} ms per view).")
+    transfer = info.get("transfer", {"frames": []})
+    touching = [f for f in transfer["frames"] if f["touching_points"]]
+    if touching:
+        text += (f" The driver's hand touches its face in {len(touching)} frames; placed to keep those touches "
+                 f"(reenact.placement={transfer['placement']}), {metrics['transfer_kept_fraction']:.0%} of the "
+                 f"touching points touch this face too, a mean {metrics['transfer_residual_mm']:.1f} mm from the same surface "
+                 f"points.")
     if info.get("sequence_note"):  # e.g. a capture without the held-out motion reenacts its training motion
         text += f" {info['sequence_note'][0].upper()}{info['sequence_note'][1:]}."
     truth = info["ground_truth"]

@@ -196,6 +196,10 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     reenacted = json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text())["metrics"]
     assert reenacted["head_scale"] != 1.0 and reenacted["frames"] > 0
     assert reenacted["ground_truth_videos"] == reenacted["views"] - 1  # the capture's cross_synth_b beside
+    # the driver's touches are placed on this face (reenact.placement=contact), reported per frame
+    report = json.loads((stage_dir(subject, "reenact") / "reenact_report.json").read_text())["transfer"]
+    assert report["placement"] == "contact" and len(report["frames"]) == reenacted["frames"]
+    assert 0.0 <= reenacted["transfer_kept_fraction"] <= 1.0 and reenacted["transfer_touch_frames"] >= 0
 
     # A method whose stage two reran without its evaluation has results of two different models: the
     # comparison leaves it out and names it with the fix.

@@ -5,9 +5,15 @@ orientation, neck, jaw, eyes), the expression and the finger pose. Placement:
 
 - head: the target's head root joint follows the driver's root trajectory relative to the driver's first
   frame, starting from the target's own first-frame root (so the target stays where its cameras look);
-- hand: the driver's hand-to-head transform is kept, ``R_rel = R_head^T R_hand`` exactly and
-  ``t_rel = R_head^T (wrist - head_root)`` scaled by the ratio of the heads' sizes (:func:`head_size`), so a
-  hand pressing the driver's cheek presses the target's cheek.
+- hand, scaled (``placement="scaled"``, and the start of ``"contact"``): the driver's hand-to-head transform
+  is kept: the hand's anatomical frame (:func:`hand_frame`: wrist to middle knuckle, palm normal) relative to
+  the head exactly, and ``t_rel = R_head^T (wrist - head_root)`` scaled by the ratio of the heads' sizes
+  (:func:`head_size`). The finger rotations are turned by the same change of frame, so a finger flexes about
+  the target's own knuckle axes. When both hands share a shape, this is the driver's MANO orientation and pose;
+- hand, contact-preserving (``placement="contact"``, the default): then each frame whose hand comes within the
+  interaction radius of the driver's face is corrected by one rigid motion that puts the points touching the
+  driver's face on the same surface points of the target's face (:mod:`avatar.reenact.contact`), fading to
+  the scaled placement as the hand leaves the face.
 
 FLAME and MANO rotate about their root joint, so a root joint's posed position is its rest position plus
 the translation; the new translations are solved from that (and checked by the tests by posing again).
@@ -15,12 +21,16 @@ the translation; the new translations are solved from that (and checked by the t
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
+from typing import NamedTuple
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
-from avatar.templates import TemplateModel
+from avatar.reenact.contact import PASS_THROUGH_M, place_hand
+from avatar.templates import MANOLayer, TemplateModel
 from avatar.templates.lbs import batch_rodrigues
 from avatar.training.posing import pose_layers
 
@@ -29,8 +39,23 @@ DRIVER_COLUMNS = ("flame_expression", "flame_global_orient", "flame_neck_pose", 
                   "mano_hand_pose", "mano_global_orient")
 
 
+PLACEMENTS = ("contact", "scaled")
+
+
 class MotionTransferError(ValueError):
     """The driver's parameters cannot drive the target (another template, NaN, an empty sequence)."""
+
+
+class MotionTransfer(NamedTuple):
+    """The target performing the driver's motion: ``params`` (T rows, the columns of ``params.parquet``), the
+    head-size ratio target / driver ``head_scale``, and per frame how the hand was placed (``frames``: the hand
+    vertices matched to the driver's face, touching it, and of those touching the target's face too (kept); the
+    touching points' residual distance from the same surface points; the correction's size; empty for the
+    scaled placement)."""
+
+    params: dict[str, np.ndarray]
+    head_scale: float
+    frames: list[dict]
 
 
 def head_size(face_vertices: np.ndarray) -> float:
@@ -39,23 +64,48 @@ def head_size(face_vertices: np.ndarray) -> float:
     return float(np.sqrt((centred ** 2).sum(-1).mean()))
 
 
+def hand_frame(joints: np.ndarray) -> np.ndarray:
+    """(3, 3) anatomical frame of a hand from its joints (16, 3) in MANO order (0 wrist, 1 index, 4 middle and
+    7 little finger knuckles): columns wrist-to-middle-knuckle, palm normal, and their cross product."""
+    finger = joints[4] - joints[0]
+    finger = finger / np.linalg.norm(finger)
+    palm = np.cross(joints[1] - joints[7], finger)
+    palm = palm / np.linalg.norm(palm)
+    return np.stack([finger, palm, np.cross(finger, palm)], axis=1)
+
+
+def _rest_joints(shape: np.ndarray, hand: TemplateModel) -> np.ndarray:
+    """(16, 3) joints of the hand ``shape`` (1, B) in its rest pose."""
+    t = torch.from_numpy(np.asarray(shape, np.float64))
+    zeros = torch.zeros(1, 3, dtype=torch.float64)
+    with torch.no_grad():
+        return MANOLayer(hand)(t, torch.zeros(1, 45, dtype=torch.float64), zeros, zeros).joints[0].numpy()
+
+
 def transfer_motion(target: Mapping[str, np.ndarray], driver: Mapping[str, np.ndarray], head: TemplateModel,
-                    hand: TemplateModel) -> tuple[dict[str, np.ndarray], float]:
-    """Parameters (T_driver rows, the columns of ``params.parquet``) of the target performing the driver's motion,
-    and the head-size ratio target / driver used for the hand placement.
+                    hand: TemplateModel, placement: str = "contact") -> MotionTransfer:
+    """The target performing the driver's motion (module docstring).
 
     Args:
         target: the target's fitted parameters (any number of frames; shapes averaged over them).
         driver: the driver's parameters, one row per output frame.
         head, hand: the templates both were fitted with.
+        placement: ``contact`` (keep the driver's touches on the same surface points) or ``scaled``.
     Raises:
         MotionTransferError: empty driver, non-finite parameters, or widths that do not match (another template).
     """
+    if placement not in PLACEMENTS:
+        raise ValueError(f"placement={placement!r}: use one of {PLACEMENTS}")
     _check(target, driver)
     T = len(driver["flame_global_orient"])
     out = {k: np.array(driver[k], dtype=np.float64) for k in DRIVER_COLUMNS}
     for name in ("flame_shape", "mano_shape"):
         out[name] = np.repeat(np.asarray(target[name], np.float64).mean(0, keepdims=True), T, axis=0)
+    change = (hand_frame(_rest_joints(out["mano_shape"][:1], hand))
+              @ hand_frame(_rest_joints(np.asarray(driver["mano_shape"], np.float64)[:1], hand)).T)
+    out["mano_hand_pose"] = np.einsum("ij,tkj->tki", change, out["mano_hand_pose"].reshape(T, -1, 3)).reshape(T, -1)
+    R_driver = batch_rodrigues(torch.from_numpy(out["mano_global_orient"])).numpy()
+    out["mano_global_orient"] = _rotvec(R_driver @ change.T)
     # Rest root joints of the target's shapes: pose once with zero translations.
     out["flame_transl"] = np.zeros((T, 3))
     out["mano_transl"] = np.zeros((T, 3))
@@ -71,7 +121,45 @@ def transfer_motion(target: Mapping[str, np.ndarray], driver: Mapping[str, np.nd
     t_rel = np.einsum("tji,tj->ti", R_head, d_wrist - d_root)  # R_head^T (wrist - root), driver's frame
     wrist = root + scale * np.einsum("tij,tj->ti", R_head, t_rel)
     out["mano_transl"] = wrist - hand0.joints[:, 0].numpy()
-    return out, scale
+    if placement == "scaled":
+        return MotionTransfer(out, scale, [])
+    return MotionTransfer(out, scale, _keep_contacts(out, driver_pose, head, hand, hand0.joints[:, 0].numpy()))
+
+
+def _rotvec(matrices: np.ndarray) -> np.ndarray:
+    """(T, 3) axis-angle vectors of rotation matrices (T, 3, 3)."""
+    return Rotation.from_matrix(matrices).as_rotvec()
+
+
+def _keep_contacts(out: dict[str, np.ndarray], driver_pose: tuple, head: TemplateModel, hand: TemplateModel,
+                   rest_wrist: np.ndarray) -> list[dict]:
+    """Correct ``out``'s hand placement in place, frame by frame (:func:`avatar.reenact.contact.place_hand`);
+    the per-frame report. ``rest_wrist`` (T, 3): the target hand's root joint with zero translation."""
+    _, face, _, hand_now = pose_layers(out, head, hand, torch.float64)
+    faces = np.asarray(head.faces, dtype=np.int64)
+    R_hand = batch_rodrigues(torch.from_numpy(out["mano_global_orient"])).numpy()
+    report, through = [], []
+    for t in range(len(R_hand)):
+        fix = place_hand(driver_pose[3].vertices[t].numpy(), driver_pose[1].vertices[t].numpy(),
+                         hand_now.vertices[t].numpy(), face.vertices[t].numpy(), faces)
+        wrist = hand_now.joints[t, 0].numpy()
+        if fix.matched:  # else exactly the scaled placement
+            wrist = fix.rotation @ wrist + fix.translation
+            out["mano_global_orient"][t] = _rotvec((fix.rotation @ R_hand[t])[None])[0]
+            out["mano_transl"][t] = wrist - rest_wrist[t]
+        if fix.driver_depth_m > PASS_THROUGH_M:
+            through.append(t)
+        report.append({"frame": t, "matched_points": fix.matched, "touching_points": fix.touching,
+                       "kept_points": fix.kept, "residual_mm": 1e3 * fix.residual_m,
+                       "moved_mm": 1e3 * float(np.linalg.norm(wrist - hand_now.joints[t, 0].numpy())),
+                       "turned_deg": float(np.degrees(np.linalg.norm(_rotvec(fix.rotation[None])))),
+                       "driver_depth_mm": 1e3 * fix.driver_depth_m})
+    if through:
+        warnings.warn(f"motion transfer: in driver frames {through[:10]} the hand lies more than "
+                      f"{PASS_THROUGH_M * 1e3:.0f} mm inside the driver's own face (up to "
+                      f"{max(report[t]['driver_depth_mm'] for t in through):.0f} mm): its fit passes through the "
+                      f"face; those touches are transferred as they are", stacklevel=3)
+    return report
 
 
 def _check(target: Mapping[str, np.ndarray], driver: Mapping[str, np.ndarray]) -> None:
