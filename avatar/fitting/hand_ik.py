@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from avatar.fitting.rigid import MIN_RIGID_POINTS, kabsch
+from avatar.fitting.rigid import MIN_RIGID_POINTS, kabsch, smallest_rotation
 from avatar.templates.layers import MANO_NUM_JOINTS, OPENPOSE_FROM_MANO
 
 #: Fingertip (index into the 5 tips, in OPENPOSE_FROM_MANO's [joints, tips] layout)
@@ -37,19 +37,6 @@ def bone_children(parents: list[int]) -> dict[int, int]:
         kids = [k for k in range(MANO_NUM_JOINTS) if parents[k] == j]
         children[j] = kids[0] if kids else TIP_AFTER_JOINT[j]
     return children
-
-
-def _smallest_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation of least angle taking direction ``a`` (3,) to direction ``b`` (3,)."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    sin, cos = np.linalg.norm(axis), float(a @ b)
-    if sin < 1e-12:
-        if cos > 0:
-            return np.eye(3)
-        ortho = np.cross(a, np.eye(3)[np.argmin(np.abs(a))])  # 180 degrees about any axis normal to a
-        return Rotation.from_rotvec(np.pi * ortho / np.linalg.norm(ortho)).as_matrix()
-    return Rotation.from_rotvec(axis / sin * np.arctan2(sin, cos)).as_matrix()
 
 
 def hand_pose_ik(rest_joints: np.ndarray, rest_tips: np.ndarray, parents: list[int], targets: np.ndarray,
@@ -97,7 +84,7 @@ def hand_pose_ik(rest_joints: np.ndarray, rest_tips: np.ndarray, parents: list[i
             if seen[child]:
                 observed = points[child] - posed[j]
                 if np.linalg.norm(observed) > 1e-9:
-                    local = _smallest_rotation(rest[child] - rest[j], parent_rot.T @ observed)
+                    local = smallest_rotation(rest[child] - rest[j], parent_rot.T @ observed)
             frames[j] = parent_rot @ local
             pose[t, j - 1] = Rotation.from_matrix(local).as_rotvec()
     return orient, transl, pose.reshape(T, -1), ok

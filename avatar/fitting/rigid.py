@@ -24,6 +24,19 @@ def kabsch(source: np.ndarray, target: np.ndarray, weight: np.ndarray | None = N
     return R, mu_t - R @ mu_s
 
 
+def smallest_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of least angle taking direction ``a`` (3,) to direction ``b`` (3,)."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    sin, cos = np.linalg.norm(axis), float(a @ b)
+    if sin < 1e-12:
+        if cos > 0:
+            return np.eye(3)
+        ortho = np.cross(a, np.eye(3)[np.argmin(np.abs(a))])  # 180 degrees about any axis normal to a
+        return Rotation.from_rotvec(np.pi * ortho / np.linalg.norm(ortho)).as_matrix()
+    return Rotation.from_rotvec(axis / sin * np.arctan2(sin, cos)).as_matrix()
+
+
 def rigid_init(rest: np.ndarray, root: np.ndarray, targets: np.ndarray, valid: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-frame global rotation and translation of a template rotating about ``root``.

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from avatar.fitting.rigid import kabsch, smallest_rotation
 from avatar.pbd.collision import closest_on_mesh
 
 #: Hand vertices nearer the face than this (metres) are matched to it: the paper's interaction radius d_max.
@@ -95,18 +96,6 @@ def twin_points(twins: SurfaceTwins, vertices: np.ndarray, faces: np.ndarray) ->
     return surface + np.einsum("nij,nj->ni", triangle_frames(vertices, faces)[twins.triangle], twins.local)
 
 
-def weighted_rigid_fit(source: np.ndarray, target: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation (3, 3) and translation (3,) minimising ``sum_k w_k |R s_k + t - q_k|^2`` (Kabsch, weighted;
-    no reflection) for source, target (N, 3) and weights (N,) >= 0 not all zero."""
-    w = weight / weight.sum()
-    mu_s, mu_q = w @ source, w @ target
-    cov = (w[:, None] * (source - mu_s)).T @ (target - mu_q)  # (3, 3)
-    u, _, vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    rotation = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return rotation, mu_q - rotation @ mu_s
-
-
 @dataclass(frozen=True)
 class Placement:
     """One frame's correction of the target's hand: ``rotation`` (3, 3) and ``translation`` (3,) applied to the
@@ -145,7 +134,7 @@ def place_hand(driver_hand: np.ndarray, driver_face: np.ndarray, target_hand: np
     goal = twin_points(twins, target_face, faces)
     # Turn the hand with the touched surface (its mean normal, driver's to target's) about the contact, as far as
     # the hand is close (the largest weight), then let the twins pull the touching points onto their places.
-    turn = _partial(_aligning_rotation(weight @ triangle_frames(driver_face, faces)[twins.triangle, :, 2],
+    turn = _partial(smallest_rotation(weight @ triangle_frames(driver_face, faces)[twins.triangle, :, 2],
                                        weight @ triangle_frames(target_face, faces)[twins.triangle, :, 2]),
                     float(weight.max()))
     pivot = weight @ goal / weight.sum()
@@ -153,7 +142,7 @@ def place_hand(driver_hand: np.ndarray, driver_face: np.ndarray, target_hand: np
     source = np.concatenate([turned[keep], turned])
     target = np.concatenate([goal, turned])
     weights = np.concatenate([weight, np.full(len(target_hand), ANCHOR_WEIGHT)])
-    rotation, translation = weighted_rigid_fit(source, target, weights)
+    rotation, translation = kabsch(source, target, weights)
     rotation, translation = rotation @ turn, rotation @ (pivot - turn @ pivot) + translation
     allowed = max(0.0, -float(twins.local[:, 2].min()))  # the driver's own press
     normal = weight @ triangle_frames(target_face, faces)[twins.triangle, :, 2]
@@ -184,16 +173,6 @@ def _push_out(hand: np.ndarray, face: np.ndarray, faces: np.ndarray, allowed: fl
             break
         shift = shift + (excess + PUSH_TOLERANCE_M) * normal
     return shift
-
-
-def _aligning_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) the smallest rotation taking the direction of ``a`` (3,) to that of ``b`` (3,)."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    sin, cos = np.linalg.norm(axis), float(a @ b)
-    if sin < 1e-12:
-        return np.eye(3)  # (anti-parallel normals of one shared topology do not occur)
-    return Rotation.from_rotvec(axis / sin * np.arctan2(sin, cos)).as_matrix()
 
 
 def _partial(rotation: np.ndarray, fraction: float) -> np.ndarray:
