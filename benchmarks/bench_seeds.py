@@ -227,6 +227,9 @@ def table(outputs: Path, results: Path, settings: list[str], name: str) -> None:
             meta[f"{setting}/{subject}"] = {"seeds": seeds, "git": evaluate.get("git_sha", "?"),
                                             "what": spec["what"], "overrides": spec["overrides"],
                                             "threads": _threads(spec), "methods": list(methods)}
+    if not meta:
+        raise SystemExit(f"no comparison of settings {settings} under {outputs}: nothing written (run them first; "
+                         f"{results / name}.md keeps its earlier table)")
     lines = [f"# {name}: {full_label} against {base_label} with seeds", "",
              f"Commit of this table: {commit()}; machine: {cpu_name()}, {os.cpu_count()} cores; load now: {_load()}; "
              f"made {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", "",
