@@ -78,7 +78,7 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
 @stage("reenact", inputs=("capture", "fit", "scene", "dynamic"),
        config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
        outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
-       version="7", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
+       version="8", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
        input_subject=driver_subject, sources=_sources)
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
@@ -141,7 +141,7 @@ def reenact(ctx: StageContext) -> None:
         "views_note": "per frame: K (T, 3, 3) and world_to_cam (T, 4, 4)",
         "pbd": {"simulated": bool(cfg.method.pbd), "stiffness": driven.stiffness_source, "frames": pbd_frames},
         "ground_truth": {"sequence": truth_sequence, "cameras": truth_cameras, "note": truth_note},
-        "transfer": {"placement": str(cfg.reenact.placement) if transfer_frames else "none",
+        "transfer": {"placement": "none" if str(cfg.reenact.driver) == "self" else str(cfg.reenact.placement),
                      "frames": transfer_frames},
         "video_fps": fps}, "reenactment report")
     ctx.metrics.update({

@@ -331,8 +331,8 @@ def _reenact_section(reenact_dir: Path) -> str:
     if touching:
         text += (f" The driver's hand touches its face in {len(touching)} frames; placed to keep those touches "
                  f"(reenact.placement={transfer['placement']}), {metrics['transfer_kept_fraction']:.0%} of the "
-                 f"touching points touch this face too, a mean {metrics['transfer_residual_mm']:.1f} mm from the same surface "
-                 f"points.")
+                 f"touching points touch this face too, a mean {metrics['transfer_residual_mm']:.1f} mm from the "
+                 f"same surface points.")
     if info.get("sequence_note"):  # e.g. a capture without the held-out motion reenacts its training motion
         text += f" {info['sequence_note'][0].upper()}{info['sequence_note'][1:]}."
     truth = info["ground_truth"]

@@ -134,8 +134,8 @@ def place_hand(driver_hand: np.ndarray, driver_face: np.ndarray, target_hand: np
     goal = twin_points(twins, target_face, faces)
     # Turn the hand with the touched surface (its mean normal, driver's to target's) about the contact, as far as
     # the hand is close (the largest weight), then let the twins pull the touching points onto their places.
-    turn = _partial(smallest_rotation(weight @ triangle_frames(driver_face, faces)[twins.triangle, :, 2],
-                                       weight @ triangle_frames(target_face, faces)[twins.triangle, :, 2]),
+    normal = weight @ triangle_frames(target_face, faces)[twins.triangle, :, 2]  # the contact's, on the target
+    turn = _partial(smallest_rotation(weight @ triangle_frames(driver_face, faces)[twins.triangle, :, 2], normal),
                     float(weight.max()))
     pivot = weight @ goal / weight.sum()
     turned = (target_hand - pivot) @ turn.T + pivot
@@ -145,7 +145,6 @@ def place_hand(driver_hand: np.ndarray, driver_face: np.ndarray, target_hand: np
     rotation, translation = kabsch(source, target, weights)
     rotation, translation = rotation @ turn, rotation @ (pivot - turn @ pivot) + translation
     allowed = max(0.0, -float(twins.local[:, 2].min()))  # the driver's own press
-    normal = weight @ triangle_frames(target_face, faces)[twins.triangle, :, 2]
     translation = translation + _push_out(target_hand @ rotation.T + translation, target_face, faces, allowed,
                                           normal / np.linalg.norm(normal))
     touching = twins.local[:, 2] < TOUCH_M  # within TOUCH_M above the driver's face, or below it

@@ -6,7 +6,8 @@ orientation, neck, jaw, eyes), the expression and the finger pose. Placement:
 - head: the target's head root joint follows the driver's root trajectory relative to the driver's first
   frame, starting from the target's own first-frame root (so the target stays where its cameras look);
 - hand, scaled (``placement="scaled"``, and the start of ``"contact"``): the driver's hand-to-head transform
-  is kept: the hand's anatomical frame (:func:`hand_frame`: wrist to middle knuckle, palm normal) relative to
+  is kept: the hand's anatomical frame (:func:`avatar.templates.layers.hand_frame`: wrist to middle knuckle,
+  palm normal) relative to
   the head exactly, and ``t_rel = R_head^T (wrist - head_root)`` scaled by the ratio of the heads' sizes
   (:func:`head_size`). The finger rotations are turned by the same change of frame, so a finger flexes about
   the target's own knuckle axes. When both hands share a shape, this is the driver's MANO orientation and pose;
@@ -31,6 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from avatar.reenact.contact import PASS_THROUGH_M, place_hand
 from avatar.templates import MANOLayer, TemplateModel
+from avatar.templates.layers import hand_frame
 from avatar.templates.lbs import batch_rodrigues
 from avatar.training.posing import pose_layers
 
@@ -62,16 +64,6 @@ def head_size(face_vertices: np.ndarray) -> float:
     """RMS distance of the face vertices (V, 3) to their centroid, metres: a rotation-invariant head size."""
     centred = face_vertices - face_vertices.mean(0)
     return float(np.sqrt((centred ** 2).sum(-1).mean()))
-
-
-def hand_frame(joints: np.ndarray) -> np.ndarray:
-    """(3, 3) anatomical frame of a hand from its joints (16, 3) in MANO order (0 wrist, 1 index, 4 middle and
-    7 little finger knuckles): columns wrist-to-middle-knuckle, palm normal, and their cross product."""
-    finger = joints[4] - joints[0]
-    finger = finger / np.linalg.norm(finger)
-    palm = np.cross(joints[1] - joints[7], finger)
-    palm = palm / np.linalg.norm(palm)
-    return np.stack([finger, palm, np.cross(finger, palm)], axis=1)
 
 
 def _rest_joints(shape: np.ndarray, hand: TemplateModel) -> np.ndarray:

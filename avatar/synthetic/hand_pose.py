@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from avatar.templates.layers import MANOLayer
+from avatar.templates.layers import MANOLayer, hand_frame
 
 #: MANO joint chains (proximal to distal), in the order thumb, index, middle, ring, pinky.
 FINGER_CHAINS = ((13, 14, 15), (1, 2, 3), (4, 5, 6), (10, 11, 12), (7, 8, 9))
@@ -56,10 +56,7 @@ class HandFrame:
     @staticmethod
     def from_joints(joints: np.ndarray) -> HandFrame:
         """Frame from rest joints (16, 3) of the shaped template."""
-        finger = _unit(joints[4] - joints[0])
-        lateral_raw = joints[1] - joints[7]
-        palm = _unit(np.cross(lateral_raw, finger))
-        lateral = np.cross(finger, palm)
+        finger, palm, lateral = hand_frame(joints).T
         flex = np.zeros((15, 3))
         spread = np.zeros((15, 3))
         children = {j: c for chain in FINGER_CHAINS for j, c in zip(chain[:-1], chain[1:])}

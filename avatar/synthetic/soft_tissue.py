@@ -155,7 +155,6 @@ def contact_offsets(face_vertices: torch.Tensor, face_faces: torch.Tensor, inner
     magnitude = signorini_magnitudes(hessian, pressed, depth + CLEARANCE_M)
     local = magnitude[:, None] * direction
     x = face_vertices[region]
-    still = torch.ones(region.numel(), dtype=torch.bool)
     for _ in range(PASSES):
         moved = x + local
         sdf, _, closest = signed_distance(moved, hand_vertices, hand_faces)

@@ -19,6 +19,17 @@ from avatar.templates.model import TemplateModel
 # as indices into [16 MANO joints, 5 tips (thumb, index, middle, ring, pinky)].
 OPENPOSE_FROM_MANO = (0, 13, 14, 15, 16, 1, 2, 3, 17, 4, 5, 6, 18, 10, 11, 12, 19, 7, 8, 9, 20)
 MANO_NUM_JOINTS = 16
+
+
+def hand_frame(joints: np.ndarray) -> np.ndarray:
+    """(3, 3) anatomical frame of a hand from its joints (16, 3) in MANO order (0 wrist, 1 index, 4 middle and
+    7 little finger knuckles): columns wrist-to-middle-knuckle (``finger``), palm normal (``palm``) and
+    ``finger x palm`` (``lateral``)."""
+    finger = joints[4] - joints[0]
+    finger = finger / np.linalg.norm(finger, axis=-1, keepdims=True)
+    palm = np.cross(joints[1] - joints[7], finger)
+    palm = palm / np.linalg.norm(palm, axis=-1, keepdims=True)
+    return np.stack([finger, palm, np.cross(finger, palm)], axis=1)
 FLAME_NUM_JOINTS = 5
 
 
