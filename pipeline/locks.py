@@ -5,9 +5,19 @@ it shared for as long as it runs, so an upstream artifact can never be replaced
 under a reader. The kernel releases ``flock`` locks when their process dies, so a
 ``kill -9`` never leaves a lock behind.
 
+Fairness: a run passes the lock's turnstile (``<lock>.queue``, held exclusively
+while it waits for the lock) on its way in and leaves it once it holds the lock.
+A later reader therefore cannot pass a writer that waits, as it could with
+bare ``flock``: a run reading a shared stage stage after stage (a method's chain
+from warm-up to report) used to keep a run that must rewrite that stage waiting
+for its whole chain, because a 50 ms poll missed every gap between two stages.
+Now the writer gets the lock when the stage that holds it ends, and the reader's
+next stage waits for the writer.
+
 Deadlock freedom: a run takes every lock it needs for one stage at once, in the
 DAG's topological order, and releases them all when the stage ends. Two runs
-wanting overlapping sets therefore acquire them in the same order.
+wanting overlapping sets therefore acquire them in the same order; a turnstile
+ranks just before its lock, so the order stays total.
 """
 
 from __future__ import annotations
@@ -18,6 +28,7 @@ import time
 from collections.abc import Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
+from typing import NoReturn
 
 _POLL_S = 0.05
 
@@ -36,19 +47,47 @@ def flock(path: Path, *, shared: bool, timeout_s: float, what: str) -> Iterator[
         timeout_s: give up after this long with :class:`LockTimeout`.
         what: words for the error message, e.g. ``"stage 'fit' of subject 'synth_a'"``.
     """
+    deadline = time.monotonic() + timeout_s
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        mode = (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                fcntl.flock(fd, mode)
-                break
-            except BlockingIOError:
-                if time.monotonic() >= deadline:
-                    raise LockTimeout(f"{what} is locked by another run ({path}); wait for it or raise "
-                                      f"run.lock_timeout_s") from None
-                time.sleep(_POLL_S)
+        with _turnstile(path, deadline, what):
+            _wait(fd, fcntl.LOCK_SH if shared else fcntl.LOCK_EX, deadline, path, what)
+        try:
+            yield
+        finally:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
+
+
+def _try(fd: int, mode: int) -> bool:
+    """Take ``mode`` on ``fd`` if that is possible now."""
+    try:
+        fcntl.flock(fd, mode | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
+
+
+def _wait(fd: int, mode: int, deadline: float, path: Path, what: str) -> None:
+    """Poll for ``mode`` on ``fd`` until it is taken, or :class:`LockTimeout` at ``deadline``."""
+    while not _try(fd, mode):
+        if time.monotonic() >= deadline:
+            _timeout(path, what)
+        time.sleep(_POLL_S)
+
+
+def _timeout(path: Path, what: str) -> NoReturn:
+    raise LockTimeout(f"{what} is locked by another run ({path}); wait for it or raise run.lock_timeout_s")
+
+
+@contextmanager
+def _turnstile(path: Path, deadline: float, what: str) -> Iterator[None]:
+    """Hold the turnstile of lock ``path``: every run passes it on its way to the lock, and one that waits for
+    the lock waits inside it, so no later run can take the lock first."""
+    fd = os.open(path.with_name(path.name + ".queue"), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        _wait(fd, fcntl.LOCK_EX, deadline, path, what)
         try:
             yield
         finally:

@@ -22,6 +22,7 @@ import functools
 import shutil
 import subprocess
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -351,67 +352,76 @@ class Runner:
             d = self._redecide(s)
             if not d.run:
                 return self._cached(s, a, d)
-        with self.ws.lock(a, reads, order, self.lock_timeout_s):
+        with ExitStack() as held:
+            if s.per_method and not self.selection.force:
+                # Another method's run may be computing this very artifact (same key) now: wait for it, then
+                # share its result. Taken before the stage's locks and released after them (LIFO).
+                held.enter_context(self.ws.key_lock(s.name, d.key, self.lock_timeout_s, on_wait=lambda: self.log(
+                    f"[{self._where(s.name)}] {s.name:<10} waits     for another method's run computing the same "
+                    f"artifact (same cache key), to share it")))
+            held.enter_context(self.ws.lock(a, reads, order, self.lock_timeout_s))
             d = self._redecide(s)
             if not d.run:
                 return self._cached(s, a, d)
             other = None if self.selection.force else self._same_key_elsewhere(s, d.key)
             shared = self._share(s, a, other, d) if other is not None else None
-            if shared is not None:
-                return shared
-            report = StageReport(s.name, "run", d.reason)
-            self._log_decision(report)
-            tmp = self.ws.new_tmp_dir(a)
-            scratch = self.ws.scratch_dir(a, d.key)
-            resumed_s = self.ws.begin_attempt(scratch)
-            try:
-                regular, cross, other_subject = self._context_inputs(s, d.inputs)
-                ctx = StageContext(
-                    cfg=self.cfg,
-                    subject=self.ws.subject,
-                    out_dir=tmp,
-                    inputs=regular,
-                    scratch_dir=scratch,
-                    show_progress=self.show_progress,
-                    method=self.method,
-                    method_inputs=cross,
-                    method_problems=self._cross_method_problems(s, d.inputs),
-                    subject_inputs=other_subject,
-                )
-                with ResourceMonitor() as monitor:
-                    s.fn(ctx)
-                missing = [rel for rel in s.outputs if not (tmp / rel).exists()]
-                if missing:
-                    raise RuntimeError(f"stage did not write its declared output(s) {missing}")
-                self._check_inputs_unchanged(s, d)
-                usage = monitor.usage
-                manifest = Manifest(
-                    stage=s.name,
-                    key=d.key,
-                    version=s.version,
-                    config=d.config,
-                    upstream=d.upstream,
-                    outputs=hash_outputs(tmp),
-                    # resumed_s: earlier killed runs' work this one resumed from (up to their last checkpoint)
-                    timings={"wall_s": usage.wall_s, **({"resumed_s": resumed_s} if resumed_s > 0 else {})},
-                    peak_memory_mb=usage.peak_rss_mb,
-                    metrics=dict(ctx.metrics),
-                    git_sha=_git_sha(),
-                    created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-                    sources=d.sources,
-                )
-                write_manifest(tmp, manifest)
-                self.ws.publish(a, tmp)
-                self.ws.discard_scratch(a)
-                self._verified[a.key] = manifest
-            except BaseException as exc:
-                shutil.rmtree(tmp, ignore_errors=True)
-                self.ws.discard_empty_scratch(scratch)
-                if isinstance(exc, Exception):
-                    raise StageFailed(s.name, exc) from exc
-                raise
-            report.wall_s, report.peak_rss_mb, report.metrics = usage.wall_s, usage.peak_rss_mb, dict(ctx.metrics)
-            return report
+            return shared if shared is not None else self._compute(s, a, d)
+
+    def _compute(self, s: Stage, a: Artifact, d: _Decision) -> StageReport:
+        """Run ``s`` into a temporary dir and publish it as ``a`` (decision ``d``; call with its write lock)."""
+        report = StageReport(s.name, "run", d.reason)
+        self._log_decision(report)
+        tmp = self.ws.new_tmp_dir(a)
+        scratch = self.ws.scratch_dir(a, d.key)
+        resumed_s = self.ws.begin_attempt(scratch)
+        try:
+            regular, cross, other_subject = self._context_inputs(s, d.inputs)
+            ctx = StageContext(
+                cfg=self.cfg,
+                subject=self.ws.subject,
+                out_dir=tmp,
+                inputs=regular,
+                scratch_dir=scratch,
+                show_progress=self.show_progress,
+                method=self.method,
+                method_inputs=cross,
+                method_problems=self._cross_method_problems(s, d.inputs),
+                subject_inputs=other_subject,
+            )
+            with ResourceMonitor() as monitor:
+                s.fn(ctx)
+            missing = [rel for rel in s.outputs if not (tmp / rel).exists()]
+            if missing:
+                raise RuntimeError(f"stage did not write its declared output(s) {missing}")
+            self._check_inputs_unchanged(s, d)
+            usage = monitor.usage
+            manifest = Manifest(
+                stage=s.name,
+                key=d.key,
+                version=s.version,
+                config=d.config,
+                upstream=d.upstream,
+                outputs=hash_outputs(tmp),
+                # resumed_s: earlier killed runs' work this one resumed from (up to their last checkpoint)
+                timings={"wall_s": usage.wall_s, **({"resumed_s": resumed_s} if resumed_s > 0 else {})},
+                peak_memory_mb=usage.peak_rss_mb,
+                metrics=dict(ctx.metrics),
+                git_sha=_git_sha(),
+                created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                sources=d.sources,
+            )
+            write_manifest(tmp, manifest)
+            self.ws.publish(a, tmp)
+            self.ws.discard_scratch(a)
+            self._verified[a.key] = manifest
+        except BaseException as exc:
+            shutil.rmtree(tmp, ignore_errors=True)
+            self.ws.discard_empty_scratch(scratch)
+            if isinstance(exc, Exception):
+                raise StageFailed(s.name, exc) from exc
+            raise
+        report.wall_s, report.peak_rss_mb, report.metrics = usage.wall_s, usage.peak_rss_mb, dict(ctx.metrics)
+        return report
 
     def _redecide(self, s: Stage) -> _Decision:
         """Decide ``s`` afresh; call holding at least read locks on it and its inputs (no run is writing them)."""
@@ -455,10 +465,13 @@ class Runner:
         self._log_decision(report)
         return report
 
-    def _log_decision(self, r: StageReport) -> None:
-        where = f"{self.ws.subject}/{self.method}" if self.method and self.registry[r.stage].per_method \
+    def _where(self, stage: str) -> str:
+        """``<subject>/<method>`` for a per-method stage, else ``<subject>``: how log lines name the artifact."""
+        return f"{self.ws.subject}/{self.method}" if self.method and self.registry[stage].per_method \
             else self.ws.subject
-        self.log(f"[{where}] {r.stage:<10} {r.action:<9} {r.reason}")
+
+    def _log_decision(self, r: StageReport) -> None:
+        self.log(f"[{self._where(r.stage)}] {r.stage:<10} {r.action:<9} {r.reason}")
 
 
 def _input_digest(s: Stage, manifest: Manifest) -> str:

@@ -6,8 +6,12 @@ Layout under ``paths.outputs``::
     <outputs>/<subject>/methods/<method>/<stage>/  a completed stage that depends on the method
                                             (``Stage.per_method``): one per method, side by side
     <outputs>/<subject>/.tmp/<artifact>-<id>/  an artifact being written (never read)
-    <outputs>/<subject>/.locks/<artifact>.lock one lock per artifact: exclusive while it is decided and
-                                            written, shared while a stage that reads it runs
+    <outputs>/<subject>/.locks/<artifact>.lock one lock per artifact: exclusive while it is written,
+                                            shared while it is decided or a stage that reads it runs
+    <outputs>/<subject>/.locks/<artifact>.lock.queue  its turnstile: a run waiting for the lock waits in
+                                            it, so later runs queue behind (pipeline.locks)
+    <outputs>/<subject>/.locks/<stage>#<key>.lock  held by the run computing a per-method artifact with
+                                            that cache key: a method with the same key waits, then shares it
     <outputs>/<subject>/.scratch/<artifact>-<key>/  checkpoints of an unfinished stage, kept across
                                             killed runs with the same cache key, removed on success
 
@@ -29,8 +33,8 @@ import re
 import shutil
 import time
 import uuid
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -177,6 +181,24 @@ class Workspace:
         lock_dir = self._subject_root(artifact) / ".locks"
         lock_dir.mkdir(parents=True, exist_ok=True)
         return lock_dir / f"{artifact.id}.lock"
+
+    @contextmanager
+    def key_lock(self, stage: str, key: str, timeout_s: float, on_wait: Callable[[], None]) -> Iterator[None]:
+        """Exclusive lock on computing per-method ``stage`` with cache ``key`` for any method; calls
+        ``on_wait`` once first if another run holds it (that run computes what this one would compute).
+
+        Take it holding no lock, before the stage's own locks, and release it after them: a run waits for it
+        holding nothing, so no run can deadlock with one that holds it."""
+        lock_dir = self.root / ".locks"
+        lock_dir.mkdir(parents=True, exist_ok=True)
+        path, what = lock_dir / f"{stage}#{key[:_SCRATCH_KEY_HEX]}.lock", f"stage '{stage}' with key {key[:12]}"
+        with ExitStack() as held:
+            try:
+                held.enter_context(flock(path, shared=False, timeout_s=0.0, what=what))
+            except LockTimeout:
+                on_wait()
+                held.enter_context(flock(path, shared=False, timeout_s=timeout_s, what=what))
+            yield
 
     @contextmanager
     def read_lock(self, artifact: Artifact) -> Iterator[None]:
