@@ -262,8 +262,8 @@ class Workspace:
         runs before it. With no checkpoint left nothing is reused and nothing is carried.
         """
         marker = scratch / ATTEMPT_FILE
-        saved = [p.stat().st_mtime for p in scratch.iterdir()
-                 if p.is_file() and ATTEMPT_FILE not in p.name and not p.name.endswith(".tmp")]
+        saved = [p.stat().st_mtime for p in scratch.rglob("*") if p.is_file() and ATTEMPT_FILE not in p.name
+                 and not any(part.endswith(".tmp") for part in p.relative_to(scratch).parts)]
         carried = 0.0
         if saved and marker.exists():
             try:

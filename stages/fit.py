@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import logging
+import os
+import shutil
 from collections import defaultdict
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -41,6 +45,8 @@ UNBIASED_DETECTORS = ("ground_truth",)
 #: mean shape in its flat rest pose, unrotated, this far (metres) below the fitted head's translation (world -y):
 #: finite, and far from the face, so that no later stage finds it touching the face.
 ABSENT_HAND_DROP_M = 2.0
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -99,7 +105,16 @@ def fit(ctx: StageContext) -> None:
     if source == "fitted":
         report["refine"] = refine
         report["refine_setting"] = str(ctx.cfg.stage.fit.refine)
+    checkpoints = SequenceCheckpoints(ctx.scratch_dir / "sequences") if ctx.scratch_dir is not None else None
     for seq, info in ctx.progress(list(index.sequences.items()), desc="fit: sequences"):
+        resumed = checkpoints.restore(seq, ctx.out_dir / seq) if checkpoints is not None else None
+        if resumed is not None:  # fitted by a run that was stopped later (a SLURM requeue at the time limit)
+            entry, metrics = resumed
+            log.info("fit: sequence %s resumed from a checkpoint", seq)
+            report["sequences"][seq] = entry
+            ctx.metrics.update(metrics)
+            continue
+        metrics_before = dict(ctx.metrics)
         hand_fitted = True
         if source == "ground_truth":
             params = load_ground_truth_params(cap_dir, seq)
@@ -153,7 +168,38 @@ def fit(ctx: StageContext) -> None:
         for key in ("mpjpe_hand_mm", "mpjpe_face_mm"):
             if key in entry:
                 ctx.metrics[f"{seq}_{key}"] = entry[key]
+        if checkpoints is not None:
+            checkpoints.save(seq, ctx.out_dir / seq, entry,
+                             {k: v for k, v in ctx.metrics.items() if metrics_before.get(k) != v})
     write_json(ctx.out_dir / "fit_report.json", report, "fit report")
+
+
+class SequenceCheckpoints:
+    """Sequences already fitted by a stopped run of this stage (same cache key): the sequence's output folder
+    and its report entry and metrics, kept in the stage's scratch dir so that a rerun (a job requeued at its
+    time limit) resumes after the last fitted sequence instead of refitting everything. Each sequence is saved
+    whole or not at all (written aside, then renamed); resuming reproduces the uninterrupted run's bytes."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+
+    def save(self, seq: str, out: Path, entry: dict, metrics: dict) -> None:
+        """Keep ``out`` (the sequence's output folder), its report ``entry`` and its ``metrics``."""
+        tmp = self.root / f".{seq}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(out, tmp / "out")
+        write_json(tmp / "entry.json", {"entry": entry, "metrics": metrics}, "fit checkpoint")
+        shutil.rmtree(self.root / seq, ignore_errors=True)
+        os.replace(tmp, self.root / seq)
+
+    def restore(self, seq: str, out: Path) -> tuple[dict, dict] | None:
+        """Copy a saved ``seq`` back to ``out``; its (report entry, metrics), or ``None`` if none was saved."""
+        saved = self.root / seq / "entry.json"
+        if not saved.is_file():
+            return None
+        data = json.loads(saved.read_text())
+        shutil.copytree(self.root / seq / "out", out)
+        return data["entry"], data["metrics"]
 
 
 def refine_mode(setting: str, detector: str, train_views: int) -> str:

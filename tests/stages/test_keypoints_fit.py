@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import re
 from pathlib import Path
@@ -103,3 +104,39 @@ def test_auto_refines_real_detections_seen_by_several_views():
     assert refine_mode("auto", "ground_truth", 7) == "none"  # finer than the silhouettes already
     assert refine_mode("auto", "mediapipe", 1) == "none"  # one view: the outline does not fix the distance
     assert refine_mode("photometric", "ground_truth", 1) == "photometric"  # a mode set by hand is kept
+
+
+def test_a_stopped_fit_resumes_after_its_last_fitted_sequence_with_the_same_bytes(tmp_path, monkeypatch):
+    """A job requeued at its time limit reruns fit: it used to refit every sequence, so a --time shorter than
+    the whole fit never finished it. Each fitted sequence is now kept in the stage's scratch dir; the rerun
+    fits only the rest, counts the stopped run's time, and writes what an uninterrupted run writes."""
+    from pipeline.manifest import read_manifest
+
+    fit_module = importlib.import_module("stages.fit")  # the package's attribute `fit` is the Stage
+    _upstream_of_fit(tmp_path)
+    fit_dir = tmp_path / "synth_a" / "fit"
+    real = fit_module.fit_sequence
+    keypoint_fit = ("stage.fit.refine=none", "stage.fit.coarse_iterations=10", "stage.fit.fine_iterations=20")
+    calls: list[int] = []
+
+    def stopped_at_the_second_sequence(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("the job's time limit")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fit_module, "fit_sequence", stopped_at_the_second_sequence)
+    with pytest.raises(StageFailed, match="time limit"):
+        run_app(_refine_cfg(tmp_path, "run.only=fit", *keypoint_fit))
+    assert not fit_dir.exists()
+
+    calls.clear()
+    monkeypatch.setattr(fit_module, "fit_sequence", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
+    run_app(_refine_cfg(tmp_path, "run.only=fit", *keypoint_fit))
+    resumed = read_manifest(fit_dir)
+    sequences = json.loads((fit_dir / "fit_report.json").read_text())["sequences"]
+    assert len(calls) == len(sequences) - 1, "the sequence fitted before the stop was fitted again"
+    assert resumed.timings.get("resumed_s", 0) > 0, resumed.timings
+
+    run_app(_refine_cfg(tmp_path, "run.only=fit", "run.force=true", *keypoint_fit))  # uninterrupted
+    assert read_manifest(fit_dir).outputs == resumed.outputs
