@@ -28,6 +28,7 @@ from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
+from pipeline.manifest import hash_outputs
 from pipeline.stage import Resources, StageContext, stage
 from stages.common import load_ground_truth_params, load_provided_params, load_views, model_sources, templates
 
@@ -178,7 +179,8 @@ class SequenceCheckpoints:
     """Sequences already fitted by a stopped run of this stage (same cache key): the sequence's output folder
     and its report entry and metrics, kept in the stage's scratch dir so that a rerun (a job requeued at its
     time limit) resumes after the last fitted sequence instead of refitting everything. Each sequence is saved
-    whole or not at all (written aside, then renamed); resuming reproduces the uninterrupted run's bytes."""
+    whole or not at all (written aside, then renamed) with the sha256 of every file; one that fails to verify
+    is logged, deleted and fitted again. Resuming reproduces the uninterrupted run's bytes."""
 
     def __init__(self, root: Path) -> None:
         self.root = root
@@ -188,18 +190,28 @@ class SequenceCheckpoints:
         tmp = self.root / f".{seq}.tmp"
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.copytree(out, tmp / "out")
-        write_json(tmp / "entry.json", {"entry": entry, "metrics": metrics}, "fit checkpoint")
+        write_json(tmp / "entry.json", {"entry": entry, "metrics": metrics, "sha256": hash_outputs(tmp / "out")},
+                   "fit checkpoint")
         shutil.rmtree(self.root / seq, ignore_errors=True)
         os.replace(tmp, self.root / seq)
 
     def restore(self, seq: str, out: Path) -> tuple[dict, dict] | None:
-        """Copy a saved ``seq`` back to ``out``; its (report entry, metrics), or ``None`` if none was saved."""
-        saved = self.root / seq / "entry.json"
-        if not saved.is_file():
+        """Copy a saved ``seq`` back to ``out``; its (report entry, metrics), or ``None`` if none was saved or
+        it failed to verify (then it is deleted)."""
+        saved = self.root / seq
+        if not (saved / "entry.json").is_file():
             return None
-        data = json.loads(saved.read_text())
-        shutil.copytree(self.root / seq / "out", out)
-        return data["entry"], data["metrics"]
+        try:
+            data = json.loads((saved / "entry.json").read_text())
+            if hash_outputs(saved / "out") != data["sha256"]:
+                raise ValueError("a file's sha256 differs from the one saved with it")
+            entry, metrics = data["entry"], data["metrics"]
+        except (ValueError, KeyError, TypeError, OSError) as exc:
+            log.warning("fit: the checkpoint of sequence %s (%s) is unusable (%s): fitting it again", seq, saved, exc)
+            shutil.rmtree(saved, ignore_errors=True)
+            return None
+        shutil.copytree(saved / "out", out)
+        return entry, metrics
 
 
 def refine_mode(setting: str, detector: str, train_views: int) -> str:

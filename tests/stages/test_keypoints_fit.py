@@ -140,3 +140,20 @@ def test_a_stopped_fit_resumes_after_its_last_fitted_sequence_with_the_same_byte
 
     run_app(_refine_cfg(tmp_path, "run.only=fit", "run.force=true", *keypoint_fit))  # uninterrupted
     assert read_manifest(fit_dir).outputs == resumed.outputs
+
+
+def test_a_corrupt_fit_checkpoint_is_fitted_again(tmp_path, caplog):
+    from stages.fit import SequenceCheckpoints
+
+    out = tmp_path / "out" / "train"
+    out.mkdir(parents=True)
+    (out / "params.parquet").write_bytes(b"fitted")
+    checkpoints = SequenceCheckpoints(tmp_path / "scratch")
+    checkpoints.save("train", out, {"hand_fitted": True}, {"train_mpjpe_hand_mm": 1.5})
+    restored = tmp_path / "restored"
+    assert checkpoints.restore("train", restored / "train") == ({"hand_fitted": True}, {"train_mpjpe_hand_mm": 1.5})
+    assert (restored / "train" / "params.parquet").read_bytes() == b"fitted"
+    (tmp_path / "scratch" / "train" / "out" / "params.parquet").write_bytes(b"fitteD")  # bit rot
+    assert checkpoints.restore("train", tmp_path / "again" / "train") is None
+    assert "unusable" in caplog.text and not (tmp_path / "scratch" / "train").exists()
+    assert checkpoints.restore("test", tmp_path / "again" / "test") is None  # never saved
