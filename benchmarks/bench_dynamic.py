@@ -18,7 +18,7 @@ stage-two step split into PointNet++, MLPs, posing/glue, rasterizer, loss, backw
 appended to ``benchmarks/results/bench_dynamic.json`` and ``.md`` (commit, preset, machine, load).
 
 Nothing here is tuned on the held-out camera or motion: the stage's defaults were chosen on the training
-views (see README).
+views (see docs/explanation/dynamic-model.md).
 
 Usage: python benchmarks/bench_dynamic.py [--subjects synth_a synth_b] [--presets draft] [--outputs DIR]
        [--set stage.dynamic.seed=1 ...] [--no-run] [--cost-only [--cost-steps 20 --cost-rounds 3]]

@@ -2,7 +2,7 @@
 
 The paper's c = 0.1 was set for 512 px crops. On smaller crops the hand box and the hand-face overlap box are
 32-48 px (``draft``) or 48-80 px (``standard``), LPIPS-VGG on such patches is about 0.14, and at c = 0.1 the
-patch term is as large as the whole reconstruction loss (README, "Methods side by side"). This benchmark
+patch term is as large as the whole reconstruction loss (docs/explanation/methods.md). This benchmark
 trains the full model's stage two once per candidate c, from one shared warm-up, with the same ``frames``
 training frames withheld from both training stages (``stage.<warmup|dynamic>.validation``; the held-out camera
 and motion are never looked at), and measures PSNR and LPIPS-alex of the withheld frames from every training

@@ -244,7 +244,7 @@ def main() -> None:
     if "cpu" not in backends:
         raise SystemExit("the compiled cpu backend is not built; see the warning above")
     if args.backend == "gsplat" and "gsplat" not in backends:
-        raise SystemExit("--backend gsplat needs CUDA and gsplat (pip install -e '.[cuda]'; README, GPU)")
+        raise SystemExit("--backend gsplat needs CUDA and gsplat (pip install -e '.[cuda]'; docs/how-to/gpu.md)")
     if args.backend == "all":
         bench_cpu_backends(configs, args.threads, args.tile_sizes, args.repeats, not args.no_memory)
     if "gsplat" in backends:

@@ -15,7 +15,7 @@ over the split's cameras, with the share of the hand's vertices that project out
 image (the crop padding there: frames stage, label 4). A head is switched off by zeroing its output layer for
 the duration of one render; the model is not changed.
 
-This is how the crop-padding A/B of the README ("Crop padding: what the fix changes") located the stage-two
+This is how the crop-padding A/B of docs/notes/crop-padding.md located the stage-two
 seed's effect in H_app's colour deltas. Nothing here touches the held-out data during training: it only reads
 trained models.
 

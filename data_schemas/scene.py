@@ -1,5 +1,5 @@
 """``scene.parquet``: what every frame of every sequence shows (stage ``scene``); ``scene.json`` holds the
-decisions taken from it (README, "Model only what a scene requires")."""
+decisions taken from it (docs/explanation/scene.md)."""
 
 from __future__ import annotations
 

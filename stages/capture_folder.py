@@ -1,6 +1,6 @@
 """``dataset=folder``: validate a capture on disk and import it into the ``capture`` stage.
 
-Layout (README, "Your own footage"): ``<root>/<subject>/<sequence>/videos/<camera_id>.mp4``, or an image folder
+Layout (docs/how-to/real-footage.md): ``<root>/<subject>/<sequence>/videos/<camera_id>.mp4``, or an image folder
 per camera, ``<sequence>/images/<camera_id>/*.png`` (or ``.jpg``; frames in name order, as many capture rigs and
 COLMAP workflows write them), and optionally ``<sequence>/masks/``, with one calibration beside the sequences
 (``dataset.calibration``):
@@ -98,7 +98,7 @@ def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_ra
         raise SchemaError(f"{src}: capture folder missing; set dataset.root so that <root>/{subject} exists")
     if not any(src.iterdir()):
         raise SchemaError(f"{src}: capture folder is empty; put {PARQUET_HELP} and one video per camera in "
-                          f"<sequence>/videos/<camera_id>.mp4 in it, as in the README's artifact layout")
+                          f"<sequence>/videos/<camera_id>.mp4 in it, as in docs/reference/artifacts.md")
     cameras, calibration = read_calibration(src, dataset)
     seq_names = sorted(p.name for p in src.iterdir() if _is_sequence(p))
     if not seq_names:

@@ -195,7 +195,7 @@ def refines_params(cfg: DictConfig, section: DictConfig) -> bool:
     (``fit.source=fitted`` with ``stage.keypoints.detector`` other than ``ground_truth``) or that a dataset provides
     (``fit.source=provided``); not with the ground truth, which has nothing to correct, nor with the synthetic
     ground-truth keypoints, whose fit is finer than what the refinement reaches (measured: their train frames' 3D
-    errors grew, hand 1.4 -> 2.0 mm, docs/tracking-refinement.md); never for SplattingAvatar
+    errors grew, hand 1.4 -> 2.0 mm, docs/explanation/tracking-refinement.md); never for SplattingAvatar
     (``method.representation=embedded``: ``true`` is an error there)."""
     value = str(section.refine_params).lower()
     if value not in REFINE_PARAMS:
@@ -425,7 +425,7 @@ class FlatStopSchema:
 
 @dataclass
 class ValidationSchema:
-    """Types of ``stage.<warmup|dynamic>.validation`` (README, "Quality during training")."""
+    """Types of ``stage.<warmup|dynamic>.validation`` (docs/how-to/quality-during-training.md)."""
 
     every: int
     frames: int

@@ -1,5 +1,5 @@
 """Stage ``dynamic``: stage two of the paper, the hand MLPs H, the interaction MLPs I and PointNet++ on top
-of the warm-up Gaussians (README, "The dynamic model").
+of the warm-up Gaussians (docs/explanation/dynamic-model.md).
 
 Writes ``gaussians.parquet`` (the fine-tuned Gaussians, the warm-up's schema), ``networks.pt`` (a torch
 state dict of the MLPs, PointNet++, the point features and the canonical positions; load it with
@@ -167,7 +167,7 @@ def dynamic(ctx: StageContext) -> None:
     """Stage two on every train camera and frame: H, I, PointNet++, the point features and the Gaussians
     (the ablations and GaussianAvatars: what of it the method keeps), or SplattingAvatar trained on. With
     ``stage.dynamic.validation.every`` > 0 it withholds ``validation.frames`` train frames, validates on them and
-    may stop early (``curve.parquet``; README, "Quality during training"). The train motion is posed with the
+    may stop early (``curve.parquet``; docs/how-to/quality-during-training.md). The train motion is posed with the
     warm-up's ``params.parquet`` and, with ``stage.dynamic.refine_params``, refined further; ``params.parquet`` holds
     it as trained on, which ``evaluate``, ``reenact`` and the PLY export pose the train motion with."""
     conf = ctx.cfg.stage.dynamic

@@ -39,7 +39,7 @@ REFINE_CHOICES = ("auto", *REFINE_MODES)
 REFINEMENT_FIGURE = "refinement.png"
 IDENTITY_SPACES = ("auto", "full", "core")
 #: keypoint detectors whose landmarks sit where the template's embedding puts them, up to noise (the synthetic
-#: ground truth); identity_space=auto fits the full identity space only to these (README, "The built-in head").
+#: ground truth); identity_space=auto fits the full identity space only to these (docs/explanation/built-in-head.md).
 UNBIASED_DETECTORS = ("ground_truth",)
 #: fit.source=fitted, a sequence without any hand keypoint in the train views (a capture without a hand, e.g. the
 #: synthetic face_only scene; fit_report.json: "hand_fitted": false) gets a placeholder hand, not a fit: MANO's
@@ -216,7 +216,7 @@ class SequenceCheckpoints:
 
 def refine_mode(setting: str, detector: str, train_views: int) -> str:
     """The image refinement ``stage.fit.refine=setting`` asks for: a mode as given, or for ``auto`` the
-    silhouettes where they were measured to help (docs/tracking-refinement.md): MediaPipe's
+    silhouettes where they were measured to help (docs/explanation/tracking-refinement.md): MediaPipe's
     keypoints seen by two or more training views. Not with the synthetic ground-truth keypoints (at 1 px their
     fit is finer than 64 px silhouettes, which made it worse: hand 1.9 -> 2.5 mm), not from one view (the
     outline does not fix the distance: the face went from 58 to 71 mm), and not with a dataset's own keypoints

@@ -63,9 +63,9 @@ def keypoints(ctx: StageContext) -> None:
         if not info.has_ground_truth:
             raise SchemaError(f"{cap_dir / seq}: stage.keypoints.detector=ground_truth needs a capture with "
                               f"ground-truth keypoints (dataset=synthetic), and this '{index.dataset}' capture has "
-                              f"none: set stage.keypoints.detector=mediapipe to detect them (real footage; README, "
-                              f"\"Real footage\") or stage.keypoints.detector=provided for keypoints shipped with "
-                              f"the dataset")
+                              f"none: set stage.keypoints.detector=mediapipe to detect them (real footage; "
+                              f"docs/how-to/real-footage.md) or stage.keypoints.detector=provided for keypoints "
+                              f"shipped with the dataset")
         table = read_table(gt_path(cap_dir, seq, "keypoints"), KEYPOINTS)
         uvc = [corrupt_keypoints(np.asarray(kp, np.float64).reshape(-1, 3), conf.pixel_noise, conf.drop_rate,
                                  conf.outlier_rate, sizes[cam], rng)

@@ -128,7 +128,7 @@ def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
     if not info["model_interaction"]:
         left_out.append("no interaction MLPs and no PointNet++")
     saved = ("Left out: " + "; ".join(left_out) + ". benchmarks/bench_scene.py measures the time this saves "
-             "against modelling everything (README, \"Model only what a scene requires\").") if left_out else ""
+             "against modelling everything (docs/explanation/scene.md).") if left_out else ""
     return _table(("modelled", "", "why"), rows) + f"<p>{html.escape(work)}</p>" + \
         (f"<p>{html.escape(saved)}</p>" if saved else "") + _contact_draws_paragraph(manifests["dynamic"]) + \
         _selection_paragraph(dynamic)
@@ -167,7 +167,7 @@ def _selection_paragraph(dynamic: dict) -> str:
         kept = bool(dynamic[f"kept_{module}"])
         text += (f" {name[0].upper()}{name[1:]}: {'kept' if kept else 'switched off'} (validation PSNR without them "
                  f"{without:.2f} dB).")
-    return f"<p>{html.escape(text)} Rule: README, \"Keep only what the training views support\".</p>"
+    return f"<p>{html.escape(text)} Rule: docs/explanation/selection.md.</p>"
 
 
 def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, str]:
@@ -461,7 +461,7 @@ def _validation_section(warmup_dir: Path, dynamic_dir: Path) -> str:
     curves = {name: c for name, c in curves.items() if len(c["step"])}
     if not curves:
         return ("<p>No validation curve: stage.warmup.validation.every and stage.dynamic.validation.every "
-                "are 0 (README, \"Quality during training\").</p>")
+                "are 0 (docs/how-to/quality-during-training.md).</p>")
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6, 3), dpi=100)
     with_lpips = any(np.isfinite(np.asarray(c["lpips"], float)).any() for c in curves.values())

@@ -88,7 +88,7 @@ def warmup(ctx: StageContext) -> None:
     """Stage one on every train camera and train frame: static Gaussians bound to the triangles (GaussianAvatars,
     InteractAvatar's warm-up) or, for method.representation=embedded, SplattingAvatar's embedded Gaussians.
     With ``stage.warmup.validation.every`` > 0 it withholds ``validation.frames`` train frames, validates on them
-    and may stop early (``curve.parquet``; README, "Quality during training"). With ``stage.warmup.refine_params``
+    and may stop early (``curve.parquet``; docs/how-to/quality-during-training.md). With ``stage.warmup.refine_params``
     (``auto``: fitted or provided tracking) each step also refines the rendered frame's FLAME/MANO parameters
     (:mod:`avatar.training.frame_params`); ``params.parquet`` holds the train motion's parameters as trained on
     (the fit's where nothing was refined), which stage two starts from."""

@@ -29,7 +29,7 @@ def test_monocular_capture_runs_the_whole_dag(tmp_path: Path) -> None:
     assert fit["source"] == "fitted" and fit["train_views"] == 1
     train = fit["sequences"]["train"]
     assert train["reprojection_px"]["face"] < 3.0  # the one view is explained ...
-    # ... but depth is only known through size: the error lies along the camera's axis (README, "Monocular
+    # ... but depth is only known through size: the error lies along the camera's axis (docs/how-to/monocular-video.md
     # video": about 50 mm for the face here, against 1.1 mm from eight views).
     assert train["mpjpe_face_mm"] < 150.0
     scene = json.loads((subject / "scene" / "scene.json").read_text())

@@ -22,7 +22,7 @@ sparse solves, with the same constraints and stiffnesses (so the same physical m
   ``d = x - rest``, the shear of the soft-tissue layer that carries a dent to the skin around it
   (stretch and bending alone, being invariant to rigid motion of an edge, barely do);
 * optional tissue-volume preservation (``volume_stiffness`` > 0, :func:`_volume_rows`; off by
-  default: it did not help on the synthetic capture, README).
+  default: it did not help on the synthetic capture, docs/notes/2026-11-pbd-solver-choice.md).
 
 The multipliers are not computed (``problem`` keeps its zero multipliers); positions only.
 """

@@ -20,7 +20,7 @@ Per frame (:func:`solve_frame`), on the posed, undeformed face ``rest`` (V, 3):
 Stiffnesses are relative to a unit particle mass: XPBD's implicit inertia term ties each free
 vertex to its start position with stiffness 1, small next to the attachments (``attach_stiffness``
 times the relative stiffness, 360-1440 on the procedural face). The defaults were calibrated on
-the synthetic capture synth_a (README, "Contact deformation (pbd)").
+the synthetic capture synth_a (docs/explanation/pbd.md).
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ A validation renders those F x C images without gradients, with the renderer and
 records the mean per-image PSNR of the full image (as stage ``evaluate`` averages it), the render clamped
 to [0, 1], and with ``lpips`` the mean LPIPS-alex (``evaluate``'s metric) of the same images. LPIPS is off by
 default: at ``draft`` (4 frames, 7 cameras, 128 px) it makes a warm-up validation 1.6 times as costly
-(README, "Quality during training") and the stop rule needs only PSNR; choosing a loss weight that trades
+(docs/how-to/quality-during-training.md) and the stop rule needs only PSNR; choosing a loss weight that trades
 PSNR against perceptual quality on training views needs it (``benchmarks/bench_patch_weight.py``).
 
 The curve has a point at the step training starts from (the starting model), every ``every`` steps, and at

@@ -102,7 +102,8 @@ def test_many_views_silhouettes_pull_perturbed_tracking_back(capture: SyntheticC
 @pytest.mark.slow
 def test_many_views_colours_pull_perturbed_tracking_toward_the_truth(capture: SyntheticCapture) -> None:
     """Weaker than the silhouettes alone (measured: face 6.0 -> 5.9 mm, hand 8.8 -> 6.9 mm): the albedo, learnt
-    on the perturbed tracking first, takes up part of the misalignment (docs/tracking-refinement.md)."""
+    on the perturbed tracking first, takes up part of the misalignment
+    (docs/explanation/tracking-refinement.md)."""
     before, after = _refine(capture, _train_ids(capture), "photometric")
     for part in ("face", "hand"):
         assert after[part] < before[part], (part, before, after)
@@ -111,7 +112,7 @@ def test_many_views_colours_pull_perturbed_tracking_toward_the_truth(capture: Sy
 def test_one_view_pulls_the_head_back(capture: SyntheticCapture) -> None:
     """From one view the silhouettes pull the head back (its shape is known here; 6.0 -> 3.7 mm). They do not
     pull the hand back (measured 8.8 -> 10.5 mm: a hand's outline hardly changes with its depth), and the
-    photometric term drifts from one view (tens of mm): docs/tracking-refinement.md."""
+    photometric term drifts from one view (tens of mm): docs/explanation/tracking-refinement.md."""
     before, after = _refine(capture, _train_ids(capture)[:1], "silhouette")
     assert after["face"] < 0.7 * before["face"], (before, after)
 
