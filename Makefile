@@ -103,9 +103,11 @@ test-ray: $(RAY_STAMP) ext
 ## make mediapipe: the optional real-footage detectors (part of the install above, so run and test have them)
 mediapipe: $(STAMP)
 
-## make bench: every benchmark in benchmarks/, each prints a table
+## make bench: every benchmark in benchmarks/ in its quick mode (minutes each on 2 cores; one failing does not
+## stop the others), then a table of what ran; BENCH_ARGS="--full" for each one's own defaults (hours).
+BENCH_ARGS ?=
 bench: $(STAMP) ext
-	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+	$(PY) benchmarks/run_all.py $(BENCH_ARGS)
 
 ## make docs: the documentation site (MkDocs, Material theme) into site/; strict, so a broken link fails it.
 ## The generated pages are rewritten first: the config reference and the README's results table.

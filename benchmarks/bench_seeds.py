@@ -103,10 +103,17 @@ def _cli(threads: int, *args: str) -> None:
     subprocess.run(command, cwd=REPO, check=True, env={**os.environ, "OMP_NUM_THREADS": str(threads)})
 
 
-def run(setting: str, subject: str, seeds: list[int], outputs: Path, extra: list[str]) -> None:
-    """Train and evaluate both methods once per seed, then compare them (mean and spread over the seeds)."""
+#: <outputs>/<setting>/quality.txt: the preset the setting's runs used (draft when absent: the committed figures)
+QUALITY_FILE = "quality.txt"
+
+
+def run(setting: str, subject: str, seeds: list[int], outputs: Path, extra: list[str], quality: str = "draft") -> None:
+    """Train and evaluate both methods once per seed, then compare them (mean and spread over the seeds).
+    ``quality`` is ``draft`` for every committed figure (``smoke`` only checks the path: ``make bench``)."""
     spec = SETTINGS[setting]
-    common = [f"paths.outputs={outputs / setting}", f"subject={subject}", "quality=draft", "run.progress=false",
+    (outputs / setting).mkdir(parents=True, exist_ok=True)
+    (outputs / setting / QUALITY_FILE).write_text(quality)
+    common = [f"paths.outputs={outputs / setting}", f"subject={subject}", f"quality={quality}", "run.progress=false",
               *spec["overrides"], *extra]
     seed_list, methods = ",".join(map(str, seeds)), ",".join(_methods(spec))
     _cli(_threads(spec), "-m", f"method={methods}", f"seed={seed_list}", "run.until=evaluate", *common)
@@ -224,7 +231,9 @@ def table(outputs: Path, results: Path, settings: list[str], name: str) -> None:
             rows += _setting_rows(setting, subject, t, methods)
             kept[f"{setting}/{subject}"] = _kept(outputs / setting / subject, seeds, methods)
             evaluate = _manifest(outputs / setting / subject / "methods" / methods[0] / "evaluate")
-            meta[f"{setting}/{subject}"] = {"seeds": seeds, "git": evaluate.get("git_sha", "?"),
+            quality_file = outputs / setting / QUALITY_FILE
+            meta[f"{setting}/{subject}"] = {"quality": quality_file.read_text() if quality_file.is_file() else "draft",
+                                            "seeds": seeds, "git": evaluate.get("git_sha", "?"),
                                             "what": spec["what"], "overrides": spec["overrides"],
                                             "threads": _threads(spec), "methods": list(methods)}
     if not meta:
@@ -238,8 +247,8 @@ def table(outputs: Path, results: Path, settings: list[str], name: str) -> None:
     for key, info in meta.items():
         setting, subject = key.split("/")
         lines += [f"## ({setting}) {subject}: {info['what']}", "",
-                  f"quality=draft {' '.join(info['overrides'])}; seeds {info['seeds']}; {info['threads']} thread(s) per "
-                  f"run; trained at {info['git']}.", ""]
+                  f"quality={info.get('quality', 'draft')} {' '.join(info['overrides'])}; seeds {info['seeds']}; "
+                  f"{info['threads']} thread(s) per run; trained at {info['git']}.", ""]
         body = [[SPLITS[r["split"]], r["region"] + (" (contact)" if r["group"] == "contact" else ""),
                  _stat(np.array(r["ia_psnr"]), 2), _stat(np.array(r["ga_psnr"]), 2), f"{r['difference_db']:+.2f}",
                  f"{r['larger_sd_db']:.2f}", "-" if not np.isfinite(r["welch_p"]) else f"{r['welch_p']:.3f}",
@@ -271,6 +280,7 @@ def main() -> None:
     r.add_argument("--subject", required=True)
     r.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     r.add_argument("--outputs", type=Path, default=REPO / "outputs" / "bench_seeds")
+    r.add_argument("--quality", default="draft", help="draft for the figures; smoke checks the path")
     r.add_argument("extra", nargs="*", help="further overrides, e.g. run.lock_timeout_s=7200")
     t = sub.add_parser("table")
     t.add_argument("--outputs", type=Path, default=REPO / "outputs" / "bench_seeds")
@@ -282,7 +292,7 @@ def main() -> None:
     if args.command == "run":
         if args.subject not in SETTINGS[args.setting]["subjects"]:
             parser.error(f"setting {args.setting} is measured on {SETTINGS[args.setting]['subjects']}")
-        run(args.setting, args.subject, args.seeds, args.outputs.resolve(), args.extra)
+        run(args.setting, args.subject, args.seeds, args.outputs.resolve(), args.extra, args.quality)
     else:
         table(args.outputs.resolve(), args.results, args.settings, args.name)
 
