@@ -113,7 +113,7 @@ bench: $(STAMP) ext
 ## The generated pages are rewritten first: the config reference and the README's results table.
 docs: $(STAMP)
 	$(PY) -m pipeline.config_reference
-	$(PY) benchmarks/readme_results.py
+	$(PY) benchmarks/render_results.py
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
 clean-outputs:

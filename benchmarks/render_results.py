@@ -1,8 +1,12 @@
-"""The README's results table, rendered from ``benchmarks/results/bench_seeds.json`` (written by
-``bench_seeds.py table``), so that the front door shows what the committed data says and nothing typed by hand.
+"""The pages generated from the committed benchmark results, so that nothing shown is typed by hand:
 
-The table sits between ``<!-- results:begin -->`` and ``<!-- results:end -->`` in README.md. ``python
-benchmarks/readme_results.py`` rewrites it; ``--check`` exits 1 if the committed README differs
+- the README's results table, from ``benchmarks/results/bench_seeds.json`` (written by ``bench_seeds.py
+  table``), between ``<!-- results:begin -->`` and ``<!-- results:end -->``;
+- ``docs/results/<name>.md``, one page per ``benchmarks/results/<name>.md`` (each written by its benchmark with
+  the commit, machine, load and seeds), its plain-text tables fenced so they keep their columns, and
+  ``docs/results/index.md`` listing them.
+
+``python benchmarks/render_results.py`` rewrites them; ``--check`` exits 1 if a committed page differs
 (``tests/test_docs.py`` runs the same comparison).
 """
 
@@ -10,12 +14,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results" / "bench_seeds.json"
 README = ROOT / "README.md"
+DOCS_RESULTS = ROOT / "docs" / "results"
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 #: the settings the README shows (bench_seeds.py's docstring defines them), and its columns: (split, region, group)
 SETTINGS = ("a", "b", "c", "d")
@@ -51,7 +57,7 @@ def render(data: dict) -> str:
                      f"`{setting['git'][:7]}` | " + " | ".join(cells) + " |")
     lines += ["", f"Rendered from `benchmarks/results/bench_seeds.json` (table made at `{data['commit']}` on "
                   f"{data['machine']}, {data['cores']} cores, load {data['load']}) by "
-                  "`python benchmarks/readme_results.py`; per-region tables with LPIPS and Welch's p: "
+                  "`python benchmarks/render_results.py`; per-region tables with LPIPS and Welch's p: "
                   "`benchmarks/results/bench_seeds.md`.", "", END]
     return "\n".join(lines)
 
@@ -62,16 +68,49 @@ def replace_block(readme: str, block: str) -> str:
     return readme[:start] + block + readme[end:]
 
 
+def _fence_text_tables(text: str) -> str:
+    """``text`` with every block (lines between blank lines) that holds a plain-text table (a ``----  ----``
+    rule) put in a code fence, so that Markdown keeps its columns."""
+    blocks = text.strip("\n").split("\n\n")
+    rule = re.compile(r"^-{3,}(\s+-{3,})+\s*$", re.MULTILINE)
+    return "\n\n".join(f"```\n{b}\n```" if rule.search(b) and not b.startswith("```") else b
+                        for b in blocks) + "\n"
+
+
+def results_pages() -> dict[Path, str]:
+    """docs/results/<name>.md for every benchmarks/results/<name>.md, and the index."""
+    sources = sorted((ROOT / "benchmarks" / "results").glob("*.md"))
+    pages = {DOCS_RESULTS / s.name: (f"<!-- generated from benchmarks/results/{s.name} by "
+                                     f"benchmarks/render_results.py: edit the benchmark, not this page -->\n\n"
+                                     + _fence_text_tables(s.read_text())) for s in sources}
+    lines = ["# Results", "", "Every page here is a benchmark's own result file (`benchmarks/results/<name>.md`, "
+             "with its commit, machine, load and seeds; the data beside it as `<name>.json`), rendered by "
+             "`benchmarks/render_results.py`. Dated analyses of them are in the notes.", ""]
+    lines += [f"- [{s.stem}]({s.name}): {s.read_text().splitlines()[0].lstrip('# ').strip()}" for s in sources]
+    pages[DOCS_RESULTS / "index.md"] = "\n".join(lines) + "\n"
+    return pages
+
+
+def rendered() -> dict[Path, str]:
+    """Every generated file's path and the content it must have."""
+    readme = README.read_text()
+    return {README: replace_block(readme, render(json.loads(RESULTS.read_text()))), **results_pages()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true", help="exit 1 if README.md's table differs from the data")
+    parser.add_argument("--check", action="store_true", help="exit 1 if a generated page differs from the data")
     args = parser.parse_args()
-    readme = README.read_text()
-    updated = replace_block(readme, render(json.loads(RESULTS.read_text())))
+    pages = rendered()
+    stale = [p for p, text in pages.items() if not p.is_file() or p.read_text() != text]
     if args.check:
-        sys.exit(0 if updated == readme else 1)
-    README.write_text(updated)
-    print(f"README.md: results table {'unchanged' if updated == readme else 'rewritten'}")
+        if stale:
+            print("stale: " + ", ".join(str(p.relative_to(ROOT)) for p in stale))
+        sys.exit(1 if stale else 0)
+    DOCS_RESULTS.mkdir(parents=True, exist_ok=True)
+    for path in stale:
+        path.write_text(pages[path])
+    print(f"rewrote {len(stale)} of {len(pages)} generated pages")
 
 
 if __name__ == "__main__":
