@@ -48,10 +48,21 @@ def flock(path: Path, *, shared: bool, timeout_s: float, what: str) -> Iterator[
         what: words for the error message, e.g. ``"stage 'fit' of subject 'synth_a'"``.
     """
     deadline = time.monotonic() + timeout_s
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    with ExitStack() as held:
+        # Every run passes the turnstile on its way to the lock, and one that waits for the lock waits inside it,
+        # so no later run can take the lock first.
+        with _locked(path.with_name(path.name + ".queue"), fcntl.LOCK_EX, deadline, path, what):
+            held.enter_context(_locked(path, fcntl.LOCK_SH if shared else fcntl.LOCK_EX, deadline, path, what))
+        yield
+
+
+@contextmanager
+def _locked(file: Path, mode: int, deadline: float, path: Path, what: str) -> Iterator[None]:
+    """Hold ``mode`` on ``file`` (created if missing) once it is free, or :class:`LockTimeout` at ``deadline``
+    naming lock ``path``."""
+    fd = os.open(file, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        with _turnstile(path, deadline, what):
-            _wait(fd, fcntl.LOCK_SH if shared else fcntl.LOCK_EX, deadline, path, what)
+        _wait(fd, mode, deadline, path, what)
         try:
             yield
         finally:
@@ -79,21 +90,6 @@ def _wait(fd: int, mode: int, deadline: float, path: Path, what: str) -> None:
 
 def _timeout(path: Path, what: str) -> NoReturn:
     raise LockTimeout(f"{what} is locked by another run ({path}); wait for it or raise run.lock_timeout_s")
-
-
-@contextmanager
-def _turnstile(path: Path, deadline: float, what: str) -> Iterator[None]:
-    """Hold the turnstile of lock ``path``: every run passes it on its way to the lock, and one that waits for
-    the lock waits inside it, so no later run can take the lock first."""
-    fd = os.open(path.with_name(path.name + ".queue"), os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        _wait(fd, fcntl.LOCK_EX, deadline, path, what)
-        try:
-            yield
-        finally:
-            fcntl.flock(fd, fcntl.LOCK_UN)
-    finally:
-        os.close(fd)
 
 
 @contextmanager
