@@ -17,6 +17,10 @@ split over several processes (``--weights``) and the table printed afterwards wi
 
 Usage: python benchmarks/bench_patch_weight.py [--subject synth_a] [--preset draft] [--weights 0 0.01 0.03 0.1]
        [--outputs DIR] [--every 250] [--frames 4] [--psnr-tolerance 0.1] [--set KEY=VALUE ...] [--no-run]
+       [--results DIR]
+
+The tables are appended to ``benchmarks/results/bench_patch_weight.json`` (``--results``) with the commit, the
+preset and the machine.
 """
 
 from __future__ import annotations
@@ -35,11 +39,11 @@ sys.path.insert(0, str(REPO))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from data_schemas.curve import CURVE  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
 from pipeline.config import validate_config  # noqa: E402
 from pipeline.runner import Runner  # noqa: E402
-from pipeline.summary import format_table  # noqa: E402
 from stages import REGISTRY  # noqa: E402
 
 
@@ -106,7 +110,7 @@ def choose(candidates: list[Candidate], psnr_tolerance_db: float) -> Candidate:
     return min(eligible, key=lambda c: (c.final_lpips, c.weight))
 
 
-def report(candidates: list[Candidate], tolerance: float) -> None:
+def report(candidates: list[Candidate], tolerance: float, log: ResultLog) -> None:
     chosen = choose(candidates, tolerance)
     reference = min(candidates, key=lambda c: c.weight)
     rows = []
@@ -114,14 +118,16 @@ def report(candidates: list[Candidate], tolerance: float) -> None:
         rows.append((f"{c.weight:g}", f"{c.final_psnr:.2f}", f"{c.final_psnr - reference.final_psnr:+.2f}",
                      f"{c.final_lpips:.4f}", f"{c.final_lpips - reference.final_lpips:+.4f}",
                      f"{max(c.psnr):.2f}", f"{c.ms_per_step:.0f}", "<- chosen" if c is chosen else ""))
-    print(format_table(("c", "val PSNR", f"vs c={reference.weight:g}", "val LPIPS", f"vs c={reference.weight:g}",
-                        "best PSNR on curve", "ms/step", ""), rows))
+    print(log.table(f"candidates (rule: lowest validation LPIPS within {tolerance:g} dB of the best PSNR)",
+                    ("c", "val PSNR", f"vs c={reference.weight:g}", "val LPIPS", f"vs c={reference.weight:g}",
+                     "best PSNR on curve", "ms/step", ""), rows))
     print(f"\nrule: lowest validation LPIPS within {tolerance:g} dB of the best validation PSNR "
           f"({max(c.final_psnr for c in candidates):.2f} dB) -> c = {chosen.weight:g}")
-    print("\ncurves (step: PSNR / LPIPS):")
-    for c in sorted(candidates, key=lambda c: c.weight):
-        points = ", ".join(f"{s}: {p:.2f}/{v:.4f}" for s, p, v in zip(c.steps, c.psnr, c.lpips, strict=True))
-        print(f"  c={c.weight:g}: {points}")
+    curves = [(f"{c.weight:g}", ", ".join(f"{s}: {p:.2f}/{v:.4f}" for s, p, v in zip(c.steps, c.psnr, c.lpips,
+                                                                                    strict=True)))
+              for c in sorted(candidates, key=lambda c: c.weight)]
+    print()
+    print(log.table("validation curves", ("c", "step: PSNR / LPIPS"), curves))
 
 
 def main() -> None:
@@ -135,7 +141,9 @@ def main() -> None:
     parser.add_argument("--psnr-tolerance", type=float, default=0.1, help="dB below the best PSNR still eligible")
     parser.add_argument("--set", nargs="*", default=[], help="extra Hydra overrides for every run")
     parser.add_argument("--no-run", action="store_true", help="train nothing; print the table of what is there")
+    add_results_argument(parser)
     args = parser.parse_args()
+    log = ResultLog("bench_patch_weight", preset=args.preset)
     if args.no_run and args.outputs is None:
         parser.error("--no-run needs --outputs")
     if any(not math.isfinite(w) or w < 0 for w in args.weights):
@@ -149,7 +157,8 @@ def main() -> None:
         candidates = [c for w in args.weights if (c := load_candidate(outputs, args.subject, w)) is not None]
         if not candidates:
             sys.exit(f"no candidate has run in {outputs}: run without --no-run first")
-        report(candidates, args.psnr_tolerance)
+        report(candidates, args.psnr_tolerance, log)
+        log.write(args.results)
 
 
 if __name__ == "__main__":

@@ -8,22 +8,31 @@ simulated (contact) frame, one torch thread; CPU seconds (the process's, over wh
 simulated frame) are the fairer number on a shared machine. Prints tables, asserts nothing.
 
 Table 1: both subjects at draft (train + test frames). Table 2: method and sweep count against error
-and time (--subject). Table 3: warm start against cold start at the defaults (--subject).
+and time (--subject). Table 3: warm start against cold start at the defaults (--subject). The tables are
+appended to ``benchmarks/results/bench_pbd.json`` (``--results``) with the commit and the machine.
+
+Usage: python benchmarks/bench_pbd.py [--subject synth_a] [--sweeps 50,100,300,800] [--tables 1,2,3]
+       [--results DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from avatar.pbd import PBDConfig, face_relative_stiffness, moving_vertex_errors, solve_sequence
+from avatar.posing import posed_keypoints
 from avatar.synthetic import SyntheticConfig, generate
 from avatar.templates import procedural_hand, procedural_head
-from avatar.training.posing import posed_keypoints
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 
 #: quality=draft frame counts (conf/quality/draft.yaml)
 DRAFT_FRAMES = {"train": 24, "test": 12}
@@ -62,46 +71,47 @@ def _evaluate(data: list[tuple[torch.Tensor, torch.Tensor, np.ndarray]], cfg: PB
             "penetration": penetration}
 
 
-def _table1(data: dict[str, list], base: PBDConfig) -> None:
+def _table1(data: dict[str, list], base: PBDConfig, log: ResultLog) -> None:
     solver = (f"direct, at most {base.direct_outer} x {base.direct_inner} solves" if base.method == "direct" else
               f"{base.method}, Chebyshev rho {base.chebyshev_rho}, {base.iterations} sweeps")
-    print(f"Table 1: accuracy on contact frames at draft (defaults: {solver}, shear {base.shear_stiffness})")
-    print("| subject | contact frames | mean error (mm) | p95 (mm) | zero offsets mean (mm) | zero p95 (mm) "
-          "| mean / zero | max residual penetration (mm) | wall s per contact frame | CPU s per contact frame |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    rows = []
     for subject, seqs in data.items():
         r = _evaluate(seqs, base)
-        print(f"| {subject} | {r['frames']} | {r['mean']:.3f} | {r['p95']:.3f} | {r['zero_mean']:.3f} "
-              f"| {r['zero_p95']:.3f} | {r['ratio']:.0%} | {r['penetration']:.3f} | {r['s_per_frame']:.3f} "
-              f"| {r['cpu_per_frame']:.3f} |", flush=True)
+        rows.append((subject, r["frames"], f"{r['mean']:.3f}", f"{r['p95']:.3f}", f"{r['zero_mean']:.3f}",
+                     f"{r['zero_p95']:.3f}", f"{r['ratio']:.0%}", f"{r['penetration']:.3f}", f"{r['s_per_frame']:.3f}",
+                     f"{r['cpu_per_frame']:.3f}"))
+    print(log.table(f"Table 1: accuracy on contact frames at draft (defaults: {solver}, shear {base.shear_stiffness})",
+                    ("subject", "contact frames", "mean error mm", "p95 mm", "zero offsets mean mm", "zero p95 mm",
+                     "mean / zero", "max residual penetration mm", "wall s per contact frame",
+                     "CPU s per contact frame"), rows), flush=True)
 
 
-def _table2(data: list, base: PBDConfig, subject: str, sweep_counts: list[int]) -> None:
-    print(f"\nTable 2: sweeps against error and time ({subject}, draft, train + test)")
-    print("| sweeps | mean error (mm) | p95 (mm) | mean / zero | wall s per contact frame | CPU s per contact frame |")
-    print("| --- | --- | --- | --- | --- | --- |")
+def _table2(data: list, base: PBDConfig, subject: str, sweep_counts: list[int], log: ResultLog) -> None:
     methods = {"Jacobi + Chebyshev": {"method": "jacobi"}, "Jacobi": {"method": "jacobi", "chebyshev_rho": 0.0},
                "Gauss-Seidel": {"method": "gauss_seidel", "chebyshev_rho": 0.0}}
-    for name, settings in methods.items():
-        print(f"| **{name}** | | | | | |")
-        for sweeps in sweep_counts:
-            r = _evaluate(data, replace(base, iterations=sweeps, **settings))
-            print(f"| {sweeps} | {r['mean']:.3f} | {r['p95']:.3f} | {r['ratio']:.0%} | {r['s_per_frame']:.3f} "
-                  f"| {r['cpu_per_frame']:.3f} |", flush=True)
-    print("| **Direct (the fixed point the sweeps converge to)** | | | | | |")
-    r = _evaluate(data, replace(base, method="direct"))
-    print(f"| solves: {base.direct_outer} x {base.direct_inner} at most | {r['mean']:.3f} | {r['p95']:.3f} "
-          f"| {r['ratio']:.0%} | {r['s_per_frame']:.3f} | {r['cpu_per_frame']:.3f} |", flush=True)
+    runs = [(name, str(sweeps), replace(base, iterations=sweeps, **settings))
+            for name, settings in methods.items() for sweeps in sweep_counts]
+    runs.append(("Direct (the fixed point the sweeps converge to)",
+                 f"{base.direct_outer} x {base.direct_inner} solves at most", replace(base, method="direct")))
+    rows = []
+    for name, sweeps, cfg in runs:
+        r = _evaluate(data, cfg)
+        rows.append((name, sweeps, f"{r['mean']:.3f}", f"{r['p95']:.3f}", f"{r['ratio']:.0%}",
+                     f"{r['s_per_frame']:.3f}", f"{r['cpu_per_frame']:.3f}"))
+    print(log.table(f"Table 2: sweeps against error and time ({subject}, draft, train + test)",
+                    ("solver", "sweeps", "mean error mm", "p95 mm", "mean / zero", "wall s per contact frame",
+                     "CPU s per contact frame"), rows), flush=True)
 
 
-def _table3(data: list, base: PBDConfig, subject: str) -> None:
-    print(f"\nTable 3: warm start ({subject}, draft, defaults)")
-    print("| start | mean error (mm) | mean / zero | wall s per contact frame | CPU s per contact frame |")
-    print("| --- | --- | --- | --- | --- |")
+def _table3(data: list, base: PBDConfig, subject: str, log: ResultLog) -> None:
+    rows = []
     for warm in (False, True):
         r = _evaluate(data, replace(base, warm_start=warm))
-        print(f"| {'previous frame' if warm else 'undeformed'} | {r['mean']:.3f} | {r['ratio']:.0%} "
-              f"| {r['s_per_frame']:.3f} | {r['cpu_per_frame']:.3f} |")
+        rows.append(("previous frame" if warm else "undeformed", f"{r['mean']:.3f}", f"{r['ratio']:.0%}",
+                     f"{r['s_per_frame']:.3f}", f"{r['cpu_per_frame']:.3f}"))
+    print(log.table(f"Table 3: warm start ({subject}, draft, defaults)",
+                    ("start", "mean error mm", "mean / zero", "wall s per contact frame", "CPU s per contact frame"),
+                    rows))
 
 
 def main() -> None:
@@ -109,19 +119,23 @@ def main() -> None:
     parser.add_argument("--subject", default="synth_a", help="subject of tables 2 and 3")
     parser.add_argument("--sweeps", default="50,100,300,800", help="sweep counts of table 2")
     parser.add_argument("--tables", default="1,2,3", help="which tables to print")
+    add_results_argument(parser)
     args = parser.parse_args()
+    log = ResultLog("bench_pbd", preset="draft")
     torch.set_num_threads(1)
     base = PBDConfig()
     data = {s: [_sequence(s, seq, n) for seq, n in DRAFT_FRAMES.items()] for s in ("synth_a", "synth_b")}
 
     tables = {int(t) for t in args.tables.split(",")}
     if 1 in tables:
-        _table1(data, base)
+        _table1(data, base, log)
     if 2 in tables:
-        _table2(data[args.subject], base, args.subject, [int(s) for s in args.sweeps.split(",")])
+        print()
+        _table2(data[args.subject], base, args.subject, [int(s) for s in args.sweeps.split(",")], log)
     if 3 in tables:
-        _table3(data[args.subject], base, args.subject)
-
+        print()
+        _table3(data[args.subject], base, args.subject, log)
+    log.write(args.results)
 
 if __name__ == "__main__":
     main()

@@ -19,7 +19,10 @@ Goals (issue 15): ``draft`` reaches at least 95 % of ``standard``'s NV PSNR at n
 time; the early stop saves at least 30 % of ``standard``'s training time for at most 0.2 dB.
 
 Usage: python benchmarks/bench_quality.py [--presets smoke draft standard] [--methods gaussian_avatars
-       interactavatar] [--outputs DIR] [--fit-source S] [--early-stop --every 100]
+       interactavatar] [--outputs DIR] [--fit-source S] [--early-stop --every 100] [--results DIR]
+
+The tables are appended to ``benchmarks/results/bench_quality.json`` (``--results``) with the commit, the
+presets and the machine.
 """
 
 from __future__ import annotations
@@ -38,11 +41,11 @@ sys.path.insert(0, str(REPO))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from data_schemas.metrics import METRICS  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
 from pipeline.config import validate_config  # noqa: E402
 from pipeline.runner import Runner  # noqa: E402
-from pipeline.summary import format_table  # noqa: E402
 from stages import REGISTRY  # noqa: E402
 
 SHARED = ("capture", "frames", "keypoints", "fit", "scene", "pbd")
@@ -90,7 +93,9 @@ def main() -> None:
                         help="fit.source: ground_truth (default) measures the avatar apart from fitting error")
     parser.add_argument("--early-stop", action="store_true", help="also measure stop_when_flat (two runs each)")
     parser.add_argument("--every", type=int, default=100, help="validation interval (steps) with --early-stop")
+    add_results_argument(parser)
     args = parser.parse_args()
+    log = ResultLog("bench_quality", preset=",".join(args.presets))
     results: dict[tuple[str, str, str], dict] = {}
     validate = [f"stage.{s}.validation.every={args.every}" for s in ("warmup", "dynamic")]
     stop = [f"stage.{s}.validation.stop_when_flat.enabled=true" for s in ("warmup", "dynamic")]
@@ -125,11 +130,13 @@ def main() -> None:
     load = os.getloadavg()
     print(f"fit.source={args.fit_source}; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}; ratios "
           f"against {largest}")
-    print(format_table(("preset", "method", "shared s", *(f"{s} s" for s in PER_METHOD), "total s",
-                        f"x {largest}", "peak MB", "Gaussians"), cost))
+    print(log.table(f"cost (fit.source={args.fit_source}; ratios against {largest})",
+                    ("preset", "method", "shared s", *(f"{s} s" for s in PER_METHOD), "total s", f"x {largest}",
+                     "peak MB", "Gaussians"), cost))
     print()
-    print(format_table(("preset", "method", *(f"{SPLITS[s]} {reg} {m}" for s in SPLITS for reg in REGIONS
-                                              for m in ("PSNR", "SSIM", "LPIPS")), f"NV PSNR % {largest}"), quality))
+    print(log.table(f"quality (fit.source={args.fit_source}; NV: held-out camera, SR: held-out motion)",
+                    ("preset", "method", *(f"{SPLITS[s]} {reg} {m}" for s in SPLITS for reg in REGIONS
+                                           for m in ("PSNR", "SSIM", "LPIPS")), f"NV PSNR % {largest}"), quality))
     if args.early_stop:
         rows = []
         for preset in args.presets:
@@ -143,8 +150,10 @@ def main() -> None:
                              f"{100 * (1 - s_s / p_s):.0f}",
                              *(f"{s_q[(s, 'full', 'psnr')] - p_q[(s, 'full', 'psnr')]:+.2f}" for s in SPLITS)))
         print()
-        print(format_table(("preset", "method", "planned steps", "steps run", "planned train s", "stopped train s",
-                            "time saved %", "NV PSNR change", "SR PSNR change"), rows))
+        print(log.table("early stop (stop_when_flat) against the planned schedule",
+                        ("preset", "method", "planned steps", "steps run", "planned train s", "stopped train s",
+                         "time saved %", "NV PSNR change", "SR PSNR change"), rows))
+    log.write(args.results)
 
 
 if __name__ == "__main__":

@@ -31,7 +31,10 @@ scenes, interleaved; its peak CUDA memory, and its image against the cpu backend
 ``--backend gsplat`` runs only that table (``make test-gpu``).
 
 Usage: python benchmarks/bench_rasterizer.py [--quick] [--repeats 5] [--threads 1 2]
-       [--tile-sizes 8 16] [--no-memory] [--backend all|gsplat]
+       [--tile-sizes 8 16] [--no-memory] [--backend all|gsplat] [--results DIR]
+
+The tables are appended to ``benchmarks/results/bench_rasterizer.json`` (``--results``) with the commit and
+the machine.
 """
 
 from __future__ import annotations
@@ -53,8 +56,8 @@ sys.path.insert(0, str(REPO))
 
 from avatar.render.gaussians import available_backends, render_gaussians  # noqa: E402
 from avatar.render.gaussians.backend_cpu import DEFAULT_TILE_SIZE, render_cpu, work_counts  # noqa: E402
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from pipeline.monitor import ResourceMonitor  # noqa: E402
-from pipeline.summary import format_table  # noqa: E402
 
 FULL = [(128, 10_000), (256, 50_000), (512, 50_000), (512, 200_000)]
 QUICK = [(128, 10_000), (256, 50_000)]
@@ -140,7 +143,7 @@ def time_interleaved(runs: dict[str, Callable[[], None]], repeats: int, device: 
 
 
 def bench_cpu_backends(configs: list[tuple[int, int]], threads: list[int], tile_sizes: list[int], repeats: int,
-                       memory: bool) -> None:
+                       memory: bool, log: ResultLog) -> None:
     """Time, memory and work tables of the torch and compiled cpu backends; the target verdicts."""
     cpu_names = [f"cpu/{ts}" for ts in tile_sizes]
     main_cpu = f"cpu/{DEFAULT_TILE_SIZE}" if DEFAULT_TILE_SIZE in tile_sizes else cpu_names[0]
@@ -161,22 +164,28 @@ def bench_cpu_backends(configs: list[tuple[int, int]], threads: list[int], tile_
         ns_alpha = 1e6 * medians[size, n, threads[0]][main_cpu] / (evaluations + contributions)
         work_rows.append((f"{size}x{size}", n, *peaks, evaluations, contributions, f"{ns_alpha:.1f}",
                           f"{ns_alpha / BOUND_NS_PER_ALPHA:.1f}"))
-    print("\nforward + backward per iteration, median ms (cpu/T: compiled backend, T x T tiles)")
-    print(format_table(("image", "gaussians", "threads", "torch", *cpu_names, f"torch / {main_cpu}"), time_rows))
-    print(f"\npeak memory of a first iteration ({threads[0]} thread(s)) and the compiled backend's work "
-          f"({DEFAULT_TILE_SIZE}x{DEFAULT_TILE_SIZE} tiles, ns/alpha at {threads[0]} thread(s))")
-    print(format_table(("image", "gaussians", "torch MiB", "cpu MiB", "alpha evals", "contributing", "ns/alpha",
-                        f"x bound ({BOUND_NS_PER_ALPHA:g} ns)"), work_rows))
+    print()
+    print(log.table("forward + backward per iteration, median ms (cpu/T: compiled backend, T x T tiles)",
+                    ("image", "gaussians", "threads", "torch", *cpu_names, f"torch / {main_cpu}"), time_rows))
+    print()
+    print(log.table(f"peak memory of a first iteration ({threads[0]} thread(s)) and the compiled backend's work "
+                    f"({DEFAULT_TILE_SIZE}x{DEFAULT_TILE_SIZE} tiles, ns/alpha at {threads[0]} thread(s))",
+                    ("image", "gaussians", "torch MiB", "cpu MiB", "alpha evals", "contributing", "ns/alpha",
+                     f"x bound ({BOUND_NS_PER_ALPHA:g} ns)"), work_rows))
+    verdicts = []
     for size, n in TARGETS:
         for t in threads:
             if (size, n, t) in medians:
                 ratio = medians[size, n, t]["torch"] / medians[size, n, t][main_cpu]
-                print(f"target {size}x{size}/{n // 1000}k, {t} thread(s): cpu {ratio:.1f}x faster than torch "
-                      f"({'meets' if ratio >= 10 else 'misses'} 10x)")
+                verdicts.append((f"cpu >= 10x faster than torch, {size}x{size}/{n // 1000}k, {t} thread(s)",
+                                 f"{ratio:.1f}x", "meets" if ratio >= 10 else "misses"))
     goal = medians.get((256, 50_000, threads[0]))
     if goal:
-        verdict = "meets" if goal["torch"] < 500 else "misses"
-        print(f"goal: torch 256x256, 50k Gaussians < 500 ms: {goal['torch']:.0f} ms ({verdict})")
+        verdicts.append(("torch 256x256, 50k Gaussians < 500 ms", f"{goal['torch']:.0f} ms",
+                         "meets" if goal["torch"] < 500 else "misses"))
+    if verdicts:
+        print()
+        print(log.table("targets", ("target", "measured", "verdict"), verdicts))
 
 
 def gsplat_beside_cpu(configs: list[tuple[int, int]], repeats: int, memory: bool = True) -> list[dict]:
@@ -212,17 +221,18 @@ def gsplat_beside_cpu(configs: list[tuple[int, int]], repeats: int, memory: bool
     return rows
 
 
-def bench_gsplat(configs: list[tuple[int, int]], repeats: int, memory: bool) -> None:
+def bench_gsplat(configs: list[tuple[int, int]], repeats: int, memory: bool, log: ResultLog) -> None:
     """Print :func:`gsplat_beside_cpu`'s table."""
     rows = gsplat_beside_cpu(configs, repeats, memory)
-    print(f"\ngsplat backend ({torch.cuda.get_device_name()}) beside the compiled cpu backend "
-          f"({torch.get_num_threads()} threads), forward + backward per iteration, median ms")
-    print(format_table(("image", "gaussians", "cpu ms", "gsplat ms", "cpu / gsplat", "gsplat peak MiB",
-                        "max |rgb diff|", "max |alpha diff|", "PSNR vs cpu dB"),
-                       [(f"{r['image']}x{r['image']}", r["gaussians"], f"{r['cpu_ms']:.1f}", f"{r['gsplat_ms']:.2f}",
-                         f"{r['speedup']:.0f}", "-" if r["gsplat_peak_mib"] is None else f"{r['gsplat_peak_mib']:.0f}",
-                         f"{r['max_rgb_diff']:.1e}", f"{r['max_alpha_diff']:.1e}", f"{r['psnr_vs_cpu']:.1f}")
-                        for r in rows]))
+    print()
+    print(log.table(f"gsplat backend ({torch.cuda.get_device_name()}) beside the compiled cpu backend "
+                    f"({torch.get_num_threads()} threads), forward + backward per iteration, median ms",
+                    ("image", "gaussians", "cpu ms", "gsplat ms", "cpu / gsplat", "gsplat peak MiB",
+                     "max |rgb diff|", "max |alpha diff|", "PSNR vs cpu dB"),
+                    [(f"{r['image']}x{r['image']}", r["gaussians"], f"{r['cpu_ms']:.1f}", f"{r['gsplat_ms']:.2f}",
+                      f"{r['speedup']:.0f}", "-" if r["gsplat_peak_mib"] is None else f"{r['gsplat_peak_mib']:.0f}",
+                      f"{r['max_rgb_diff']:.1e}", f"{r['max_alpha_diff']:.1e}", f"{r['psnr_vs_cpu']:.1f}")
+                     for r in rows]))
 
 
 def main() -> None:
@@ -235,7 +245,9 @@ def main() -> None:
     parser.add_argument("--no-memory", action="store_true", help="skip the spawned peak-memory runs")
     parser.add_argument("--backend", choices=["all", "gsplat"], default="all",
                         help="gsplat: only gsplat beside the compiled cpu backend (needs CUDA), not the torch backend")
+    add_results_argument(parser)
     args = parser.parse_args()
+    log = ResultLog("bench_rasterizer")
     configs = QUICK if args.quick else FULL
     backends = available_backends()
     wait_policy = os.environ.get("OMP_WAIT_POLICY", "unset")
@@ -246,11 +258,12 @@ def main() -> None:
     if args.backend == "gsplat" and "gsplat" not in backends:
         raise SystemExit("--backend gsplat needs CUDA and gsplat (pip install -e '.[cuda]'; docs/how-to/gpu.md)")
     if args.backend == "all":
-        bench_cpu_backends(configs, args.threads, args.tile_sizes, args.repeats, not args.no_memory)
+        bench_cpu_backends(configs, args.threads, args.tile_sizes, args.repeats, not args.no_memory, log)
     if "gsplat" in backends:
         torch.set_num_threads(args.threads[-1])
-        bench_gsplat(configs, args.repeats, not args.no_memory)
+        bench_gsplat(configs, args.repeats, not args.no_memory, log)
     print(f"load average at the end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    log.write(args.results)
 
 
 if __name__ == "__main__":

@@ -4,10 +4,11 @@ Loads a method's trained model from an outputs folder (``make run`` or ``make co
 with the subject's held-out motion (contact simulated as stage ``reenact`` does) and renders an orbit view
 of every frame at each ``--sizes`` (default 128, 256 and 512 px), interleaving the sizes and taking medians.
 Prints one row per size and backend: model ms per frame (the same at every size), rasterizer ms per view,
-frames per second, and the load average (the machine is shared).
+frames per second, and the load average (the machine is shared). The table is appended to
+``benchmarks/results/bench_reenact.json`` (``--results``) with the commit, the preset and the machine.
 
 Usage: python benchmarks/bench_reenact.py --outputs outputs [--subject synth_a] [--method interactavatar]
-       [--quality smoke] [--sizes 128 256 512] [--backends cpu torch] [--repeats 3]
+       [--quality smoke] [--sizes 128 256 512] [--backends cpu torch] [--repeats 3] [--results DIR]
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 
 from avatar.reenact.cameras import orbit, orbit_intrinsics  # noqa: E402
 from avatar.render.gaussians import render_gaussians, resolve_backend  # noqa: E402
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from pipeline.config import validate_config  # noqa: E402
-from pipeline.summary import format_table  # noqa: E402
 from stages import REGISTRY  # noqa: E402
 from stages.common import drive, load_params, load_scene, load_trained, posed_gaussians  # noqa: E402
 
@@ -43,7 +44,9 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
     parser.add_argument("--backends", nargs="+", default=["auto"])
     parser.add_argument("--repeats", type=int, default=3)
+    add_results_argument(parser)
     args = parser.parse_args()
+    log = ResultLog("bench_reenact", preset=args.quality)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = validate_config(compose("config", overrides=[f"subject={args.subject}", f"method={args.method}",
@@ -85,8 +88,10 @@ def main() -> None:
                      f"{1000 / (model_median + median):.1f}", f"{1000 / median:.1f}"))
     print(f"{args.method} on {args.subject} ({args.quality}): {len(g.means)} Gaussians, {T} frames x "
           f"{args.repeats}; load average {load0:.1f} -> {os.getloadavg()[0]:.1f}")
-    print(format_table(("px", "rasterizer", "model ms/frame", "render ms/view", "fps (model + render)",
-                        "fps (render only)"), rows))
+    print(log.table(f"{args.method} on {args.subject}: {len(g.means)} Gaussians, held-out motion, orbit view",
+                    ("px", "rasterizer", "model ms/frame", "render ms/view", "fps (model + render)",
+                     "fps (render only)"), rows))
+    log.write(args.results)
 
 
 if __name__ == "__main__":

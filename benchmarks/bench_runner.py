@@ -8,7 +8,10 @@ Prints two tables:
    interpreter-and-import start-up measured separately so the runner's own
    overhead is visible. Goal: cached run < 2 s plus start-up.
 
-Usage: python benchmarks/bench_runner.py [--stages 10] [--files 50] [--kb 256] [--skip-cli]
+The tables are appended to ``benchmarks/results/bench_runner.json`` (``--results``) with the commit and the
+machine.
+
+Usage: python benchmarks/bench_runner.py [--stages 10] [--files 50] [--kb 256] [--skip-cli] [--results DIR]
 """
 
 from __future__ import annotations
@@ -25,11 +28,11 @@ sys.path.insert(0, str(REPO))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from pipeline.config import validate_config  # noqa: E402
 from pipeline.registry import StageRegistry  # noqa: E402
 from pipeline.runner import Runner  # noqa: E402
 from pipeline.stage import StageContext, stage  # noqa: E402
-from pipeline.summary import format_table  # noqa: E402
 
 
 def _payload_stage(name: str, inputs: tuple[str, ...], files: int, kb: int):
@@ -80,13 +83,17 @@ def main() -> None:
     parser.add_argument("--files", type=int, default=50)
     parser.add_argument("--kb", type=int, default=256)
     parser.add_argument("--skip-cli", action="store_true")
+    add_results_argument(parser)
     args = parser.parse_args()
+    log = ResultLog("bench_runner")
     rows = bench_in_process(args.stages, args.files, args.kb)
-    print(format_table(("workload (in-process)", "first run s", "cached run s", "cached / first"), rows))
+    print(log.table("synthetic chain, in-process",
+                    ("workload (in-process)", "first run s", "cached run s", "cached / first"), rows))
     if not args.skip_cli:
         print()
-        print(format_table(("workload", "first run s", "cached run s", "cached / first", "start-up s",
-                            "runner overhead s (goal < 2)"), bench_cli()))
+        print(log.table("the real DAG through the CLI", ("workload", "first run s", "cached run s", "cached / first",
+                                                         "start-up s", "runner overhead s (goal < 2)"), bench_cli()))
+    log.write(args.results)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,10 @@ evaluations, PBD frames simulated, and the held-out PSNR (novel view: held-out c
 held-out motion). Goal (issue 15): ``auto`` within 0.2 dB of ``everything`` on held-out PSNR, in less time.
 
 Usage: python benchmarks/bench_scene.py [--preset smoke] [--scenes no_contact face_only] [--repeats 1]
-       [--overrides stage.warmup.seed=1 ...]
+       [--overrides stage.warmup.seed=1 ...] [--results DIR]
+
+The table is appended to ``benchmarks/results/bench_scene.json`` (``--results``) with the commit, the preset
+and the machine.
 """
 
 from __future__ import annotations
@@ -28,11 +31,11 @@ sys.path.insert(0, str(REPO))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from data_schemas.gaussians import BOUND_GAUSSIANS  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
 from pipeline.config import validate_config  # noqa: E402
 from pipeline.runner import Runner  # noqa: E402
-from pipeline.summary import format_table  # noqa: E402
 from stages import REGISTRY  # noqa: E402
 
 TIMED = ("pbd", "warmup", "dynamic", "evaluate")
@@ -70,7 +73,9 @@ def main() -> None:
     parser.add_argument("--fit-source", default="ground_truth")
     parser.add_argument("--outputs", type=Path, default=None, help="keep artifacts here (default: a temp dir)")
     parser.add_argument("--overrides", nargs="*", default=[], help="more config overrides, e.g. stage.warmup.seed=1")
+    add_results_argument(parser)
     args = parser.parse_args()
+    log = ResultLog("bench_scene", preset=args.preset)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         base = args.outputs or Path(tmp)
@@ -96,8 +101,11 @@ def main() -> None:
     load = os.getloadavg()
     print(f"preset {args.preset}, fit.source={args.fit_source}, {' '.join(args.overrides)}, {args.repeats} round(s), "
           f"load average {load[0]:.1f} / {load[1]:.1f}")
-    print(format_table(("scene", "setting", "modelled (H P I)", "pbd+warmup+dynamic+evaluate s", "x everything",
-                        "hand Gaussians", "I evaluations", "PBD frames", "NV PSNR", "SR PSNR"), rows))
+    print(log.table(f"auto against everything (fit.source={args.fit_source}, {args.repeats} round(s) "
+                    f"{' '.join(args.overrides)})".replace(" )", ")"),
+                    ("scene", "setting", "modelled (H P I)", "pbd+warmup+dynamic+evaluate s", "x everything",
+                     "hand Gaussians", "I evaluations", "PBD frames", "NV PSNR", "SR PSNR"), rows))
+    log.write(args.results)
 
 
 if __name__ == "__main__":

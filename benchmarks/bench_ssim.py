@@ -11,9 +11,10 @@ colour). Three ways to do it, all separable (1 x 11, then 11 x 1):
 
 The variants run interleaved, ``--repeats`` times each after a warm-up, so load from other processes hits all
 alike; the table gives medians (ms per loss + backward) and the ratio of each ``conv2d`` path to the shifted
-sums. Thread count and load average are printed: the numbers depend on both.
+sums. Thread count and load average are printed: the numbers depend on both. The table is appended to
+``benchmarks/results/bench_ssim.json`` (``--results``) with the commit and the machine.
 
-Usage: python benchmarks/bench_ssim.py [--sizes 64 128 256 512] [--repeats 15] [--threads 1]
+Usage: python benchmarks/bench_ssim.py [--sizes 64 128 256 512] [--repeats 15] [--threads 1] [--results DIR]
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from torch import Tensor
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from pipeline.summary import format_table  # noqa: E402
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 
 # the module, not the function of the same name that avatar.metrics exports
 ssim_module = importlib.import_module("avatar.metrics.ssim")
@@ -78,7 +79,9 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256, 512])
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--threads", type=int, default=1)
+    add_results_argument(parser)
     args = parser.parse_args()
+    log = ResultLog("bench_ssim")
     torch.set_num_threads(args.threads)
     warnings.filterwarnings("ignore", message="TF32 acceleration")  # printed by mkldnn.flags on CPU builds
     rows = []
@@ -96,7 +99,9 @@ def main() -> None:
     load = os.getloadavg()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), OMP_WAIT_POLICY="
           f"{os.environ.get('OMP_WAIT_POLICY', 'unset')}, load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}")
-    print(format_table(("render", *(f"{v} ms" for v in VARIANTS), "x oneDNN", "x native"), rows))
+    print(log.table(f"D-SSIM forward + backward, median ms ({torch.get_num_threads()} thread(s), torch "
+                    f"{torch.__version__})", ("render", *(f"{v} ms" for v in VARIANTS), "x oneDNN", "x native"), rows))
+    log.write(args.results)
 
 
 if __name__ == "__main__":

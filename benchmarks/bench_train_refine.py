@@ -38,9 +38,9 @@ sys.path.insert(0, str(REPO))
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 
 from avatar.gaussians.model import BoundGaussians  # noqa: E402
+from avatar.posing import posed_keypoints  # noqa: E402
 from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.frame_params import FrameParams, ParamLearningRates  # noqa: E402
-from avatar.training.posing import posed_keypoints  # noqa: E402
 from avatar.training.static import StaticConfig, colors_from_views, render_frame, train_static  # noqa: E402
 from avatar.training.validation import ValidationConfig, Validator  # noqa: E402
 from data_schemas.capture import MASK_LABELS, CaptureIndex  # noqa: E402

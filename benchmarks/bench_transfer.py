@@ -25,11 +25,11 @@ import torch
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from avatar.posing import posed_keypoints  # noqa: E402
 from avatar.reenact import PLACEMENTS, transfer_motion  # noqa: E402
 from avatar.reenact.contact import TOUCH_M, surface_twins  # noqa: E402
 from avatar.synthetic import SyntheticConfig, generate  # noqa: E402
 from avatar.templates import procedural_hand, procedural_head  # noqa: E402
-from avatar.training.posing import posed_keypoints  # noqa: E402
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 

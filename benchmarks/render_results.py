@@ -3,8 +3,11 @@
 - the README's results table, from ``benchmarks/results/bench_seeds.json`` (written by ``bench_seeds.py
   table``), between ``<!-- results:begin -->`` and ``<!-- results:end -->``;
 - ``docs/results/<name>.md``, one page per ``benchmarks/results/<name>.md`` (each written by its benchmark with
-  the commit, machine, load and seeds), its plain-text tables fenced so they keep their columns, and
-  ``docs/results/index.md`` listing them.
+  the commit, machine, load and seeds), its plain-text tables fenced so they keep their columns;
+- ``docs/results/<name>.md`` for every ``benchmarks/results/<name>.json`` written by
+  ``benchmarks.provenance.ResultLog`` (runs with tables) that has no ``.md`` of its own: every run, newest first,
+  with its commit, date, preset, seeds, machine, load and wall time, its tables as Markdown tables;
+- ``docs/results/index.md`` listing them.
 
 ``python benchmarks/render_results.py`` rewrites them; ``--check`` exits 1 if a committed page differs
 (``tests/test_docs.py`` runs the same comparison).
@@ -13,6 +16,7 @@
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import re
 import sys
@@ -77,16 +81,61 @@ def _fence_text_tables(text: str) -> str:
                         for b in blocks) + "\n"
 
 
+def _cell_text(value: str) -> str:
+    """A table cell's text, safe inside a Markdown table."""
+    return value.replace("|", "\\|") or " "
+
+
+def _markdown_table(columns: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(_cell_text(c) for c in columns) + " |", "|" + " --- |" * len(columns)]
+    lines += ["| " + " | ".join(_cell_text(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def _purpose(name: str) -> str:
+    """The first line of ``benchmarks/<name>.py``'s docstring."""
+    source = ROOT / "benchmarks" / f"{name}.py"
+    doc = ast.get_docstring(ast.parse(source.read_text())) if source.is_file() else None
+    return doc.splitlines()[0] if doc else name
+
+
+def log_page(data: dict) -> str:
+    """The page of a ``ResultLog`` file: every run, newest first, with where it came from and its tables."""
+    name = data["benchmark"]
+    lines = [f"# {name}: {_purpose(name)}", "",
+             f"Written by `python benchmarks/{name}.py` (its arguments are given per run) into "
+             f"`benchmarks/results/{name}.json`.", ""]
+    for run in reversed(data["runs"]):
+        m = run["machine"]
+        load = " ".join(f"{x:g}" for x in m["load"]) + " -> " + " ".join(f"{x:g}" for x in m["load_end"])
+        preset = f", preset {run['preset']}" if run["preset"] else ""
+        lines += [f"## {run['date']}, commit `{run['commit']}`{preset}",
+                  "", f"{m['cpu']}, {m['cores']} cores, load {load}; {run['wall_s']:g} s"
+                  + (f"; seeds {', '.join(map(str, run['seeds']))}" if run["seeds"] else "")
+                  + f"; arguments: `{' '.join(run['argv']) or '(defaults)'}`", ""]
+        for table in run["tables"]:
+            lines += [f"**{table['title']}**", "", _markdown_table(table["columns"], table["rows"]), ""]
+    return "\n".join(lines)
+
+
 def results_pages() -> dict[Path, str]:
-    """docs/results/<name>.md for every benchmarks/results/<name>.md, and the index."""
-    sources = sorted((ROOT / "benchmarks" / "results").glob("*.md"))
-    pages = {DOCS_RESULTS / s.name: (f"<!-- generated from benchmarks/results/{s.name} by "
-                                     f"benchmarks/render_results.py: edit the benchmark, not this page -->\n\n"
-                                     + _fence_text_tables(s.read_text())) for s in sources}
-    lines = ["# Results", "", "Every page here is a benchmark's own result file (`benchmarks/results/<name>.md`, "
-             "with its commit, machine, load and seeds; the data beside it as `<name>.json`), rendered by "
+    """docs/results/<name>.md for every benchmarks/results/<name>.md, and for every ResultLog file without one;
+    the index."""
+    folder = ROOT / "benchmarks" / "results"
+    sources = sorted(folder.glob("*.md"))
+    banner = ("<!-- generated from benchmarks/results/{} by benchmarks/render_results.py: edit the benchmark, "
+              "not this page -->\n\n")
+    pages = {DOCS_RESULTS / s.name: banner.format(s.name) + _fence_text_tables(s.read_text()) for s in sources}
+    for path in sorted(folder.glob("*.json")):
+        data = json.loads(path.read_text())
+        if path.with_suffix(".md").is_file() or not isinstance(data, dict) or "benchmark" not in data:
+            continue
+        pages[DOCS_RESULTS / f"{path.stem}.md"] = banner.format(path.name) + log_page(data)
+    lines = ["# Results", "", "Every page here is a benchmark's own result file (`benchmarks/results/<name>.md` or "
+             "`<name>.json`, with its commit, machine, load and seeds), rendered by "
              "`benchmarks/render_results.py`. Dated analyses of them are in the notes.", ""]
-    lines += [f"- [{s.stem}]({s.name}): {s.read_text().splitlines()[0].lstrip('# ').strip()}" for s in sources]
+    titles = {p: text.split("\n\n", 1)[1].splitlines()[0].lstrip("# ").strip() for p, text in pages.items()}
+    lines += [f"- [{p.stem}]({p.name}): {titles[p].removeprefix(p.stem + ':').strip()}" for p in sorted(pages)]
     pages[DOCS_RESULTS / "index.md"] = "\n".join(lines) + "\n"
     return pages
 
