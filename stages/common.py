@@ -15,14 +15,14 @@ from avatar.dynamic import DynamicAvatar, DynamicModelConfig, sequence_condition
 from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.gaussians.model import BoundGaussians
 from avatar.pbd import PBDConfig, StiffnessFileError, face_relative_stiffness, simulate_sequence
+from avatar.posing import MeshSequence, posed_keypoints, posed_meshes
 from avatar.reenact import PLACEMENTS, MotionTransfer, MotionTransferError, transfer_motion
 from avatar.scene import SceneDecision
 from avatar.splatting import EmbeddedGaussians
-from avatar.training.splatting import SplattingConfig
 from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
-from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams, ParamLearningRates, parameter_movement
-from avatar.training.posing import posed_keypoints, posed_meshes
+from avatar.training.splatting import SplattingConfig
 from avatar.training.validation import FlatStop, ValidationConfig, Validator
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, provided_path

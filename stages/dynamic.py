@@ -18,11 +18,12 @@ import numpy as np
 import torch
 
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig
+from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.dynamic.model import COLOUR_DELTAS
+from avatar.posing import MeshSequence
 from avatar.render.gaussians import resolve_backend
 from avatar.scene import SceneDecision
-from avatar.dynamic.conditioning import SequenceConditioning
-from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.data import ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
 from avatar.training.selection import SelectionConfig
 from avatar.training.splatting import train_splatting

@@ -10,12 +10,12 @@ import cv2
 import numpy as np
 import torch
 
+from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.metrics import LPIPS, image_metrics
+from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import resolve_backend
 from avatar.training.dynamic import rasterize
-from avatar.dynamic.conditioning import SequenceConditioning
-from avatar.training.data import MeshSequence
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
 from data_schemas.frames import UNOBSERVED

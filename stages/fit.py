@@ -18,9 +18,9 @@ from avatar.fitting.fit import FitConfig, FitResult, WorldScaleError, fit_sequen
 from avatar.fitting.refine import (
     REFINE_MODES, RefineConfig, RefineResult, evidence_from_views, tracking_outlines,
 )
+from avatar.posing import posed_keypoints
 from avatar.templates import TemplateModel
 from avatar.training.data import ViewSet
-from avatar.training.posing import posed_keypoints
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
 from data_schemas.images import write_png

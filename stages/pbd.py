@@ -24,8 +24,8 @@ import torch
 from avatar.pbd import (
     PBDConfig, SequenceDeformation, detect_contacts, moving_vertex_errors, simulate_sequence, single_threaded,
 )
+from avatar.posing import posed_keypoints
 from avatar.templates import TemplateModel
-from avatar.training.posing import posed_keypoints
 from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, provided_path
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.params import PARAM_COLUMNS, PARAMS

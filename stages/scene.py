@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from avatar.posing import posed_keypoints
 from avatar.scene import DECISIONS, SceneFacts, decide, deforming_triangles, hand_face_distances, scene_facts
-from avatar.training.posing import posed_keypoints
 from data_schemas.capture import MASK_LABELS
 from data_schemas.frames import FRAMES_INDEX, crop_mask_path
 from data_schemas.images import read_png

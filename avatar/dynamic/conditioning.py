@@ -21,9 +21,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from avatar.posing import pose_layers
 from avatar.templates import TemplateModel
 from avatar.templates.lbs import batch_rodrigues
-from avatar.training.posing import pose_layers
 
 TRANSLATION_UNIT_M = 0.1  # t_rel in decimetres
 

@@ -42,12 +42,12 @@ from torch import Tensor
 
 from avatar.fitting.models import FaceParams, HandParams
 from avatar.gaussians.frames import place_gaussians, triangle_frames
+from avatar.posing import posed_keypoints
 from avatar.render.gaussians import render_gaussians
 from avatar.render.mesh_raster import Mesh, PinholeCamera, box_downsample, interpolate, rasterize
-from avatar.training.data import UNOBSERVED_LABEL, ViewSet
 from avatar.templates import TemplateModel
+from avatar.training.data import UNOBSERVED_LABEL, ViewSet
 from avatar.training.frame_params import rotation_angle_deg
-from avatar.training.posing import posed_keypoints
 
 REFINE_MODES = ("none", "silhouette", "photometric")
 PARTS = ("face", "hand")

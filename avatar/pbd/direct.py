@@ -5,7 +5,7 @@ An XPBD step whose multipliers are iterated to convergence lands on the minimise
     E(x) = sum_i |x_i - s_i|^2 / 2 + sum_c k_c |C_c(x)|^2 / 2   subject to the collision planes,
 
 ``s`` the start positions (the unit-mass inertia term), ``C_c`` the attachment, bending and stretch
-constraints of :class:`avatar.pbd.solver.FrameProblem`, and the pinned vertices fixed. Jacobi and
+constraints of :class:`avatar.pbd.problem.FrameProblem`, and the pinned vertices fixed. Jacobi and
 Gauss-Seidel sweeps approach it a ring of vertices per sweep; this module reaches it in a few
 sparse solves, with the same constraints and stiffnesses (so the same physical model):
 
@@ -29,17 +29,13 @@ The multipliers are not computed (``problem`` keeps its zero multipliers); posit
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import scipy.sparse as sp
 import torch
 from scipy.sparse.linalg import splu
 
 from avatar.pbd.collision import query_hand
-
-if TYPE_CHECKING:
-    from avatar.pbd.solver import FrameProblem
+from avatar.pbd.problem import FrameProblem
 
 #: Penalty stiffness of an active collision plane (relative to a unit particle mass).
 COLLISION_STIFFNESS = 1.0e6

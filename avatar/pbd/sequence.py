@@ -7,7 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from avatar.pbd.solver import PBDConfig, solve_sequence
+from avatar.pbd.problem import PBDConfig
+from avatar.pbd.solver import solve_sequence
 
 
 @dataclass

@@ -30,11 +30,11 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from avatar.posing import pose_layers
 from avatar.reenact.contact import PASS_THROUGH_M, place_hand
 from avatar.templates import MANOLayer, TemplateModel
 from avatar.templates.layers import hand_frame
 from avatar.templates.lbs import batch_rodrigues
-from avatar.training.posing import pose_layers
 
 #: what the driver gives, per frame
 DRIVER_COLUMNS = ("flame_expression", "flame_global_orient", "flame_neck_pose", "flame_jaw_pose", "flame_eye_pose",

@@ -1,4 +1,4 @@
-"""In-memory training data: multi-view crops and the posed meshes of every frame."""
+"""In-memory training data: the multi-view crops of a sequence (the posed meshes are :mod:`avatar.posing`)."""
 
 from __future__ import annotations
 
@@ -58,38 +58,3 @@ class ViewSet:
         would have seen there)."""
         gt = self.image(frame, camera).to(pred.dtype)
         return gt, torch.where(self.observed(frame, camera)[..., None], pred, gt)
-
-
-@dataclass
-class MeshSequence:
-    """The posed meshes of every frame, face and hand concatenated.
-
-    Attributes:
-        vertices: (T, V, 3) world positions.
-        faces: (F, 3) int64.
-        face_part: (F,) int64 index into ``part_names``.
-        part_names: e.g. ("face", "hand").
-    """
-
-    vertices: Tensor
-    faces: Tensor
-    face_part: Tensor
-    part_names: tuple[str, ...]
-
-    def extent(self) -> float:
-        """Radius of the bounding sphere of all frames' vertices (the 3DGS 'scene extent')."""
-        flat = self.vertices.reshape(-1, 3)
-        centre = flat.mean(0)
-        return float((flat - centre).norm(dim=-1).max())
-
-
-def concat_meshes(parts: dict[str, tuple[Tensor, Tensor]]) -> MeshSequence:
-    """Join named meshes ``name -> (vertices (T, V_i, 3), faces (F_i, 3))`` into one sequence."""
-    verts, faces, face_part = [], [], []
-    offset = 0
-    for index, (v, f) in enumerate(parts.values()):
-        verts.append(v)
-        faces.append(f + offset)
-        face_part.append(torch.full((f.shape[0],), index, dtype=torch.long))
-        offset += v.shape[1]
-    return MeshSequence(torch.cat(verts, dim=1), torch.cat(faces), torch.cat(face_part), tuple(parts))

@@ -25,10 +25,11 @@ from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.dynamic.model import DynamicAvatar, DynamicFrame
 from avatar.losses import patch_perceptual_loss, reconstruction_loss, reconstruction_terms
 from avatar.metrics.lpips import LPIPS
+from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import render_gaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
-from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams
 from avatar.training.schedule import exponential_lr
 from avatar.training.selection import BestStep, Selection, SelectionConfig, select

@@ -21,8 +21,8 @@ from scipy.spatial.transform import Rotation
 from torch import Tensor, nn
 
 from avatar.dynamic.conditioning import Conditioning, conditioning_from_posed
+from avatar.posing import posed_keypoints, run_layers, template_layers
 from avatar.templates import TemplateModel
-from avatar.training.posing import posed_keypoints, run_layers, template_layers
 
 #: learning-rate group -> the params.parquet columns it moves (the shapes are never refined)
 REFINED_COLUMNS: dict[str, tuple[str, ...]] = {
@@ -135,7 +135,7 @@ class FrameParams(nn.Module):
 
     def vertices(self, frame: int) -> Tensor:
         """(V_face + V_hand, 3) posed face (with its contact offsets) and hand of ``frame``, in the order of
-        :func:`avatar.training.posing.posed_meshes`; differentiable in the refined parameters."""
+        :func:`avatar.posing.posed_meshes`; differentiable in the refined parameters."""
         face, hand = run_layers(self.flame, self.mano, self.columns(frame))
         return torch.cat([face.vertices[0] + self.face_offsets[frame], hand.vertices[0]])
 

@@ -43,11 +43,12 @@ import torch
 from torch import Tensor
 
 from avatar.metrics import LPIPS, dssim_loss
+from avatar.posing import MeshSequence
 from avatar.render.gaussians import RenderOutput, render_gaussians
 from avatar.splatting.density import EmbeddedDensityConfig, EmbeddedDensityController
 from avatar.splatting.embedding import EmbeddedGaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
-from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.data import ViewSet
 from avatar.training.schedule import exponential_lr, scaled_interval
 from avatar.training.validation import ValidationConfig, Validator
 

@@ -15,9 +15,9 @@ from avatar.dynamic.model import nearest_distance, sample_one_per_triangle
 from avatar.gaussians.model import SH_C0
 from avatar.nets.encoding import encoded_dim, positional_encoding
 from avatar.nets.mlp import DeltaMLP
+from avatar.posing import pose_layers
 from avatar.templates import procedural_hand, procedural_head
 from avatar.training.dynamic import rasterize
-from avatar.training.posing import pose_layers
 from avatar.training.static import render_frame
 from tests.dynamic.conftest import FAR, NEAR, TINY, Scene, make_scene, scene_params
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from avatar.pbd.constraints import CollisionSet, EdgeSet, attachment_set, bending_set
-from avatar.pbd.solver import FrameProblem, PBDConfig
+from avatar.pbd.problem import FrameProblem, PBDConfig
 from avatar.pbd.topology import bending_stencils, colour_constraints, unique_edges
 from tests.pbd.conftest import Head, press
 

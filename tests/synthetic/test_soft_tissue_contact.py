@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from avatar.posing import posed_keypoints
 from avatar.synthetic import SyntheticConfig, generate
 from avatar.synthetic.geometry import signed_distance
 from avatar.synthetic.soft_tissue import CLEARANCE_M
 from avatar.templates import procedural_hand, procedural_head
-from avatar.training.posing import posed_keypoints
 
 #: quality=draft frame counts (conf/quality/draft.yaml)
 DRAFT_FRAMES = {"train": 24, "test": 12}

@@ -13,14 +13,14 @@ import torch
 
 from avatar.dynamic.conditioning import sequence_conditioning
 from avatar.gaussians.model import BoundGaussians
+from avatar.posing import posed_meshes
 from avatar.synthetic import SyntheticCapture, SyntheticConfig, generate
+from avatar.templates import procedural_hand, procedural_head
 from avatar.training import static
 from avatar.training.data import ViewSet
-from avatar.templates import procedural_hand, procedural_head
 from avatar.training.frame_params import (
     REFINED_COLUMNS, FrameAdam, FrameParams, ParamLearningRates, parameter_movement,
 )
-from avatar.training.posing import posed_meshes
 from avatar.training.static import StaticConfig, train_static
 from stages.common import read_params, write_params
 

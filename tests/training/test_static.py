@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from avatar.gaussians.model import BoundGaussians
+from avatar.posing import MeshSequence
 from avatar.training import static
-from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.data import ViewSet
 from avatar.training.static import StaticConfig, train_static
 from avatar.training.validation import ValidationConfig, Validator
 

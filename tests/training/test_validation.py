@@ -13,9 +13,10 @@ import torch
 
 from avatar.gaussians.model import BoundGaussians
 from avatar.metrics.lpips import LPIPS
+from avatar.posing import MeshSequence
 from avatar.splatting import EmbeddedGaussians
 from avatar.training import static
-from avatar.training.data import MeshSequence, ViewSet
+from avatar.training.data import ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, sample_frame, train_dynamic
 from avatar.training.splatting import SplattingConfig, train_splatting
 from avatar.training.static import StaticConfig, train_static
