@@ -15,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from pipeline.registry import RegistryError, StageRegistry
+from pipeline.stage import Stage
 from pipeline.workspace import method_problem, seed_problem, subject_problem
 
 
@@ -268,6 +269,17 @@ def dataset_problems(cfg: DictConfig) -> list[str]:
     return [p for p in problems if p]
 
 
+def key_config(cfg: DictConfig, s: Stage) -> dict[str, Any]:
+    """The settings that enter stage ``s``'s cache key under ``cfg``: the resolved values of its ``config_keys``
+    without its ``cache_exclude`` and without what its ``unused_keys(cfg)`` names."""
+    unused = tuple(s.unused_keys(cfg)) if s.unused_keys is not None else ()
+    for key in unused:
+        if not any(key == k or key.startswith(f"{k}.") for k in s.config_keys):
+            raise ValueError(f"stage '{s.name}': unused key '{key}' is not one of its config_keys {s.config_keys} "
+                             f"or below one")
+    return config_subset(cfg, tuple(k for k in s.config_keys if k not in unused), s.cache_exclude + unused)
+
+
 def config_subset(cfg: DictConfig, keys: tuple[str, ...], exclude: tuple[str, ...] = ()) -> dict[str, Any]:
     """The resolved values of the dotted ``keys``, as plain JSON-able data, without the dotted ``exclude``
     paths below them (settings that cannot change a stage's result, e.g. its checkpoint interval)."""
@@ -276,7 +288,9 @@ def config_subset(cfg: DictConfig, keys: tuple[str, ...], exclude: tuple[str, ..
         value = OmegaConf.select(cfg, key, throw_on_missing=True)
         out[key] = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
     for path in exclude:
-        key = next(k for k in keys if path.startswith(f"{k}."))
+        key = next((k for k in keys if path.startswith(f"{k}.")), None)
+        if key is None:  # the whole key is left out (or is not among keys)
+            continue
         *parents, leaf = path[len(key) + 1:].split(".")
         node = out[key]
         for part in parents:

@@ -30,7 +30,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from data_schemas.tables import SchemaError
-from pipeline.config import ConfigError, changed_keys, config_subset, fix_command
+from pipeline.config import ConfigError, changed_keys, fix_command, key_config
 from pipeline.manifest import (
     Manifest,
     ManifestError,
@@ -271,7 +271,7 @@ class Runner:
     def _decide(self, s: Stage, force: bool, pending: set[str]) -> _Decision:
         inputs = self._inputs(s, pending)
         upstream, rerunning = self._upstream_digests(s, inputs, pending)
-        config = config_subset(self.cfg, s.config_keys, s.cache_exclude)
+        config = key_config(self.cfg, s)
         config["subject"] = self.ws.subject
         sources = self._source_digests(s)
         key = cache_key(s.name, s.version, config, upstream, sources)

@@ -8,13 +8,15 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
   on (``"quality.image_size"``, ``"stage.capture"``); only these enter its cache key;
 - ``cache_exclude``: dotted paths below ``config_keys`` that a stage reads but that
   cannot change what it writes (``"stage.warmup.checkpoint_every"``): left out of the key;
+- ``unused_keys``: a function of the resolved config naming the paths at or below ``config_keys`` that this
+  configuration does not read (another representation's recipe, the options of a solver not chosen): left out
+  of the key too, so changing them reruns nothing (:func:`pipeline.config.key_config`);
 - ``sources``: for stages that import user files (a capture folder), a function
   listing them; their content digests enter the cache key (``pipeline.sources``);
 - ``reads_manifests``: the stage shows its inputs' run records (timings, metrics), so
   their whole manifests enter its key, not only their outputs (the report);
 - ``outputs``: relative paths (files or directories) it must produce;
 - ``version``: bumped by hand whenever the code changes what the stage writes;
-- ``resources``: what it needs (cpu cores, gpus), used by launchers and the report;
 - ``config_schema``: optional dataclass that ``cfg.stage.<name>`` must match
   (checked, with types, before any stage runs);
 - ``per_method``: the output depends on the method (``method=...``), so the runner keeps one artifact
@@ -36,7 +38,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TypeVar
 
 from omegaconf import DictConfig
 from tqdm import tqdm
@@ -44,14 +46,6 @@ from tqdm import tqdm
 from pipeline.sources import SourceLister
 
 T = TypeVar("T")
-
-
-@dataclass(frozen=True)
-class Resources:
-    """What a stage needs to run."""
-
-    cpus: int = 1
-    gpus: int = 0
 
 
 @dataclass
@@ -132,10 +126,10 @@ class Stage:
     config_keys: tuple[str, ...] = ()
     outputs: tuple[str, ...] = ()
     version: str = "1"
-    resources: Resources = Resources()
     config_schema: type | None = None
     description: str = ""
     cache_exclude: tuple[str, ...] = ()
+    unused_keys: Callable[[DictConfig], Iterable[str]] | None = None
     sources: SourceLister | None = None
     reads_manifests: bool = False
     per_method: bool = False
@@ -177,9 +171,9 @@ def stage(
     config_keys: Iterable[str] = (),
     outputs: Iterable[str],
     version: str = "1",
-    resources: Resources = Resources(),
     config_schema: type | None = None,
     cache_exclude: Iterable[str] = (),
+    unused_keys: Callable[[DictConfig], Iterable[str]] | None = None,
     sources: SourceLister | None = None,
     reads_manifests: bool = False,
     per_method: bool = False,
@@ -199,9 +193,9 @@ def stage(
             config_keys=tuple(config_keys),
             outputs=tuple(outputs),
             version=version,
-            resources=resources,
             config_schema=config_schema,
             cache_exclude=tuple(cache_exclude),
+            unused_keys=unused_keys,
             sources=sources,
             reads_manifests=reads_manifests,
             per_method=per_method,
@@ -214,18 +208,3 @@ def stage(
         )
 
     return wrap
-
-
-def describe(stage_obj: Stage) -> dict[str, Any]:
-    """A JSON-friendly summary of a stage declaration (used by dry runs and the report)."""
-    return {
-        "name": stage_obj.name,
-        "inputs": list(stage_obj.inputs),
-        "cross_method_inputs": list(stage_obj.cross_method_inputs),
-        "per_method": stage_obj.per_method,
-        "config_keys": list(stage_obj.config_keys),
-        "outputs": list(stage_obj.outputs),
-        "version": stage_obj.version,
-        "resources": {"cpus": stage_obj.resources.cpus, "gpus": stage_obj.resources.gpus},
-        "description": stage_obj.description,
-    }

@@ -27,7 +27,7 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.video import write_video
 from pipeline.sources import SourceFiles
-from pipeline.stage import Resources, StageContext, stage
+from pipeline.stage import StageContext, stage
 from stages.common import model_files
 
 if TYPE_CHECKING:
@@ -78,7 +78,6 @@ def _files_below(folder: Path) -> tuple[Path, ...]:
                  "quality.supersample", "stage.capture"),
     outputs=("cameras.parquet", "capture.json"),
     version="8",
-    resources=Resources(cpus=2),
     config_schema=CaptureConfig,
     sources=capture_sources,
 )

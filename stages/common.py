@@ -15,6 +15,7 @@ from avatar.dynamic import DynamicAvatar, DynamicModelConfig, sequence_condition
 from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.gaussians.model import BoundGaussians
 from avatar.pbd import PBDConfig, StiffnessFileError, face_relative_stiffness, simulate_sequence
+from avatar.pbd.problem import unused_settings as unused_pbd_settings
 from avatar.posing import MeshSequence, posed_keypoints, posed_meshes
 from avatar.reenact import PLACEMENTS, MotionTransfer, MotionTransferError, transfer_motion
 from avatar.scene import SceneDecision
@@ -560,6 +561,23 @@ def write_frame_ply(path: Path, g: WorldGaussians) -> None:
 def model_files(cfg: DictConfig) -> list[Path]:
     """The official FLAME/MANO files the config names (``model.*_path``), for source hashing."""
     return [Path(p).resolve() for p in (cfg.model.flame_path, cfg.model.mano_path) if p and Path(p).is_file()]
+
+
+def unused_solver_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """The ``stage.pbd.solver`` settings the chosen solver never reads (``unused_keys`` of the pbd stage)."""
+    return tuple(f"stage.pbd.solver.{name}" for name in unused_pbd_settings(str(cfg.stage.pbd.solver.method)))
+
+
+def unused_driving_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """What of ``stage.pbd.solver`` a stage that drives the avatar (:func:`drive`) never reads: all of it for a
+    method without PBD, else the settings of the solvers not chosen."""
+    return unused_solver_settings(cfg) if bool(cfg.method.pbd) else ("stage.pbd.solver",)
+
+
+def unused_training_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """What the training stages never read for this method: SplattingAvatar's recipe (``splatting``) unless the
+    method's representation is ``embedded``."""
+    return () if representation(cfg) == "embedded" else ("splatting",)
 
 
 def pbd_solver_config(cfg: DictConfig) -> PBDConfig:

@@ -32,13 +32,13 @@ from data_schemas.gaussians import DYNAMIC_TRAIN_LOG
 from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import write_table
 from data_schemas.writes import write_bytes, write_json
-from pipeline.stage import Resources, StageContext, stage
+from pipeline.stage import StageContext, stage
 from stages.common import (
     ParamsLrSchema, PosedSequence, TRAIN_SEQUENCE, TrainedModel, ValidationSchema, applied_deformation, contact_flags,
     frame_params, load_embedded_gaussians, load_gaussians, load_params, load_scene, load_sequence, load_views,
     method_params, model_sources, posed_gaussians, posed_sequence, record_refinement, record_validation,
-    refinement_problems, representation, splatting_config, templates, validation_config, validation_problems,
-    write_bound_gaussians, write_embedded_gaussians, write_frame_ply,
+    refinement_problems, representation, splatting_config, templates, unused_training_settings, validation_config,
+    validation_problems, write_bound_gaussians, write_embedded_gaussians, write_frame_ply,
 )
 
 
@@ -159,9 +159,10 @@ def model_config(cfg, scene: SceneDecision) -> DynamicModelConfig:  # noqa: ANN0
     # (rounding-level)
     version="10",
     per_method=True,
-    resources=Resources(cpus=2, gpus=0),
     config_schema=DynamicConfig,
-    cache_exclude=("stage.dynamic.checkpoint_every", "stage.warmup.checkpoint_every"),  # resuming is bit-for-bit: it cannot change the result
+    # resuming is bit-for-bit: it cannot change the result
+    cache_exclude=("stage.dynamic.checkpoint_every", "stage.warmup.checkpoint_every"),
+    unused_keys=unused_training_settings,
     sources=model_sources,
 )
 def dynamic(ctx: StageContext) -> None:

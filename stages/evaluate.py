@@ -27,7 +27,7 @@ from pipeline.stage import StageContext, stage
 from stages.common import (
     applied_deformation, contact_frames, contact_sources, drive, driver_subject, load_params, load_scene,
     load_sequence, load_trained, method_params, load_views, posed_gaussians, transfer_summary,
-    transferred_params,
+    transferred_params, unused_driving_settings,
 )
 
 
@@ -48,7 +48,8 @@ Renderer = Callable[[int, int], torch.Tensor]
 @stage("evaluate", inputs=("capture", "frames", "fit", "scene", "pbd", "dynamic"),
        config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
        outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="11", config_schema=EvaluateConfig,
-       sources=contact_sources, per_method=True, subject_inputs=("fit",), input_subject=driver_subject)
+       sources=contact_sources, per_method=True, subject_inputs=("fit",), input_subject=driver_subject,
+       unused_keys=unused_driving_settings)
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion (and, when reenact.driver names another subject
     whose motion the capture has this identity perform, that cross-actor reenactment) with the method's

@@ -29,7 +29,7 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.manifest import hash_outputs
-from pipeline.stage import Resources, StageContext, stage
+from pipeline.stage import StageContext, stage
 from stages.common import load_ground_truth_params, load_provided_params, load_views, model_sources, templates
 
 SOURCES = ("ground_truth", "provided", "fitted")
@@ -81,7 +81,7 @@ class FitStageConfig:
        config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
        outputs=("train/params.parquet", "fit_report.json"),
        version="8",  # 8: image refinement (stage.fit.refine), keypoint-fit errors kept beside the refined ones
-       resources=Resources(cpus=2), config_schema=FitStageConfig, sources=model_sources)
+       config_schema=FitStageConfig, sources=model_sources)
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors and, per sequence,
     whether the hand was fitted (false: no hand keypoint to fit, see :data:`ABSENT_HAND_DROP_M`). With

@@ -16,7 +16,7 @@ from data_schemas.frames import FRAMES_INDEX, UNKNOWN_PART, UNOBSERVED, crop_mas
 from data_schemas.images import read_png, write_png
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.video import read_video
-from pipeline.stage import Resources, StageContext, stage
+from pipeline.stage import StageContext, stage
 
 SEGMENTERS = ("key", "mediapipe")
 
@@ -47,7 +47,6 @@ class FramesConfig:
     config_keys=("quality.image_size", "stage.frames"),
     outputs=("index.parquet",),
     version="2",  # 2: crop padding is labelled UNOBSERVED (was background)
-    resources=Resources(cpus=1),
     config_schema=FramesConfig,
 )
 def frames(ctx: StageContext) -> None:

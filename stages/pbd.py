@@ -32,7 +32,9 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
-from stages.common import contact_sources, face_stiffness, load_scene, pbd_solver_config, templates
+from stages.common import (
+    contact_sources, face_stiffness, load_scene, pbd_solver_config, templates, unused_solver_settings,
+)
 
 SOURCES = ("simulate", "ground_truth", "provided", "none")
 
@@ -48,7 +50,7 @@ class PBDStageConfig:
 
 @stage("pbd", inputs=("capture", "fit", "scene"), config_keys=("model", "stage.pbd"),
        outputs=("train/deform.parquet", "train/contacts.parquet", "pbd_report.json"), version="2",
-       config_schema=PBDStageConfig, sources=contact_sources)
+       config_schema=PBDStageConfig, sources=contact_sources, unused_keys=unused_solver_settings)
 def pbd(ctx: StageContext) -> None:
     """Face offsets and contact flags per frame from stage.pbd.source; pbd_report.json."""
     conf = ctx.cfg.stage.pbd

@@ -44,7 +44,7 @@ from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
 from stages.common import (
     contact_sources, drive, driver_subject, is_parameter_file, load_params, load_scene, load_trained, method_params,
-    TRAIN_SEQUENCE, posed_gaussians, transfer_summary, transferred_params, write_frame_ply,
+    TRAIN_SEQUENCE, posed_gaussians, transfer_summary, transferred_params, unused_driving_settings, write_frame_ply,
 )
 
 
@@ -79,7 +79,7 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
        config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
        outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
        version="8", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
-       input_subject=driver_subject, sources=_sources)
+       input_subject=driver_subject, sources=_sources, unused_keys=unused_driving_settings)
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
     conf, cfg = ctx.cfg.stage.reenact, ctx.cfg

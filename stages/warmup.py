@@ -18,12 +18,12 @@ from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
 from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import write_table
-from pipeline.stage import Resources, StageContext, stage
+from pipeline.stage import StageContext, stage
 from stages.common import (
     TRAIN_SEQUENCE, applied_deformation, frame_params, load_scene, load_views, model_sources, posed_sequence,
     record_refinement, refinement_problems, representation, splatting_config, write_bound_gaussians,
     write_embedded_gaussians, ParamsLrSchema, ValidationSchema, record_validation, validation_config,
-    validation_problems,
+    unused_training_settings, validation_problems,
 )
 
 
@@ -79,9 +79,9 @@ class WarmupConfig:
     # 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
     # rasterizer's alpha as a power of two (rounding-level)
     per_method=True,
-    resources=Resources(cpus=2, gpus=0),
     config_schema=WarmupConfig,
     cache_exclude=("stage.warmup.checkpoint_every",),  # resuming is bit-for-bit: it cannot change the result
+    unused_keys=unused_training_settings,
     sources=model_sources,
 )
 def warmup(ctx: StageContext) -> None:

@@ -16,6 +16,17 @@ from avatar.pbd.constraints import CollisionSet, EdgeSet, LinearSet, attachment_
 from avatar.pbd.topology import bending_stencils, colour_constraints, unique_edges
 
 METHODS = ("direct", "gauss_seidel", "jacobi")
+#: The settings only one family of methods reads: the sweeps (``jacobi``, ``gauss_seidel``) or ``direct``.
+SWEEP_ONLY = ("iterations", "relaxation", "chebyshev_rho", "detect_every")
+DIRECT_ONLY = ("direct_outer", "direct_inner", "volume_stiffness")
+
+
+def unused_settings(method: str) -> tuple[str, ...]:
+    """The :class:`PBDConfig` fields that solver ``method`` never reads (the other family's); none for an unknown
+    method (:class:`PBDConfig` refuses it)."""
+    if method not in METHODS:
+        return ()
+    return SWEEP_ONLY if method == "direct" else DIRECT_ONLY
 
 
 @dataclass

@@ -1,0 +1,52 @@
+"""Cache keys hold what a stage's output depends on for this method and solver, and nothing else (issue 37):
+a setting the configuration never reads reruns nothing; one it reads reruns the stages that read it."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipeline.config import key_config
+from stages import REGISTRY
+from tests.conftest import compose_cfg
+
+
+def changed_stages(base: list[str], change: list[str]) -> set[str]:
+    """The stages whose cache key differs between ``base`` and ``base + change`` (upstream digests aside)."""
+    before, after = compose_cfg(base), compose_cfg(base + change)
+    return {s.name for s in REGISTRY if key_config(before, s) != key_config(after, s)}
+
+
+@pytest.mark.parametrize(("method", "change"), [
+    # SplattingAvatar's recipe is not read by the bound representation
+    ("interactavatar", ["splatting.lambda_mse=3.0"]),
+    ("gaussian_avatars", ["splatting.walk_every=7"]),
+    # the default solver (direct) reads none of the sweeps' settings
+    ("interactavatar", ["stage.pbd.solver.iterations=17"]),
+    ("interactavatar", ["stage.pbd.solver.relaxation=0.5"]),
+    ("interactavatar", ["stage.pbd.solver.chebyshev_rho=0.5"]),
+    ("interactavatar", ["stage.pbd.solver.detect_every=7"]),
+])
+def test_a_setting_the_configuration_never_reads_reruns_nothing(method: str, change: list[str]) -> None:
+    assert changed_stages([f"method={method}"], change) == set()
+
+
+@pytest.mark.parametrize(("base", "change", "expected"), [
+    (["method=splatting_avatar"], ["splatting.lambda_mse=3.0"], {"warmup", "dynamic"}),
+    (["method=interactavatar"], ["stage.pbd.solver.direct_outer=3"], {"pbd", "evaluate", "reenact"}),
+    # a method without PBD drives its avatar without the solver: only the shared pbd stage reruns
+    (["method=gaussian_avatars"], ["stage.pbd.solver.direct_outer=3"], {"pbd"}),
+    (["method=interactavatar", "stage.pbd.solver.method=jacobi"], ["stage.pbd.solver.iterations=17"],
+     {"pbd", "evaluate", "reenact"}),
+    (["method=interactavatar", "stage.pbd.solver.method=jacobi"], ["stage.pbd.solver.direct_outer=3"], set()),
+])
+def test_a_setting_the_configuration_reads_reruns_the_stages_that_read_it(base: list[str], change: list[str],
+                                                                           expected: set[str]) -> None:
+    assert changed_stages(base, change) == expected
+
+
+def test_an_unused_key_must_be_one_of_the_stage_keys() -> None:
+    from dataclasses import replace
+
+    stage = replace(REGISTRY["warmup"], unused_keys=lambda cfg: ("stage.pbd.solver",))
+    with pytest.raises(ValueError, match="unused key 'stage.pbd.solver' is not one of its config_keys"):
+        key_config(compose_cfg([]), stage)
