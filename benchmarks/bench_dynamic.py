@@ -112,6 +112,16 @@ def load_variant(outputs: Path, subject: str, variant: str, wall_s: float | None
             "metrics": read_table(root / "evaluate" / "metrics.parquet", METRICS)}
 
 
+def _mean(t: dict, method: str, metric: str, split: str, region: str, contact: bool | None) -> float:
+    """Mean of the finite ``metric`` values of ``method`` in ``split`` and ``region`` (contact frames, the others,
+    or all for ``None``)."""
+    sel = [i for i in range(len(t["frame"])) if t["method"][i] == method and t["split"][i] == split
+           and t["region"][i] == region and (contact is None or bool(t["contact"][i]) == contact)]
+    v = np.asarray(t[metric], dtype=np.float64)[sel]
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
 def region_rows(full: dict, static: dict) -> list[tuple]:
     """One row per split x region x contact: both methods' means and the differences."""
     rows = []
@@ -119,14 +129,9 @@ def region_rows(full: dict, static: dict) -> list[tuple]:
     for split in ("novel_view", "self_reenact"):
         for region in REGIONS:
             for contact in (None, True, False):
-                def mean(t: dict, method: str, metric: str) -> float:
-                    sel = [i for i in range(len(t["frame"])) if t["method"][i] == method and t["split"][i] == split
-                           and t["region"][i] == region and (contact is None or bool(t["contact"][i]) == contact)]
-                    v = np.asarray(t[metric], dtype=np.float64)[sel]
-                    v = v[np.isfinite(v)]
-                    return float(v.mean()) if v.size else float("nan")
-                f = {m: mean(a, VARIANTS["full"][0], m) for m in ("psnr", "ssim", "lpips")}
-                s = {m: mean(b, VARIANTS["static"][0], m) for m in ("psnr", "ssim", "lpips")}
+                where = (split, region, contact)
+                f = {m: _mean(a, VARIANTS["full"][0], m, *where) for m in ("psnr", "ssim", "lpips")}
+                s = {m: _mean(b, VARIANTS["static"][0], m, *where) for m in ("psnr", "ssim", "lpips")}
                 label = "all" if contact is None else ("contact" if contact else "no contact")
                 rows.append((split, region, label, f"{s['psnr']:.2f}", f"{f['psnr']:.2f}",
                              f"{f['psnr'] - s['psnr']:+.2f}", f"{s['ssim']:.4f}", f"{f['ssim']:.4f}",

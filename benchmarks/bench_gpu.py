@@ -120,7 +120,8 @@ def main() -> None:
     from avatar.render.gaussians import available_backends
 
     result: dict = {"commit": commit(), "dag_overrides": args.set, "machine": platform.node(), "cpu": cpu_name(),
-                    "gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda, "cpus": os.cpu_count(),
+                    "gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda,
+                    "cpus": os.cpu_count(),
                     "load_start": os.getloadavg()}
     def save() -> None:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -52,6 +52,7 @@ SHARED = ("capture", "frames", "keypoints", "fit", "scene", "pbd")
 PER_METHOD = ("warmup", "dynamic", "evaluate")
 SPLITS = {"novel_view": "NV", "self_reenact": "SR"}
 REGIONS = ("full", "hand", "interaction")
+NV_FULL = ("novel_view", "full", "psnr")
 
 
 def run(preset: str, method: str, outputs: Path, fit_source: str, extra: list[str]) -> dict:
@@ -126,7 +127,7 @@ def main() -> None:
             means, ref_means = region_means(r["metrics"]), region_means(ref["metrics"])
             quality.append((preset, method, *(f"{means[(s, reg, m)]:.{2 if m == 'psnr' else 4}f}"
                                               for s in SPLITS for reg in REGIONS for m in ("psnr", "ssim", "lpips")),
-                            f"{100 * means[('novel_view', 'full', 'psnr')] / ref_means[('novel_view', 'full', 'psnr')]:.1f}"))
+                            f"{100 * means[NV_FULL] / ref_means[NV_FULL]:.1f}"))
     load = os.getloadavg()
     print(f"fit.source={args.fit_source}; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}; ratios "
           f"against {largest}")

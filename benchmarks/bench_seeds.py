@@ -16,10 +16,11 @@ A setting compares InteractAvatar with GaussianAvatars unless it names another p
 
 ``run`` trains and evaluates one setting's subject (``interactavatar -m method=... seed=...`` then the comparison
 with ``stage.compare.seeds``) in ``<outputs>/<setting>/``, with the setting's thread count (``OMP_NUM_THREADS``:
-1, or 2 for ``a2``); run two one-thread settings at once on a 2-core machine. ``table`` reads every comparison under ``<outputs>`` and prints, per setting, subject, split and region,
-both methods' mean ± standard deviation over the seeds, the difference of the means, the larger of the two
-spreads, Welch's p, and the goal's verdict; and what the selection kept per seed (``kept_hand_mlp``,
-``kept_interaction``, ``selected_step``). It writes ``benchmarks/results/bench_seeds.{json,md}`` with the commit,
+1, or 2 for ``a2``); run two one-thread settings at once on a 2-core machine. ``table`` reads every comparison
+under ``<outputs>`` and prints, per setting, subject, split and region, both methods' mean ± standard
+deviation over the seeds, the difference of the means, the larger of the two spreads, Welch's p, and the
+goal's verdict; and what the selection kept per seed (``kept_hand_mlp``, ``kept_interaction``,
+``selected_step``). It writes ``benchmarks/results/bench_seeds.{json,md}`` with the commit,
 machine, load and seeds.
 
 Goal (issue 40): in no cell InteractAvatar worse than GaussianAvatars by more than the larger seed spread; in (a),

@@ -150,8 +150,9 @@ def main() -> None:
         table.append((t, *(f"{v:.2f}" for v in psnr.values()), " ".join(f"{s:.2f}" for s in off)))
     mean = np.nanmean(np.array(rows), axis=0)
     table.append(("mean", *(f"{v:.2f}" for v in mean), ""))
-    print(f"{args.subject}, {method_run(args.method, args.seed)}, {args.split}: hand PSNR (dB) per frame; last column: share of the hand "
-          f"off each training camera's image ({' '.join(c.camera_id for c in train_cameras)})")
+    print(f"{args.subject}, {method_run(args.method, args.seed)}, {args.split}: hand PSNR (dB) per frame; "
+          f"last column: share of the hand off each training camera's image "
+          f"({' '.join(c.camera_id for c in train_cameras)})")
     print(format_table(("frame", *VARIANTS, "hand off-image"), table))
 
 

@@ -65,7 +65,7 @@ class ResultLog:
     def __init__(self, name: str, *, preset: str | None = None, seeds: Sequence[int] = ()) -> None:
         self.name, self.preset, self.seeds = name, preset, list(seeds)
         self.started, self.machine = time.monotonic(), machine()
-        self.date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        self.date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
         self.tables: list[dict[str, Any]] = []
 
     def table(self, title: str, headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:

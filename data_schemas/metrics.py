@@ -3,9 +3,9 @@ the methods side by side.
 
 ``split``: ``novel_view`` (held-out camera, train motion), ``self_reenact``
 (train cameras, held-out test motion) or ``cross_reenact`` (train cameras, another subject's held-out
-motion transferred onto this one, against the synthetic ground truth of this identity performing it). ``region``: ``full``, ``hand``, ``face``,
-``interaction`` (the overlap of the hand and face boxes). A metric is NaN where
-the region is absent from the ground-truth frame.
+motion transferred onto this one, against the synthetic ground truth of this identity performing it).
+``region``: ``full``, ``hand``, ``face``, ``interaction`` (the overlap of the hand and face boxes). A metric
+is NaN where the region is absent from the ground-truth frame.
 """
 
 from __future__ import annotations

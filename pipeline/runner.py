@@ -407,7 +407,7 @@ class Runner:
                 peak_memory_mb=usage.peak_rss_mb,
                 metrics=dict(ctx.metrics),
                 git_sha=_git_sha(),
-                created=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                created=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                 sources=d.sources,
             )
             write_manifest(tmp, manifest)

@@ -137,7 +137,8 @@ def compare(ctx: StageContext) -> None:
                if method_run(m, seed) not in {r.run for r in found} and method_run(m, seed) not in corrupt]
     rows = _comparison_rows(runs)
     write_table(ctx.out_dir / "comparison.parquet", COMPARISON,
-                {c.name: (rows[c.name] if c.kind == "string" else np.asarray(rows[c.name])) for c in COMPARISON.columns})
+                {c.name: (rows[c.name] if c.kind == "string" else np.asarray(rows[c.name]))
+                 for c in COMPARISON.columns})
     cost = _cost(runs, shared)
     tables = _tables(runs, rows, missing, cost, stale, corrupt)  # artifacts hold no run's command line: see _tables
     write_json(ctx.out_dir / "tables.json", tables, "the comparison tables")
@@ -227,7 +228,8 @@ def _seed_values(rows: dict[str, list], method: str, split: str, region: str, gr
                  ) -> dict[str, np.ndarray]:
     """metric -> (S,) the value of each seed's run of ``method`` (empty where it has no such row)."""
     found = [i for i in range(len(rows["method"]))
-             if (rows["method"][i], rows["split"][i], rows["region"][i], rows["contact"][i]) == (method, split, region, group)]
+             if (rows["method"][i], rows["split"][i], rows["region"][i], rows["contact"][i])
+             == (method, split, region, group)]
     return {m: np.array([rows[m][i] for i in found], dtype=np.float64) for m in METRIC_NAMES}
 
 

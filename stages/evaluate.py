@@ -70,7 +70,8 @@ def evaluate(ctx: StageContext) -> None:
     for split, (sequence, camera_split) in splits.items():
         views = load_views(cap_dir, frames_dir, sequence, camera_split)
         meshes, cond = _split_sequence(ctx, split, sequence, views.num_frames)
-        render: Renderer = lambda t, c: rasterize(posed_gaussians(model, cond, meshes.vertices[t], t), views, c,  # noqa: E731
+        # used within this iteration only, so the loop's variables are the ones meant
+        render: Renderer = lambda t, c: rasterize(posed_gaussians(model, cond, meshes.vertices[t], t), views, c,  # noqa: E731, B023
                                                   conf.backend).rgb
         contact = contact_frames(cap_dir, sequence, views.num_frames)
         showcase = set(showcase_pairs(contact, int(conf.showcase_frames)))
@@ -127,8 +128,9 @@ def _splits(ctx: StageContext) -> dict[str, tuple[str, str]]:
 def _split_sequence(ctx: StageContext, split: str, sequence: str, num_frames: int
                     ) -> tuple[MeshSequence, SequenceConditioning]:
     """The meshes and conditioning a split renders: the fit of its sequence (the train motion as the method refined
-    it: :func:`method_params`; with the pbd stage's offsets when the method uses them), or for cross-actor reenactment the driver's motion transferred onto this subject
-    with its contact simulated, exactly as stage reenact does."""
+    it: :func:`method_params`; with the pbd stage's offsets when the method uses them), or for cross-actor
+    reenactment the driver's motion transferred onto this subject with its contact simulated, exactly as stage
+    reenact does."""
     if split != "cross_reenact":
         pbd_dir, fit_dir = applied_deformation(ctx.cfg, ctx.input_dir("pbd")), ctx.input_dir("fit")
         return load_sequence(fit_dir, sequence, ctx.cfg, pbd_dir=pbd_dir,

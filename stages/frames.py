@@ -58,7 +58,8 @@ def frames(ctx: StageContext) -> None:
     if conf.segmenter not in SEGMENTERS:
         raise SchemaError(f"stage.frames.segmenter={conf.segmenter!r}: choose one of {SEGMENTERS}")
     if conf.mediapipe.handedness not in HANDEDNESS:
-        raise SchemaError(f"stage.frames.mediapipe.handedness={conf.mediapipe.handedness!r}: choose one of {HANDEDNESS}")
+        raise SchemaError(f"stage.frames.mediapipe.handedness={conf.mediapipe.handedness!r}: "
+                          f"choose one of {HANDEDNESS}")
     rows: dict[str, list] = {c.name: [] for c in FRAMES_INDEX.columns}
     jobs = [(seq, cam) for seq in index.sequences for cam in cameras]
     for seq, cam in ctx.progress(jobs, desc="frames: views"):

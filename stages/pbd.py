@@ -97,7 +97,8 @@ def pbd(ctx: StageContext) -> None:
 
 
 def _from_source(source: str, cap_dir: Path, seq: str, info: SequenceInfo, face: torch.Tensor, hand: torch.Tensor,
-                 faces: torch.Tensor, hand_faces: torch.Tensor, head: TemplateModel, cfg: PBDConfig) -> SequenceDeformation:
+                 faces: torch.Tensor, hand_faces: torch.Tensor, head: TemplateModel, cfg: PBDConfig
+                 ) -> SequenceDeformation:
     """Offsets from the ground truth, the dataset, or zeros; contact flags detected on the undeformed
     meshes (or the dataset's own contacts for ``provided``, when it ships them)."""
     T, V = face.shape[:2]

@@ -55,8 +55,10 @@ def report(ctx: StageContext) -> None:
     manifests = {name: json.loads((ctx.input_dir(name) / MANIFEST_NAME).read_text()) for name in UPSTREAM}
     seq = "train" if "train" in index.sequences else next(iter(index.sequences))
     frame, why = _showcase_frame(cap_dir, seq, index)
-    sheet = _contact_sheet(frames_dir, seq, [c.camera_id for c in cameras], frame, int(ctx.cfg.stage.report.thumbnail_px))
+    sheet = _contact_sheet(frames_dir, seq, [c.camera_id for c in cameras], frame,
+                           int(ctx.cfg.stage.report.thumbnail_px))
     hand_share = float(np.mean(frames_index["hand_visible"]))
+    grids = ctx.input_dir("evaluate") / "grids"
     sections = [
         f"<h1>InteractAvatar report: {html.escape(ctx.subject)}</h1>",
         f"<p>method <b>{html.escape(str(ctx.cfg.method.label))}</b> ({html.escape(str(ctx.method))}), "
@@ -98,8 +100,8 @@ def report(ctx: StageContext) -> None:
         f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
         f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
         f"<h2>Renders: ground truth | {html.escape(str(ctx.cfg.method.label))} | its error x4</h2>",
-        *(f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_base64_file(ctx.input_dir('evaluate') / 'grids' / (s + '.png'))}'>"
-          for s in SPLITS if (ctx.input_dir('evaluate') / 'grids' / (s + '.png')).is_file()),
+        *(f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_base64_file(grids / (s + '.png'))}'>"
+          for s in SPLITS if (grids / (s + '.png')).is_file()),
     ]
     page = "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>" \
            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}" \
@@ -122,7 +124,8 @@ def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
     if not info["model_hand"]:
         per_triangle = int(manifests["warmup"]["config"]["quality.gaussians_per_triangle"])
         left_out.append(f"{info['hand_triangles']} MANO triangles without Gaussians (about "
-                        f"{info['hand_triangles'] * per_triangle} Gaussians not created at this preset) and no hand MLPs")
+                        f"{info['hand_triangles'] * per_triangle} Gaussians not created at this preset) "
+                        "and no hand MLPs")
     if not info["model_pbd"]:
         left_out.append("no contact simulated in any frame")
     if not info["model_interaction"]:
@@ -157,8 +160,9 @@ def _selection_paragraph(dynamic: dict) -> str:
         return ("<p>Stage two kept its last step and every module it built (stage.dynamic.select.enabled=false).</p>")
     step, final = int(dynamic["selected_step"]), int(dynamic["selection_final_step"])
     text = (f"Stage two kept step {step} of {final}" + (" (the warm-up's model: H and I at zero)" if step == 0 else "")
-            + f": validation PSNR {dynamic['selection_selected_psnr']:.2f} dB against {dynamic['selection_final_psnr']:.2f}"
-            f" dB at the last step, on training frames that neither stage trained on.")
+            + f": validation PSNR {dynamic['selection_selected_psnr']:.2f} dB against "
+            f"{dynamic['selection_final_psnr']:.2f} dB at the last step, on training frames that neither stage "
+            "trained on.")
     for module, name in (("hand_mlp", "the hand MLPs H"), ("interaction", "the interaction MLPs I")):
         without = dynamic.get(f"selection_psnr_without_{module}")
         if without is None:
@@ -380,7 +384,8 @@ def _loss_logs(representation: str) -> dict[str, tuple[TableSchema, tuple[str, .
     if representation == "embedded":
         splat = (SPLATTING_TRAIN_LOG, ("loss", "l1", "dssim", "mse"))
         return {"warmup": splat, "dynamic": splat}
-    return {"warmup": (TRAIN_LOG, ("loss", "l1", "dssim")), "dynamic": (DYNAMIC_TRAIN_LOG, ("loss", "l1", "dssim", "patch"))}
+    return {"warmup": (TRAIN_LOG, ("loss", "l1", "dssim")),
+            "dynamic": (DYNAMIC_TRAIN_LOG, ("loss", "l1", "dssim", "patch"))}
 
 
 def _loss_curve(train_dir: Path, schema: TableSchema = TRAIN_LOG, terms: tuple[str, ...] = ("loss", "l1", "dssim")

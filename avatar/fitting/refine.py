@@ -476,7 +476,8 @@ def mesh_coverage(meshes: dict[str, Tensor], faces: dict[str, Tensor], K: Tensor
 
 
 def tracking_outlines(image: np.ndarray, K: Tensor, world_to_cam: Tensor,
-                      param_sets: Sequence[Mapping[str, np.ndarray]], frame: int, head: TemplateModel, hand: TemplateModel, with_hand: bool = True) -> np.ndarray:
+                      param_sets: Sequence[Mapping[str, np.ndarray]], frame: int, head: TemplateModel,
+                      hand: TemplateModel, with_hand: bool = True) -> np.ndarray:
     """``image`` (S, S, 3) uint8 of one view (intrinsics ``K`` (3, 3), extrinsics ``world_to_cam`` (4, 4)), dimmed,
     with the outline of the face (and hand) mesh that each of ``param_sets`` (params.parquet columns, T rows) poses
     at ``frame``: the first red, the second green (e.g. before and after a refinement)."""

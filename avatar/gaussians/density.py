@@ -175,11 +175,12 @@ def _append(model: BoundGaussians, optimizer: torch.optim.Optimizer, src: Tensor
     """Append copies of Gaussians ``src`` (M,), with some parameters overridden; new moments are zero."""
     if len(src) == 0:
         return
+    m = len(src)
     for name in PARAM_NAMES:
         p = getattr(model, name).detach()
         extra = overrides.get(name, p[src])
         _replace(model, optimizer, name, torch.cat([p, extra]),
-                 lambda s, m=len(src): torch.cat([s, torch.zeros((m, *s.shape[1:]), dtype=s.dtype, device=s.device)]))
+                 lambda s: torch.cat([s, torch.zeros((m, *s.shape[1:]), dtype=s.dtype, device=s.device)]))
     model.binding = torch.cat([model.binding, model.binding[src]])
     model.part = torch.cat([model.part, model.part[src]])
 

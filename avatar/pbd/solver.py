@@ -8,8 +8,8 @@ Per frame (:func:`solve_frame`), on the posed, undeformed face ``rest`` (V, 3):
 2. Only vertices within ``free_radius_m`` of a penetrating vertex move (inverse mass 1); all
    others are pinned where they are (inverse mass 0) and still anchor the constraints they share.
 3. ``iterations`` XPBD sweeps over attachment (per-vertex stiffness), stretch, bending, tissue shear
-   (neighbouring displacements alike) and collision constraints, ``method`` ``jacobi`` (every constraint at once, steps scaled by the
-   vertices' constraint counts, Chebyshev-accelerated; the default: 3x cheaper per sweep here) or
+   (neighbouring displacements alike) and collision constraints, ``method`` ``jacobi`` (every constraint at
+   once, steps scaled by the vertices' constraint counts, Chebyshev-accelerated; 3x cheaper per sweep here) or
    ``gauss_seidel`` (graph-coloured); collision planes are re-detected every ``detect_every``
    sweeps; or ``direct`` (:mod:`avatar.pbd.direct`): the fixed point those sweeps converge to, by a
    few sparse solves. Positions start from ``warm`` (the previous frame's solution) when given, multipliers

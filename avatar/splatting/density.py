@@ -246,7 +246,7 @@ def _zero_moments(optimizer: torch.optim.Optimizer, param: nn.Parameter, rows: T
     state = _param_state(optimizer, param)
     if not state or not bool(rows.any()):
         return
-    for key, moment in state.items():
+    for moment in state.values():
         if torch.is_tensor(moment) and moment.dim() > 0:
             moment[rows] = 0.0
 

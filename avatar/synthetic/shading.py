@@ -15,7 +15,7 @@ base albedo (3, linear), occlusion factor (1), pore amplitude (1).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch

@@ -337,7 +337,8 @@ def _shapedirs(reg: _Regions, landmarks: np.ndarray) -> np.ndarray:
         field(0.10 * reg.front() * smoothstep(-0.02, 0.04, v[:, 1]) * v[:, 1], y_hat),
     ]
     expression = [  # NUM_EXPRESSION fields
-        sum(field(reg.corner(s), np.array([s * 0.006, 0.005, -0.002])) + field(reg.cheek(s), np.array([0.0, 0.003, 0.002]))
+        sum(field(reg.corner(s), np.array([s * 0.006, 0.005, -0.002]))
+            + field(reg.cheek(s), np.array([0.0, 0.003, 0.002]))
             for s in sides),
         field(reg.lip(upper=False) + 0.6 * reg.patch(0.0, -0.85, 0.3, 0.2), -0.006 * y_hat)
         + field(reg.lip(upper=True), 0.002 * y_hat),
@@ -393,7 +394,8 @@ def _landmark_directions() -> np.ndarray:
     jaw = np.stack((1.2 * np.sin(psi), -0.05 - 0.85 * np.cos(psi)), axis=1)
     brow_right = np.stack((np.linspace(-0.64, -0.10, 5), [0.46, 0.52, 0.545, 0.54, 0.52]), axis=1)
     brow_left = brow_right[::-1] * [-1.0, 1.0]
-    nose = [(0.0, 0.30), (0.0, 0.16), (0.0, 0.02), (0.0, -0.13)] + [(y, -0.25) for y in (-0.13, -0.065, 0.0, 0.065, 0.13)]
+    nose = ([(0.0, 0.30), (0.0, 0.16), (0.0, 0.02), (0.0, -0.13)]
+            + [(y, -0.25) for y in (-0.13, -0.065, 0.0, 0.065, 0.13)])
     ey, ep = _EYE
     eye_right = [(-ey - 0.14, ep), (-ey - 0.05, ep + 0.045), (-ey + 0.05, ep + 0.045), (-ey + 0.14, ep),
                  (-ey + 0.05, ep - 0.04), (-ey - 0.05, ep - 0.04)]

@@ -29,7 +29,8 @@ SMOKE = ("quality=smoke", "run.progress=false")
 EARLY_CHECKPOINT = "stage.warmup.checkpoint_every=10"
 SUBJECTS = ("synth_a", "synth_b")
 # One decision line of the runner: "[synth_a] capture    run       <reason>" (per-method: "[synth_a/<method>]").
-DECISION = re.compile(r"\[(?P<subject>[\w-]+)(?:/(?P<method>[\w-]+))?\] (?P<stage>\w+)\s+(?P<action>run|cached|shared)\b")
+DECISION = re.compile(r"\[(?P<subject>[\w-]+)(?:/(?P<method>[\w-]+))?\] "
+                      r"(?P<stage>\w+)\s+(?P<action>run|cached|shared)\b")
 
 
 class Cluster(Protocol):

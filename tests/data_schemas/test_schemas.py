@@ -56,7 +56,8 @@ def test_params_round_trip_with_metadata(tmp_path):
     ("mutate", "message"),
     [
         (lambda d: d.pop("mano_transl"), "missing ['mano_transl']"),
-        (lambda d: d.__setitem__("mano_hand_pose", np.zeros((3, 44))), "column 'mano_hand_pose': expected vectors of length 45"),
+        (lambda d: d.__setitem__("mano_hand_pose", np.zeros((3, 44))),
+         "column 'mano_hand_pose': expected vectors of length 45"),
         (lambda d: d["flame_transl"].__setitem__((1, 2), np.nan), "column 'flame_transl': contains NaN or Inf"),
         (lambda d: d.__setitem__("mano_transl", np.zeros((4, 3))), "column 'mano_transl': expected 3 rows"),
     ],

@@ -148,7 +148,8 @@ def test_relative_transform_is_invariant_to_moving_the_whole_scene() -> None:
     R, c = Rotation.from_rotvec([0.4, 0.7, -0.2]), np.array([0.3, -0.1, 0.2])
     moved = {k: v.copy() for k, v in params.items()}
     for part, J in roots.items():
-        moved[f"{part}_global_orient"] = (R * Rotation.from_rotvec(params[f"{part}_global_orient"][0])).as_rotvec()[None]
+        orient = Rotation.from_rotvec(params[f"{part}_global_orient"][0])
+        moved[f"{part}_global_orient"] = (R * orient).as_rotvec()[None]
         moved[f"{part}_transl"] = (R.apply(J + params[f"{part}_transl"][0]) + c - J)[None]
     b = sequence_conditioning(moved, head, hand, torch.from_numpy(R.apply(offsets[0].numpy()))[None])
     for name in ("rel_rotation", "rel_translation", "face_offsets"):

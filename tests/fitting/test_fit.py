@@ -170,7 +170,8 @@ def test_monocular_fit_with_missing_detections_goes_on(capture: SyntheticCapture
     kp["face"][2] = np.nan
     kp["hand"][3, :, 2] = 0.0
     kp["face"][4, :60, 2] = 0.0
-    res = fit_sequence({camera.camera_id: kp}, [camera], HEAD, HAND, FitConfig(coarse_iterations=30, fine_iterations=30))
+    res = fit_sequence({camera.camera_id: kp}, [camera], HEAD, HAND,
+                       FitConfig(coarse_iterations=30, fine_iterations=30))
     _check_layout(res.params, capture)
     assert res.weak_frames["face"][2] and res.weak_frames["hand"][3]
     assert not res.weak_frames["face"][[0, 1, 3, 5]].any() and not res.weak_frames["hand"][[0, 1, 2, 5]].any()

@@ -67,4 +67,5 @@ def test_no_pairs_and_frames_are_independent() -> None:
     pairs = find_contact_pairs(two, surfaces, RADIUS)
     assert set(pairs.frame.tolist()) == {1}
     torch.testing.assert_close(contact_depth(two, surfaces, faces, pairs, RADIUS),
-                               torch.full((4,), 0.1, dtype=torch.float64), rtol=0, atol=1e-3)  # icosphere: 0.1 within 1 mm
+                               torch.full((4,), 0.1, dtype=torch.float64), rtol=0,
+                               atol=1e-3)  # icosphere: 0.1 within 1 mm

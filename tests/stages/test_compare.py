@@ -17,8 +17,9 @@ from stages.evaluate import showcase_pairs
 
 
 def _run(name: str, warmup_key: str = "k0", seed: int = 0, train_seed: int = 0, shift: float = 0.0) -> MethodRun:
-    """A method (training run ``train_seed``; every PSNR raised by ``shift`` dB) with metrics of 2 splits x 4 regions x 2 cameras x 5 frames, frames 1 and 3 with contact,
-    the hand region absent (NaN) in frame 0 and one infinite PSNR (a perfect image)."""
+    """A method (training run ``train_seed``; every PSNR raised by ``shift`` dB) with metrics of 2 splits x 4
+    regions x 2 cameras x 5 frames, frames 1 and 3 with contact, the hand region absent (NaN) in frame 0 and one
+    infinite PSNR (a perfect image)."""
     rng = np.random.default_rng(seed)
     rows = [(split, region, cam, frame) for split in ("novel_view", "self_reenact")
             for region in ("full", "hand", "face", "interaction") for cam in ("c0", "c1") for frame in range(5)]

@@ -147,7 +147,7 @@ def test_decaf_capture_round_trips(tmp_path):
     index = CaptureIndex.read(cap)
     assert index.dataset == "decaf"
     assert {k: v.num_frames for k, v in index.sequences.items()} == FRAMES
-    for seq, info in index.sequences.items():
+    for info in index.sequences.values():
         assert info.provided == ("keypoints", "params", "deform", "contacts"), info.notes
         assert info.has_masks and not info.has_ground_truth and (info.width, info.height) == (W, H)
 

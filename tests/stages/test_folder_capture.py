@@ -241,7 +241,8 @@ def test_colmap_calibration_is_scaled_undistorted_once_and_recorded(tmp_path):
     # The distorted one is re-encoded through its own undistortion (tested against projections in
     # tests/calibration), equal up to the video codec's rounding.
     assert video_path(capture, "train", "cam01").read_bytes() != video_path(subject, "train", "cam01").read_bytes()
-    source, imported = read_video(video_path(subject, "train", "cam01")), read_video(video_path(capture, "train", "cam01"))
+    source = read_video(video_path(subject, "train", "cam01"))
+    imported = read_video(video_path(capture, "train", "cam01"))
     dist = np.array([-0.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     expected = np.stack([Undistorter(_camera(1).K, dist, SIZE, SIZE).image(f) for f in source])
     # Compared on the patch's silhouette: the codec's rounding of a 48 px video is larger than colour tolerances.
@@ -350,7 +351,7 @@ def test_crop_padding_past_the_image_is_labelled_unobserved(tmp_path):
     run_app(_cfg(tmp_path))
     frames_dir = tmp_path / "out" / "alice" / "frames"
     index = read_table(frames_dir / "index.parquet", FRAMES_INDEX)
-    for seq, cam, t, (x0, y0, size), fraction in zip(index["sequence"], index["camera_id"], index["frame"],
+    for seq, cam, t, (x0, _y0, size), fraction in zip(index["sequence"], index["camera_id"], index["frame"],
                                                      index["crop"], index["foreground_fraction"]):
         labels = read_png(crop_mask_path(frames_dir, seq, cam, int(t)), 1)
         rgb = read_png(rgb_path(frames_dir, seq, cam, int(t)), 3)

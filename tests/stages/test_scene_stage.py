@@ -27,7 +27,8 @@ def _run(out: Path, *extra: str, until: str = "pbd") -> dict:
 
 
 def _manifest(out: Path, stage: str) -> dict:
-    path = out / "synth_a" / stage if stage in ("scene", "pbd") else out / "synth_a" / "methods" / "interactavatar" / stage
+    root = out / "synth_a"
+    path = root / stage if stage in ("scene", "pbd") else root / "methods" / "interactavatar" / stage
     return json.loads((path / "_manifest.json").read_text())
 
 
@@ -36,7 +37,8 @@ def test_a_scene_with_contact_models_everything_and_covers_the_true_contacts(tmp
     assert scene["model_hand"] and scene["model_pbd"] and scene["model_interaction"], scene["reasons"]
     frames = read_table(tmp_path / "synth_a" / "scene" / "scene.parquet", SCENE_FRAMES)
     train = np.asarray(frames["sequence"]) == "train"
-    truth = np.asarray(read_table(tmp_path / "synth_a" / "capture" / "train" / "gt" / "deform.parquet", DEFORM)["contact"])
+    deform = read_table(tmp_path / "synth_a" / "capture" / "train" / "gt" / "deform.parquet", DEFORM)
+    truth = np.asarray(deform["contact"])
     assert truth.any() and np.asarray(frames["contact"])[train][truth].all()  # every dent is within d_max
     assert 0 < len(scene["deforming_triangles"]) < scene["face_triangles"]
     assert _manifest(tmp_path, "pbd")["metrics"]["simulated_frames"] > 0

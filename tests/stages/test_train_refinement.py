@@ -60,9 +60,10 @@ def test_auto_leaves_the_truth_and_a_forced_refinement_reads_only_train_views_an
         metrics = _metrics(method / stage)
         assert metrics["params_refined"] is True
         # no drift: the views agree with the true meshes, so the refinement has little to correct. Measured: 0.4-0.6 mm
-        # mean (a 64 px smoke crop's pixel is about 6 mm at the subject), 0.1-0.25 degrees at most. (A 600-step warm-up, each frame
-        # refined ~100 times, moved the hand 1.3-1.4 mm and 0.5 degrees: the crude smoke avatar, one Gaussian per
-        # triangle and no pose-dependent appearance, is helped a little by moving the mesh; not a run-away drift.)
+        # mean (a 64 px smoke crop's pixel is about 6 mm at the subject), 0.1-0.25 degrees at most. (A 600-step
+        # warm-up, each frame refined ~100 times, moved the hand 1.3-1.4 mm and 0.5 degrees: the crude smoke
+        # avatar, one Gaussian per triangle and no pose-dependent appearance, is helped a little by moving the
+        # mesh; not a run-away drift.)
         assert metrics["params_moved_face_mm_mean"] < 1.0 and metrics["params_moved_hand_mm_mean"] < 1.0, metrics
         assert metrics["params_rotated_face_deg_max"] < 0.4 and metrics["params_rotated_hand_deg_max"] < 0.4, metrics
         written = read_params(method / stage / "params.parquet")

@@ -82,7 +82,8 @@ def test_the_third_identity_differs_more_than_the_first_two_differ() -> None:
     """Head and hand shape, skin tone and motion: synth_c is further from each of synth_a and synth_b than those
     two are from each other."""
     a, b, c = (make_identity(s, NUM_DESIGNED_SHAPE) for s in SUBJECTS)
-    look = {"flame_shape": lambda x: x, "mano_shape": lambda x: x, "skin": lambda x: srgb_encode(x).astype(float)}  # as seen: sRGB
+    # as seen: sRGB
+    look = {"flame_shape": lambda x: x, "mano_shape": lambda x: x, "skin": lambda x: srgb_encode(x).astype(float)}
     for field, seen in look.items():
         ab = np.linalg.norm(seen(getattr(a, field)) - seen(getattr(b, field)))
         assert np.linalg.norm(seen(getattr(c, field)) - seen(getattr(a, field))) > ab, field

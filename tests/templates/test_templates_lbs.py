@@ -100,7 +100,8 @@ def test_rest_joints_equal_regressed_template(which: str, hand: TemplateModel, h
     if which == "hand":
         out = MANOLayer(model)(torch.zeros(1, 10, dtype=torch.float64), torch.zeros(1, 45, dtype=torch.float64))
     else:
-        out = FLAMELayer(model, 10, 10)(torch.zeros(1, 10, dtype=torch.float64), torch.zeros(1, 10, dtype=torch.float64))
+        zeros = torch.zeros(1, 10, dtype=torch.float64)
+        out = FLAMELayer(model, 10, 10)(zeros, zeros)
     np.testing.assert_allclose(out.joints[0].numpy(), model.J_regressor @ model.v_template, atol=1e-12)
     np.testing.assert_allclose(out.vertices[0].numpy(), model.v_template, atol=1e-12)
 

@@ -31,7 +31,7 @@ def broken_build(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Pa
 
 
 def test_a_failed_build_is_recorded_and_not_retried(broken_build: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    with pytest.raises(Exception):
+    with pytest.raises(RuntimeError, match="Error building extension"):
         extension.build()
     failed = broken_build / "build_failed.txt"
     assert failed.read_text().split("\n", 1)[0] == extension._build_key()
