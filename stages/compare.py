@@ -43,17 +43,8 @@ from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.workspace import method_run
 
-#: InteractAvatar (ICCV 2025) on DECAF at 512x512, full images: Table 1 and Table 2 (novel view only; the
-#: paper gives no numbers for "w/o PBD" and "w/o L_patch", only images). method -> split -> (PSNR, SSIM, LPIPS)
-PAPER = {
-    "splatting_avatar": {"novel_view": (25.90, 0.9135, 0.0584), "self_reenact": (26.18, 0.9326, 0.0546)},
-    "gaussian_avatars": {"novel_view": (26.71, 0.9324, 0.0542), "self_reenact": (25.51, 0.9393, 0.0578)},
-    "interactavatar": {"novel_view": (29.85, 0.9335, 0.0338), "self_reenact": (28.17, 0.9356, 0.0396)},
-    "no_hand_mlp": {"novel_view": (26.97, 0.9359, 0.0574)},
-    "no_interaction": {"novel_view": (28.23, 0.9389, 0.0467)},
-}
-BASELINES = ("splatting_avatar", "gaussian_avatars", "interactavatar")  # Table 1, in the paper's order
-ABLATIONS = ("interactavatar", "no_hand_mlp", "no_interaction", "no_pbd", "no_patch")  # Table 2
+#: The tables a method can appear in (its YAML's ``method.tables``: table -> position in that table).
+TABLES = ("baselines", "ablations")
 #: The shared (not per-method) stages that ``evaluate`` reads; a method whose evaluation read other versions of them
 #: is stale. Kept equal to the DAG's by ``tests/stages/test_compare.py`` (``scene`` was missing: issue 36, item 10).
 SHARED_STAGES = ("capture", "frames", "fit", "scene", "pbd")
@@ -107,6 +98,22 @@ class MethodRun:
     @property
     def gaussians(self) -> int:
         return int(self.manifests["dynamic"]["metrics"]["gaussians"])
+
+    @property
+    def role(self) -> dict[str, Any]:
+        """The method's part in the comparison, from its own config as its evaluation recorded it (``method.tables``,
+        ``method.full_model``, ``method.paper``: conf/method/<name>.yaml); empty for a method that declares none."""
+        return self.manifests["evaluate"].get("config", {}).get("method", {})
+
+    def position(self, table: str) -> int | None:
+        """Where the method stands in ``table`` (:data:`TABLES`), or None when it is not in it."""
+        value = (self.role.get("tables") or {}).get(table)
+        return None if value is None else int(value)
+
+    def paper(self, split: str) -> dict[str, float] | None:
+        """The paper's (PSNR, SSIM, LPIPS) of this method for ``split``, when the paper gives them."""
+        values = (self.role.get("paper") or {}).get(split)
+        return None if values is None else dict(zip(METRIC_NAMES, map(float, values)))
 
 
 @stage("compare", inputs=SHARED_STAGES, config_keys=("stage.compare",),
@@ -292,11 +299,11 @@ SEED_REGIONS = (("full", "all"), ("hand", "all"), ("face", "all"), ("interaction
 SIGNIFICANCE = 0.05
 
 
-def _seed_table(rows: dict[str, list], present: dict[str, str], splits: list[str]) -> list[list[str]]:
-    """Rows of the full model's PSNR minus each other method's, per split and region: the difference of the
-    means, the larger of the two seed spreads, Welch's p and what the seeds support."""
+def _seed_table(rows: dict[str, list], present: dict[str, str], full: str, splits: list[str]) -> list[list[str]]:
+    """Rows of the full model's PSNR minus each other method's (``present``: method -> label), per split and
+    region: the difference of the means, the larger of the two seed spreads, Welch's p and what the seeds
+    support."""
     out = []
-    full = "interactavatar"
     for split in splits:
         for method in present:
             if method == full:
@@ -331,16 +338,18 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
     command = lambda *args: " ".join(["interactavatar", *args])  # noqa: E731
     present = {r.name: r for r in runs}  # method -> one of its runs (label, ...)
     seeds = sorted({r.seed for r in runs})
-    paper_cells = lambda m, split: _metric_cells(dict(zip(METRIC_NAMES, PAPER[m][split]))) \
-        if split in PAPER.get(m, {}) else ["-"] * 3  # noqa: E731
+    paper_cells = lambda m, split: _metric_cells(paper) if (paper := present[m].paper(split)) else ["-"] * 3  # noqa: E731
     splits = [s for s in SPLITS if s in set(rows["split"])]
+    in_table = {t: sorted((m for m, r in present.items() if r.position(t) is not None),
+                          key=lambda m, t=t: (present[m].position(t), m)) for t in TABLES}
+    full = min((m for m, r in present.items() if r.role.get("full_model")), default=None)
     table1 = [[split, present[m].label, *_stat_cells(rows, m, split, "full"), *paper_cells(m, split)]
-              for split in splits for m in BASELINES if m in present]
+              for split in splits for m in in_table["baselines"]]
     table2 = [[split, present[m].label,
                *(_stat(_seed_values(rows, m, split, region)["psnr"], 2) for region in ("full", "hand", "interaction")),
                *(_stat(_seed_values(rows, m, split, region)["lpips"], 4) for region in ("full", "hand", "interaction")),
                _stat(_seed_values(rows, m, split, "interaction", "contact")["psnr"], 2), *paper_cells(m, split)]
-              for split in splits for m in ABLATIONS if m in present]
+              for split in splits for m in in_table["ablations"]]
     budget = [[r.label, str(r.seed), str(r.train_steps), f"{r.train_wall_s:.0f}" + (" (resumed)" if r.resumed else ""),
                str(r.gaussians)] for r in runs]
     steps = {r.train_steps for r in runs}
@@ -396,11 +405,11 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
          "rows": table2},
         {"title": "Training budget", "headers": ["method", "seed", "steps", "train wall s", "Gaussians"],
          "rows": budget},
-        *([{"title": "Seeds: InteractAvatar's PSNR minus each method's (dB); 'supported' where Welch's t-test "
-                     f"gives p < {SIGNIFICANCE} over the seeds",
+        *([{"title": f"Seeds: {present[full].label}'s PSNR minus each method's (dB); 'supported' where Welch's "
+                     f"t-test gives p < {SIGNIFICANCE} over the seeds",
             "headers": ["split", "method", "region", "difference of means", "larger seed sd", "Welch p", "seeds say"],
-            "rows": _seed_table(rows, {m: r.label for m, r in present.items()}, splits)}]
-          if "interactavatar" in present and len(seeds) >= 2 else []),
+            "rows": _seed_table(rows, {m: r.label for m, r in present.items()}, full, splits)}]
+          if full is not None and len(seeds) >= 2 else []),
     ], "notes": notes, "missing": missing}
 
 

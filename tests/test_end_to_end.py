@@ -23,6 +23,24 @@ from stages.export_ply import export_frame
 from tests.conftest import run_cli
 
 
+#: every method of the comparison, the test-only one included
+METHODS = ("interactavatar", "gaussian_avatars", "splatting_avatar", "no_hand_mlp", "no_interaction", "no_pbd",
+           "no_patch", "eighth")
+EIGHTH_METHOD = """# @package _global_
+method:
+  name: eighth
+  label: Eighth (c = 0.05)
+  representation: bound
+  pbd: true
+  tables: {ablations: 6}
+  full_model: false
+  paper: {}
+stage:
+  dynamic:
+    patch_weight: 0.05
+"""
+
+
 def stage_dir(subject: Path, name: str, method: str = "interactavatar") -> Path:
     """Where stage ``name`` of ``method`` lives (per-method stages under methods/<method>/)."""
     return subject / "methods" / method / name if REGISTRY[name].per_method else subject / name
@@ -159,15 +177,24 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     # full model's warm-up (same cache key: shared, not retrained); GaussianAvatars poses undeformed meshes
     # and SplattingAvatar embeds its Gaussians, so each trains its own. Then the comparison holds all four,
     # trained for the same number of steps.
+    # An eighth method, defined only here by one YAML file on Hydra's search path (issue 37), trains, is
+    # evaluated and stands in the comparison where its file puts it.
+    extra_conf = tmp_path / "conf"
+    (extra_conf / "method").mkdir(parents=True)
+    (extra_conf / "method" / "eighth.yaml").write_text(EIGHTH_METHOD)
     multi = run_cli("-m", f"paths.outputs={out}", "quality=smoke", "run.progress=false",
-                    "method=gaussian_avatars,no_patch,splatting_avatar")
+                    f"hydra.searchpath=[file://{extra_conf}]", "stage.compare.methods=[" + ",".join(METHODS) + "]",
+                    "method=gaussian_avatars,no_patch,splatting_avatar,eighth")
     assert multi.returncode == 0, multi.stdout[-3000:] + multi.stderr[-3000:]
+    assert f"{log_prefix('warmup', 'eighth')} shared" in multi.stdout
+    assert f"{log_prefix('dynamic', 'eighth')} run" in multi.stdout
     assert f"{log_prefix('warmup', 'no_patch')} shared" in multi.stdout
     assert f"{log_prefix('warmup', 'gaussian_avatars')} run" in multi.stdout
     assert f"{log_prefix('warmup', 'splatting_avatar')} run" in multi.stdout
     assert "[synth_a] capture    cached" in multi.stdout and "[synth_a] pbd        cached" in multi.stdout
     comparison = read_table(subject / "compare" / "comparison.parquet", COMPARISON)
-    assert set(comparison["method"]) == {"interactavatar", "gaussian_avatars", "no_patch", "splatting_avatar"}
+    assert set(comparison["method"]) == {"interactavatar", "gaussian_avatars", "no_patch", "splatting_avatar",
+                                         "eighth"}
     splatting_psnr = np.asarray(comparison["psnr"])[(np.asarray(comparison["method"]) == "splatting_avatar")
                                                     & (np.asarray(comparison["region"]) == "full")]
     assert np.isfinite(splatting_psnr).all() and splatting_psnr.min() > 15.0, splatting_psnr
@@ -177,6 +204,8 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     tables = (subject / "compare" / "tables.md").read_text()
     assert "Table 1" in tables and "GaussianAvatars" in tables and "SplattingAvatar" in tables
     assert "w/o L_patch" in tables
+    table2 = tables.split("## Table 2")[1].split("## ")[0]
+    assert table2.index("w/o L_patch") < table2.index("Eighth (c = 0.05)")
     assert "Not evaluated yet: no_hand_mlp, no_interaction, no_pbd" in tables
     assert sorted(p.name for p in (subject / "compare" / "figures").glob("*.png"))
     assert "Methods side by side" in (stage_dir(subject, "report", "no_patch") / "report.html").read_text()

@@ -8,12 +8,20 @@ import numpy as np
 import pytest
 
 from data_schemas.metrics import CONTACT_GROUPS
+from omegaconf import OmegaConf
 from scipy.stats import ttest_ind
 
 from stages.compare import (
     SHARED_STAGES, MethodRun, _comparison_rows, _cost, _crop, _lookup, _tables, stale_reason, welch_p,
 )
 from stages.evaluate import showcase_pairs
+from tests.conftest import CONF_DIR
+
+
+def _method_config(name: str) -> dict:
+    """``method`` of conf/method/<name>.yaml as an evaluation records it (its role in the tables), or {}."""
+    path = CONF_DIR / "method" / f"{name}.yaml"
+    return OmegaConf.to_container(OmegaConf.load(path).method) if path.is_file() else {}
 
 
 def _run(name: str, warmup_key: str = "k0", seed: int = 0, train_seed: int = 0, shift: float = 0.0) -> MethodRun:
@@ -33,7 +41,7 @@ def _run(name: str, warmup_key: str = "k0", seed: int = 0, train_seed: int = 0, 
                "frame": frame, "contact": np.isin(frame, [1, 3]), "psnr": psnr, "ssim": ssim, "lpips": lpips}
     manifests = {"warmup": {"key": warmup_key, "metrics": {"steps": 20}, "timings": {"wall_s": 10.0}},
                  "dynamic": {"metrics": {"steps": 10, "gaussians": 123}, "timings": {"wall_s": 5.0}},
-                 "evaluate": {"timings": {"wall_s": 2.0}}}
+                 "evaluate": {"timings": {"wall_s": 2.0}, "config": {"method": _method_config(name)}}}
     return MethodRun(name, train_seed, name.upper(), Path("/nonexistent"), metrics, manifests)
 
 
@@ -102,6 +110,37 @@ def test_tables_say_whether_the_budget_was_the_same_and_what_is_missing():
     unfair = _tables([_run("interactavatar"), other], _comparison_rows([_run("interactavatar"), other]), [],
                      {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0})
     assert any("not fair" in n for n in unfair["notes"])
+
+
+def test_a_method_stands_where_its_own_config_puts_it():
+    """Issue 37: a method's tables, position, paper figures and full-model role come from its config (as its
+    evaluation recorded it), not from a list in the stage: an eighth method needs no edit here."""
+    eighth = _run("eighth")
+    eighth.manifests["evaluate"]["config"]["method"] = {
+        "label": "Eighth", "tables": {"baselines": 0, "ablations": 9}, "full_model": False,
+        "paper": {"novel_view": [30.5, 0.95, 0.02]}}
+    silent = _run("no_role")  # declares nothing: in the comparison, in no table
+    runs = [_run("interactavatar"), _run("gaussian_avatars"), eighth, silent]
+    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
+                                                        "unshared_wall_s": 2.0})
+    table1, table2 = tables["tables"][0], tables["tables"][1]
+    novel1 = [row for row in table1["rows"] if row[0] == "novel_view"]
+    assert [row[1] for row in novel1] == ["EIGHTH", "GAUSSIAN_AVATARS", "INTERACTAVATAR"]
+    assert novel1[0][5] == "30.50"  # its own paper figure
+    assert [row[1] for row in table2["rows"] if row[0] == "novel_view"] == ["INTERACTAVATAR", "EIGHTH"]
+    assert all("NO_ROLE" not in row for t in (table1, table2) for row in t["rows"])
+    assert "NO_ROLE" in [row[0] for row in next(t for t in tables["tables"] if t["title"] == "Training budget")["rows"]]
+
+
+def test_without_a_full_model_there_is_no_seeds_table():
+    runs = [_run(name, seed=seed, train_seed=seed) for name in ("gaussian_avatars", "no_pbd") for seed in (0, 1)]
+    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
+                                                        "unshared_wall_s": 2.0})
+    assert not any(t["title"].startswith("Seeds") for t in tables["tables"])
+    with_full = runs + [_run("interactavatar", seed=s, train_seed=s) for s in (0, 1)]
+    tables = _tables(with_full, _comparison_rows(with_full), [], {"total_wall_s": 1.0, "warmups_trained": 1,
+                                                                  "unshared_wall_s": 2.0})
+    assert any(t["title"].startswith("Seeds: INTERACTAVATAR's PSNR") for t in tables["tables"])
 
 
 def test_showcase_frames_spread_over_the_contact_frames_and_fall_back_to_all():
