@@ -9,7 +9,7 @@ Every validation error names the file, the column and what was expected.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -150,6 +150,13 @@ def write_table(path: str | Path, schema: TableSchema, data: Mapping[str, Any]) 
         raise write_failed(path, f"{schema.name} table", exc) from exc
     if written != n_rows:
         raise write_failed(path, f"{schema.name} table", OSError(f"{written} of {n_rows} rows read back"))
+
+
+def write_records(path: str | Path, schema: TableSchema, records: Sequence[Any]) -> None:
+    """:func:`write_table` of one row per record, each column the record's attribute of that name (a training
+    loop's log rows)."""
+    write_table(path, schema, {name: np.array([getattr(r, name) for r in records]) for name in schema.column_names})
+
 
 
 def read_table(path: str | Path, schema: TableSchema) -> dict[str, np.ndarray | list[Any]]:

@@ -14,7 +14,6 @@ import io
 import time
 from dataclasses import asdict, dataclass
 
-import numpy as np
 import torch
 
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig
@@ -30,7 +29,7 @@ from avatar.training.splatting import train_splatting
 from avatar.training.validation import Validator
 from data_schemas.gaussians import DYNAMIC_TRAIN_LOG
 from data_schemas.splatting import SPLATTING_TRAIN_LOG
-from data_schemas.tables import write_table
+from data_schemas.tables import write_records
 from data_schemas.writes import write_bytes, write_json
 from pipeline.stage import StageContext, stage
 from stages.common import (
@@ -208,8 +207,7 @@ def _train_embedded(ctx: StageContext, views: ViewSet, meshes: MeshSequence, con
     write_json(ctx.out_dir / "model.json", {"representation": "embedded", "part_names": list(meshes.part_names),
                                             "num_gaussians": model.num_gaussians}, "the embedded model")
     _write_plys(ctx, model, cond, meshes, views.num_frames)
-    write_table(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG,
-                {name: np.array([getattr(r, name) for r in log]) for name in SPLATTING_TRAIN_LOG.column_names})
+    write_records(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
     record_validation(ctx, validator)
     ctx.metrics.update({"steps": steps, "gaussians": model.num_gaussians,
                         "ms_per_step": 1000 * (time.perf_counter() - start - validator.validation_s) / max(steps, 1),
@@ -268,8 +266,7 @@ def _train_bound(ctx: StageContext, views: ViewSet, posed: PosedSequence) -> Non
                "the dynamic model")
     _write_plys(ctx, model, cond, meshes, views.num_frames)
     log = result.log
-    write_table(ctx.out_dir / "train_log.parquet", DYNAMIC_TRAIN_LOG,
-                {name: np.array([getattr(r, name) for r in log]) for name in DYNAMIC_TRAIN_LOG.column_names})
+    write_records(ctx.out_dir / "train_log.parquet", DYNAMIC_TRAIN_LOG, log)
     record_validation(ctx, validator)
     steps = max(validator.end, 1)
     ctx.metrics.update({

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from avatar.gaussians.model import BoundGaussians
@@ -17,7 +16,7 @@ from data_schemas.capture import MASK_LABELS
 from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
 from data_schemas.splatting import SPLATTING_TRAIN_LOG
-from data_schemas.tables import write_table
+from data_schemas.tables import write_records
 from pipeline.stage import StageContext, stage
 from stages.common import (
     TRAIN_SEQUENCE, applied_deformation, frame_params, load_scene, load_views, model_sources, posed_sequence,
@@ -118,8 +117,7 @@ def warmup(ctx: StageContext) -> None:
         log = train_splatting(model, views, meshes, splat_cfg, checkpoint_dir=ctx.scratch_dir, progress=progress,
                               validator=validator)
         write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
-        write_table(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG,
-                    {name: np.array([getattr(r, name) for r in log]) for name in SPLATTING_TRAIN_LOG.column_names})
+        write_records(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
     else:
         cfg = StaticConfig(steps=int(q.warmup_steps), lambda_dssim=conf.lambda_dssim, scale_weight=conf.scale_weight,
                            position_weight=conf.position_weight, eps_s=conf.eps_s, eps_mu=conf.eps_mu,
@@ -129,8 +127,7 @@ def warmup(ctx: StageContext) -> None:
         log = train_static(model, views, meshes, cfg, checkpoint_dir=ctx.scratch_dir, progress=progress,
                            validator=validator, params=params)
         write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
-        write_table(ctx.out_dir / "train_log.parquet", TRAIN_LOG,
-                    {name: np.array([getattr(r, name) for r in log]) for name in TRAIN_LOG.column_names})
+        write_records(ctx.out_dir / "train_log.parquet", TRAIN_LOG, log)
     frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
     with torch.no_grad():
         vertices = params.vertices(frame) if params is not None else meshes.vertices[frame]

@@ -20,6 +20,15 @@ SH_C0 = 0.28209479177387814
 PARAM_NAMES = ("local_means", "log_scales", "quats", "opacity_logits", "sh_dc")
 
 
+def check_initial_population(per_triangle: int, init_opacity: float) -> None:
+    """ValueError unless ``per_triangle`` >= 1 and ``init_opacity`` lies strictly between 0 and 1 (which also
+    refuses NaN: 0 and 1 have infinite logits). Every representation's ``on_triangles`` calls it."""
+    if per_triangle < 1:
+        raise ValueError(f"per_triangle must be >= 1, got {per_triangle}")
+    if not 0.0 < init_opacity < 1.0:
+        raise ValueError(f"init_opacity must lie strictly between 0 and 1, got {init_opacity}")
+
+
 def inverse_sigmoid(x: Tensor) -> Tensor:
     return torch.log(x / (1 - x))
 
@@ -64,10 +73,7 @@ class BoundGaussians(nn.Module):
             populate: (F,) bool, the triangles that get Gaussians (e.g. only the face's when the scene has
                 no hand); None: all. The others stay empty, and density control never fills them.
         """
-        if per_triangle < 1:
-            raise ValueError(f"per_triangle must be >= 1, got {per_triangle}")
-        if not 0.0 < init_opacity < 1.0:  # also refuses NaN; 0 and 1 have infinite logits
-            raise ValueError(f"init_opacity must lie strictly between 0 and 1, got {init_opacity}")
+        check_initial_population(per_triangle, init_opacity)
         gen = torch.Generator().manual_seed(seed)
         F = faces.shape[0]
         frames = triangle_frames(vertices, faces)

@@ -56,7 +56,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from avatar.gaussians.frames import quaternion_multiply, rotation_to_quaternion, triangle_frames
-from avatar.gaussians.model import SH_C0, inverse_sigmoid
+from avatar.gaussians.model import SH_C0, check_initial_population, inverse_sigmoid
 from avatar.splatting.walking import WalkTable, build_walk_table, full_barycentric, walk
 
 PARAM_NAMES = ("barycentric", "displacement", "log_scales", "quats", "opacity_logits", "sh_dc")
@@ -206,10 +206,7 @@ class EmbeddedGaussians(nn.Module):
             populate: (F,) bool, the faces that get Gaussians; None: all. (Walking can later carry a
                 Gaussian onto an empty face of the same part.)
         """
-        if per_triangle < 1:
-            raise ValueError(f"per_triangle must be >= 1, got {per_triangle}")
-        if not 0.0 < init_opacity < 1.0:
-            raise ValueError(f"init_opacity must lie strictly between 0 and 1, got {init_opacity}")
+        check_initial_population(per_triangle, init_opacity)
         mesh = CanonicalMesh(canonical_vertices, faces)
         dtype, num_faces = canonical_vertices.dtype, faces.shape[0]
         gen = torch.Generator().manual_seed(seed)
