@@ -19,8 +19,12 @@ import psutil
 
 from tests.cluster.local_slurm import ClusterError, free_port
 
+#: RAY_DEDUP_LOGS=0: every job's lines reach the driver, none folded into "[repeated 2x]". RAY_worker_niceness=0:
+#: Ray starts its task workers at nice 15; on a machine that other work keeps busy (CI, a loaded 2-core box:
+#: three busy processes left them 3 % of a core, the story had not passed keypoints after 15 minutes) they
+#: starve, so this one-machine cluster runs them at the priority of everything else.
 LOCAL_ONLY = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_USAGE_STATS_ENABLED": "0",
-              "RAY_DEDUP_LOGS": "0"}  # every job's lines reach the driver, none folded into "[repeated 2x]"
+              "RAY_DEDUP_LOGS": "0", "RAY_worker_niceness": "0"}
 
 
 class LocalRay:
