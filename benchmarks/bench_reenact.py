@@ -32,7 +32,9 @@ from avatar.render.gaussians import render_gaussians, resolve_backend  # noqa: E
 from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from pipeline.config import validate_config  # noqa: E402
 from stages import REGISTRY  # noqa: E402
-from stages.common import drive, load_params, load_scene, load_trained, posed_gaussians  # noqa: E402
+from stages.artifacts import load_params, load_scene  # noqa: E402
+from stages.driving import drive  # noqa: E402
+from stages.representations import load_trained  # noqa: E402
 
 
 def main() -> None:
@@ -70,7 +72,7 @@ def main() -> None:
         for _ in range(args.repeats):
             for t in range(T):
                 start = time.perf_counter()
-                g = posed_gaussians(model, driven.cond, vertices[t], t)
+                g = model.pose(driven.cond, vertices[t], t)
                 model_ms.append(1000 * (time.perf_counter() - start))
                 for size in args.sizes:  # interleaved, so load changes hit every size alike
                     K = torch.tensor(orbit_intrinsics(6 * radius, radius, size), dtype=torch.float32)

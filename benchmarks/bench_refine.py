@@ -36,7 +36,7 @@ from data_schemas.capture import CaptureIndex  # noqa: E402
 from data_schemas.keypoints import KEYPOINTS  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
-from stages.common import load_ground_truth_params, load_views  # noqa: E402
+from stages.artifacts import load_ground_truth_params, load_views  # noqa: E402
 from stages.fit import _errors, _keypoints_by_camera, face_shape_columns  # noqa: E402
 
 ERRORS = ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_hand_mm", "vertex_error_face_mm")

@@ -45,7 +45,8 @@ from avatar.training.static import StaticConfig, colors_from_views, render_frame
 from avatar.training.validation import ValidationConfig, Validator  # noqa: E402
 from data_schemas.capture import MASK_LABELS, CaptureIndex  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
-from stages.common import load_ground_truth_params, load_views, posed_sequence, templates  # noqa: E402
+from stages.artifacts import load_ground_truth_params, load_views  # noqa: E402
+from stages.posing import posed_sequence, templates  # noqa: E402
 
 DRAFT = StaticConfig(steps=2000, opacity_reset_interval=0.25, max_gaussians=100_000, seed=0)  # conf/quality/draft
 GAUSSIANS_PER_TRIANGLE, INIT_OPACITY, VALIDATION = 2, 0.3, ValidationConfig(every=200, frames=4)

@@ -50,9 +50,9 @@ from data_schemas.cameras import Camera, read_cameras  # noqa: E402
 from data_schemas.metrics import SPLIT_SOURCES  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from pipeline.workspace import method_run  # noqa: E402
-from stages.common import (  # noqa: E402
-    applied_deformation, load_dynamic, load_gaussians, load_sequence, load_views, method_params, templates,
-)
+from stages.artifacts import load_views, method_params  # noqa: E402
+from stages.posing import applied_deformation, load_sequence, templates  # noqa: E402
+from stages.representations.bound import load_dynamic, load_gaussians  # noqa: E402
 
 #: variant -> {module of the dynamic model: its heads switched off}; ``None``: the warm-up model instead
 VARIANTS: dict[str, dict[str, tuple[str, ...]] | None] = {

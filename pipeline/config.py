@@ -127,6 +127,16 @@ def _check_schema(section: Any, schema: type, where: str, errors: list[str]) -> 
     return None if problems else merged
 
 
+def schema_problems(section: Any, schema: type, where: str) -> list[str]:
+    """The problems :func:`_check_schema` finds in ``section`` (at ``where``) against ``schema``, one line each
+    (a missing section is one)."""
+    if section is None:
+        return [f"{where}: missing (expected the fields of {schema.__name__})"]
+    errors: list[str] = []
+    _check_schema(section, schema, where, errors)
+    return errors
+
+
 def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
     """``cfg`` with every stage section completed by its schema's defaults.
 
@@ -193,6 +203,8 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
                 if typed is not None:
                     with open_dict(cfg):
                         cfg.stage[s.name] = typed
+    if not errors:  # the stages' own checks read sections the schemas have typed
+        errors.extend(dict.fromkeys(p for s in stages if s.checks is not None for p in s.checks(cfg)))
     errors.extend(numeric_problems(cfg, errors))
     if errors:
         raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors))

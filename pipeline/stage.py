@@ -11,6 +11,9 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
 - ``unused_keys``: a function of the resolved config naming the paths at or below ``config_keys`` that this
   configuration does not read (another representation's recipe, the options of a solver not chosen): left out
   of the key too, so changing them reruns nothing (:func:`pipeline.config.key_config`);
+- ``checks``: a function of the resolved config listing what this stage cannot run with (one line each, naming
+  the key and the fix), beyond its schema's types and ranges; run with the rest of the check before any stage runs
+  (the method's representation, e.g.);
 - ``sources``: for stages that import user files (a capture folder), a function
   listing them; their content digests enter the cache key (``pipeline.sources``);
 - ``reads_manifests``: the stage shows its inputs' run records (timings, metrics), so
@@ -130,6 +133,7 @@ class Stage:
     description: str = ""
     cache_exclude: tuple[str, ...] = ()
     unused_keys: Callable[[DictConfig], Iterable[str]] | None = None
+    checks: Callable[[DictConfig], Iterable[str]] | None = None
     sources: SourceLister | None = None
     reads_manifests: bool = False
     per_method: bool = False
@@ -174,6 +178,7 @@ def stage(
     config_schema: type | None = None,
     cache_exclude: Iterable[str] = (),
     unused_keys: Callable[[DictConfig], Iterable[str]] | None = None,
+    checks: Callable[[DictConfig], Iterable[str]] | None = None,
     sources: SourceLister | None = None,
     reads_manifests: bool = False,
     per_method: bool = False,
@@ -196,6 +201,7 @@ def stage(
             config_schema=config_schema,
             cache_exclude=tuple(cache_exclude),
             unused_keys=unused_keys,
+            checks=checks,
             sources=sources,
             reads_manifests=reads_manifests,
             per_method=per_method,

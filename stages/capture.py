@@ -28,7 +28,7 @@ from data_schemas.tables import SchemaError, write_table
 from data_schemas.video import write_video
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
-from stages.common import model_files
+from stages.dependencies import model_files
 
 if TYPE_CHECKING:
     from avatar.synthetic import SyntheticCapture, SyntheticConfig

@@ -24,11 +24,11 @@ from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, showcase_path
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
-from stages.common import (
-    applied_deformation, contact_frames, contact_sources, drive, driver_subject, load_params, load_scene,
-    load_sequence, load_trained, method_params, load_views, posed_gaussians, transfer_summary,
-    transferred_params, unused_driving_settings,
-)
+from stages.artifacts import contact_frames, load_params, load_scene, load_views, method_params
+from stages.dependencies import contact_sources, unused_driving_settings
+from stages.driving import drive, driver_subject, transfer_summary, transferred_params
+from stages.posing import applied_deformation, load_sequence
+from stages.representations import load_trained
 
 
 
@@ -71,7 +71,7 @@ def evaluate(ctx: StageContext) -> None:
         views = load_views(cap_dir, frames_dir, sequence, camera_split)
         meshes, cond = _split_sequence(ctx, split, sequence, views.num_frames)
         # used within this iteration only, so the loop's variables are the ones meant
-        render: Renderer = lambda t, c: rasterize(posed_gaussians(model, cond, meshes.vertices[t], t), views, c,  # noqa: E731, B023
+        render: Renderer = lambda t, c: rasterize(model.pose(cond, meshes.vertices[t], t), views, c,  # noqa: E731, B023
                                                   conf.backend).rgb
         contact = contact_frames(cap_dir, sequence, views.num_frames)
         showcase = set(showcase_pairs(contact, int(conf.showcase_frames)))

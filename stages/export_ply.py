@@ -21,7 +21,9 @@ from omegaconf import OmegaConf
 
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.workspace import METHODS_DIR
-from stages.common import load_sequence, load_trained, method_params, posed_gaussians, write_frame_ply
+from stages.artifacts import method_params, write_frame_ply
+from stages.posing import load_sequence
+from stages.representations import load_trained
 
 
 def export_frame(subject_dir: Path, sequence: str, frame: int, out: Path, method: str = "interactavatar",
@@ -42,7 +44,7 @@ def export_frame(subject_dir: Path, sequence: str, frame: int, out: Path, method
                          f"sequence '{sequence}' has frames 0..{num_frames - 1}")
     model = load_trained(dynamic_dir)
     with torch.no_grad():
-        write_frame_ply(out, posed_gaussians(model, cond, meshes.vertices[frame], frame))
+        write_frame_ply(out, model.pose(cond, meshes.vertices[frame], frame))
 
 
 def main() -> None:

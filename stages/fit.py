@@ -30,7 +30,9 @@ from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.manifest import hash_outputs
 from pipeline.stage import StageContext, stage
-from stages.common import load_ground_truth_params, load_provided_params, load_views, model_sources, templates
+from stages.artifacts import load_ground_truth_params, load_provided_params, load_views
+from stages.dependencies import model_sources
+from stages.posing import templates
 
 SOURCES = ("ground_truth", "provided", "fitted")
 #: stage.fit.refine: a mode of avatar.fitting.refine, or auto (see :func:`refine_mode`)

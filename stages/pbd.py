@@ -32,9 +32,10 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
-from stages.common import (
-    contact_sources, face_stiffness, load_scene, pbd_solver_config, templates, unused_solver_settings,
-)
+from stages.artifacts import load_scene
+from stages.dependencies import contact_sources, unused_solver_settings
+from stages.driving import face_stiffness, pbd_solver_config
+from stages.posing import templates
 
 SOURCES = ("simulate", "ground_truth", "provided", "none")
 

@@ -42,10 +42,10 @@ from data_schemas.web_video import write_web_video
 from data_schemas.writes import write_json
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
-from stages.common import (
-    contact_sources, drive, driver_subject, is_parameter_file, load_params, load_scene, load_trained, method_params,
-    TRAIN_SEQUENCE, posed_gaussians, transfer_summary, transferred_params, unused_driving_settings, write_frame_ply,
-)
+from stages.artifacts import load_params, load_scene, method_params, TRAIN_SEQUENCE, write_frame_ply
+from stages.dependencies import contact_sources, unused_driving_settings
+from stages.driving import drive, driver_subject, is_parameter_file, transfer_summary, transferred_params
+from stages.representations import load_trained
 
 
 @dataclass
@@ -100,7 +100,7 @@ def reenact(ctx: StageContext) -> None:
     for t in ctx.progress(range(T), desc="reenact", total=T):
         with torch.no_grad():
             start = time.perf_counter()
-            g = posed_gaussians(model, cond, meshes.vertices[t], t)
+            g = model.pose(cond, meshes.vertices[t], t)
             model_s += time.perf_counter() - start
             for name, (K, w2c) in views.items():
                 start = time.perf_counter()

@@ -18,18 +18,16 @@ from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
 from data_schemas.curve import CURVE
 from data_schemas.frames import FRAMES_INDEX, rgb_path
-from data_schemas.gaussians import DYNAMIC_TRAIN_LOG, TRAIN_LOG
 from data_schemas.metrics import COMPARISON, METRICS, REGIONS, SPLITS
 from data_schemas.images import read_png
-from data_schemas.splatting import SPLATTING_TRAIN_LOG
 from data_schemas.tables import TableSchema, read_table
 from data_schemas.writes import write_bytes
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
-from stages.common import (
-    TRAIN_SEQUENCE, contact_frames, contact_source, load_params, load_views, read_params, templates,
-)
+from stages.artifacts import contact_frames, contact_source, load_params, load_views, read_params, TRAIN_SEQUENCE
+from stages.posing import templates
+from stages.representations import representation_class
 
 UPSTREAM = ("capture", "frames", "fit", "scene", "pbd", "warmup", "dynamic", "evaluate", "compare", "reenact")
 
@@ -95,7 +93,7 @@ def report(ctx: StageContext) -> None:
         "interaction MLPs I and PointNet++; for the baselines the same Gaussians trained on): "
         + _dynamic_summary(manifests["dynamic"]) + "</p>",
         *(f'<img alt="{name} loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir(name), *curve)}">'
-          for name, curve in _loss_logs(str(ctx.cfg.method.representation)).items()),
+          for name, curve in representation_class(str(ctx.cfg.method.representation)).train_logs.items()),
         _validation_section(ctx.input_dir("warmup"), ctx.input_dir("dynamic")),
         f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
         f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
@@ -379,17 +377,7 @@ def _dynamic_summary(manifest: dict) -> str:
                        f"{m['interaction_steps']} steps on {m['interaction_mlp_evaluations']} Gaussians in all")
 
 
-def _loss_logs(representation: str) -> dict[str, tuple[TableSchema, tuple[str, ...]]]:
-    """stage -> (schema of its train_log.parquet, terms plotted) for the method's representation."""
-    if representation == "embedded":
-        splat = (SPLATTING_TRAIN_LOG, ("loss", "l1", "dssim", "mse"))
-        return {"warmup": splat, "dynamic": splat}
-    return {"warmup": (TRAIN_LOG, ("loss", "l1", "dssim")),
-            "dynamic": (DYNAMIC_TRAIN_LOG, ("loss", "l1", "dssim", "patch"))}
-
-
-def _loss_curve(train_dir: Path, schema: TableSchema = TRAIN_LOG, terms: tuple[str, ...] = ("loss", "l1", "dssim")
-                ) -> str:
+def _loss_curve(train_dir: Path, schema: TableSchema, terms: tuple[str, ...]) -> str:
     """Base64 PNG of the loss ``terms`` of a stage's ``train_log.parquet`` against steps."""
     plt = _pyplot()
     log = read_table(train_dir / "train_log.parquet", schema)

@@ -24,7 +24,8 @@ from data_schemas.scene import SCENE_FRAMES
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
-from stages.common import model_sources, templates
+from stages.dependencies import model_sources
+from stages.posing import templates
 
 DECIDED_ON = "train"
 

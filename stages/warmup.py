@@ -1,4 +1,5 @@
-"""Stage ``warmup``: static Gaussians bound to the FLAME and MANO triangles (the GaussianAvatars baseline)."""
+"""Stage ``warmup``: stage one, static Gaussians on the FLAME and MANO triangles in the method's representation
+(:mod:`stages.representations`; bound to them for GaussianAvatars and InteractAvatar)."""
 
 from __future__ import annotations
 
@@ -6,44 +7,29 @@ from dataclasses import dataclass
 
 import torch
 
-from avatar.gaussians.model import BoundGaussians
-from avatar.splatting import EmbeddedGaussians
 from avatar.render.gaussians import resolve_backend
-from avatar.training.splatting import train_splatting
-from avatar.training.static import StaticConfig, colors_from_views, train_static
+from avatar.training.static import StaticConfig, colors_from_views
 from avatar.training.validation import Validator
 from data_schemas.capture import MASK_LABELS
-from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
-from data_schemas.splatting import SPLATTING_TRAIN_LOG
-from data_schemas.tables import write_records
+from pipeline.schema import section_schema
 from pipeline.stage import StageContext, stage
-from stages.common import (
-    TRAIN_SEQUENCE, applied_deformation, frame_params, load_scene, load_views, model_sources, posed_sequence,
-    record_refinement, refinement_problems, representation, splatting_config, write_bound_gaussians,
-    write_embedded_gaussians, ParamsLrSchema, ValidationSchema, record_validation, validation_config,
-    unused_training_settings, validation_problems,
+from stages.artifacts import TRAIN_SEQUENCE, load_scene, load_views
+from stages.dependencies import model_sources, unused_training_settings
+from stages.posing import applied_deformation, posed_sequence
+from stages.representations import representation, representation_problems
+from stages.training_settings import (
+    ParamsLrSchema, ValidationSchema, frame_params, record_refinement, record_validation, refinement_problems,
+    validation_config, validation_problems,
 )
 
 
 @dataclass
-class WarmupConfig:
-    """Types of ``stage.warmup`` (values in conf/stage/warmup.yaml)."""
+class WarmupSettings:
+    """The warm-up's own settings: those the training loop's :class:`StaticConfig` does not hold."""
 
-    lambda_dssim: float
-    scale_weight: float
-    position_weight: float
-    eps_s: float
-    eps_mu: float
     init_opacity: float
-    opacity_reset_interval: float
-    densify_until: float
-    max_gaussians: int
-    checkpoint_every: int
-    log_every: int
     ply_frame: int
-    backend: str
-    seed: int
     refine_params: str
     params_lr: ParamsLrSchema
     params_centred: bool
@@ -66,6 +52,11 @@ class WarmupConfig:
         return problems + validation_problems(conf) + refinement_problems(conf)
 
 
+
+#: Types of ``stage.warmup`` (values in conf/stage/warmup.yaml): every hyperparameter of the training loop's
+#: :class:`StaticConfig` (its steps come from ``quality.warmup_steps``) and the stage's own settings.
+WarmupConfig = section_schema("WarmupConfig", StaticConfig, exclude=("steps",), own=WarmupSettings)
+
 @stage(
     "warmup",
     inputs=("capture", "frames", "fit", "scene", "pbd"),
@@ -81,11 +72,12 @@ class WarmupConfig:
     config_schema=WarmupConfig,
     cache_exclude=("stage.warmup.checkpoint_every",),  # resuming is bit-for-bit: it cannot change the result
     unused_keys=unused_training_settings,
+    checks=representation_problems,
     sources=model_sources,
 )
 def warmup(ctx: StageContext) -> None:
-    """Stage one on every train camera and train frame: static Gaussians bound to the triangles (GaussianAvatars,
-    InteractAvatar's warm-up) or, for method.representation=embedded, SplattingAvatar's embedded Gaussians.
+    """Stage one on every train camera and train frame: static Gaussians in the method's representation (bound to
+    the triangles for GaussianAvatars and InteractAvatar's warm-up; SplattingAvatar's embedded Gaussians).
     With ``stage.warmup.validation.every`` > 0 it withholds ``validation.frames`` train frames, validates on them
     and may stop early (``curve.parquet``; docs/how-to/quality-during-training.md). With ``stage.warmup.refine_params``
     (``auto``: fitted or provided tracking) each step also refines the rendered frame's FLAME/MANO parameters
@@ -99,35 +91,19 @@ def warmup(ctx: StageContext) -> None:
                            applied_deformation(ctx.cfg, ctx.input_dir("pbd")))
     meshes, params = posed.meshes, frame_params(ctx.cfg, conf, posed)
     canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
-    embedded = representation(ctx.cfg) == "embedded"
-    kind = EmbeddedGaussians if embedded else BoundGaussians
+    rep = representation(ctx.cfg)
     populate = None  # every triangle; without a hand in the scene, only the face's (a face-only avatar)
     if not load_scene(ctx.input_dir("scene")).model_hand:
         populate = meshes.face_part != meshes.part_names.index("hand")
-    model = kind.on_triangles(canonical, meshes.faces, meshes.face_part, int(q.gaussians_per_triangle),
-                              init_opacity=conf.init_opacity, seed=conf.seed, populate=populate)
+    model = rep.populate(canonical, meshes, int(q.gaussians_per_triangle), init_opacity=conf.init_opacity,
+                         seed=conf.seed, populate=populate)
     with torch.no_grad():
         means, _, _ = model.world(canonical, meshes.faces)
     part_label = torch.tensor([MASK_LABELS[name] for name in meshes.part_names])[model.part]
     model.set_colors(colors_from_views(means, part_label, views, frame=0))
-    progress = lambda steps: ctx.progress(steps, desc="warmup", total=len(steps))  # noqa: E731
     validator = Validator(validation_config(conf.validation), views)
-    if embedded:
-        splat_cfg = splatting_config(ctx.cfg, int(q.warmup_steps), conf, densify=True)
-        log = train_splatting(model, views, meshes, splat_cfg, checkpoint_dir=ctx.scratch_dir, progress=progress,
-                              validator=validator)
-        write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
-        write_records(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
-    else:
-        cfg = StaticConfig(steps=int(q.warmup_steps), lambda_dssim=conf.lambda_dssim, scale_weight=conf.scale_weight,
-                           position_weight=conf.position_weight, eps_s=conf.eps_s, eps_mu=conf.eps_mu,
-                           densify_until=conf.densify_until, opacity_reset_interval=conf.opacity_reset_interval,
-                           max_gaussians=conf.max_gaussians, checkpoint_every=conf.checkpoint_every,
-                           log_every=conf.log_every, seed=conf.seed, backend=conf.backend)
-        log = train_static(model, views, meshes, cfg, checkpoint_dir=ctx.scratch_dir, progress=progress,
-                           validator=validator, params=params)
-        write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
-        write_records(ctx.out_dir / "train_log.parquet", TRAIN_LOG, log)
+    final_loss = rep.warm_up(ctx, model, views, meshes, params, validator,
+                             lambda steps: ctx.progress(steps, desc="warmup", total=len(steps)))
     frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
     with torch.no_grad():
         vertices = params.vertices(frame) if params is not None else meshes.vertices[frame]
@@ -137,7 +113,7 @@ def warmup(ctx: StageContext) -> None:
     write_gaussians_ply(ctx.out_dir / "gaussians.ply", cloud)
     record_refinement(ctx, posed.params, posed.params, params)
     ctx.metrics["gaussians"] = model.num_gaussians
-    ctx.metrics["final_loss"] = log[-1].loss
+    ctx.metrics["final_loss"] = final_loss
     record_validation(ctx, validator)
     ctx.metrics["steps"] = validator.end  # steps run
     # backend=auto resolves per machine (compiled where it built, else torch; equal to float32 rounding):

@@ -74,9 +74,9 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float = 60.0) -> None:
 
 
 def record_crop_reads(monkeypatch: pytest.MonkeyPatch, capture_dir: Path) -> tuple[list[Path], list[str]]:
-    """(every image path the stages read through ``stages.common.read_png`` from now on, the capture's held-out
+    """(every image path the stages read through ``stages.artifacts.read_png`` from now on, the capture's held-out
     camera ids): a test that the held-out camera is never read checks that no path names one of them."""
-    import stages.common
+    import stages.artifacts
     from data_schemas.cameras import read_cameras
     from data_schemas.images import read_png
 
@@ -88,5 +88,5 @@ def record_crop_reads(monkeypatch: pytest.MonkeyPatch, capture_dir: Path) -> tup
         read.append(Path(path))
         return read_png(path, channels)
 
-    monkeypatch.setattr(stages.common, "read_png", recording_read_png)
+    monkeypatch.setattr(stages.artifacts, "read_png", recording_read_png)
     return read, held_out

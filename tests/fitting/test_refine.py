@@ -26,7 +26,7 @@ def _views(capture: SyntheticCapture, cameras: list[str]) -> ViewSet:
     cams = {c.camera_id: c for c in capture.cameras}
     images = np.stack([capture.frames[c][FRAMES] for c in cameras], 1)
     labels = np.stack([capture.masks[c][FRAMES] for c in cameras], 1)
-    background = torch.tensor(images[labels == 0].mean(0) / 255.0, dtype=torch.float32)  # as stages.common's
+    background = torch.tensor(images[labels == 0].mean(0) / 255.0, dtype=torch.float32)  # as load_views
     return ViewSet(images=torch.from_numpy(images), labels=torch.from_numpy(labels),
                    K=torch.tensor(np.stack([cams[c].K for c in cameras]), dtype=torch.float32),
                    world_to_cam=torch.tensor(np.stack([cams[c].world_to_cam for c in cameras]), dtype=torch.float32),

@@ -16,7 +16,7 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import read_table
 from pipeline.cli import run_app
 from pipeline.runner import StageFailed
-import stages.common
+import stages.artifacts
 from stages.fit import refine_mode
 from tests.conftest import compose_cfg, record_crop_reads
 
@@ -87,7 +87,7 @@ def test_empty_masks_are_one_clear_error(tmp_path, monkeypatch):
         image = read_png(path, channels)
         return np.zeros_like(image) if Path(path).parent.name == "mask" else image
 
-    monkeypatch.setattr(stages.common, "read_png", empty_masks)
+    monkeypatch.setattr(stages.artifacts, "read_png", empty_masks)
     with pytest.raises(StageFailed) as info:
         run_app(_refine_cfg(tmp_path, "run.only=fit"))
     message = str(info.value)

@@ -14,7 +14,7 @@ import pytest
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.tables import read_table
 from pipeline.cli import run_app
-from stages.common import posed_sequence, templates
+from stages.posing import posed_sequence, templates
 from tests.conftest import compose_cfg
 
 SMALL = ["quality=smoke", "quality.capture_size=48", "stage.capture.num_cameras=3", "fit.source=ground_truth",

@@ -15,7 +15,8 @@ from data_schemas.gaussians_ply import read_gaussians_ply
 from pipeline.cli import run_app
 from stages.export_ply import export_frame
 from stages.report import _trained_tracking_section
-from stages.common import load_params, read_params, refines_params
+from stages.artifacts import load_params, read_params
+from stages.training_settings import refines_params
 from tests.conftest import compose_cfg, record_crop_reads
 
 

@@ -22,7 +22,7 @@ from avatar.training.frame_params import (
     REFINED_COLUMNS, FrameAdam, FrameParams, ParamLearningRates, parameter_movement,
 )
 from avatar.training.static import StaticConfig, train_static
-from stages.common import read_params, write_params
+from stages.artifacts import read_params, write_params
 
 HEAD, HAND = procedural_head(), procedural_hand()
 

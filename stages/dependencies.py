@@ -1,0 +1,48 @@
+"""What a stage's output depends on beyond its inputs: the user files it reads (source listers) and the settings its
+configuration never reads (``unused_keys``: left out of its cache key)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from avatar.pbd.problem import unused_settings as unused_pbd_settings
+from pipeline.sources import SourceFiles
+from stages.representations import BUILT_IN, representation_class
+
+
+def model_files(cfg: DictConfig) -> list[Path]:
+    """The official FLAME/MANO files the config names (``model.*_path``), for source hashing."""
+    return [Path(p).resolve() for p in (cfg.model.flame_path, cfg.model.mano_path) if p and Path(p).is_file()]
+
+
+def contact_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG001 - the SourceLister signature
+    """Source lister of stages that simulate contact: the official model files and the face stiffness file."""
+    stiffness = cfg.model.get("face_stiffness_path")
+    extra = [Path(stiffness).resolve()] if stiffness and Path(stiffness).is_file() else []
+    return SourceFiles(Path("/"), tuple(model_files(cfg) + extra))
+
+
+def model_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG001 - the SourceLister signature
+    """Source lister of stages that pose the official models: a replaced model file reruns them."""
+    return SourceFiles(Path("/"), tuple(model_files(cfg)))
+
+
+def unused_solver_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """The ``stage.pbd.solver`` settings the chosen solver never reads (``unused_keys`` of the pbd stage)."""
+    return tuple(f"stage.pbd.solver.{name}" for name in unused_pbd_settings(str(cfg.stage.pbd.solver.method)))
+
+
+def unused_driving_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """What of ``stage.pbd.solver`` a stage that drives the avatar (:func:`drive`) never reads: all of it for a
+    method without PBD, else the settings of the solvers not chosen."""
+    return unused_solver_settings(cfg) if bool(cfg.method.pbd) else ("stage.pbd.solver",)
+
+
+def unused_training_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """What the training stages never read for this method: the other representations' own settings (e.g.
+    SplattingAvatar's recipe, ``splatting``, unless the method's representation is ``embedded``)."""
+    chosen = representation_class(str(cfg.method.representation))
+    others = (representation_class(name) for name in BUILT_IN)
+    return tuple(dict.fromkeys(key for cls in others for key in cls.own_settings if key not in chosen.own_settings))

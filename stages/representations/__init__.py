@@ -1,0 +1,180 @@
+"""Gaussian representations as plug-ins: what the training stages train, and what evaluation, reenactment and the
+PLY export pose and render, behind one interface (:class:`Representation`).
+
+A method's YAML names its representation in ``method.representation``: a built-in name (:data:`BUILT_IN`:
+``bound``, GaussianAvatars' Gaussians bound to the triangles, which InteractAvatar extends; ``embedded``,
+SplattingAvatar's) or ``package.module:Class`` for a :class:`Representation` subclass defined anywhere on the
+Python path. The stages only call the interface; nothing else branches on the representation
+(docs/development/adding-a-method.md).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from pathlib import Path
+from typing import ClassVar, Protocol
+
+import torch
+from omegaconf import DictConfig
+
+from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.posing import MeshSequence
+from avatar.training.data import ViewSet
+from avatar.training.frame_params import FrameParams
+from avatar.training.validation import Validator
+from data_schemas.tables import TableSchema
+from data_schemas.writes import write_json
+from pipeline.stage import StageContext
+from stages.artifacts import WorldGaussians, write_frame_ply
+from stages.posing import PosedSequence
+
+#: The representations that ship with the project: name -> ``module:Class``.
+BUILT_IN = {
+    "bound": "stages.representations.bound:BoundRepresentation",
+    "embedded": "stages.representations.embedded:EmbeddedRepresentation",
+}
+
+#: A training stage's progress bar over its steps.
+Progress = Callable[[range], object]
+
+
+class CanonicalGaussians(Protocol):
+    """The warm-up's Gaussians on the canonical mesh (``avatar.gaussians.model.BoundGaussians``,
+    ``avatar.splatting.EmbeddedGaussians``): N Gaussians, each on one triangle of one mesh part."""
+
+    part: torch.Tensor  # (N,) mesh part index
+    opacity_logits: torch.Tensor  # (N,)
+
+    @property
+    def num_gaussians(self) -> int: ...
+
+    def world(self, vertices: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """World-space means (N, 3), scales (N, 3) and quaternions (N, 4) on the mesh ``vertices`` (V, 3)."""
+        ...
+
+    def set_colors(self, colors: torch.Tensor) -> None:
+        """Set the RGB colours (N, 3) in [0, 1]."""
+        ...
+
+    def colors(self) -> torch.Tensor:
+        """(N, 3) RGB in [0, 1]."""
+        ...
+
+
+class TrainedAvatar(Protocol):
+    """A method's final model, loaded from its dynamic stage's folder."""
+
+    @property
+    def num_gaussians(self) -> int: ...
+
+    def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:
+        """The world-space Gaussians of frame ``frame`` of a sequence whose conditioning is ``cond`` and whose
+        posed meshes of that frame have ``vertices`` (V, 3), as evaluated (no sampling noise)."""
+        ...
+
+
+class Representation(ABC):
+    """A Gaussian representation: how the Gaussians are initialised on the mesh, trained in the two stages,
+    saved, loaded and posed. One instance per run, built from the run's config (``cfg``)."""
+
+    #: Config sections only this representation reads (its own recipe): kept in the training stages' cache keys
+    #: only when it is the method's (:func:`stages.dependencies.unused_training_settings`).
+    own_settings: ClassVar[tuple[str, ...]] = ()
+    #: Whether the training stages may refine the train motion's parameters with it (``refine_params``).
+    refines_tracking: ClassVar[bool] = True
+    #: stage (``warmup``, ``dynamic``) -> (schema of its ``train_log.parquet``, the loss terms the report plots).
+    train_logs: ClassVar[dict[str, tuple[TableSchema, tuple[str, ...]]]]
+
+    def __init__(self, cfg: DictConfig) -> None:
+        self.cfg = cfg
+        self.key = str(cfg.method.representation)  # as the method names it; model.json records it
+
+    def problems(self) -> list[str]:
+        """Settings of the run this representation cannot train with, one line each naming the key and the fix
+        (checked with the rest of the config before any stage runs); empty when it can run."""
+        return []
+
+    @abstractmethod
+    def populate(self, canonical: torch.Tensor, meshes: MeshSequence, per_triangle: int, *, init_opacity: float,
+                 seed: int, populate: torch.Tensor | None) -> CanonicalGaussians:
+        """The warm-up's initial Gaussians: ``per_triangle`` on each triangle of the canonical mesh (``canonical``
+        (V, 3) with ``meshes.faces``), only on the triangles ``populate`` (F,) bool marks (None: all)."""
+
+    @abstractmethod
+    def warm_up(self, ctx: StageContext, model: CanonicalGaussians, views: ViewSet, meshes: MeshSequence,
+                params: FrameParams | None, validator: Validator, progress: Progress) -> float:
+        """Stage one: train ``model`` in place on ``views`` of the posed ``meshes`` for ``quality.warmup_steps``
+        (refining ``params``, the train motion's parameters, where not None); write ``gaussians.parquet`` and
+        ``train_log.parquet`` to ``ctx.out_dir``. Returns the final loss."""
+
+    @abstractmethod
+    def train(self, ctx: StageContext, views: ViewSet, posed: PosedSequence) -> None:
+        """Stage two on ``views`` of the train motion ``posed`` (posed with the warm-up's parameters), starting from
+        the warm-up's ``gaussians.parquet`` (``ctx.input_dir("warmup")``): write the dynamic stage's outputs
+        (``gaussians.parquet``, ``networks.pt``, ``model.json`` through :func:`write_model_info`,
+        ``train_log.parquet``, ``params.parquet``, ``ply/``) and its metrics."""
+
+    @classmethod
+    @abstractmethod
+    def load(cls, dynamic_dir: Path, info: dict) -> TrainedAvatar:
+        """The trained avatar of a dynamic stage's folder (``info``: its ``model.json``)."""
+
+
+def representation_class(name: str) -> type[Representation]:
+    """The class ``method.representation`` names: a key of :data:`BUILT_IN` or ``package.module:Class``.
+    ``ValueError`` naming the key and the choices otherwise."""
+    target = BUILT_IN.get(name, name)
+    choices = f"use one of {', '.join(BUILT_IN)}, or package.module:Class for a Representation of your own"
+    module, sep, attribute = target.partition(":")
+    if not sep or not module or not attribute:
+        raise ValueError(f"method.representation={name}: unknown representation; {choices}")
+    try:
+        cls = getattr(importlib.import_module(module), attribute)
+    except (ImportError, AttributeError) as exc:
+        raise ValueError(f"method.representation={name}: cannot import {target} ({exc}); {choices}") from exc
+    if not (isinstance(cls, type) and issubclass(cls, Representation)):
+        raise ValueError(f"method.representation={name}: {target} is not a subclass of "
+                         f"stages.representations.Representation")
+    return cls
+
+
+def representation(cfg: DictConfig) -> Representation:
+    """The method's representation (``method.representation``) for the run's config ``cfg``."""
+    return representation_class(str(cfg.method.representation))(cfg)
+
+
+def representation_problems(cfg: DictConfig) -> list[str]:
+    """The method's representation's problems with ``cfg`` (an unknown name is one), one line each."""
+    try:
+        return representation(cfg).problems()
+    except ValueError as exc:
+        return [str(exc)]
+
+
+MODEL_INFO = "model.json"
+
+
+def write_model_info(out_dir: Path, rep: Representation, info: dict, what: str) -> None:
+    """The dynamic stage's ``model.json``: ``info`` (what :meth:`Representation.load` needs) and the
+    representation's key, which :func:`load_trained` finds the class by."""
+    write_json(out_dir / MODEL_INFO, {"representation": rep.key, **info}, what)
+
+
+def load_trained(dynamic_dir: Path) -> TrainedAvatar:
+    """The method's final model from its dynamic stage's folder, by the representation its ``model.json`` names
+    (``bound`` where it names none: artifacts written before the key existed)."""
+    info = json.loads((dynamic_dir / MODEL_INFO).read_text())
+    return representation_class(str(info.get("representation", "bound"))).load(dynamic_dir, info)
+
+
+def write_train_plys(ctx: StageContext, avatar: TrainedAvatar, cond: SequenceConditioning, meshes: MeshSequence,
+                     num_frames: int) -> None:
+    """World-space 3DGS PLYs of the train frames ``stage.dynamic.ply_frames`` asks for (``ply/train_<frame>.ply``)."""
+    (ctx.out_dir / "ply").mkdir()
+    with torch.no_grad():
+        for frame in sorted({min(max(int(f), 0), num_frames - 1) for f in ctx.cfg.stage.dynamic.ply_frames}):
+            write_frame_ply(ctx.out_dir / "ply" / f"train_{frame}.ply",
+                            avatar.pose(cond, meshes.vertices[frame], frame))

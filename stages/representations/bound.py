@@ -1,0 +1,227 @@
+"""The ``bound`` representation: Gaussians bound to the FLAME and MANO triangles (GaussianAvatars), with, in stage
+two, the hand MLPs H, the interaction MLPs I and PointNet++ of InteractAvatar (what of them the method keeps)."""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from avatar.dynamic import DynamicAvatar, DynamicModelConfig
+from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.gaussians.model import BoundGaussians
+from avatar.posing import MeshSequence
+from avatar.render.gaussians import resolve_backend
+from avatar.scene import SceneDecision
+from avatar.training.data import ViewSet
+from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
+from avatar.training.frame_params import FrameParams
+from avatar.training.selection import SelectionConfig
+from avatar.training.static import StaticConfig, train_static
+from avatar.training.validation import Validator
+from data_schemas.gaussians import BOUND_GAUSSIANS, DYNAMIC_TRAIN_LOG, TRAIN_LOG
+from data_schemas.tables import SchemaError, TableSchema, read_table, write_records, write_table
+from data_schemas.writes import write_bytes
+from pipeline.schema import core_config
+from pipeline.stage import StageContext
+from stages.artifacts import TRAIN_SEQUENCE, WorldGaussians, contact_flags, load_params, load_scene
+from stages.posing import PosedSequence, applied_deformation, load_sequence, templates
+from stages.representations import (
+    CanonicalGaussians,
+    Progress,
+    Representation,
+    write_model_info,
+    write_train_plys,
+)
+from stages.training_settings import frame_params, record_refinement, record_validation, validation_config
+
+
+def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussians:
+    """The trained model from ``gaussians.parquet`` (parts mapped to indices of ``part_names``)."""
+    path = warmup_dir / "gaussians.parquet"
+    t = read_table(path, BOUND_GAUSSIANS)
+    unknown = sorted(set(t["part"]) - set(part_names))
+    if unknown:
+        raise SchemaError(f"{path}: Gaussians bound to unknown mesh part(s) {unknown}; expected {part_names}")
+    as_tensor = lambda name: torch.tensor(np.asarray(t[name]), dtype=torch.float32)  # noqa: E731
+    return BoundGaussians(
+        local_means=as_tensor("local_means"), log_scales=as_tensor("log_scales"), quats=as_tensor("quats"),
+        opacity_logits=as_tensor("opacity_logits"), sh_dc=as_tensor("sh_dc"),
+        binding=torch.tensor(np.array(t["binding"])),
+        part=torch.tensor([part_names.index(p) for p in t["part"]]),
+    )
+
+
+def write_bound_gaussians(path: Path, model: BoundGaussians, part_names: tuple[str, ...]) -> None:
+    """``gaussians.parquet`` of ``model`` (the inverse of :func:`load_gaussians`)."""
+    with torch.no_grad():
+        write_table(path, BOUND_GAUSSIANS, {
+            "binding": model.binding.numpy(),
+            "part": [part_names[i] for i in model.part.tolist()],
+            "local_means": model.local_means.numpy(),
+            "log_scales": model.log_scales.numpy(),
+            "quats": model.quats.numpy(),
+            "opacity_logits": model.opacity_logits.numpy(),
+            "sh_dc": model.sh_dc.numpy(),
+        })
+
+
+def load_dynamic(dynamic_dir: Path) -> DynamicAvatar:
+    """The dynamic stage's trained model (``model.json``, ``gaussians.parquet``, ``networks.pt``)."""
+    info = json.loads((dynamic_dir / "model.json").read_text())
+    part_names = tuple(info["part_names"])
+    gaussians = load_gaussians(dynamic_dir, part_names)
+    arch = info["architecture"]
+    cfg = DynamicModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in arch.items()})
+    state = torch.load(dynamic_dir / "networks.pt", weights_only=True)
+    model = DynamicAvatar(gaussians, state["mu_cano"], state["faces"], part_names, int(info["num_face_vertices"]),
+                          info["frame_dims"], cfg)
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.startswith("gaussians.")]
+    if missing or unexpected:
+        raise SchemaError(f"{dynamic_dir / 'networks.pt'}: does not match model.json (missing {missing[:3]}, "
+                          f"unexpected {unexpected[:3]}); rerun the dynamic stage")
+    return model
+
+
+def selection_config(conf: object) -> SelectionConfig:
+    """The core's :class:`SelectionConfig` of a ``stage.dynamic`` section."""
+    return SelectionConfig(bool(conf.select.enabled), float(conf.select.margin_db))  # type: ignore[attr-defined]
+
+
+def check_withheld_by_warmup(cfg: DictConfig) -> None:
+    """The selection judges step 0, the warm-up's model, on stage two's validation frames: the warm-up must not
+    have trained on them. ``ValueError`` naming the keys unless it withheld the same frames."""
+    warm, dyn = cfg.stage.warmup.validation, cfg.stage.dynamic.validation
+    if int(warm.every) <= 0 or int(warm.frames) != int(dyn.frames):
+        raise ValueError(
+            f"stage.dynamic.select.enabled=true: the warm-up trained on the frames stage two validates on "
+            f"(stage.warmup.validation.every={warm.every}, frames={warm.frames}; stage.dynamic.validation.frames="
+            f"{dyn.frames}), so step 0 would be judged on frames it saw; set stage.warmup.validation.every > 0 and "
+            f"stage.warmup.validation.frames={dyn.frames} (quality=draft and standard do), or "
+            f"stage.dynamic.select.enabled=false")
+
+
+def model_config(cfg: DictConfig, scene: SceneDecision) -> DynamicModelConfig:
+    """The architecture from ``quality.*`` and ``stage.dynamic.*``; the hand and interaction MLPs only where
+    the scene analysis models the hand and the contact."""
+    q, conf = cfg.quality, cfg.stage.dynamic
+    return DynamicModelConfig(
+        hand_mlp=bool(conf.hand_mlp) and scene.model_hand,
+        interaction=bool(conf.interaction) and scene.model_interaction, hand_width=int(q.dynamic_width),
+        hand_depth=int(q.dynamic_hand_depth), interaction_width=int(q.dynamic_width),
+        interaction_depth=int(q.dynamic_interaction_depth), position_frequencies=int(conf.position_frequencies),
+        offset_frequencies=int(conf.offset_frequencies), point_feature_dim=int(conf.point_feature_dim),
+        geometry_feature_dim=int(q.geometry_feature_dim), pointnet_centres=tuple(int(c) for c in q.pointnet_centres),
+        pointnet_width=float(q.pointnet_width), d_max=float(conf.d_max),
+        deform_threshold_m=float(conf.deform_threshold_m), colour_delta=str(conf.colour_delta))
+
+
+def static_config(cfg: DictConfig) -> StaticConfig:
+    """The warm-up's :class:`StaticConfig` of ``stage.warmup`` and ``quality.warmup_steps``."""
+    return core_config(StaticConfig, cfg.stage.warmup, steps=int(cfg.quality.warmup_steps))
+
+
+def dynamic_train_config(cfg: DictConfig) -> DynamicTrainConfig:
+    """Stage two's :class:`DynamicTrainConfig` of ``stage.dynamic`` and ``quality.dynamic_steps``."""
+    return core_config(DynamicTrainConfig, cfg.stage.dynamic, steps=int(cfg.quality.dynamic_steps),
+                       selection=selection_config(cfg.stage.dynamic))
+
+
+@dataclass
+class BoundAvatar:
+    """A trained bound model (:class:`DynamicAvatar`: the Gaussians and what of H, I and PointNet++ it keeps)."""
+
+    model: DynamicAvatar
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.model.gaussians.num_gaussians
+
+    def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:
+        return self.model(cond.frame(frame), vertices)
+
+
+class BoundRepresentation(Representation):
+    """GaussianAvatars' binding (``method.representation=bound``): stage one trains static Gaussians bound to the
+    triangles (:func:`avatar.training.static.train_static`); stage two adds InteractAvatar's MLPs and PointNet++
+    (:func:`avatar.training.dynamic.train_dynamic`), as far as ``stage.dynamic`` and the scene analysis keep them."""
+
+    train_logs: ClassVar[dict[str, tuple[TableSchema, tuple[str, ...]]]] = {
+        "warmup": (TRAIN_LOG, ("loss", "l1", "dssim")),
+        "dynamic": (DYNAMIC_TRAIN_LOG, ("loss", "l1", "dssim", "patch")),
+    }
+
+    def populate(self, canonical: torch.Tensor, meshes: MeshSequence, per_triangle: int, *, init_opacity: float,
+                 seed: int, populate: torch.Tensor | None) -> BoundGaussians:
+        return BoundGaussians.on_triangles(canonical, meshes.faces, meshes.face_part, per_triangle,
+                                           init_opacity=init_opacity, seed=seed, populate=populate)
+
+    def warm_up(self, ctx: StageContext, model: CanonicalGaussians, views: ViewSet, meshes: MeshSequence,
+                params: FrameParams | None, validator: Validator, progress: Progress) -> float:
+        assert isinstance(model, BoundGaussians)
+        log = train_static(model, views, meshes, static_config(self.cfg), checkpoint_dir=ctx.scratch_dir,
+                           progress=progress, validator=validator, params=params)
+        write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
+        write_records(ctx.out_dir / "train_log.parquet", TRAIN_LOG, log)
+        return log[-1].loss
+
+    def train(self, ctx: StageContext, views: ViewSet, posed: PosedSequence) -> None:
+        conf = self.cfg.stage.dynamic
+        meshes, cond, params = posed.meshes, posed.conditioning(self.cfg), frame_params(self.cfg, conf, posed)
+        if conf.select.enabled:
+            check_withheld_by_warmup(self.cfg)
+        head, _ = templates(self.cfg.model)
+        gaussians = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
+        arch = model_config(self.cfg, load_scene(ctx.input_dir("scene")))
+        frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
+        model = DynamicAvatar.from_warmup(gaussians, meshes.vertices[0], meshes.faces, meshes.part_names,
+                                          head.num_vertices, frame_dims, arch, seed=conf.seed)
+        contact = contact_flags(ctx.input_dir("pbd"), TRAIN_SEQUENCE, views.num_frames)
+        validator = Validator(validation_config(conf.validation), views)
+        result = train_dynamic(model, views, meshes, cond, contact, dynamic_train_config(self.cfg),
+                               checkpoint_dir=ctx.scratch_dir,
+                               progress=lambda steps: ctx.progress(steps, desc="dynamic", total=len(steps)),
+                               validator=validator, params=params)
+        fit_dir = ctx.input_dir("fit")
+        record_refinement(ctx, load_params(fit_dir, TRAIN_SEQUENCE), posed.params, params)
+        if params is not None:  # the PLYs pose the train motion as refined
+            meshes, cond = load_sequence(fit_dir, TRAIN_SEQUENCE, self.cfg,
+                                         pbd_dir=applied_deformation(self.cfg, ctx.input_dir("pbd")),
+                                         params=params.arrays())
+        write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model.gaussians, meshes.part_names)
+        buffer = io.BytesIO()
+        torch.save(model.network_state(), buffer)
+        write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "the dynamic model's networks")
+        selection = result.selection.metrics() if result.selection is not None else {}
+        write_model_info(ctx.out_dir, self, {
+            "architecture": asdict(model.cfg), "part_names": list(meshes.part_names),
+            "num_face_vertices": head.num_vertices, "frame_dims": frame_dims,
+            "num_gaussians": model.gaussians.num_gaussians, "selection": selection}, "the dynamic model")
+        write_train_plys(ctx, BoundAvatar(model), cond, meshes, views.num_frames)
+        log = result.log
+        write_records(ctx.out_dir / "train_log.parquet", DYNAMIC_TRAIN_LOG, log)
+        record_validation(ctx, validator)
+        steps = max(validator.end, 1)
+        ctx.metrics.update({
+            "steps": validator.end, "gaussians": model.gaussians.num_gaussians,
+            "final_loss": log[-1].loss if log else float("nan"),
+            "ms_per_step": 1000 * sum(result.seconds.values()) / steps,
+            **{f"{k}_ms_per_step": 1000 * v / steps for k, v in result.seconds.items()},
+            "interaction_mlp_evaluations": result.interaction_evaluations,
+            "interaction_steps": result.interaction_steps,
+            "contact_frames": int(contact.sum()),
+            "contact_draw_probability": result.contact_probability,
+            "rasterizer": resolve_backend(conf.backend, model.mu_cano),
+            **selection,
+        })
+
+    @classmethod
+    def load(cls, dynamic_dir: Path, info: dict) -> BoundAvatar:
+        return BoundAvatar(load_dynamic(dynamic_dir))

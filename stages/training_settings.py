@@ -1,0 +1,129 @@
+"""Settings the two training stages share: the refinement of the train motion's parameters (``refine_params``,
+``params_lr``) and the validation during training (``validation``), with their schemas, range checks and records."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from avatar.training.frame_params import FrameParams, ParamLearningRates, parameter_movement
+from avatar.training.validation import FlatStop, ValidationConfig, Validator
+from data_schemas.curve import CURVE
+from data_schemas.tables import write_table
+from pipeline.stage import StageContext
+from stages.artifacts import write_params
+from stages.posing import PosedSequence, templates
+from stages.representations import representation_class
+
+REFINE_PARAMS = ("auto", "true", "false")
+
+
+def refines_params(cfg: DictConfig, section: DictConfig) -> bool:
+    """Whether a training stage (``section``: ``stage.warmup`` or ``stage.dynamic``) refines the train motion's
+    parameters (``refine_params``). ``auto``: for parameters a real detector's keypoints were fitted to
+    (``fit.source=fitted`` with ``stage.keypoints.detector`` other than ``ground_truth``) or that a dataset provides
+    (``fit.source=provided``); not with the ground truth, which has nothing to correct, nor with the synthetic
+    ground-truth keypoints, whose fit is finer than what the refinement reaches (measured: their train frames' 3D
+    errors grew, hand 1.4 -> 2.0 mm, docs/explanation/tracking-refinement.md); never for a representation that
+    cannot (:attr:`Representation.refines_tracking`: SplattingAvatar's; ``true`` is an error there)."""
+    value = str(section.refine_params).lower()
+    if value not in REFINE_PARAMS:
+        raise ValueError(f"refine_params={section.refine_params}: use one of {', '.join(REFINE_PARAMS)}")
+    can_refine = representation_class(str(cfg.method.representation)).refines_tracking
+    if value == "auto":
+        source = str(cfg.fit.source)
+        detected = source == "fitted" and str(cfg.stage.keypoints.detector) != "ground_truth"
+        return (detected or source == "provided") and can_refine
+    if value == "true" and not can_refine:
+        raise ValueError(f"refine_params=true: method.representation={cfg.method.representation} does not refine "
+                         f"the tracking; set refine_params=auto or false")
+    return value == "true"
+
+
+def param_learning_rates(section: DictConfig) -> ParamLearningRates:
+    """The :class:`ParamLearningRates` of a training stage's ``params_lr`` block."""
+    return ParamLearningRates(**{f.name: float(getattr(section.params_lr, f.name)) for f in fields(ParamLearningRates)})
+
+
+def refinement_problems(section: DictConfig) -> list[str]:
+    """Range problems of a training stage's ``refine_params`` and ``params_lr``, keyed relative to the stage."""
+    problems = [] if str(section.refine_params).lower() in REFINE_PARAMS else \
+        [f"refine_params={section.refine_params}: use one of {', '.join(REFINE_PARAMS)}"]
+    return problems + [f"params_lr.{p}" for p in param_learning_rates(section).problems()]
+
+
+@dataclass
+class ParamsLrSchema:
+    """Types of ``stage.<warmup|dynamic>.params_lr`` (:class:`ParamLearningRates`)."""
+
+    rotation: float
+    pose: float
+    translation: float
+    expression: float
+
+
+def record_refinement(ctx: StageContext, fitted: dict[str, np.ndarray], trained_on: dict[str, np.ndarray],
+                      params: FrameParams | None) -> None:
+    """Write the stage's ``params.parquet``: the train motion as this stage left it (``params`` refined here, or
+    ``trained_on`` unchanged when None), and the manifest's summary of how far it lies from the fit's ``fitted``
+    (``params_refined``: whether this stage refined; ``params_moved_<part>_mm_mean``/``_max``: mean vertex
+    displacement per frame; ``params_rotated_<part>_deg_max``)."""
+    after = params.arrays() if params is not None else trained_on
+    write_params(ctx.out_dir / "params.parquet", after)
+    ctx.metrics["params_refined"] = params is not None
+    head, hand = templates(ctx.cfg.model)
+    moved = parameter_movement(fitted, after, head, hand)
+    for part in ("face", "hand"):
+        ctx.metrics[f"params_moved_{part}_mm_mean"] = float(np.mean(moved["moved_mm"][part]))
+        ctx.metrics[f"params_moved_{part}_mm_max"] = float(np.max(moved["moved_mm"][part]))
+        ctx.metrics[f"params_rotated_{part}_deg_max"] = float(np.max(moved["rotated_deg"][part]))
+
+
+def frame_params(cfg: DictConfig, section: DictConfig, posed: PosedSequence) -> FrameParams | None:
+    """The train motion's parameters to refine while training (:class:`FrameParams`), or None when
+    :func:`refines_params` says no."""
+    if not refines_params(cfg, section):
+        return None
+    head, hand = templates(cfg.model)
+    return FrameParams(posed.params, head, hand, torch.from_numpy(posed.offsets), param_learning_rates(section),
+                       centred=bool(section.params_centred))
+
+
+@dataclass
+class FlatStopSchema:
+    """Types of ``stage.<warmup|dynamic>.validation.stop_when_flat``."""
+
+    enabled: bool
+    min_gain_db: float
+    window: int
+
+
+@dataclass
+class ValidationSchema:
+    """Types of ``stage.<warmup|dynamic>.validation`` (docs/how-to/quality-during-training.md)."""
+
+    every: int
+    frames: int
+    lpips: bool
+    stop_when_flat: FlatStopSchema
+
+
+def validation_config(conf: DictConfig) -> ValidationConfig:
+    """The training loops' :class:`ValidationConfig` of a ``stage.<warmup|dynamic>.validation`` block."""
+    stop = conf.stop_when_flat
+    return ValidationConfig(int(conf.every), int(conf.frames), bool(conf.lpips),
+                            FlatStop(bool(stop.enabled), float(stop.min_gain_db), int(stop.window)))
+
+
+def validation_problems(conf: DictConfig) -> list[str]:
+    """Range problems of a stage section's ``validation`` block, keyed relative to the section."""
+    return [f"validation.{problem}" for problem in validation_config(conf.validation).problems()]
+
+
+def record_validation(ctx: StageContext, validator: Validator) -> None:
+    """Write ``curve.parquet`` (no rows without validation) and the validation metrics of the manifest."""
+    write_table(ctx.out_dir / "curve.parquet", CURVE, validator.table())
+    ctx.metrics.update(validator.metrics())
