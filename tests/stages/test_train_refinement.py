@@ -90,7 +90,7 @@ def test_auto_refines_detected_or_provided_tracking_of_bound_gaussians(cfg, sett
 
 def test_refining_splatting_avatar_or_an_unknown_setting_is_one_clear_error():
     cfg = _rule_cfg("fitted", representation="embedded")
-    with pytest.raises(ValueError, match="SplattingAvatar"):
+    with pytest.raises(ValueError, match="method.representation=embedded does not refine the tracking"):
         refines_params(cfg, OmegaConf.create({"refine_params": "true"}))
     with pytest.raises(ValueError, match="use one of auto, true, false"):
         refines_params(cfg, OmegaConf.create({"refine_params": "maybe"}))
