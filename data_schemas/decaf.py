@@ -86,7 +86,8 @@ def _numpy_allow_list() -> dict[tuple[str, str], Any]:
     for package in ("numpy.core", "numpy._core"):
         allowed[(f"{package}.multiarray", "_reconstruct")] = multiarray._reconstruct
         allowed[(f"{package}.multiarray", "scalar")] = multiarray.scalar
-        allowed[(f"{package}.numeric", "_frombuffer")] = numeric._frombuffer
+        # ignore: numpy's stubs omit the private _frombuffer, which pickled arrays name
+        allowed[(f"{package}.numeric", "_frombuffer")] = numeric._frombuffer  # type: ignore[attr-defined]
     return allowed
 
 
@@ -296,7 +297,7 @@ def read_keypoints(seq: DecafSequence, part: str, camera_id: str, frames: np.nda
     path = seq.keypoints_file(part, camera_id)
     uv = np.asarray(_keypoint_array(path, part, seq.num_frames)[frames, :, :2], dtype=np.float64)
     width, height = seq.sizes[camera_id]
-    finite = np.isfinite(uv).all(axis=-1)
+    finite = np.asarray(np.isfinite(uv).all(axis=-1))
     inside = finite & (uv[..., 0] >= 0) & (uv[..., 0] < width) & (uv[..., 1] >= 0) & (uv[..., 1] < height)
     detected = np.abs(np.where(np.isfinite(uv), uv, 0.0)).reshape(len(uv), -1).max(axis=1) > 0
     conf = (inside & detected[:, None]).astype(np.float64)

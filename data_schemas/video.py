@@ -40,7 +40,10 @@ def write_video_stream(path: str | Path, frames: Iterable[np.ndarray], fps: floa
             frame = checked_frame(path, frame, count, size)
             if writer is None:
                 size = frame.shape[:2]
-                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*FOURCC), float(fps), (size[1], size[0]))
+                # ignore: OpenCV's stubs lack the module-level VideoWriter_fourcc (VideoWriter.fourcc is the same
+                # function, but tests replace cv2.VideoWriter)
+                fourcc = cv2.VideoWriter_fourcc(*FOURCC)  # type: ignore[attr-defined]
+                writer = cv2.VideoWriter(str(path), fourcc, float(fps), (size[1], size[0]))
                 if not writer.isOpened():
                     raise SchemaError(f"{path}: OpenCV cannot open a {FOURCC} writer (is the directory writable?)")
             writer.write(np.ascontiguousarray(frame[..., ::-1]))

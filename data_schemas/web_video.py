@@ -18,13 +18,14 @@ import uuid
 from collections.abc import Iterable
 from fractions import Fraction
 from pathlib import Path
+from typing import Final
 
 import numpy as np
 
 from data_schemas.tables import SchemaError
 from data_schemas.video import checked_frame
 
-CODEC = "libx264"
+CODEC: Final = "libx264"  # Final keeps the literal type, by which PyAV's stubs know add_stream makes a video stream
 CRF = 18  # visually lossless for renders; the player needs nothing special
 
 
@@ -53,6 +54,7 @@ def write_web_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) 
                     stream.pix_fmt = "yuv420p"
                     stream.options = {"crf": str(CRF), "profile": "high", "preset": "medium",
                                       "x264-params": "mbtree=0"}
+                assert size is not None  # set with the stream, from the first frame
                 padded = np.pad(frame, ((0, size[0] % 2), (0, size[1] % 2), (0, 0)), mode="edge")
                 container.mux(stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(padded), format="rgb24")))
                 count += 1
@@ -72,4 +74,7 @@ def read_web_video(path: str | Path) -> tuple[np.ndarray, str, float]:
     with av.open(str(path)) as container:
         stream = container.streams.video[0]
         frames = np.stack([f.to_ndarray(format="rgb24") for f in container.decode(stream)])
-        return frames, stream.codec_context.name, float(stream.average_rate)
+        rate = stream.average_rate
+        if rate is None:
+            raise SchemaError(f"{path}: the video stream states no frame rate")
+        return frames, stream.codec_context.name, float(rate)

@@ -22,7 +22,7 @@ class WriteError(OSError):
 
     def __init__(self, message: str, code: int | None = None) -> None:
         super().__init__(message)
-        self.errno = code  # type: ignore[misc]
+        self.errno = code
 
     def __str__(self) -> str:
         return str(self.args[0])

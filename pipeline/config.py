@@ -121,6 +121,7 @@ def _check_schema(section: Any, schema: type, where: str, errors: list[str]) -> 
     if missing:
         errors.append(f"{where}: missing value for {', '.join(missing)}")
         return None
+    assert isinstance(merged, DictConfig)  # merged onto a structured dataclass
     validate = getattr(schema, "validate", None)
     problems = validate(merged) if callable(validate) else []
     errors.extend(f"{where}.{problem}" for problem in problems)
@@ -148,7 +149,10 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
     if run is None:
         errors.append("missing section 'run'")
     else:
-        run_plain = {k: v for k, v in OmegaConf.to_container(run, resolve=True).items() if k != "from"}
+        run_values = OmegaConf.to_container(run, resolve=True)
+        if not isinstance(run_values, dict):
+            raise ConfigError(f"run: must be a mapping of run.* settings, got {run_values!r}")
+        run_plain = {k: v for k, v in run_values.items() if k != "from"}
         _check_schema(run_plain, RunConfig, "run", errors)
         known = registry.names()
         for key in ("only", "from", "until"):
@@ -182,15 +186,15 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
         if problem:
             errors.append(f"{problem} (the training run's seed: stage.warmup.seed and stage.dynamic.seed follow it)")
     for s in stages:
-        for key, what, problem_of in ((s.methods_key, "method names", method_problem),
-                                      (s.seeds_key, "seeds, e.g. [0, 1, 2]", seed_problem)):
-            if key is None:
+        for list_key, what, problem_of in ((s.methods_key, "method names", method_problem),
+                                           (s.seeds_key, "seeds, e.g. [0, 1, 2]", seed_problem)):
+            if list_key is None:
                 continue
-            values = OmegaConf.select(cfg, key, default=None)
+            values = OmegaConf.select(cfg, list_key, default=None)
             if not OmegaConf.is_list(values) or not values:
-                errors.append(f"{key}: stage '{s.name}' needs a non-empty list of {what}")
+                errors.append(f"{list_key}: stage '{s.name}' needs a non-empty list of {what}")
             else:
-                errors.extend(p for value in values if (p := problem_of(value, key)))
+                errors.extend(p for value in values if (p := problem_of(value, list_key)))
         for key in s.config_keys:
             if OmegaConf.select(cfg, key, default=_MISSING) is _MISSING:
                 errors.append(f"stage '{s.name}' depends on config key '{key}', which is not set")
@@ -300,11 +304,11 @@ def config_subset(cfg: DictConfig, keys: tuple[str, ...], exclude: tuple[str, ..
         value = OmegaConf.select(cfg, key, throw_on_missing=True)
         out[key] = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
     for path in exclude:
-        key = next((k for k in keys if path.startswith(f"{k}.")), None)
-        if key is None:  # the whole key is left out (or is not among keys)
+        owner = next((k for k in keys if path.startswith(f"{k}.")), None)
+        if owner is None:  # the whole key is left out (or is not among keys)
             continue
-        *parents, leaf = path[len(key) + 1:].split(".")
-        node = out[key]
+        *parents, leaf = path[len(owner) + 1:].split(".")
+        node = out[owner]
         for part in parents:
             node = node.get(part) if isinstance(node, dict) else None
         if isinstance(node, dict):

@@ -77,7 +77,7 @@ def _files() -> list[Path]:
 def _leaves(node: DictConfig, prefix: str = "") -> Iterator[tuple[str, object]]:
     for key in node:
         value = node._get_node(key)
-        dotted = f"{prefix}{key}"
+        dotted = prefix + str(key)
         if isinstance(value, DictConfig) and len(value) > 0:
             yield from _leaves(value, dotted + ".")
         else:
@@ -94,10 +94,10 @@ def _schema_types() -> dict[str, str]:
         hints = typing.get_type_hints(schema)
         for f in dataclasses.fields(schema):
             hint = hints[f.name]
-            if dataclasses.is_dataclass(hint):
+            if isinstance(hint, type) and dataclasses.is_dataclass(hint):
                 walk(f"{prefix}.{f.name}", hint)
             else:
-                types[f"{prefix}.{f.name}"] = re.sub(r"\b(typing|builtins)\.", "", getattr(hint, "__name__", None)
+                types[f"{prefix}.{f.name}"] = re.sub(r"\b(typing|builtins)\.", "", hint.__name__
                                                      if isinstance(hint, type) else str(hint))
 
     for prefix, schema in roots:
@@ -122,7 +122,10 @@ def render(cfg: DictConfig) -> str:
         rel = path.relative_to(CONF_DIR).as_posix()
         for key, comment in _commented_keys(path):
             explained[key] = comment  # a later file's comment on the same key is the more specific one
-        for key, _ in _leaves(OmegaConf.load(path), _package(path) + "." if _package(path) else ""):
+        loaded = OmegaConf.load(path)
+        if not isinstance(loaded, DictConfig):
+            raise ValueError(f"{path}: a config file must hold a mapping of keys, not a list")
+        for key, _ in _leaves(loaded, _package(path) + "." if _package(path) else ""):
             set_by[key] = rel
     types = _schema_types()
     groups: dict[str, list[str]] = {}

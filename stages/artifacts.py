@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 import torch
@@ -17,21 +16,11 @@ from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, provided_path
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.frames import FRAMES_INDEX, crop_mask_path, rgb_path
+from avatar.render.gaussians import WorldGaussians
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
 from data_schemas.images import read_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
-
-
-class WorldGaussians(Protocol):
-    """Gaussians of one frame in world space: means (N, 3), scales (N, 3), quats (N, 4), opacities (N,),
-    colors (N, 3)."""
-
-    means: torch.Tensor
-    scales: torch.Tensor
-    quats: torch.Tensor
-    opacities: torch.Tensor
-    colors: torch.Tensor
 
 
 def load_ground_truth_params(capture_dir: Path, sequence: str) -> dict[str, np.ndarray]:

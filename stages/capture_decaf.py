@@ -31,6 +31,7 @@ from avatar.preprocess.masks import label_parts
 from avatar.templates import OfficialModelError, TemplateModel, load_official_model, procedural_head
 from avatar.templates.decaf import decaf_hand_to_mano, decaf_head_to_flame, decaf_world_offsets
 from avatar.templates.layers import OPENPOSE_FROM_MANO
+from avatar.templates.loaders import ModelKind
 from data_schemas.cameras import Camera, write_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, copy_into_capture, mask_path, provided_path, video_path
 from data_schemas.decaf import (
@@ -77,11 +78,11 @@ def import_decaf(dataset: DictConfig, subject: str, out: Path, default_frame_rat
     return CaptureIndex(subject=subject, dataset="decaf", sequences=sequences)
 
 
-def _official(path: str | None, kind: str) -> TemplateModel | None:
+def _official(path: str | None, kind: ModelKind) -> TemplateModel | None:
     if not path:
         return None
     try:
-        return load_official_model(path, kind)  # type: ignore[arg-type]
+        return load_official_model(path, kind)
     except OfficialModelError as exc:
         raise SchemaError(str(exc)) from exc
 
@@ -133,7 +134,7 @@ def _import_sequence(scan: DecafSequence, out: Path, cameras: list[Camera], mode
         selected = params.select(frames)
         if _write_params(provided_path(out, seq, "params"), scan, selected, models, notes):
             provided.append("params")
-        contact = None if contacts is None else contacts[0].any(axis=1)
+        contact = None if contacts is None else np.asarray(contacts[0].any(axis=1))
         if scan.deforms_npy.is_file() and _write_deform(provided_path(out, seq, "deform"), scan, frames, selected,
                                                          contact, models, notes):
             provided.append("deform")

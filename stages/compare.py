@@ -341,7 +341,7 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
     paper_cells = lambda m, split: _metric_cells(paper) if (paper := present[m].paper(split)) else ["-"] * 3  # noqa: E731
     splits = [s for s in SPLITS if s in set(rows["split"])]
     in_table = {t: sorted((m for m, r in present.items() if r.position(t) is not None),
-                          key=lambda m, t=t: (present[m].position(t), m)) for t in TABLES}
+                          key=lambda m: (present[m].position(t), m)) for t in TABLES}
     full = min((m for m, r in present.items() if r.role.get("full_model")), default=None)
     table1 = [[split, present[m].label, *_stat_cells(rows, m, split, "full"), *paper_cells(m, split)]
               for split in splits for m in in_table["baselines"]]

@@ -100,7 +100,10 @@ def transfer_summary(frames: list[dict]) -> dict[str, float]:
 def pbd_solver_config(cfg: DictConfig) -> PBDConfig:
     """The XPBD solver's settings of ``stage.pbd.solver`` (one clear error when out of range)."""
     try:
-        return PBDConfig(**OmegaConf.to_container(cfg.stage.pbd.solver, resolve=True))
+        settings = OmegaConf.to_container(cfg.stage.pbd.solver, resolve=True)
+        if not isinstance(settings, dict):
+            raise ValueError(f"must be a mapping of the solver's settings, got {settings!r}")
+        return PBDConfig(**{str(key): value for key, value in settings.items()})  # a section's keys are names
     except ValueError as exc:
         raise SchemaError(f"stage.pbd.solver: {exc}") from exc
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from omegaconf import DictConfig
 
 from avatar.dynamic.model import COLOUR_DELTAS
 from avatar.training.dynamic import DynamicTrainConfig
@@ -56,26 +57,26 @@ class DynamicSettings:
     validation: ValidationSchema
 
     @classmethod
-    def validate(cls, conf: object) -> list[str]:
+    def validate(cls, conf: DictConfig) -> list[str]:
         """Range problems of a ``stage.dynamic`` section, one line each; empty when it can run."""
         problems = []
-        fraction = float(conf.contact_fraction)  # type: ignore[attr-defined]
+        fraction = float(conf.contact_fraction)
         if not 0.0 <= fraction <= 1.0:
             problems.append(f"contact_fraction={fraction:g}: must lie in [0, 1] (the share of steps on contact frames)")
-        share = float(conf.max_contact_frame_share)  # type: ignore[attr-defined]
+        share = float(conf.max_contact_frame_share)
         if not 0.0 < share <= 1.0:
             problems.append(f"max_contact_frame_share={share:g}: must lie in (0, 1] (the most steps one contact frame "
                             "may take; 1 leaves contact_fraction uncapped)")
-        colour = conf.colour_delta  # type: ignore[attr-defined]
+        colour = conf.colour_delta
         if colour not in COLOUR_DELTAS:
             problems.append(f"colour_delta={colour}: must be one of {', '.join(COLOUR_DELTAS)} "
                             "(add: c_i + d_c as the paper; scale: c_i exp(d_c))")
-        d_max = float(conf.d_max)  # type: ignore[attr-defined]
+        d_max = float(conf.d_max)
         if not d_max > 0.0:
             problems.append(f"d_max={d_max:g}: must be positive (metres; the paper uses 0.05)")
         select = selection_config(conf)
         problems += [f"select.{problem}" for problem in select.problems()]
-        if select.enabled and int(conf.validation.every) <= 0:  # type: ignore[attr-defined]
+        if select.enabled and int(conf.validation.every) <= 0:
             problems.append("select.enabled=true needs validation frames: set stage.dynamic.validation.every > 0 "
                             "(e.g. 50), or select.enabled=false")
         return problems + validation_problems(conf) + refinement_problems(conf)

@@ -77,7 +77,7 @@ def evaluate(ctx: StageContext) -> None:
         showcase = set(showcase_pairs(contact, int(conf.showcase_frames)))
         (ctx.out_dir / "renders" / split).mkdir(parents=True)
         pairs = [(t, c) for t in range(views.num_frames) for c in range(views.num_cameras)]
-        grid = []
+        grid: list[np.ndarray] = []
         for i, (t, c) in enumerate(ctx.progress(pairs, desc=f"evaluate {split}")):
             with torch.no_grad():
                 raw = render(t, c).clamp(0, 1)

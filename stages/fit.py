@@ -121,7 +121,7 @@ def fit(ctx: StageContext) -> None:
         hand_fitted = True
         if source == "ground_truth":
             params = load_ground_truth_params(cap_dir, seq)
-            entry: dict = {}
+            entry = {}
         elif source == "provided":
             params = load_provided_params(cap_dir, seq)
             entry = {}
@@ -233,6 +233,7 @@ def _write_overlay(path: Path, views: ViewSet, result: FitResult, head: Template
                    hand_fitted: bool) -> None:
     """The keypoint fit's (red) and the refined (green) mesh outlines over the first training view's crop, in the
     frame where the refinement moved the meshes most."""
+    assert result.refinement is not None  # called only for a fit the image refinement ran on
     moved = result.refinement.moved_mm["hand"] if hand_fitted else result.refinement.moved_mm["face"]
     frame = int(np.argmax(moved))
     write_png(path, tracking_outlines(views.images[frame, 0].numpy(), views.K[0], views.world_to_cam[0],

@@ -123,6 +123,7 @@ def reenact(ctx: StageContext) -> None:
     truth_cameras = [] if truth_sequence is None else [name for name in views if name != "orbit"]
     capture_K = {c.camera_id: c.K for c in read_cameras(ctx.input_dir("capture") / "cameras.parquet")}
     for name in truth_cameras:
+        assert truth_sequence is not None  # there are truth cameras only with a ground-truth sequence
         truth = _write_ground_truth(ctx, truth_sequence, name, capture_K[name], views[name][0], size, background,
                                     fps)
         write_web_video(ctx.out_dir / "videos" / f"{name}_vs_gt.mp4",
@@ -260,7 +261,8 @@ def _write_ground_truth(ctx: StageContext, sequence: str, camera_id: str, K_capt
         truth = reframe(image, K_capture, K[t], size, tuple(fill.tolist())).astype(np.float32)
         mask = mask_path(capture_dir, sequence, camera_id, t)
         if mask.is_file():
-            alpha = reframe((read_png(mask, 1) > 0).astype(np.float32), K_capture, K[t], size, (0.0,))[..., None]
+            alpha = reframe((read_png(mask, 1) > 0).astype(np.float32), K_capture, K[t], size,
+                            (0.0, 0.0, 0.0))[..., None]  # one channel: OpenCV uses the first border value
             truth = truth * alpha + fill * (1 - alpha)
         frames.append((truth + 0.5).clip(0, 255).astype(np.uint8))
     write_web_video(ctx.out_dir / "videos" / f"{camera_id}_gt.mp4", frames, fps)

@@ -416,7 +416,7 @@ def pareto_front(cost: np.ndarray, quality: np.ndarray) -> np.ndarray:
     cost, quality = np.asarray(cost, float), np.asarray(quality, float)
     no_worse = (cost[None, :] <= cost[:, None]) & (quality[None, :] >= quality[:, None])
     better = (cost[None, :] < cost[:, None]) | (quality[None, :] > quality[:, None])
-    return ~(no_worse & better).any(axis=1)
+    return ~np.asarray((no_worse & better).any(axis=1))
 
 
 def _pareto_plot(compare_dir: Path) -> str:

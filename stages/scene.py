@@ -107,7 +107,7 @@ def _summary(facts: SceneFacts) -> dict:
 
 def _write_frames(ctx: StageContext, facts: dict[str, SceneFacts]) -> None:
     """scene.parquet: one row per frame of every sequence."""
-    rows = {name: [] for name in SCENE_FRAMES.column_names}
+    rows: dict[str, list] = {name: [] for name in SCENE_FRAMES.column_names}
     for seq, f in facts.items():
         T = len(f.contact)
         rows["sequence"] += [seq] * T

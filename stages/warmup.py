@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -41,11 +42,11 @@ class WarmupSettings:
             raise ValueError("; ".join(problems))
 
     @classmethod
-    def validate(cls, conf: object) -> list[str]:
+    def validate(cls, conf: Any) -> list[str]:
         """Range problems of a ``stage.warmup`` section (this dataclass or the DictConfig merged onto it),
         one line each, keyed relative to ``stage.warmup``; empty when it can run."""
         problems = []
-        opacity = float(conf.init_opacity)  # type: ignore[attr-defined]
+        opacity = float(conf.init_opacity)
         if not 0.0 < opacity < 1.0:  # also refuses NaN
             problems.append(f"init_opacity={opacity:g}: must lie strictly between 0 and 1 (the opacity logit is "
                             f"infinite at 0 and 1); use e.g. 0.1, the 3DGS default")
@@ -103,7 +104,7 @@ def warmup(ctx: StageContext) -> None:
     model.set_colors(colors_from_views(means, part_label, views, frame=0))
     validator = Validator(validation_config(conf.validation), views)
     final_loss = rep.warm_up(ctx, model, views, meshes, params, validator,
-                             lambda steps: ctx.progress(steps, desc="warmup", total=len(steps)))
+                             lambda steps: ctx.progress(steps, desc="warmup"))
     frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
     with torch.no_grad():
         vertices = params.vertices(frame) if params is not None else meshes.vertices[frame]

@@ -30,7 +30,8 @@ def read_transforms(path: Path) -> list[CalibratedImage]:
         raise SchemaError(f"{path}: not a readable transforms.json ({exc})") from exc
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
         raise SchemaError(f"{path}: needs a non-empty 'frames' list of {{file_path, transform_matrix}}")
-    images, sizes = [], {}
+    images: list[CalibratedImage] = []
+    sizes: dict[str, tuple[int, int]] = {}
     for i, frame in enumerate(data["frames"]):
         where = f"{path}: frame {i}"
         if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:

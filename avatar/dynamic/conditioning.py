@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from typing import TypeAlias
 
 import numpy as np
 import torch
@@ -75,7 +76,8 @@ class Conditioning:
 
 
 #: Names that say which of the two a signature expects.
-FrameConditioning = SequenceConditioning = Conditioning
+FrameConditioning: TypeAlias = Conditioning
+SequenceConditioning: TypeAlias = Conditioning
 
 
 def sequence_conditioning(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel,

@@ -191,6 +191,16 @@ class DynamicAvatar(nn.Module):
         seed: initialisation seed of the point features and the networks.
     """
 
+    faces: Tensor  # buffers (register_buffer): (F, 3), (N, 3), (N, pe), (N_hand,), (N_face,)
+    mu_cano: Tensor
+    position_code: Tensor
+    hand_index: Tensor
+    face_index: Tensor
+    hand_geo: DeltaHeads | None  # None: the "w/o H" ablation (cfg.hand_mlp False), hand_app too
+    hand_app: DeltaHeads | None
+    interaction: DeltaHeads | None  # None: the "w/o I" ablation
+    pointnet: PointNet2Encoder | None  # None when neither H nor I reads F
+
     def __init__(self, gaussians: BoundGaussians, mu_cano: Tensor, faces: Tensor, part_names: tuple[str, ...],
                  num_face_vertices: int, frame_dims: dict[str, int], cfg: DynamicModelConfig, seed: int = 0) -> None:
         super().__init__()
@@ -267,6 +277,8 @@ class DynamicAvatar(nn.Module):
 
     def geometry_feature(self, points: Tensor) -> Tensor:
         """F (geometry_feature_dim,) from PointNet++ over ``points`` (P, 3); a learned vector when P = 0."""
+        if self.pointnet is None:
+            raise RuntimeError("this model reads no geometry feature (neither H nor I is built)")
         return self.pointnet(points)
 
     # -- the frame ---------------------------------------------------------------------------------
@@ -282,6 +294,7 @@ class DynamicAvatar(nn.Module):
         """
         g = self.gaussians
         frames = triangle_frames(vertices, self.faces)
+        local_means: Tensor  # the parameter, then the parameter plus its delta
         local_means, log_scales, quats = g.local_means, g.log_scales, g.quats
         logits, rgb = g.opacity_logits, 0.5 + SH_C0 * g.sh_dc
         deltas = {name: torch.zeros_like(x) for name, x in
@@ -295,6 +308,7 @@ class DynamicAvatar(nn.Module):
                 points = self.geometry_points(cond, means0, scales0, torch.sigmoid(logits), generator, offsets)
             feature = self.geometry_feature(points)
         if self.hand_geo is not None:
+            assert self.hand_app is not None and feature is not None  # built, and read, with H_geo
             idx = self.hand_index
             code = self.position_code[idx]
             geo = self.hand_geo(code, cond.hand_pose)
@@ -303,6 +317,7 @@ class DynamicAvatar(nn.Module):
             for name, value in {**geo, **app}.items():
                 deltas[name] = deltas[name].index_add(0, idx, value)
         if self.interaction is not None:
+            assert feature is not None  # I reads F
             evaluations = self._interact(cond, means0[self.face_index], offsets, vertices, feature, deltas)
         local_means = local_means + deltas["mu"]
         local_scales = torch.exp(log_scales + deltas["s"])
@@ -323,6 +338,7 @@ class DynamicAvatar(nn.Module):
         """Add ``w_i I(...)`` of the face Gaussians near the hand to ``deltas``; returns how many ran I.
         ``face_means`` (N_face, 3): the face Gaussians' world means before any delta; ``offsets`` (N_face, 3):
         :meth:`triangle_offsets`."""
+        assert self.interaction is not None  # called only when I is built
         idx = self.face_index
         with torch.no_grad():
             hand_vertices = vertices[self.num_face_vertices:]

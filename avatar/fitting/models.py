@@ -117,10 +117,13 @@ class FaceParams(_PartParams):
     jaw_pose (T, 3), transl (T, 3); eye_pose stays zero (landmarks do not see the eyeballs).
     ``shape_columns``: fit only the first S of the model's identity columns (None: all)."""
 
+    eye_pose: torch.Tensor
+    shape_roughness: torch.Tensor | None
+
     def __init__(self, model: TemplateModel, num_frames: int, shape_columns: int | None = None) -> None:
         super().__init__()
-        num_shape = int(model.num_shape) if shape_columns is None else int(shape_columns)
-        num_expression = model.num_shapes_total - int(model.num_shape)
+        num_shape = model.num_identity_shape if shape_columns is None else int(shape_columns)
+        num_expression = model.num_shapes_total - model.num_identity_shape
         self.layer = FLAMELayer(model, num_shape, num_expression)
         self.keypoint_layer = FLAMELayer(keypoint_template(model), num_shape, num_expression)
         self.num_frames = num_frames

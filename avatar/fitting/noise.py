@@ -27,7 +27,11 @@ def corrupt_keypoints(
     Returns:
         (..., K, 3) float64; undetected keypoints (confidence 0) stay undetected.
     """
-    width, height = (image_size, image_size) if np.isscalar(image_size) else image_size
+    # isinstance narrows the type of the tuple branch; np.isscalar also takes numpy and float scalars
+    if isinstance(image_size, int) or np.isscalar(image_size):
+        width, height = image_size, image_size
+    else:
+        width, height = image_size
     out = np.array(uvc, dtype=np.float64, copy=True)
     shape = out.shape[:-1]
     out[..., :2] += rng.normal(0.0, pixel_noise, size=(*shape, 2))

@@ -278,7 +278,7 @@ class _Renderer:
     def _shown(self, t: int) -> list[str]:
         return [p for p in PARTS if bool(self.ev.visible[p][t])]
 
-    def _proxies(self, vertices: dict[str, Tensor], t: int) -> tuple[Tensor, ...]:
+    def _proxies(self, vertices: dict[str, Tensor], t: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """(means, quats, scales, opacities, part colours) of the proxies of frame ``t``'s shown parts (float32)."""
         shown = self._shown(t)
         parts = [self.proxies.gaussians(vertices[p][t].float(), p) for p in shown]
@@ -334,11 +334,13 @@ class _Renderer:
                 if silhouette:
                     coverage = render_gaussians(*parts, K, w2c, R, R, black).rgb[..., :2]
                     if refresh:
+                        assert exact_coverage is not None  # _exact ran: refresh
                         self.corrections[t].append(exact_coverage - coverage.detach())
                     frac = {k: v[t, c] for k, v in ev.fractions.items()}
                     error = silhouette_error(coverage + self.corrections[t][c], frac, ev.observed[t, c])
                     total = total + silhouette_weight * error.sum()
                 if colour:
+                    assert albedo is not None and exact_rgb is not None  # both made when colour
                     proxy = render_gaussians(*parts[:4], albedo, K, w2c, R, R, ev.background).rgb
                     rgb = exact_rgb + (proxy - proxy.detach())
                     error = (rgb - ev.colours[t, c]).abs().sum(-1) * ev.observed[t, c]

@@ -46,6 +46,9 @@ class BoundGaussians(nn.Module):
         part: (N,) int64 buffer, mesh index of the parent triangle.
     """
 
+    binding: Tensor
+    part: Tensor
+
     def __init__(self, local_means: Tensor, log_scales: Tensor, quats: Tensor, opacity_logits: Tensor,
                  sh_dc: Tensor, binding: Tensor, part: Tensor) -> None:
         super().__init__()

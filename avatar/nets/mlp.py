@@ -19,6 +19,9 @@ network (stacked weights, ``baddbmm``) measured no faster and was dropped (docs/
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import cast
+
 import torch
 import torch.nn.functional as fn
 from torch import Tensor, nn
@@ -49,6 +52,8 @@ class SplitLinear(nn.Module):
             weight = self.point.weight[:, start:start + part.shape[1]]
             out = torch.addmm(bias, part, weight.T) if out is None else torch.addmm(out, part, weight.T)
             start += part.shape[1]
+        if out is None:
+            raise ValueError("SplitLinear needs at least one block of point inputs")
         return out
 
 
@@ -78,8 +83,10 @@ class DeltaMLP(nn.Module):
         """point (N, P) per-Gaussian inputs (or their parts, see :class:`SplitLinear`), frame (Fd,) per-frame
         inputs -> (N, out_dim) deltas."""
         h = self._activate(self.input_layer(point, frame), 0)
-        for i, layer in enumerate(self.hidden, start=1):
+        # cast: a ModuleList iterates as Module; these are the Linear layers built in __init__
+        for i, layer in enumerate(cast(Iterable[nn.Linear], self.hidden), start=1):
             if i == self.skip_at:  # == Linear([h; input]) split in two; the skip's product carries the layer's bias
+                assert self.skip is not None  # built whenever skip_at > 0
                 z = torch.addmm(self.skip(point, frame, layer.bias), h, layer.weight.T)
             else:
                 z = layer(h)

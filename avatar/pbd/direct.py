@@ -172,6 +172,7 @@ def _volume_rows(problem: FrameProblem, local: np.ndarray, n: int) -> sp.csr_mat
     p = torch.from_numpy(rest[fa]).requires_grad_(True)
     area = 0.5 * torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], dim=1).norm(dim=1)
     area.sum().backward()
+    assert p.grad is not None  # p is a leaf the area depends on
     grad_a = p.grad.numpy()  # (F, 3, 3)
     a = area.detach().numpy()
     hf = h[fa].mean(1)

@@ -150,8 +150,9 @@ class FrameProblem:
         at once from the same positions), then the collision planes."""
         if self.cfg.method == "jacobi":
             dx = torch.zeros_like(self.x)
-            for constraints, relax in zip((self.attach, self.edges, self.bend, self.shear), self.jacobi_relax):
-                constraints.project(self.x, self.w, slice(None), relax, out=dx)
+            sets: tuple[LinearSet | EdgeSet, ...] = (self.attach, self.edges, self.bend, self.shear)
+            for constraints, jacobi_relax in zip(sets, self.jacobi_relax):
+                constraints.project(self.x, self.w, slice(None), jacobi_relax, out=dx)
             self.x += dx
         else:
             relax = self.cfg.relaxation

@@ -211,7 +211,7 @@ def part_labels(foreground: np.ndarray, detection: Detection, face_label: int, h
 
 
 def _hull_mask(points: np.ndarray, shape: tuple[int, ...], grow_px: int) -> np.ndarray:
-    mask = np.zeros(shape[:2], dtype=np.uint8)
+    mask: np.ndarray = np.zeros(shape[:2], dtype=np.uint8)
     hull = cv2.convexHull(np.round(points).astype(np.int32))
     cv2.fillConvexPoly(mask, hull, 1)
     if grow_px > 0:

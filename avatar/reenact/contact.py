@@ -82,9 +82,9 @@ def _barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 def surface_twins(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> SurfaceTwins:
     """Where ``points`` (N, 3) sit relative to the face mesh ``vertices`` (V, 3), ``faces`` (F, 3)."""
-    closest, distance, triangle = closest_on_mesh(torch.from_numpy(points), torch.from_numpy(vertices),
-                                                  torch.from_numpy(np.array(faces, dtype=np.int64)))
-    closest, triangle = closest.numpy(), triangle.numpy()
+    closest_t, distance, triangle_t = closest_on_mesh(torch.from_numpy(points), torch.from_numpy(vertices),
+                                                      torch.from_numpy(np.array(faces, dtype=np.int64)))
+    closest, triangle = closest_t.numpy(), triangle_t.numpy()
     frames = triangle_frames(vertices, faces)[triangle]
     local = np.einsum("nji,nj->ni", frames, points - closest)
     return SurfaceTwins(triangle, _barycentric(closest, vertices[faces[triangle]]), local, distance.numpy())

@@ -63,7 +63,7 @@ def scene_facts(hand_views: np.ndarray, distances: np.ndarray, min_views: int, d
 def deforming_triangles(near_vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(F,) bool: face triangles with a vertex within d_max of the hand in some contact frame, from the
     (T, V) ``near_vertices`` of :class:`SceneFacts` and the (F, 3) face triangles."""
-    return near_vertices.any(axis=0)[faces].any(axis=1)
+    return np.asarray(near_vertices.any(axis=0))[faces].any(axis=1)
 
 
 @dataclass(frozen=True)

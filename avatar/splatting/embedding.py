@@ -126,6 +126,15 @@ class CanonicalMesh(nn.Module):
         walk_*: the :class:`avatar.splatting.walking.WalkTable` fields.
     """
 
+    vertices: Tensor
+    faces: Tensor
+    areas: Tensor
+    area_damping: Tensor
+    normals: Tensor
+    frames: Tensor
+    face_weights: Tensor
+    vertex_weights: Tensor
+
     def __init__(self, vertices: Tensor, faces: Tensor) -> None:
         super().__init__()
         faces = faces.long()
@@ -179,6 +188,15 @@ class EmbeddedGaussians(nn.Module):
         part: (N,) int64 buffer, the mesh (part) of that face.
         mesh: the :class:`CanonicalMesh`.
     """
+
+    triangle: Tensor
+    part: Tensor
+    barycentric: nn.Parameter
+    displacement: nn.Parameter
+    log_scales: nn.Parameter
+    quats: nn.Parameter
+    opacity_logits: nn.Parameter
+    sh_dc: nn.Parameter
 
     def __init__(self, mesh: CanonicalMesh, triangle: Tensor, part: Tensor, barycentric: Tensor,
                  displacement: Tensor, log_scales: Tensor, quats: Tensor, opacity_logits: Tensor,

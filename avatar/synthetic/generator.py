@@ -59,7 +59,7 @@ class _Subject:
 def _subject(name: str) -> _Subject:
     head, hand = procedural_head(), procedural_hand()
     identity = make_identity(name, NUM_DESIGNED_SHAPE)  # the subjects lie in the designed identity space
-    flame = FLAMELayer(head, NUM_DESIGNED_SHAPE, head.num_shapes_total - int(head.num_shape))
+    flame = FLAMELayer(head, NUM_DESIGNED_SHAPE, head.num_shapes_total - head.num_identity_shape)
     mano = MANOLayer(hand)
     rest = mano(torch.as_tensor(identity.mano_shape[None]), torch.zeros(1, 45, dtype=torch.float64))
     hand_rest, joints = rest.vertices[0].numpy(), rest.joints[0].numpy()

@@ -179,6 +179,10 @@ def jitter(script: Script, rng: np.random.Generator, style: MotionStyle = Motion
     def time(t: float) -> float:
         return t if t in (0.0, 1.0) else float(t + rng.uniform(-0.008, 0.008))
 
+    def jitter_curl(c: tuple[float, float, float, float, float]) -> tuple[float, float, float, float, float]:
+        c0, c1, c2, c3, c4 = (float(x + rng.normal(0, 0.04) * gain) for x in c)
+        return c0, c1, c2, c3, c4
+
     head = tuple(
         replace(k, time=time(k.time), yaw_deg=k.yaw_deg * style.head_gain + rng.normal(0, 2.0) * gain,
                 pitch_deg=k.pitch_deg * style.head_gain + rng.normal(0, 1.5) * gain,
@@ -189,7 +193,7 @@ def jitter(script: Script, rng: np.random.Generator, style: MotionStyle = Motion
         replace(k, time=time(k.time),
                 standoff_m=k.standoff_m + float(rng.uniform(-0.0008, 0.0008)) * (k.standoff_m < 0),
                 tilt_deg=k.tilt_deg + rng.normal(0, 2.0) * gain,
-                curl=tuple(float(c + rng.normal(0, 0.04) * gain) for c in k.curl),
+                curl=jitter_curl(k.curl),
                 spread=float(k.spread + rng.normal(0, 0.02) * gain))
         for k in script.hand
     )

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 import torch
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -49,7 +50,7 @@ class Performance:
     curl: np.ndarray
 
 
-def _lerp(a: np.ndarray | float, b: np.ndarray | float, s: float) -> np.ndarray:
+def _lerp(a: npt.ArrayLike, b: npt.ArrayLike, s: float) -> np.ndarray:
     return (1 - s) * np.asarray(a, dtype=np.float64) + s * np.asarray(b, dtype=np.float64)
 
 
@@ -104,6 +105,8 @@ class HandPlacer:
         self.frame = HandFrame.from_joints(rest.joints[0].numpy())
         self.anchors = anchors
         self.face_faces = torch.from_numpy(np.array(face_faces))
+        if layer.model.tip_vertex_ids is None:
+            raise ValueError("the hand template has no tip_vertex_ids")
         self.tips = layer.model.tip_vertex_ids
 
     def _placement(self, key: HandKey, hand_pose: np.ndarray, face: np.ndarray, normals: np.ndarray,

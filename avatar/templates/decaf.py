@@ -59,8 +59,8 @@ def decaf_head_to_flame(head: TemplateModel, shape: np.ndarray, expression: np.n
                         global_orient: np.ndarray, transl: np.ndarray) -> dict[str, np.ndarray]:
     """DECAF head parameters (T rows each; ``pose`` (T, 6) = root, jaw) -> the ``flame_*`` columns of
     ``params.parquet``. Raises ValueError when the widths do not fit ``head``."""
-    num_expr = head.num_shapes_total - int(head.num_shape)
-    if shape.shape[1] > int(head.num_shape) or expression.shape[1] > num_expr:
+    num_expr = head.num_shapes_total - head.num_identity_shape
+    if shape.shape[1] > head.num_identity_shape or expression.shape[1] > num_expr:
         raise ValueError(f"{shape.shape[1]} shape and {expression.shape[1]} expression coefficients do not fit a "
                          f"head model with {head.num_shape} and {num_expr}; DECAF's parameters need the official "
                          f"FLAME 2020 generic_model.pkl (model.flame_path)")

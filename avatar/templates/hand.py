@@ -31,10 +31,11 @@ fist-but-index; ``hands_mean`` is a slightly relaxed curl.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from avatar.templates.meshing import MeshBuilder, ring_quads
 from avatar.templates.model import TemplateModel
@@ -87,7 +88,7 @@ class _Digit:
         """Positive rotation about this axis curls the digit toward the palm."""
         return np.cross(self.dorsal, self.direction)
 
-    def radius(self, s: np.ndarray) -> np.ndarray:
+    def radius(self, s: npt.ArrayLike) -> np.ndarray:
         """Skin radius at arc length s from the first joint, with knuckle bulges."""
         r0, r1 = self.radii
         s = np.asarray(s, dtype=np.float64)
@@ -96,7 +97,7 @@ class _Digit:
         return base * (1.0 + 0.04 * knuckles)
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
+def _unit(v: npt.ArrayLike) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64)
     return v / np.linalg.norm(v)
 
@@ -374,7 +375,7 @@ def _shapedirs(vertices: np.ndarray, weights: np.ndarray, digits: tuple[_Digit, 
 def _pose_synergies(digits: tuple[_Digit, ...]) -> tuple[np.ndarray, np.ndarray]:
     """-> hands_components (45, 45) orthonormal rows led by hand synergies, hands_mean (45,)."""
 
-    def synergy(per_digit: dict[str, tuple[float, float, float]], axis: str = "flex") -> np.ndarray:
+    def synergy(per_digit: Mapping[str, tuple[float, float, float]], axis: str = "flex") -> np.ndarray:
         pose = np.zeros((NUM_JOINTS, 3))
         for digit in digits:
             a = digit.flex_axis if axis == "flex" else digit.dorsal

@@ -56,6 +56,8 @@ a ray from the origin through its design direction meets the surface.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
@@ -117,6 +119,14 @@ _SPINE = (np.array([0.0, -0.03, -0.035]), np.array([0.0, -0.18, -0.035]), 0.018)
 _SMOOTH_MAX = 0.012
 
 
+def _total(terms: Iterable[np.ndarray]) -> np.ndarray:
+    """Elementwise sum (the built-in ``sum``) of a non-empty iterable of arrays."""
+    total = sum(terms)
+    if not isinstance(total, np.ndarray):
+        raise ValueError("_total needs at least one array")
+    return total
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
@@ -149,7 +159,7 @@ def _bump(u: np.ndarray, spec: _Bump, side: float | None = None) -> np.ndarray:
     """Radial bump (N,) of one feature; mirrored features sum both sides unless ``side`` (+1 left, -1 right)."""
     amp, yaw, pitch, s_yaw, s_pitch, power, mirrored = spec
     sides = ([1.0, -1.0] if side is None else [side]) if mirrored else [1.0]
-    return amp * sum(_patch(u, s * yaw, pitch, s_yaw, s_pitch, power) for s in sides)
+    return amp * _total(_patch(u, s * yaw, pitch, s_yaw, s_pitch, power) for s in sides)
 
 
 def _ellipsoid_exit(u: np.ndarray, centre: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -242,7 +252,7 @@ class _Regions:
         return self.patch(side * 0.5, -0.25, 0.18, 0.16)
 
     def brow(self) -> np.ndarray:
-        return sum(self.patch(s * 0.36, 0.52, 0.2, 0.08) for s in (1.0, -1.0))
+        return _total(self.patch(s * 0.36, 0.52, 0.2, 0.08) for s in (1.0, -1.0))
 
     def front(self) -> np.ndarray:
         return smoothstep(-0.3, 0.5, self.u[:, 2])
@@ -315,7 +325,7 @@ def _shapedirs(reg: _Regions, landmarks: np.ndarray) -> np.ndarray:
         return mask[:, None] * vector
 
     def radial(spec_names: tuple[str, ...], table: dict[str, _Bump], gain: float) -> np.ndarray:
-        return gain * sum(_bump(u, table[n]) for n in spec_names)[:, None] * u
+        return gain * _total(_bump(u, table[n]) for n in spec_names)[:, None] * u
 
     sides = (1.0, -1.0)
     lower_face = reg.front() * smoothstep(0.0, -0.06, v[:, 1])
@@ -373,7 +383,7 @@ def _part_labels(reg: _Regions, weights: np.ndarray) -> dict[str, np.ndarray]:
     masks: dict[str, np.ndarray] = {
         "face": face,
         "lips": reg.lips() > 0.3,
-        "nose": sum(_bump(reg.u, _SKIN[n]) for n in ("nose_ridge", "nose_tip", "nose_wing")) > 0.004,
+        "nose": _total(_bump(reg.u, _SKIN[n]) for n in ("nose_ridge", "nose_tip", "nose_wing")) > 0.004,
         "cheek_left": reg.cheek(1.0) > 0.35,
         "cheek_right": reg.cheek(-1.0) > 0.35,
         "eye_left": reg.patch(_EYE[0], _EYE[1], 0.13, 0.08) > 0.4,

@@ -63,16 +63,16 @@ class _SkinnedLayer(torch.nn.Module):
 
     def _skin(self, betas: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor) -> LayerOutput:
         """betas (B, S), pose (B, J, 3) axis-angle, transl (B, 3) -> LayerOutput."""
-        cast = {"dtype": betas.dtype, "device": betas.device}
+        dtype, device = betas.dtype, betas.device
         vertices, joints = lbs(
             betas,
             pose,
-            self.v_template.to(**cast),
-            self.shapedirs.to(**cast),
-            self.posedirs.to(**cast),
-            self.J_regressor.to(**cast),
+            self.v_template.to(dtype=dtype, device=device),
+            self.shapedirs.to(dtype=dtype, device=device),
+            self.posedirs.to(dtype=dtype, device=device),
+            self.J_regressor.to(dtype=dtype, device=device),
             self.parents,
-            self.weights.to(**cast),
+            self.weights.to(dtype=dtype, device=device),
         )
         offset = transl[:, None, :]
         return LayerOutput(vertices + offset, joints + offset)
@@ -126,9 +126,9 @@ class MANOLayer(_SkinnedLayer):
 
     def full_hand_pose(self, hand_pose: torch.Tensor) -> torch.Tensor:
         """(B, pose_dim) -> (B, 45) axis-angle of joints 1..15 (PCA and mean applied)."""
-        cast = {"dtype": hand_pose.dtype, "device": hand_pose.device}
-        full = hand_pose @ self.hands_components.to(**cast) if self.use_pca else hand_pose
-        return full if self.flat_hand_mean else full + self.hands_mean.to(**cast)
+        dtype, device = hand_pose.dtype, hand_pose.device
+        full = hand_pose @ self.hands_components.to(dtype=dtype, device=device) if self.use_pca else hand_pose
+        return full if self.flat_hand_mean else full + self.hands_mean.to(dtype=dtype, device=device)
 
     def forward(
         self,
@@ -165,13 +165,13 @@ class FLAMELayer(_SkinnedLayer):
         if model.name != "flame" or model.num_joints != FLAME_NUM_JOINTS:
             raise ValueError(f"FLAMELayer needs a 5-joint 'flame' TemplateModel, got {model.name!r} "
                              f"with {model.num_joints} joints")
-        num_expr_total = model.num_shapes_total - int(model.num_shape)
-        if not 0 <= num_shape <= int(model.num_shape):
+        num_expr_total = model.num_shapes_total - model.num_identity_shape
+        if not 0 <= num_shape <= model.num_identity_shape:
             raise ValueError(f"num_shape must lie in [0, {model.num_shape}], got {num_shape}")
         if not 0 <= num_expression <= num_expr_total:
             raise ValueError(f"num_expression must lie in [0, {num_expr_total}], got {num_expression}")
         columns = np.concatenate(
-            (np.arange(num_shape), int(model.num_shape) + np.arange(num_expression))
+            (np.arange(num_shape), model.num_identity_shape + np.arange(num_expression))
         ).astype(np.int64)
         super().__init__(model, columns)
         self.num_shape = num_shape

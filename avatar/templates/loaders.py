@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import pickle
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypedDict
 
 import numpy as np
 
@@ -37,6 +37,18 @@ _HELP = {
     "flame": "download FLAME 2020 (generic_model.pkl) from the FLAME website (https://flame.is.tue.mpg.de) and "
              "pass model.flame_path=/path/to/generic_model.pkl",
 }
+
+
+class _SkinningArrays(TypedDict):
+    """The :class:`TemplateModel` arrays both kinds share (keyword arguments)."""
+
+    v_template: np.ndarray
+    shapedirs: np.ndarray
+    posedirs: np.ndarray
+    J_regressor: np.ndarray
+    weights: np.ndarray
+    kintree_table: np.ndarray
+    faces: np.ndarray
 
 
 class OfficialModelError(ValueError):
@@ -135,7 +147,7 @@ def load_official_model(
     row_sums = weights.sum(axis=1, keepdims=True) if weights.ndim == 2 else None
     if row_sums is not None and 1e-9 < np.abs(row_sums - 1.0).max() < 1e-3:
         weights = weights / row_sums  # remove float32 round-off of the stored weights
-    common = {
+    common: _SkinningArrays = {
         "v_template": vertices,
         "shapedirs": arrays["shapedirs"],
         "posedirs": arrays["posedirs"],

@@ -11,6 +11,7 @@ in this one type, so every layer runs on either.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NoReturn
 
 import numpy as np
 
@@ -132,12 +133,18 @@ class TemplateModel:
         return int(self.shapedirs.shape[2]) if self.shapedirs.ndim == 3 else -1
 
     @property
+    def num_identity_shape(self) -> int:
+        """``num_shape`` as an int (``__post_init__`` resolves ``None`` to S)."""
+        assert self.num_shape is not None, "TemplateModel.num_shape is resolved in __post_init__"
+        return int(self.num_shape)
+
+    @property
     def parents(self) -> np.ndarray:
         """(J,) parent index of each joint, -1 for the root."""
         return self.kintree_table[0]
 
     def _validate(self) -> None:
-        def fail(msg: str) -> None:
+        def fail(msg: str) -> NoReturn:
             raise ValueError(f"TemplateModel({self.name}): {msg}")
 
         if self.v_template.ndim != 2 or self.v_template.shape[1] != 3 or self.v_template.shape[0] < 4:
@@ -165,11 +172,11 @@ class TemplateModel:
             fail(f"faces must be (F, 3), got {self.faces.shape}")
         if self.faces.min() < 0 or self.faces.max() >= V:
             fail(f"faces index vertices outside [0, {V})")
-        if not 0 <= int(self.num_shape) <= self.num_shapes_total:
+        if not 0 <= self.num_identity_shape <= self.num_shapes_total:
             fail(f"num_shape={self.num_shape} must lie in [0, S={self.num_shapes_total}]")
         if (self.hands_components is None) != (self.hands_mean is None):
             fail("hands_components and hands_mean must be given together")
-        if self.hands_components is not None:
+        if self.hands_components is not None and self.hands_mean is not None:
             n = 3 * (J - 1)
             if self.hands_components.ndim != 2 or self.hands_components.shape[1] != n:
                 fail(f"hands_components must be (K, {n}), got {self.hands_components.shape}")
@@ -182,7 +189,7 @@ class TemplateModel:
                 fail("inner_distance must be non-negative")
         if (self.landmark_faces is None) != (self.landmark_bary is None):
             fail("landmark_faces and landmark_bary must be given together")
-        if self.landmark_faces is not None:
+        if self.landmark_faces is not None and self.landmark_bary is not None:
             L = self.landmark_faces.shape[0]
             if self.landmark_faces.ndim != 1 or self.landmark_bary.shape != (L, 3):
                 fail(f"landmark_faces (L,) and landmark_bary (L, 3) disagree: {self.landmark_faces.shape}, "
@@ -194,10 +201,10 @@ class TemplateModel:
         if self.tip_vertex_ids is not None:
             if self.tip_vertex_ids.shape != (5,) or self.tip_vertex_ids.min() < 0 or self.tip_vertex_ids.max() >= V:
                 fail(f"tip_vertex_ids must be 5 vertex indices in [0, {V}), got {self.tip_vertex_ids.tolist()}")
-        if self.num_core_shape is not None and not 0 <= int(self.num_core_shape) <= int(self.num_shape):
+        if self.num_core_shape is not None and not 0 <= int(self.num_core_shape) <= self.num_identity_shape:
             fail(f"num_core_shape={self.num_core_shape} must lie in [0, num_shape={self.num_shape}]")
         if self.shape_roughness is not None:
-            n = int(self.num_shape)
+            n = self.num_identity_shape
             if self.shape_roughness.shape != (n, n) or not np.allclose(self.shape_roughness, self.shape_roughness.T):
                 fail(f"shape_roughness must be a symmetric (num_shape={n}, num_shape) matrix, got "
                      f"{self.shape_roughness.shape}")

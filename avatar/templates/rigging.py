@@ -103,8 +103,9 @@ def axis_corrective(delta_sym: np.ndarray, delta_asym: np.ndarray, axis: np.ndar
     return 0.5 * (delta_sym[:, :, None] * k2.reshape(1, 1, 9) + delta_asym[:, :, None] * k.reshape(1, 1, 9))
 
 
-def smoothstep(edge0: float, edge1: float, x: np.ndarray) -> np.ndarray:
-    """Cubic Hermite step from 0 at ``edge0`` to 1 at ``edge1`` (either order)."""
+def smoothstep(edge0: float | np.ndarray, edge1: float | np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Cubic Hermite step from 0 at ``edge0`` to 1 at ``edge1`` (either order); the edges may be arrays that
+    broadcast against ``x``."""
     t = np.clip((np.asarray(x, dtype=np.float64) - edge0) / (edge1 - edge0), 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
 

@@ -23,7 +23,7 @@ import scipy.sparse as sp
 try:  # numpy >= 2 keeps the array machinery in numpy._core
     from numpy._core import multiarray as _multiarray
 except ImportError:  # pragma: no cover - numpy 1.x
-    from numpy.core import multiarray as _multiarray
+    from numpy.core import multiarray as _multiarray  # type: ignore[no-redef]  # the same module, numpy 1.x path
 
 
 class ChumpyStandIn:
@@ -83,7 +83,7 @@ class RestrictedUnpickler(pickle.Unpickler):
         if module.startswith("scipy.sparse") and name in _SPARSE_FORMATS:
             return _stand_in(SparseStandIn, "sparse_format", _SPARSE_FORMATS[name], (module, name))
         if module in ("copy_reg", "copyreg") and name == "_reconstructor":
-            return copyreg._reconstructor
+            return copyreg._reconstructor  # type: ignore[attr-defined]  # private, not in typeshed's copyreg stub
         if module == "_codecs" and name == "encode":
             return codecs.encode
         if module in ("__builtin__", "builtins") and name in _BUILTINS:

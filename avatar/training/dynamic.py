@@ -27,7 +27,7 @@ from avatar.losses import patch_perceptual_loss, reconstruction_loss, reconstruc
 from avatar.metrics.lpips import LPIPS
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
-from avatar.render.gaussians import render_gaussians
+from avatar.render.gaussians import WorldGaussians, render_gaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams
@@ -127,7 +127,7 @@ def render_dynamic(model: DynamicAvatar, cond: SequenceConditioning, meshes: Mes
     return rasterize(g, views, camera, backend), g
 
 
-def rasterize(g: DynamicFrame, views: ViewSet, camera: int, backend: str = "auto"):  # noqa: ANN201 - RenderOutput
+def rasterize(g: WorldGaussians, views: ViewSet, camera: int, backend: str = "auto"):  # noqa: ANN201 - RenderOutput
     """Render the Gaussians of one frame from view ``camera`` of ``views``."""
     return render_gaussians(g.means, g.quats, g.scales, g.opacities, g.colors, views.K[camera],
                             views.world_to_cam[camera], views.size, views.size, views.background, backend=backend)
@@ -260,9 +260,10 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         stop = validator.after_step(step, render)
         offer_validation()
         if step % cfg.log_every == 0 or step == validator.end:
-            result.log.append(DynamicLogRow(step, loss.item(), *(terms[k].item() for k in
-                                            ("l1", "dssim", "scale_reg", "position_reg", "patch")),
-                                            g.interaction_evaluations))
+            result.log.append(DynamicLogRow(step, loss.item(), l1=terms["l1"].item(), dssim=terms["dssim"].item(),
+                                            scale_reg=terms["scale_reg"].item(),
+                                            position_reg=terms["position_reg"].item(), patch=terms["patch"].item(),
+                                            interaction_evaluations=g.interaction_evaluations))
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
             save_checkpoint(ckpt_path, {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                                         "rng": gen.get_state(), "log": [asdict(r) for r in result.log],
@@ -285,8 +286,11 @@ _CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction", "
 def _loss_terms(pred: Tensor, gt: Tensor, labels: np.ndarray, g: DynamicFrame, visible: Tensor,
                 cfg: DynamicTrainConfig, lpips: LPIPS | None) -> dict[str, Tensor]:
     """The terms of the paper's loss for one rendered crop (pred, gt: (S, S, 3); labels: (S, S))."""
-    return {
-        **reconstruction_terms(pred, gt, g.local_scales, g.local_means, visible, cfg.eps_s, cfg.eps_mu),
-        "patch": patch_perceptual_loss(pred, gt, patch_boxes(labels), lpips, cfg.patch_min_size)
-        if cfg.patch_weight > 0 else pred.sum() * 0.0,
-    }
+    terms = reconstruction_terms(pred, gt, g.local_scales, g.local_means, visible, cfg.eps_s, cfg.eps_mu)
+    if cfg.patch_weight > 0:
+        if lpips is None:
+            raise ValueError("L_patch (cfg.patch_weight > 0) needs the LPIPS network")
+        terms["patch"] = patch_perceptual_loss(pred, gt, patch_boxes(labels), lpips, cfg.patch_min_size)
+    else:
+        terms["patch"] = pred.sum() * 0.0
+    return terms

@@ -103,6 +103,8 @@ class FrameParams(nn.Module):
         centred: keep the corrections' mean over the refined frames at zero (:meth:`step`).
     """
 
+    face_offsets: Tensor  # buffer (T, V_face, 3)
+
     def __init__(self, params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel,
                  face_offsets: Tensor | None, lrs: ParamLearningRates, centred: bool = False) -> None:
         super().__init__()

@@ -16,14 +16,14 @@ The held-out camera and the held-out motion are never looked at.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import Tensor, nn
 
-from avatar.nets.mlp import DeltaHeads
+from avatar.nets.mlp import DeltaHeads, DeltaMLP
 from avatar.training.frame_params import FrameParams
 
 #: a module's name -> the model attributes it consists of (the stage-two networks whose deltas it adds)
@@ -123,7 +123,7 @@ def switch_off(nets: list[DeltaHeads]) -> None:
     """Zero the output layers of every head of ``nets``: each then adds exactly a zero delta."""
     with torch.no_grad():
         for net in nets:
-            for head in net.heads.values():
+            for head in cast(Iterable[DeltaMLP], net.heads.values()):  # cast: a ModuleDict's values are Modules
                 head.output.weight.zero_()
                 head.output.bias.zero_()
 

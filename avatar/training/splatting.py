@@ -38,11 +38,13 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import cast
 
 import torch
 from torch import Tensor
 
 from avatar.metrics import LPIPS, dssim_loss
+from avatar.metrics.lpips_weights import Net
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import RenderOutput, render_gaussians
 from avatar.splatting.density import EmbeddedDensityConfig, EmbeddedDensityController
@@ -203,7 +205,8 @@ def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequen
     gen = torch.Generator().manual_seed(cfg.seed)
     validator = validator if validator is not None else Validator(ValidationConfig(), views)
     density = EmbeddedDensityController(cfg.density(), model.num_gaussians, seed=cfg.seed, device=device)
-    lpips = LPIPS(cfg.lpips_net).to(device) if cfg.lambda_lpips > 0 else None
+    # cast: the config field is a plain str (the config schemas take no Literal); LPIPS checks the name
+    lpips = LPIPS(cast(Net, cfg.lpips_net)).to(device) if cfg.lambda_lpips > 0 else None
     extent = cfg.scene_extent if cfg.scene_extent > 0 else meshes.extent()
     optimizer = _optimizer(model, cfg)
     log: list[LogRow] = []
@@ -241,8 +244,9 @@ def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequen
             walked += _walk(model, optimizer, cfg.max_hops)
         stop = validator.after_step(step, render)
         if step % cfg.log_every == 0 or step == validator.end:
-            log.append(LogRow(step, loss.item(), *(terms[k].item() for k in _LOGGED_TERMS), model.num_gaussians,
-                              walked))
+            log.append(LogRow(step, loss.item(), l1=terms["l1"].item(), dssim=terms["dssim"].item(),
+                              mse=terms["mse"].item(), lpips=terms["lpips"].item(),
+                              scale_reg=terms["scale_reg"].item(), num_gaussians=model.num_gaussians, walked=walked))
             walked = 0
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
             save_checkpoint(ckpt_path, {
@@ -254,5 +258,4 @@ def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequen
     return log
 
 
-_LOGGED_TERMS = ("l1", "dssim", "mse", "lpips", "scale_reg")
 _CHECKPOINT_KEYS = ("step", "model", "optimizer", "density", "rng", "walked", "log", "validation")

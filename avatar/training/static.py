@@ -192,7 +192,9 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
         density.step(step, model, optimizer, world_scales.detach(), extent)
         stop = validator.after_step(step, render)
         if step % cfg.log_every == 0 or step == validator.end:
-            log.append(LogRow(step, loss.item(), *(terms[k].item() for k in terms), model.num_gaussians))
+            log.append(LogRow(step, loss.item(), l1=terms["l1"].item(), dssim=terms["dssim"].item(),
+                              scale_reg=terms["scale_reg"].item(), position_reg=terms["position_reg"].item(),
+                              num_gaussians=model.num_gaussians))
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
             _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log, validator, params)
         if stop:

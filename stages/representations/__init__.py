@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib
 import json
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import ClassVar, Protocol
 
@@ -37,16 +37,23 @@ BUILT_IN = {
     "embedded": "stages.representations.embedded:EmbeddedRepresentation",
 }
 
-#: A training stage's progress bar over its steps.
-Progress = Callable[[range], object]
+#: A training stage's progress bar over its steps (the training loops' ``progress``: wraps the steps, yields them).
+Progress = Callable[[Iterable[int]], Iterator[int]]
 
 
 class CanonicalGaussians(Protocol):
     """The warm-up's Gaussians on the canonical mesh (``avatar.gaussians.model.BoundGaussians``,
     ``avatar.splatting.EmbeddedGaussians``): N Gaussians, each on one triangle of one mesh part."""
 
-    part: torch.Tensor  # (N,) mesh part index
-    opacity_logits: torch.Tensor  # (N,)
+    @property
+    def part(self) -> torch.Tensor:
+        """(N,) mesh part index."""
+        ...
+
+    @property
+    def opacity_logits(self) -> torch.Tensor:
+        """(N,) opacity logits."""
+        ...
 
     @property
     def num_gaussians(self) -> int: ...

@@ -7,7 +7,7 @@ import io
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -78,7 +78,8 @@ def load_dynamic(dynamic_dir: Path) -> DynamicAvatar:
     part_names = tuple(info["part_names"])
     gaussians = load_gaussians(dynamic_dir, part_names)
     arch = info["architecture"]
-    cfg = DynamicModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in arch.items()})
+    settings: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in arch.items()}
+    cfg = DynamicModelConfig(**settings)
     state = torch.load(dynamic_dir / "networks.pt", weights_only=True)
     model = DynamicAvatar(gaussians, state["mu_cano"], state["faces"], part_names, int(info["num_face_vertices"]),
                           info["frame_dims"], cfg)
@@ -90,9 +91,9 @@ def load_dynamic(dynamic_dir: Path) -> DynamicAvatar:
     return model
 
 
-def selection_config(conf: object) -> SelectionConfig:
+def selection_config(conf: DictConfig) -> SelectionConfig:
     """The core's :class:`SelectionConfig` of a ``stage.dynamic`` section."""
-    return SelectionConfig(bool(conf.select.enabled), float(conf.select.margin_db))  # type: ignore[attr-defined]
+    return SelectionConfig(bool(conf.select.enabled), float(conf.select.margin_db))
 
 
 def check_withheld_by_warmup(cfg: DictConfig) -> None:
@@ -112,13 +113,14 @@ def model_config(cfg: DictConfig, scene: SceneDecision) -> DynamicModelConfig:
     """The architecture from ``quality.*`` and ``stage.dynamic.*``; the hand and interaction MLPs only where
     the scene analysis models the hand and the contact."""
     q, conf = cfg.quality, cfg.stage.dynamic
+    centres, coarse_centres = (int(c) for c in q.pointnet_centres)  # two levels (the quality schema checks)
     return DynamicModelConfig(
         hand_mlp=bool(conf.hand_mlp) and scene.model_hand,
         interaction=bool(conf.interaction) and scene.model_interaction, hand_width=int(q.dynamic_width),
         hand_depth=int(q.dynamic_hand_depth), interaction_width=int(q.dynamic_width),
         interaction_depth=int(q.dynamic_interaction_depth), position_frequencies=int(conf.position_frequencies),
         offset_frequencies=int(conf.offset_frequencies), point_feature_dim=int(conf.point_feature_dim),
-        geometry_feature_dim=int(q.geometry_feature_dim), pointnet_centres=tuple(int(c) for c in q.pointnet_centres),
+        geometry_feature_dim=int(q.geometry_feature_dim), pointnet_centres=(centres, coarse_centres),
         pointnet_width=float(q.pointnet_width), d_max=float(conf.d_max),
         deform_threshold_m=float(conf.deform_threshold_m), colour_delta=str(conf.colour_delta))
 
@@ -187,7 +189,7 @@ class BoundRepresentation(Representation):
         validator = Validator(validation_config(conf.validation), views)
         result = train_dynamic(model, views, meshes, cond, contact, dynamic_train_config(self.cfg),
                                checkpoint_dir=ctx.scratch_dir,
-                               progress=lambda steps: ctx.progress(steps, desc="dynamic", total=len(steps)),
+                               progress=lambda steps: ctx.progress(steps, desc="dynamic"),
                                validator=validator, params=params)
         fit_dir = ctx.input_dir("fit")
         record_refinement(ctx, load_params(fit_dir, TRAIN_SEQUENCE), posed.params, params)

@@ -169,7 +169,7 @@ class EmbeddedRepresentation(Representation):
         log = train_splatting(model, views, meshes,
                               splatting_config(self.cfg, int(self.cfg.quality.dynamic_steps), conf, densify=False),
                               checkpoint_dir=ctx.scratch_dir,
-                              progress=lambda s: ctx.progress(s, desc="dynamic", total=len(s)), validator=validator)
+                              progress=lambda s: ctx.progress(s, desc="dynamic"), validator=validator)
         steps = validator.end  # steps run
         write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
         buffer = io.BytesIO()

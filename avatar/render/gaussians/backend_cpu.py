@@ -10,10 +10,11 @@ thread count (``torch.get_num_threads()``), nor images on the tile size, bit for
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
-from torch.autograd.function import FunctionCtx, once_differentiable
+from torch.autograd.function import once_differentiable
 
 from .extension import unavailable_reason
 from .output import RenderOutput
@@ -85,7 +86,7 @@ class _Project(torch.autograd.Function):
     depths (N,) (differentiable) and radii (N,) int32, box (N, 4) int32, visible (N,) bool."""
 
     @staticmethod
-    def forward(ctx: FunctionCtx, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
+    def forward(ctx: Any, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
                 camera: _Camera) -> tuple[Tensor, ...]:
         out = _ops().project_forward(means, quats, scales, opacities, *camera.args(), torch.get_num_threads())
         ctx.save_for_backward(means, quats, scales)
@@ -95,7 +96,7 @@ class _Project(torch.autograd.Function):
 
     @staticmethod
     @once_differentiable
-    def backward(ctx: FunctionCtx, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor,
+    def backward(ctx: Any, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor,
                  *_: Tensor) -> tuple[Tensor | None, ...]:
         means, quats, scales = ctx.saved_tensors
         grads = _ops().project_backward(means, quats, scales, *ctx.camera.args(), g_means2d, g_conics, g_depths,
@@ -108,7 +109,7 @@ class _Rasterize(torch.autograd.Function):
     -> rgb (H, W, 3), alpha (H, W), depth (H, W)."""
 
     @staticmethod
-    def forward(ctx: FunctionCtx, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor,
+    def forward(ctx: Any, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor,
                 depths: Tensor, background: Tensor, bins: TileBins) -> tuple[Tensor, Tensor, Tensor]:
         rgb, alpha, depth, t_final, last, kept_rows = _ops().rasterize_forward(
             means2d, conics, opacities, colors, depths, background, *bins.raster_args(), *bins.grid_args(),
@@ -119,7 +120,7 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     @once_differentiable
-    def backward(ctx: FunctionCtx, g_rgb: Tensor, g_alpha: Tensor, g_depth: Tensor) -> tuple[Tensor | None, ...]:
+    def backward(ctx: Any, g_rgb: Tensor, g_alpha: Tensor, g_depth: Tensor) -> tuple[Tensor | None, ...]:
         means2d, conics, opacities, colors, depths, background, alpha, t_final, last, kept_rows = ctx.saved_tensors
         bins: TileBins = ctx.bins
         grads = _ops().rasterize_backward(

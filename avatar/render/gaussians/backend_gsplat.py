@@ -118,8 +118,8 @@ def render_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
         return _background_only(means, quats, scales, opacities, colors, width, height, background)
     device = means.device
     if device.type != "cuda" and torch.cuda.is_available():
-        out = render_gsplat(*(t.cuda() for t in (means, quats, scales, opacities, colors, K, world_to_cam)),
-                            width, height, background.cuda(), near=near, far=far)
+        out = render_gsplat(means.cuda(), quats.cuda(), scales.cuda(), opacities.cuda(), colors.cuda(), K.cuda(),
+                            world_to_cam.cuda(), width, height, background.cuda(), near=near, far=far)
         return RenderOutput(rgb=out.rgb.to(device), alpha=out.alpha.to(device), depth=out.depth.to(device),
                             means2d=out.means2d.to(device), radii=out.radii.to(device), grad_holder=out.grad_holder)
 

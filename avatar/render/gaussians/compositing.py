@@ -32,10 +32,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
-from torch.autograd.function import FunctionCtx, once_differentiable
+from torch.autograd.function import once_differentiable
 
 from .projection import ALPHA_MIN
 from .tiling import TileLists, image_to_tiles, tiles_to_image
@@ -242,7 +243,7 @@ class _TileComposite(torch.autograd.Function):
     """(N, 6 + C) Gaussian table -> (H, W, C) features and (H, W) accumulated alpha."""
 
     @staticmethod
-    def forward(ctx: FunctionCtx, table: Tensor, lists: TileLists, width: int, height: int,
+    def forward(ctx: Any, table: Tensor, lists: TileLists, width: int, height: int,
                 settings: CompositeSettings) -> tuple[Tensor, Tensor]:
         comp = _Compositor(table, lists, settings)
         valid = image_to_tiles(table.new_ones(height, width, 1), lists)[..., 0]
@@ -253,7 +254,7 @@ class _TileComposite(torch.autograd.Function):
 
     @staticmethod
     @once_differentiable
-    def backward(ctx: FunctionCtx, grad_feat: Tensor, grad_acc: Tensor) -> tuple[Tensor | None, ...]:
+    def backward(ctx: Any, grad_feat: Tensor, grad_acc: Tensor) -> tuple[Tensor | None, ...]:
         comp: _Compositor = ctx.compositor
         grad_table = comp.schedule_backward(ctx.steps, image_to_tiles(grad_feat, comp.lists),
                                             image_to_tiles(grad_acc[..., None], comp.lists)[..., 0])

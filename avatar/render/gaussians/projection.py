@@ -12,6 +12,7 @@ differentiable results are cast back to the input dtype.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 from torch import Tensor
@@ -151,9 +152,10 @@ def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
     scale = _columns(scales)
     # 2D covariance = A A^T with A = J W R diag(s).
     a_mat = [[sum(jw[i][k] * rot[k][j] for k in range(3)) * scale[j] for j in range(3)] for i in range(2)]
-    a = sum(v * v for v in a_mat[0]) + LOW_PASS
-    b = sum(u * v for u, v in zip(a_mat[0], a_mat[1]))
-    c = sum(v * v for v in a_mat[1]) + LOW_PASS
+    # cast: sum() starts from the int 0, which the first (N,) term turns into a tensor
+    a = cast(Tensor, sum(v * v for v in a_mat[0])) + LOW_PASS
+    b = cast(Tensor, sum(u * v for u, v in zip(a_mat[0], a_mat[1])))
+    c = cast(Tensor, sum(v * v for v in a_mat[1])) + LOW_PASS
     finite = torch.isfinite(a) & torch.isfinite(b) & torch.isfinite(c)  # only fails past ~1e150
     a, b, c = (torch.where(finite, v, torch.full_like(v, fill))
                for v, fill in ((a, LOW_PASS), (b, 0.0), (c, LOW_PASS)))
