@@ -16,6 +16,8 @@ import typing
 from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
+from omegaconf import ListConfig
+
 T = TypeVar("T")
 
 
@@ -48,8 +50,12 @@ def core_config(core: type[T], section: Mapping[str, Any], **given: Any) -> T:
     """The core's config ``core`` with every field not ``given`` read from ``section`` (a config section typed by
     :func:`section_schema`; a field missing there is a ``KeyError`` naming it)."""
     values = dict(given)
-    for name, _ in core_fields(core, given):
+    for name, kind in core_fields(core, given):
         if name not in section:
             raise KeyError(f"{name}: a field of {core.__name__} that the config section does not set")
-        values[name] = section[name]
+        value = section[name]
+        if isinstance(value, ListConfig):  # a YAML list: the plain list, or the tuple the field is
+            items = list(value)
+            value = tuple(items) if typing.get_origin(kind) is tuple else items
+        values[name] = value
     return core(**values)

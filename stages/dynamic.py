@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 from omegaconf import DictConfig
 
-from avatar.dynamic.model import COLOUR_DELTAS
+from avatar.dynamic.model import COLOUR_DELTAS, DynamicModelConfig
 from avatar.training.dynamic import DynamicTrainConfig
 from pipeline.schema import section_schema
 from pipeline.stage import StageContext, stage
@@ -24,7 +24,7 @@ from stages.artifacts import TRAIN_SEQUENCE, load_views, method_params
 from stages.dependencies import model_sources, unused_training_settings
 from stages.posing import applied_deformation, posed_sequence
 from stages.representations import representation, representation_problems
-from stages.representations.bound import selection_config
+from stages.representations.bound import PRESET_ARCHITECTURE, selection_config
 from stages.training_settings import ParamsLrSchema, ValidationSchema, refinement_problems, validation_problems
 
 
@@ -37,18 +37,10 @@ class SelectSchema:
 
 
 @dataclass
-class DynamicSettings:
-    """Stage two's own settings: the model's (:func:`stages.representations.bound.model_config`, with the preset's
-    widths and depths) and those the training loop's :class:`DynamicTrainConfig` does not hold."""
+class DynamicStageSettings:
+    """Stage two's own settings: those neither the model's :class:`DynamicModelConfig` nor the training loop's
+    :class:`DynamicTrainConfig` holds."""
 
-    hand_mlp: bool
-    interaction: bool
-    colour_delta: str
-    d_max: float
-    deform_threshold_m: float
-    position_frequencies: int
-    offset_frequencies: int
-    point_feature_dim: int
     ply_frames: list[int]
     refine_params: str
     params_lr: ParamsLrSchema
@@ -83,9 +75,15 @@ class DynamicSettings:
 
 
 
+
+#: The settings of ``stage.dynamic`` that the model's :class:`DynamicModelConfig` holds (its widths and depths come
+#: from the quality preset) and the stage's own.
+DynamicSettings = section_schema("DynamicSettings", DynamicModelConfig, exclude=PRESET_ARCHITECTURE,
+                                 own=DynamicStageSettings)
+
 #: Types of ``stage.dynamic`` (values in conf/stage/dynamic.yaml): every hyperparameter of the training loop's
-#: :class:`DynamicTrainConfig` (its steps come from ``quality.dynamic_steps``, its selection from ``select``) and
-#: the stage's own settings.
+#: :class:`DynamicTrainConfig` (its steps come from ``quality.dynamic_steps``, its selection from ``select``), of
+#: the model's :class:`DynamicModelConfig` but its size, and the stage's own settings.
 DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("steps", "selection"),
                                own=DynamicSettings)
 

@@ -10,14 +10,16 @@ from dataclasses import dataclass
 import pytest
 from omegaconf import OmegaConf
 
+from avatar.dynamic.model import DynamicModelConfig
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.static import StaticConfig
+from avatar.scene import SceneDecision
 from pipeline.config import ConfigError, validate_config
 from pipeline.schema import core_config, core_fields, section_schema
 from stages import REGISTRY
 from stages.dynamic import DynamicConfig
-from stages.representations.bound import dynamic_train_config, static_config
+from stages.representations.bound import PRESET_ARCHITECTURE, dynamic_train_config, model_config, static_config
 from stages.representations.embedded import SHARED_SCHEDULE, SplattingSchema, splatting_config
 from stages.warmup import WarmupConfig
 from tests.conftest import CONF_DIR, compose_cfg
@@ -33,11 +35,13 @@ PIPELINE_CHOICES = {
 SECTIONS = [
     (StaticConfig, "stage/warmup.yaml", "stage.warmup", ("steps",), WarmupConfig),
     (DynamicTrainConfig, "stage/dynamic.yaml", "stage.dynamic", ("steps", "selection"), DynamicConfig),
+    (DynamicModelConfig, "stage/dynamic.yaml", "stage.dynamic", PRESET_ARCHITECTURE, DynamicConfig),
     (SplattingConfig, "config.yaml", "splatting", SHARED_SCHEDULE, SplattingSchema),
 ]
 
 
-@pytest.mark.parametrize(("core", "file", "key", "exclude", "schema"), SECTIONS, ids=[s[2] for s in SECTIONS])
+@pytest.mark.parametrize(("core", "file", "key", "exclude", "schema"), SECTIONS,
+                         ids=[f"{s[2]}-{s[0].__name__}" for s in SECTIONS])
 def test_each_section_sets_every_hyperparameter_of_its_loop_at_the_loops_default(core, file, key, exclude, schema
                                                                                   ) -> None:
     loaded = OmegaConf.load(CONF_DIR / file)  # the defaults, before any preset's choices
@@ -47,7 +51,8 @@ def test_each_section_sets_every_hyperparameter_of_its_loop_at_the_loops_default
         assert name in section, f"{key}.{name}: a hyperparameter of {core.__name__} that the config cannot set"
         assert name in {f.name for f in dataclasses.fields(schema)}, f"{schema.__name__} does not type {name}"
         if name not in PIPELINE_CHOICES:
-            assert section[name] == defaults[name], (
+            value = tuple(section[name]) if isinstance(defaults[name], tuple) else section[name]
+            assert value == defaults[name], (
                 f"{key}.{name}={section[name]} but {core.__name__}.{name} defaults to {defaults[name]}: one default "
                 f"per setting (change both, or state the pipeline's reason in PIPELINE_CHOICES)")
 
@@ -63,6 +68,10 @@ def test_the_loops_configs_are_built_from_their_sections_whole() -> None:
     assert (splat.max_hops, splat.steps, splat.max_gaussians) == (8, 7, cfg.stage.warmup.max_gaussians)
     for name, _ in core_fields(StaticConfig, ("steps",)):  # nothing is left at the core's default by omission
         assert getattr(static, name) == cfg.stage.warmup[name], name
+    scene = SceneDecision(model_hand=True, model_pbd=True, model_interaction=False, why={})
+    arch = model_config(compose_cfg(["quality=draft", "stage.dynamic.pointnet_radii=[0.1,0.3]"]), scene)
+    assert arch.pointnet_radii == (0.1, 0.3) and arch.hand_mlp and not arch.interaction
+    assert arch.hand_width == cfg.quality.dynamic_width
 
 
 @pytest.mark.parametrize("override", ["stage.warmup.lr_opacity=fast", "stage.dynamic.lr_position=fast",

@@ -109,20 +109,22 @@ def check_withheld_by_warmup(cfg: DictConfig) -> None:
             f"stage.dynamic.select.enabled=false")
 
 
+#: DynamicModelConfig's fields that the quality preset sets (``quality.dynamic_*``, ``quality.pointnet_*``,
+#: ``quality.geometry_feature_dim``), not ``stage.dynamic``.
+PRESET_ARCHITECTURE = ("hand_width", "hand_depth", "interaction_width", "interaction_depth", "geometry_feature_dim",
+                       "pointnet_centres", "pointnet_width")
+
+
 def model_config(cfg: DictConfig, scene: SceneDecision) -> DynamicModelConfig:
     """The architecture from ``quality.*`` and ``stage.dynamic.*``; the hand and interaction MLPs only where
     the scene analysis models the hand and the contact."""
     q, conf = cfg.quality, cfg.stage.dynamic
-    centres, coarse_centres = (int(c) for c in q.pointnet_centres)  # two levels (the quality schema checks)
-    return DynamicModelConfig(
-        hand_mlp=bool(conf.hand_mlp) and scene.model_hand,
+    return core_config(
+        DynamicModelConfig, conf, hand_mlp=bool(conf.hand_mlp) and scene.model_hand,
         interaction=bool(conf.interaction) and scene.model_interaction, hand_width=int(q.dynamic_width),
         hand_depth=int(q.dynamic_hand_depth), interaction_width=int(q.dynamic_width),
-        interaction_depth=int(q.dynamic_interaction_depth), position_frequencies=int(conf.position_frequencies),
-        offset_frequencies=int(conf.offset_frequencies), point_feature_dim=int(conf.point_feature_dim),
-        geometry_feature_dim=int(q.geometry_feature_dim), pointnet_centres=(centres, coarse_centres),
-        pointnet_width=float(q.pointnet_width), d_max=float(conf.d_max),
-        deform_threshold_m=float(conf.deform_threshold_m), colour_delta=str(conf.colour_delta))
+        interaction_depth=int(q.dynamic_interaction_depth), geometry_feature_dim=int(q.geometry_feature_dim),
+        pointnet_centres=tuple(int(c) for c in q.pointnet_centres), pointnet_width=float(q.pointnet_width))
 
 
 def static_config(cfg: DictConfig) -> StaticConfig:
