@@ -57,9 +57,10 @@ test: $(STAMP) ext lint typecheck
 test-all: $(STAMP) ext lint typecheck
 	$(PY) -m pytest -q -m "not cluster"
 
-## make lint: ruff on the whole repository, its rules in pyproject.toml ([tool.ruff])
+## make lint: ruff's rules and its formatting on the whole repository, settings in pyproject.toml ([tool.ruff])
 lint: $(STAMP)
 	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 
 ## make typecheck: mypy on avatar, data_schemas, pipeline and stages, its settings in pyproject.toml ([tool.mypy])
 typecheck: $(STAMP)

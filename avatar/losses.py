@@ -38,8 +38,9 @@ def position_regulariser(local_means: Tensor, visible: Tensor, eps_mu: float) ->
     return excess.square().mean() if excess.numel() else local_means.sum() * 0.0
 
 
-def reconstruction_terms(pred: Tensor, gt: Tensor, local_scales: Tensor, local_means: Tensor, visible: Tensor,
-                         eps_s: float, eps_mu: float) -> dict[str, Tensor]:
+def reconstruction_terms(
+    pred: Tensor, gt: Tensor, local_scales: Tensor, local_means: Tensor, visible: Tensor, eps_s: float, eps_mu: float
+) -> dict[str, Tensor]:
     """The terms both training stages share: ``l1``, ``dssim`` of a render ``pred`` against ``gt`` (S, S, 3),
     and ``scale_reg`` / ``position_reg`` (L_s, L_mu) of the visible Gaussians' local scales and means (N, 3)."""
     return {
@@ -50,15 +51,21 @@ def reconstruction_terms(pred: Tensor, gt: Tensor, local_scales: Tensor, local_m
     }
 
 
-def reconstruction_loss(terms: dict[str, Tensor], lambda_dssim: float, scale_weight: float,
-                        position_weight: float) -> Tensor:
+def reconstruction_loss(
+    terms: dict[str, Tensor], lambda_dssim: float, scale_weight: float, position_weight: float
+) -> Tensor:
     """``(1 - lambda) L1 + lambda D-SSIM + a L_s + b L_mu`` (paper) from :func:`reconstruction_terms`."""
-    return (1 - lambda_dssim) * terms["l1"] + lambda_dssim * terms["dssim"] + scale_weight * terms["scale_reg"] \
+    return (
+        (1 - lambda_dssim) * terms["l1"]
+        + lambda_dssim * terms["dssim"]
+        + scale_weight * terms["scale_reg"]
         + position_weight * terms["position_reg"]
+    )
 
 
-def patch_perceptual_loss(pred: Tensor, gt: Tensor, boxes: list[np.ndarray], lpips: nn.Module,
-                          min_size: int = 32) -> Tensor:
+def patch_perceptual_loss(
+    pred: Tensor, gt: Tensor, boxes: list[np.ndarray], lpips: nn.Module, min_size: int = 32
+) -> Tensor:
     """L_patch: the sum over ``boxes`` of the LPIPS distance between the patches of ``pred`` and ``gt``.
 
     Args:

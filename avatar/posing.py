@@ -51,8 +51,9 @@ def concat_meshes(parts: dict[str, tuple[Tensor, Tensor]]) -> MeshSequence:
     return MeshSequence(torch.cat(verts, dim=1), torch.cat(faces), torch.cat(face_part), tuple(parts))
 
 
-def template_layers(params: Mapping[str, np.ndarray | torch.Tensor], head: TemplateModel, hand: TemplateModel
-                    ) -> tuple[FLAMELayer, MANOLayer]:
+def template_layers(
+    params: Mapping[str, np.ndarray | torch.Tensor], head: TemplateModel, hand: TemplateModel
+) -> tuple[FLAMELayer, MANOLayer]:
     """The FLAME and MANO layers for parameters (arrays or tensors) as wide as ``params`` holds."""
     return FLAMELayer.for_params(head, params), MANOLayer(hand)
 
@@ -60,13 +61,21 @@ def template_layers(params: Mapping[str, np.ndarray | torch.Tensor], head: Templ
 def run_layers(flame: FLAMELayer, mano: MANOLayer, t: Mapping[str, torch.Tensor]) -> tuple[LayerOutput, LayerOutput]:
     """(face, hand) layer outputs of the B frames of ``t`` (the params.parquet columns as (B, D) tensors);
     differentiable in every column."""
-    face = flame(t["flame_shape"], t["flame_expression"], t["flame_global_orient"], t["flame_neck_pose"],
-                 t["flame_jaw_pose"], t["flame_eye_pose"], t["flame_transl"])
+    face = flame(
+        t["flame_shape"],
+        t["flame_expression"],
+        t["flame_global_orient"],
+        t["flame_neck_pose"],
+        t["flame_jaw_pose"],
+        t["flame_eye_pose"],
+        t["flame_transl"],
+    )
     return face, mano(t["mano_shape"], t["mano_hand_pose"], t["mano_global_orient"], t["mano_transl"])
 
 
-def pose_layers(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel, dtype: torch.dtype
-                ) -> tuple[FLAMELayer, LayerOutput, MANOLayer, LayerOutput]:
+def pose_layers(
+    params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel, dtype: torch.dtype
+) -> tuple[FLAMELayer, LayerOutput, MANOLayer, LayerOutput]:
     """Run the FLAME and MANO layers on every frame of ``params`` (no gradients)."""
     t = {k: torch.tensor(np.asarray(v), dtype=dtype) for k, v in params.items()}
     flame, mano = template_layers(t, head, hand)
@@ -85,18 +94,24 @@ def posed_meshes(params: Mapping[str, np.ndarray], head: TemplateModel, hand: Te
         A :class:`MeshSequence` with parts ("face", "hand"), float32.
     """
     _, face, _, hand_out = pose_layers(params, head, hand, torch.float32)
-    return concat_meshes({
-        "face": (face.vertices, torch.tensor(head.faces, dtype=torch.long)),
-        "hand": (hand_out.vertices, torch.tensor(hand.faces, dtype=torch.long)),
-    })
+    return concat_meshes(
+        {
+            "face": (face.vertices, torch.tensor(head.faces, dtype=torch.long)),
+            "hand": (hand_out.vertices, torch.tensor(hand.faces, dtype=torch.long)),
+        }
+    )
 
 
-def posed_keypoints(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel
-                    ) -> dict[str, np.ndarray]:
+def posed_keypoints(
+    params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel
+) -> dict[str, np.ndarray]:
     """3D keypoints of every frame: ``hand`` (T, 21, 3) in OpenPose order and ``face`` (T, L, 3)
     landmarks, plus the posed ``hand_vertices`` and ``face_vertices`` (float64, metres)."""
     flame, face, mano, hand_out = pose_layers(params, head, hand, torch.float64)
     with torch.no_grad():
-        return {"hand": mano.keypoints21(hand_out.vertices, hand_out.joints).numpy(),
-                "face": flame.landmarks(face.vertices).numpy(),
-                "hand_vertices": hand_out.vertices.numpy(), "face_vertices": face.vertices.numpy()}
+        return {
+            "hand": mano.keypoints21(hand_out.vertices, hand_out.joints).numpy(),
+            "face": flame.landmarks(face.vertices).numpy(),
+            "hand_vertices": hand_out.vertices.numpy(),
+            "face_vertices": face.vertices.numpy(),
+        }

@@ -72,17 +72,32 @@ from stages.representations.bound import load_gaussians, model_config  # noqa: E
 #: full model's warm-up and PBD, H and I off, no patch loss), so it shares the full model's warm-up.
 VARIANTS = {
     "full": ("interactavatar", ["method=interactavatar"]),
-    "static": ("static_same_steps", ["method.name=static_same_steps", "stage.dynamic.hand_mlp=false",
-                                     "stage.dynamic.interaction=false", "stage.dynamic.patch_weight=0"]),
+    "static": (
+        "static_same_steps",
+        [
+            "method.name=static_same_steps",
+            "stage.dynamic.hand_mlp=false",
+            "stage.dynamic.interaction=false",
+            "stage.dynamic.patch_weight=0",
+        ],
+    ),
 }
 
 
-def compose_cfg(preset: str, subject: str, outputs: Path, extra: list[str],
-                until: str = "evaluate"):  # noqa: ANN201 - DictConfig
+def compose_cfg(preset: str, subject: str, outputs: Path, extra: list[str], until: str = "evaluate"):  # noqa: ANN201 - DictConfig
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"quality={preset}", f"subject={subject}", f"paths.outputs={outputs}",
-                                           f"run.until={until}", "run.progress=false", "fit.source=ground_truth",
-                                           *extra])
+        cfg = compose(
+            "config",
+            overrides=[
+                f"quality={preset}",
+                f"subject={subject}",
+                f"paths.outputs={outputs}",
+                f"run.until={until}",
+                "run.progress=false",
+                "fit.source=ground_truth",
+                *extra,
+            ],
+        )
     return validate_config(cfg, REGISTRY)
 
 
@@ -104,15 +119,24 @@ def load_variant(outputs: Path, subject: str, variant: str, wall_s: float | None
     """A variant's stage manifests and evaluate metrics from ``outputs``; ``wall_s``: its DAG run, if timed."""
     root = outputs / subject / "methods" / VARIANTS[variant][0]
     manifests = {s: json.loads((root / s / "_manifest.json").read_text()) for s in ("warmup", "dynamic", "evaluate")}
-    return {"wall_s": wall_s, "manifests": manifests,
-            "metrics": read_table(root / "evaluate" / "metrics.parquet", METRICS)}
+    return {
+        "wall_s": wall_s,
+        "manifests": manifests,
+        "metrics": read_table(root / "evaluate" / "metrics.parquet", METRICS),
+    }
 
 
 def _mean(t: dict, method: str, metric: str, split: str, region: str, contact: bool | None) -> float:
     """Mean of the finite ``metric`` values of ``method`` in ``split`` and ``region`` (contact frames, the others,
     or all for ``None``)."""
-    sel = [i for i in range(len(t["frame"])) if t["method"][i] == method and t["split"][i] == split
-           and t["region"][i] == region and (contact is None or bool(t["contact"][i]) == contact)]
+    sel = [
+        i
+        for i in range(len(t["frame"]))
+        if t["method"][i] == method
+        and t["split"][i] == split
+        and t["region"][i] == region
+        and (contact is None or bool(t["contact"][i]) == contact)
+    ]
     v = np.asarray(t[metric], dtype=np.float64)[sel]
     v = v[np.isfinite(v)]
     return float(v.mean()) if v.size else float("nan")
@@ -129,9 +153,21 @@ def region_rows(full: dict, static: dict) -> list[tuple]:
                 f = {m: _mean(a, VARIANTS["full"][0], m, *where) for m in ("psnr", "ssim", "lpips")}
                 s = {m: _mean(b, VARIANTS["static"][0], m, *where) for m in ("psnr", "ssim", "lpips")}
                 label = "all" if contact is None else ("contact" if contact else "no contact")
-                rows.append((split, region, label, f"{s['psnr']:.2f}", f"{f['psnr']:.2f}",
-                             f"{f['psnr'] - s['psnr']:+.2f}", f"{s['ssim']:.4f}", f"{f['ssim']:.4f}",
-                             f"{s['lpips']:.4f}", f"{f['lpips']:.4f}", f"{f['lpips'] - s['lpips']:+.4f}"))
+                rows.append(
+                    (
+                        split,
+                        region,
+                        label,
+                        f"{s['psnr']:.2f}",
+                        f"{f['psnr']:.2f}",
+                        f"{f['psnr'] - s['psnr']:+.2f}",
+                        f"{s['ssim']:.4f}",
+                        f"{f['ssim']:.4f}",
+                        f"{s['lpips']:.4f}",
+                        f"{f['lpips']:.4f}",
+                        f"{f['lpips'] - s['lpips']:+.4f}",
+                    )
+                )
     return rows
 
 
@@ -147,27 +183,52 @@ def error_budget(root: Path, variant: str, metrics: dict) -> list[tuple]:
     rows = []
     for split, (sequence, cameras) in SPLIT_SOURCES.items():
         labels = load_views(root / "capture", root / "frames", sequence, cameras)
-        by_key = {(int(f), c, r): float(p) for s, f, c, r, p, m in zip(
-            metrics["split"], metrics["frame"], metrics["camera_id"], metrics["region"], metrics["psnr"],
-            metrics["method"]) if s == split and m == method}
+        by_key = {
+            (int(f), c, r): float(p)
+            for s, f, c, r, p, m in zip(
+                metrics["split"],
+                metrics["frame"],
+                metrics["camera_id"],
+                metrics["region"],
+                metrics["psnr"],
+                metrics["method"],
+            )
+            if s == split and m == method
+        }
         full, hand_oracle, both_oracle, shares = [], [], [], []
         for t in range(labels.num_frames):
             for c, camera_id in enumerate(labels.camera_ids):
                 lab = labels.labels[t, c].numpy()
                 count = {r: int((lab == MASK_LABELS[r]).sum()) for r in ("hand", "face")}
-                sse = {r: 10 ** (-by_key[(t, camera_id, r)] / 10) * count[r] if count[r] else 0.0
-                       for r in ("hand", "face")}
+                sse = {
+                    r: 10 ** (-by_key[(t, camera_id, r)] / 10) * count[r] if count[r] else 0.0 for r in ("hand", "face")
+                }
                 psnr_full = by_key[(t, camera_id, "full")]  # over the observed pixels (no crop padding)
                 observed = int((lab != UNOBSERVED).sum())
                 sse_full = 10 ** (-psnr_full / 10) * observed
                 full.append(psnr_full)
                 hand_oracle.append(-10 * np.log10((sse_full - sse["hand"]) / observed))
                 both_oracle.append(-10 * np.log10((sse_full - sse["hand"] - sse["face"]) / observed))
-                shares.append((sse["hand"] / sse_full, sse["face"] / sse_full,
-                               1 - (sse["hand"] + sse["face"]) / sse_full, count["hand"] / observed))
+                shares.append(
+                    (
+                        sse["hand"] / sse_full,
+                        sse["face"] / sse_full,
+                        1 - (sse["hand"] + sse["face"]) / sse_full,
+                        count["hand"] / observed,
+                    )
+                )
         f, h, b, s = np.mean(full), np.mean(hand_oracle), np.mean(both_oracle), np.mean(shares, axis=0)
-        rows.append((split, variant, f"{f:.2f}", f"{h:.2f} ({h - f:+.2f})", f"{b:.2f} ({b - f:+.2f})",
-                     f"{s[0]:.0%} / {s[1]:.0%} / {s[2]:.0%}", f"{s[3]:.1%}"))
+        rows.append(
+            (
+                split,
+                variant,
+                f"{f:.2f}",
+                f"{h:.2f} ({h - f:+.2f})",
+                f"{b:.2f} ({b - f:+.2f})",
+                f"{s[0]:.0%} / {s[1]:.0%} / {s[2]:.0%}",
+                f"{s[3]:.1%}",
+            )
+        )
     return rows
 
 
@@ -179,13 +240,22 @@ def _forward_timers(modules: dict[str, torch.nn.Module | None], seconds: dict[st
     for name, module in modules.items():
         if module is None:
             continue
-        handles.append(module.register_forward_pre_hook(
-            lambda *_a, n=name: started.__setitem__(n, time.perf_counter())))
-        handles.append(module.register_forward_hook(
-            lambda *_a, n=name: seconds.__setitem__(n, seconds.get(n, 0.0) + time.perf_counter() - started[n])))
+        handles.append(
+            module.register_forward_pre_hook(lambda *_a, n=name: started.__setitem__(n, time.perf_counter()))
+        )
+        handles.append(
+            module.register_forward_hook(
+                lambda *_a, n=name: seconds.__setitem__(n, seconds.get(n, 0.0) + time.perf_counter() - started[n])
+            )
+        )
     handles.append(register_optimizer_step_pre_hook(lambda *_a: started.__setitem__("optimizer", time.perf_counter())))
-    handles.append(register_optimizer_step_post_hook(lambda *_a: seconds.__setitem__(
-        "optimizer", seconds.get("optimizer", 0.0) + time.perf_counter() - started["optimizer"])))
+    handles.append(
+        register_optimizer_step_post_hook(
+            lambda *_a: seconds.__setitem__(
+                "optimizer", seconds.get("optimizer", 0.0) + time.perf_counter() - started["optimizer"]
+            )
+        )
+    )
     try:
         yield
     finally:
@@ -193,8 +263,9 @@ def _forward_timers(modules: dict[str, torch.nn.Module | None], seconds: dict[st
             handle.remove()
 
 
-def step_costs(preset: str, subject: str, outputs: Path, extra: list[str], steps: int = 20,
-               rounds: int = 3) -> dict[str, float]:
+def step_costs(
+    preset: str, subject: str, outputs: Path, extra: list[str], steps: int = 20, rounds: int = 3
+) -> dict[str, float]:
     """ms per training step of the warm-up and of stage two from the same cached warm-up, side by side.
 
     Each round trains a copy of the warm-up Gaussians ``steps`` warm-up steps (``train_static`` without density
@@ -208,8 +279,13 @@ def step_costs(preset: str, subject: str, outputs: Path, extra: list[str], steps
     root = outputs / subject
     warm = root / "methods" / VARIANTS["full"][0] / "warmup"
     views = load_views(root / "capture", root / "frames", "train", "train")
-    posed = posed_sequence(root / "fit", TRAIN_SEQUENCE, cfg, applied_deformation(cfg, root / "pbd"),
-                           method_params(warm, root / "fit", TRAIN_SEQUENCE))
+    posed = posed_sequence(
+        root / "fit",
+        TRAIN_SEQUENCE,
+        cfg,
+        applied_deformation(cfg, root / "pbd"),
+        method_params(warm, root / "fit", TRAIN_SEQUENCE),
+    )
     meshes, cond = posed.meshes, posed.conditioning(cfg)
     contact = contact_flags(root / "pbd", "train", views.num_frames)
     gaussians = load_gaussians(warm, meshes.part_names)
@@ -226,22 +302,39 @@ def step_costs(preset: str, subject: str, outputs: Path, extra: list[str], steps
         return 1000 * (time.perf_counter() - t0) / n
 
     def dynamic_round(n: int, seed: int) -> dict[str, float]:
-        model = DynamicAvatar.from_warmup(copy.deepcopy(gaussians), meshes.vertices[0], meshes.faces,
-                                          meshes.part_names, head.num_vertices, frame_dims, arch, seed=seed)
+        model = DynamicAvatar.from_warmup(
+            copy.deepcopy(gaussians),
+            meshes.vertices[0],
+            meshes.faces,
+            meshes.part_names,
+            head.num_vertices,
+            frame_dims,
+            arch,
+            seed=seed,
+        )
         seconds: dict[str, float] = {}
         train_cfg = DynamicTrainConfig(steps=n, patch_weight=float(conf.patch_weight), seed=seed)
-        modules = {"pointnet": model.pointnet, "hand_geo": model.hand_geo, "hand_app": model.hand_app,
-                   "interaction": model.interaction}
+        modules = {
+            "pointnet": model.pointnet,
+            "hand_geo": model.hand_geo,
+            "hand_app": model.hand_app,
+            "interaction": model.interaction,
+        }
         t0 = time.perf_counter()
         with _forward_timers(modules, seconds):
             result = train_dynamic(model, views, meshes, cond, contact, train_cfg, lpips=lpips)
         wall = time.perf_counter() - t0
         mlp = sum(seconds.get(k, 0.0) for k in ("hand_geo", "hand_app", "interaction"))
-        parts = {"step": wall, "pointnet": seconds.get("pointnet", 0.0), "mlps": mlp,
-                 "posing_glue": result.seconds["model"] - mlp - seconds.get("pointnet", 0.0),
-                 "render": result.seconds["render"], "loss": result.seconds["loss"],
-                 "backward": result.seconds["backward"] - seconds.get("optimizer", 0.0),
-                 "optimizer": seconds.get("optimizer", 0.0)}
+        parts = {
+            "step": wall,
+            "pointnet": seconds.get("pointnet", 0.0),
+            "mlps": mlp,
+            "posing_glue": result.seconds["model"] - mlp - seconds.get("pointnet", 0.0),
+            "render": result.seconds["render"],
+            "loss": result.seconds["loss"],
+            "backward": result.seconds["backward"] - seconds.get("optimizer", 0.0),
+            "optimizer": seconds.get("optimizer", 0.0),
+        }
         return {k: 1000 * v / n for k, v in parts.items()} | {"interaction_steps": result.interaction_steps / n}
 
     warmup_round(2, 0)
@@ -250,8 +343,13 @@ def step_costs(preset: str, subject: str, outputs: Path, extra: list[str], steps
     for r in range(rounds):
         warm_ms.append(warmup_round(steps, r))
         dyn.append(dynamic_round(steps, r))
-    out = {"gaussians": gaussians.num_gaussians, "hand_gaussians": int((gaussians.part == meshes.part_names.index(
-        "hand")).sum()), "steps": steps, "rounds": rounds, "warmup_ms": statistics.median(warm_ms)}
+    out = {
+        "gaussians": gaussians.num_gaussians,
+        "hand_gaussians": int((gaussians.part == meshes.part_names.index("hand")).sum()),
+        "steps": steps,
+        "rounds": rounds,
+        "warmup_ms": statistics.median(warm_ms),
+    }
     out |= {f"{k}_ms" if k != "interaction_steps" else k: statistics.median(d[k] for d in dyn) for k in dyn[0]}
     return out | {"ratio": out["step_ms"] / out["warmup_ms"]}
 
@@ -261,16 +359,27 @@ def main() -> None:
     parser.add_argument("--subjects", nargs="+", default=["synth_a", "synth_b"])
     parser.add_argument("--presets", nargs="+", default=["draft"])
     parser.add_argument("--outputs", type=Path, default=None, help="keep artifacts here (default: a temp dir)")
-    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
-                        help="extra config overrides for both variants, e.g. stage.dynamic.seed=1 (noise)")
-    parser.add_argument("--no-run", action="store_true",
-                        help="train nothing: the tables of the variants already in --outputs")
-    parser.add_argument("--cost-only", action="store_true",
-                        help="run the DAG until the warm-up (cached) and print only the cost table")
+    parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="extra config overrides for both variants, e.g. stage.dynamic.seed=1 (noise)",
+    )
+    parser.add_argument(
+        "--no-run", action="store_true", help="train nothing: the tables of the variants already in --outputs"
+    )
+    parser.add_argument(
+        "--cost-only", action="store_true", help="run the DAG until the warm-up (cached) and print only the cost table"
+    )
     parser.add_argument("--cost-steps", type=int, default=20, help="steps per round of the step costs")
     parser.add_argument("--cost-rounds", type=int, default=3, help="interleaved rounds of the step costs")
-    parser.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results",
-                        help="append the step costs to bench_dynamic.json and bench_dynamic.md here")
+    parser.add_argument(
+        "--results",
+        type=Path,
+        default=REPO / "benchmarks" / "results",
+        help="append the step costs to bench_dynamic.json and bench_dynamic.md here",
+    )
     args = parser.parse_args()
     if args.no_run and args.outputs is None:
         parser.error("--no-run reads the variants of an earlier run: give its --outputs")
@@ -294,8 +403,10 @@ def main() -> None:
                 if not args.no_run:
                     costs = step_costs(preset, subject, outputs, args.set, args.cost_steps, args.cost_rounds)
                 load = (load0, os.getloadavg())
-                print(f"\n## {subject} at {preset} {' '.join(args.set)} (load average {load[0][0]:.1f} -> "
-                      f"{load[1][0]:.1f})\n")
+                print(
+                    f"\n## {subject} at {preset} {' '.join(args.set)} (load average {load[0][0]:.1f} -> "
+                    f"{load[1][0]:.1f})\n"
+                )
                 if full is not None:
                     print_quality(full, static, outputs / subject)
                 rows = cost_rows(full, static, costs)
@@ -309,15 +420,47 @@ def print_quality(full: dict, static: dict, subject_dir: Path) -> None:
     """The quality tables of the two variants and their error budget."""
     steps_w = full["manifests"]["warmup"]["metrics"]["steps"]
     steps_d = full["manifests"]["dynamic"]["metrics"]["steps"]
-    print(f"warm-up {steps_w} steps, stage two {steps_d} steps; static = warm-up + {steps_d} static "
-          f"steps (same total {steps_w + steps_d})\n")
-    print(format_table(("split", "region", "frames", "PSNR static", "PSNR full", "dPSNR", "SSIM static",
-                        "SSIM full", "LPIPS static", "LPIPS full", "dLPIPS"), region_rows(full, static)))
+    print(
+        f"warm-up {steps_w} steps, stage two {steps_d} steps; static = warm-up + {steps_d} static "
+        f"steps (same total {steps_w + steps_d})\n"
+    )
+    print(
+        format_table(
+            (
+                "split",
+                "region",
+                "frames",
+                "PSNR static",
+                "PSNR full",
+                "dPSNR",
+                "SSIM static",
+                "SSIM full",
+                "LPIPS static",
+                "LPIPS full",
+                "dLPIPS",
+            ),
+            region_rows(full, static),
+        )
+    )
     print()
-    print(format_table(("split", "variant", "full-image PSNR", "perfect hand", "perfect hand and face",
-                        "squared error: hand / face / background", "hand pixels"),
-                       [row for variant, v in (("static", static), ("full", full))
-                        for row in error_budget(subject_dir, variant, v["metrics"])]))
+    print(
+        format_table(
+            (
+                "split",
+                "variant",
+                "full-image PSNR",
+                "perfect hand",
+                "perfect hand and face",
+                "squared error: hand / face / background",
+                "hand pixels",
+            ),
+            [
+                row
+                for variant, v in (("static", static), ("full", full))
+                for row in error_budget(subject_dir, variant, v["metrics"])
+            ],
+        )
+    )
     print()
 
 
@@ -328,8 +471,11 @@ def cost_rows(full: dict | None, static: dict | None, costs: dict | None) -> lis
     rows = []
     if costs is not None:
         rows += [
-            (f"side by side ({costs['rounds']} rounds of {costs['steps']} steps, medians; {costs['gaussians']} "
-             f"Gaussians, {costs['hand_gaussians']} on the hand): warm-up ms/step", f"{costs['warmup_ms']:.0f}"),
+            (
+                f"side by side ({costs['rounds']} rounds of {costs['steps']} steps, medians; {costs['gaussians']} "
+                f"Gaussians, {costs['hand_gaussians']} on the hand): warm-up ms/step",
+                f"{costs['warmup_ms']:.0f}",
+            ),
             ("stage two ms/step", f"{costs['step_ms']:.0f}"),
             ("RATIO stage two / warm-up", f"{costs['ratio']:.2f}"),
             ("  PointNet++ forward ms", f"{costs['pointnet_ms']:.0f}"),
@@ -350,8 +496,10 @@ def cost_rows(full: dict | None, static: dict | None, costs: dict | None) -> lis
         ("DAG run: warm-up ms/step (stage wall / steps, incl. density control and validation)", f"{warm_ms:.0f}"),
         ("DAG run: stage two full ms/step", f"{dm['ms_per_step']:.0f}"),
         ("DAG run: stage two static ms/step", f"{sm['ms_per_step']:.0f}"),
-        ("  full: model forward / render / loss / backward ms",
-         " / ".join(f"{dm[k + '_ms_per_step']:.0f}" for k in ("model", "render", "loss", "backward"))),
+        (
+            "  full: model forward / render / loss / backward ms",
+            " / ".join(f"{dm[k + '_ms_per_step']:.0f}" for k in ("model", "render", "loss", "backward")),
+        ),
         ("interaction-MLP evaluations (Gaussians, all steps)", dm["interaction_mlp_evaluations"]),
         ("steps with I evaluated", dm["interaction_steps"]),
         ("peak MB (dynamic stage)", f"{full['manifests']['dynamic']['peak_memory_mb']:.0f}"),
@@ -365,21 +513,33 @@ def write_costs(results: Path, preset: str, subject: str, costs: dict, load: tup
     """Append the step costs to ``results/bench_dynamic.json`` and the cost table to ``bench_dynamic.md``
     (commit, preset, machine, threads, load before and after)."""
     results.mkdir(parents=True, exist_ok=True)
-    run = {"commit": commit(), "preset": preset, "subject": subject, "machine": cpu_name(),
-           "threads": torch.get_num_threads(), "load_before": list(load[0]), "load_after": list(load[1]),
-           "made": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "costs": costs}
+    run = {
+        "commit": commit(),
+        "preset": preset,
+        "subject": subject,
+        "machine": cpu_name(),
+        "threads": torch.get_num_threads(),
+        "load_before": list(load[0]),
+        "load_after": list(load[1]),
+        "made": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "costs": costs,
+    }
     path = results / "bench_dynamic.json"
     previous = json.loads(path.read_text()) if path.is_file() else {"runs": []}
     previous["runs"].append(run)
     path.write_text(json.dumps(previous, indent=1))
     md_path = results / "bench_dynamic.md"
     if not md_path.is_file():
-        md_path.write_text("# bench_dynamic: the stage-two step against the warm-up step (issue 33)\n\n"
-                           "Appended by `benchmarks/bench_dynamic.py`, one section per subject, preset and run.\n")
+        md_path.write_text(
+            "# bench_dynamic: the stage-two step against the warm-up step (issue 33)\n\n"
+            "Appended by `benchmarks/bench_dynamic.py`, one section per subject, preset and run.\n"
+        )
     with md_path.open("a") as md:
-        md.write(f"\n## {subject} at {preset}: commit {run['commit']}, {run['machine']}, {run['threads']} threads, "
-                 f"load {' '.join(f'{x:.2f}' for x in load[0])} -> {' '.join(f'{x:.2f}' for x in load[1])}, "
-                 f"{run['made']}\n\n```\n{format_table(('cost', 'value'), rows)}\n```\n")
+        md.write(
+            f"\n## {subject} at {preset}: commit {run['commit']}, {run['machine']}, {run['threads']} threads, "
+            f"load {' '.join(f'{x:.2f}' for x in load[0])} -> {' '.join(f'{x:.2f}' for x in load[1])}, "
+            f"{run['made']}\n\n```\n{format_table(('cost', 'value'), rows)}\n```\n"
+        )
 
 
 if __name__ == "__main__":

@@ -26,8 +26,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 
 HAND_KEYS = ("mano_shape", "mano_hand_pose", "mano_global_orient", "mano_transl")
-FACE_KEYS = ("flame_shape", "flame_expression", "flame_global_orient", "flame_neck_pose", "flame_jaw_pose",
-             "flame_eye_pose", "flame_transl")
+FACE_KEYS = (
+    "flame_shape",
+    "flame_expression",
+    "flame_global_orient",
+    "flame_neck_pose",
+    "flame_jaw_pose",
+    "flame_eye_pose",
+    "flame_transl",
+)
 
 
 def main() -> None:
@@ -38,8 +45,11 @@ def main() -> None:
     args = parser.parse_args()
     log = ResultLog("bench_fitting")
     torch.set_num_threads(1)
-    cap = generate(SyntheticConfig(subject="synth_a", sequence="train", image_size=args.size,
-                                   num_frames=args.frames, supersample=1))
+    cap = generate(
+        SyntheticConfig(
+            subject="synth_a", sequence="train", image_size=args.size, num_frames=args.frames, supersample=1
+        )
+    )
     head, hand = procedural_head(), procedural_hand()
     mano = MANOLayer(hand)
 
@@ -55,15 +65,31 @@ def main() -> None:
     rows = []
     for name, noise, outliers in (("1px noise", 1.0, 0.0), ("3px noise + 10% outl.", 3.0, 0.1)):
         rng = np.random.default_rng(0)
-        kp = {c.camera_id: {part: corrupt_keypoints(arr, noise, 0.0, outliers, args.size, rng)
-                            for part, arr in cap.keypoints[c.camera_id].items()} for c in train}
+        kp = {
+            c.camera_id: {
+                part: corrupt_keypoints(arr, noise, 0.0, outliers, args.size, rng)
+                for part, arr in cap.keypoints[c.camera_id].items()
+            }
+            for c in train
+        }
         res = fit_sequence(kp, train, head, hand, FitConfig())
-        rows.append((name, f"{mpjpe(hand_kp(res.params), hand_kp(cap.params)):.2f}",
-                     f"{landmark_error(face_lmk(res.params), face_lmk(cap.params)):.2f}",
-                     f"{np.nanmean(res.reprojection_px['hand']):.2f}", f"{np.nanmean(res.reprojection_px['face']):.2f}",
-                     f"{res.timing['per_frame_per_view_ms']:.1f}"))
-    print(log.table(f"synth_a/train, {args.frames} frames, {len(train)} train views at {args.size} px, 1 torch thread",
-                    ("condition", "hand MPJPE mm", "face lmk mm", "hand px", "face px", "ms/frame/view"), rows))
+        rows.append(
+            (
+                name,
+                f"{mpjpe(hand_kp(res.params), hand_kp(cap.params)):.2f}",
+                f"{landmark_error(face_lmk(res.params), face_lmk(cap.params)):.2f}",
+                f"{np.nanmean(res.reprojection_px['hand']):.2f}",
+                f"{np.nanmean(res.reprojection_px['face']):.2f}",
+                f"{res.timing['per_frame_per_view_ms']:.1f}",
+            )
+        )
+    print(
+        log.table(
+            f"synth_a/train, {args.frames} frames, {len(train)} train views at {args.size} px, 1 torch thread",
+            ("condition", "hand MPJPE mm", "face lmk mm", "hand px", "face px", "ms/frame/view"),
+            rows,
+        )
+    )
     log.write(args.results)
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
+
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 import torch  # noqa: E402
@@ -39,9 +40,14 @@ import torch  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 
 #: arm -> (method name, overrides); gsplat first, so that a deadline drops the reference arm, not the one checked
-ARMS = {"gsplat": ("interactavatar_gsplat", ["method.name=interactavatar_gsplat"] + [
-            f"stage.{stage}.backend=gsplat" for stage in ("warmup", "dynamic", "evaluate", "reenact")]),
-        "cpu": ("interactavatar", [])}
+ARMS = {
+    "gsplat": (
+        "interactavatar_gsplat",
+        ["method.name=interactavatar_gsplat"]
+        + [f"stage.{stage}.backend=gsplat" for stage in ("warmup", "dynamic", "evaluate", "reenact")],
+    ),
+    "cpu": ("interactavatar", []),
+}
 
 
 def build_gsplat() -> dict:
@@ -60,8 +66,12 @@ def run_cuda_tests(log: Path) -> dict:
     """The cuda-marked tests of the rasterizer; their pytest summary line and exit code, the whole output in
     ``log``."""
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider",
-                           "tests/render/gaussians"], cwd=REPO, capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider", "tests/render/gaussians"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
     log.write_text(proc.stdout + proc.stderr)
     print("\n".join(line for line in proc.stdout.splitlines() if line.startswith(("FAILED", "ERROR", "E   "))))
     summary = (proc.stdout.strip().splitlines() or [""])[-1]
@@ -82,8 +92,17 @@ def run_arm(arm: str, outputs: Path, extra: list[str] = ()) -> dict:
 
     method, overrides = ARMS[arm]
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=["quality=smoke", f"paths.outputs={outputs}", "run.until=evaluate",
-                                           "run.progress=false", *overrides, *extra])
+        cfg = compose(
+            "config",
+            overrides=[
+                "quality=smoke",
+                f"paths.outputs={outputs}",
+                "run.until=evaluate",
+                "run.progress=false",
+                *overrides,
+                *extra,
+            ],
+        )
     cfg = validate_config(cfg, REGISTRY)
     t0 = time.perf_counter()
     Runner(cfg, REGISTRY, log=lambda _m: None).run()
@@ -94,12 +113,19 @@ def run_arm(arm: str, outputs: Path, extra: list[str] = ()) -> dict:
     metrics = read_table(root / "evaluate" / "metrics.parquet", METRICS)
     psnr = {}
     for split in ("novel_view", "self_reenact"):
-        values = [p for p, s, r, m in zip(metrics["psnr"], metrics["split"], metrics["region"], metrics["method"])
-                  if s == split and r == "full" and m == method]
+        values = [
+            p
+            for p, s, r, m in zip(metrics["psnr"], metrics["split"], metrics["region"], metrics["method"])
+            if s == split and r == "full" and m == method
+        ]
         psnr[split] = float(sum(values) / len(values))
-    return {"wall_s": wall, "warmup_ms_per_step": 1000 * warm["timings"]["wall_s"] / warm["metrics"]["steps"],
-            "dynamic_ms_per_step": manifests["dynamic"]["metrics"]["ms_per_step"],
-            "psnr_novel_view": psnr["novel_view"], "psnr_self_reenact": psnr["self_reenact"]}
+    return {
+        "wall_s": wall,
+        "warmup_ms_per_step": 1000 * warm["timings"]["wall_s"] / warm["metrics"]["steps"],
+        "dynamic_ms_per_step": manifests["dynamic"]["metrics"]["ms_per_step"],
+        "psnr_novel_view": psnr["novel_view"],
+        "psnr_self_reenact": psnr["self_reenact"],
+    }
 
 
 def main() -> None:
@@ -109,27 +135,47 @@ def main() -> None:
     parser.add_argument("--skip-dag", action="store_true", help="no smoke DAG (build, tests and rasterizer only)")
     parser.add_argument("--quick", action="store_true", help="the rasterizer at its --quick sizes, 3 repeats")
     parser.add_argument("--skip-rasterizer", action="store_true", help="no gsplat-beside-cpu timing")
-    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
-                        help="overrides for both DAG arms, e.g. stage.dynamic.patch_weight=0")
-    parser.add_argument("--deadline-s", type=float, default=None,
-                        help="start no DAG arm after this many seconds (the arms left are recorded as skipped)")
+    parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="overrides for both DAG arms, e.g. stage.dynamic.patch_weight=0",
+    )
+    parser.add_argument(
+        "--deadline-s",
+        type=float,
+        default=None,
+        help="start no DAG arm after this many seconds (the arms left are recorded as skipped)",
+    )
     args = parser.parse_args()
     start = time.perf_counter()
     if not torch.cuda.is_available():
         raise SystemExit("bench_gpu needs a CUDA GPU (torch.cuda.is_available() is False)")
     from avatar.render.gaussians import available_backends
 
-    result: dict = {"commit": commit(), "dag_overrides": args.set, "machine": platform.node(), "cpu": cpu_name(),
-                    "gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda,
-                    "cpus": os.cpu_count(),
-                    "load_start": os.getloadavg()}
+    result: dict = {
+        "commit": commit(),
+        "dag_overrides": args.set,
+        "machine": platform.node(),
+        "cpu": cpu_name(),
+        "gpu": torch.cuda.get_device_name(),
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+        "cpus": os.cpu_count(),
+        "load_start": os.getloadavg(),
+    }
+
     def save() -> None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2))
 
     result.update(build_gsplat())
-    print(f"gsplat CUDA extension: loaded={result['gsplat_loaded']} in {result['gsplat_build_s']:.0f} s "
-          f"{result['gsplat_error']}", flush=True)
+    print(
+        f"gsplat CUDA extension: loaded={result['gsplat_loaded']} in {result['gsplat_build_s']:.0f} s "
+        f"{result['gsplat_error']}",
+        flush=True,
+    )
     result["backends"] = available_backends()
     save()
     result.update(run_cuda_tests(args.json.with_name(args.json.stem + "_tests.log")))
@@ -163,29 +209,43 @@ def main() -> None:
 
 def print_table(result: dict) -> None:
     """The one table ``make test-gpu`` prints."""
-    rows = [("GPU / torch / CUDA", f"{result['gpu']} / {result['torch']} / {result['cuda']}"),
-            ("gsplat extension", f"{'loaded' if result['gsplat_loaded'] else 'FAILED'} "
-                                 f"({result['gsplat_build_s']:.0f} s to build or load)"),
-            ("cuda-marked tests", result["tests_summary"])]
+    rows = [
+        ("GPU / torch / CUDA", f"{result['gpu']} / {result['torch']} / {result['cuda']}"),
+        (
+            "gsplat extension",
+            f"{'loaded' if result['gsplat_loaded'] else 'FAILED'} ({result['gsplat_build_s']:.0f} s to build or load)",
+        ),
+        ("cuda-marked tests", result["tests_summary"]),
+    ]
     if "rasterizer_error" in result:
         rows.append(("rasterizer", result["rasterizer_error"]))
     for r in result.get("rasterizer", []):
-        rows.append((f"rasterizer {r['image']}x{r['image']}, {r['gaussians'] // 1000}k: cpu / gsplat ms (x faster)",
-                     f"{r['cpu_ms']:.1f} / {r['gsplat_ms']:.2f} ({r['speedup']:.0f}x); image vs cpu "
-                     f"PSNR {r['psnr_vs_cpu']:.1f} dB, max |rgb| {r['max_rgb_diff']:.1e}"))
+        rows.append(
+            (
+                f"rasterizer {r['image']}x{r['image']}, {r['gaussians'] // 1000}k: cpu / gsplat ms (x faster)",
+                f"{r['cpu_ms']:.1f} / {r['gsplat_ms']:.2f} ({r['speedup']:.0f}x); image vs cpu "
+                f"PSNR {r['psnr_vs_cpu']:.1f} dB, max |rgb| {r['max_rgb_diff']:.1e}",
+            )
+        )
     dag = {arm: r for arm, r in result.get("dag", {}).items() if "skipped" not in r}
     for arm, r in result.get("dag", {}).items():
         if "skipped" in r:
             rows.append((f"smoke DAG, {arm} arm", r["skipped"]))
     if len(dag) == 2:
-        for key, label, fmt in (("warmup_ms_per_step", "warm-up ms/step", "{:.1f}"),
-                                ("dynamic_ms_per_step", "stage two ms/step", "{:.1f}"),
-                                ("psnr_novel_view", "novel view PSNR dB", "{:.2f}"),
-                                ("psnr_self_reenact", "self-reenactment PSNR dB", "{:.2f}"),
-                                ("wall_s", "DAG wall s (the first arm includes the shared stages)", "{:.0f}")):
+        for key, label, fmt in (
+            ("warmup_ms_per_step", "warm-up ms/step", "{:.1f}"),
+            ("dynamic_ms_per_step", "stage two ms/step", "{:.1f}"),
+            ("psnr_novel_view", "novel view PSNR dB", "{:.2f}"),
+            ("psnr_self_reenact", "self-reenactment PSNR dB", "{:.2f}"),
+            ("wall_s", "DAG wall s (the first arm includes the shared stages)", "{:.0f}"),
+        ):
             cpu, gs = dag["cpu"][key], dag["gsplat"][key]
-            rows.append((f"smoke DAG {label}: cpu / gsplat", f"{fmt.format(cpu)} / {fmt.format(gs)} "
-                                                             f"(gsplat - cpu {gs - cpu:+.2f})"))
+            rows.append(
+                (
+                    f"smoke DAG {label}: cpu / gsplat",
+                    f"{fmt.format(cpu)} / {fmt.format(gs)} (gsplat - cpu {gs - cpu:+.2f})",
+                )
+            )
     elif dag:
         rows += [(f"smoke DAG, {arm} arm", ", ".join(f"{k} {v:.2f}" for k, v in r.items())) for arm, r in dag.items()]
     rows.append(("load average start / end", f"{result['load_start'][0]:.2f} / {result['load_end'][0]:.2f}"))

@@ -71,23 +71,46 @@ def method_name(weight: float) -> str:
     return "patch_w" + f"{weight:g}".replace(".", "_")  # weights are >= 0 (checked), e.g. 1e-05 -> patch_w1e-05
 
 
-def overrides(preset: str, subject: str, outputs: Path, weight: float, warmup_steps: int, every: int, frames: int,
-              extra: list[str]) -> list[str]:
+def overrides(
+    preset: str,
+    subject: str,
+    outputs: Path,
+    weight: float,
+    warmup_steps: int,
+    every: int,
+    frames: int,
+    extra: list[str],
+) -> list[str]:
     """The full model with patch weight ``weight``; both training stages withhold the same ``frames`` frames (the
     warm-up validates only at its start and end, stage two every ``every`` steps with LPIPS)."""
-    return [f"quality={preset}", f"subject={subject}", f"paths.outputs={outputs}", "run.until=dynamic",
-            "run.progress=false", "fit.source=ground_truth", "method=interactavatar",
-            f"method.name={method_name(weight)}", f"stage.dynamic.patch_weight={weight}",
-            f"stage.warmup.validation.every={warmup_steps}", f"stage.warmup.validation.frames={frames}",
-            f"stage.dynamic.validation.every={every}", f"stage.dynamic.validation.frames={frames}",
-            "stage.dynamic.validation.lpips=true", *extra]
+    return [
+        f"quality={preset}",
+        f"subject={subject}",
+        f"paths.outputs={outputs}",
+        "run.until=dynamic",
+        "run.progress=false",
+        "fit.source=ground_truth",
+        "method=interactavatar",
+        f"method.name={method_name(weight)}",
+        f"stage.dynamic.patch_weight={weight}",
+        f"stage.warmup.validation.every={warmup_steps}",
+        f"stage.warmup.validation.frames={frames}",
+        f"stage.dynamic.validation.every={every}",
+        f"stage.dynamic.validation.frames={frames}",
+        "stage.dynamic.validation.lpips=true",
+        *extra,
+    ]
 
 
 def run_candidate(args: argparse.Namespace, outputs: Path, weight: float) -> None:
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         warmup_steps = int(compose("config", overrides=[f"quality={args.preset}", *args.set]).quality.warmup_steps)
-        cfg = compose("config", overrides=overrides(args.preset, args.subject, outputs, weight, warmup_steps,
-                                                    args.every, args.frames, args.set))
+        cfg = compose(
+            "config",
+            overrides=overrides(
+                args.preset, args.subject, outputs, weight, warmup_steps, args.every, args.frames, args.set
+            ),
+        )
     Runner(validate_config(cfg, REGISTRY), REGISTRY, log=print).run()
 
 
@@ -98,8 +121,13 @@ def load_candidate(outputs: Path, subject: str, weight: float) -> Candidate | No
         return None
     curve = read_table(folder / "curve.parquet", CURVE)
     manifest = json.loads((folder / "_manifest.json").read_text())
-    return Candidate(weight, [int(s) for s in curve["step"]], [float(p) for p in curve["psnr"]],
-                     [float(v) for v in curve["lpips"]], float(manifest["metrics"]["ms_per_step"]))
+    return Candidate(
+        weight,
+        [int(s) for s in curve["step"]],
+        [float(p) for p in curve["psnr"]],
+        [float(v) for v in curve["lpips"]],
+        float(manifest["metrics"]["ms_per_step"]),
+    )
 
 
 def choose(candidates: list[Candidate], psnr_tolerance_db: float) -> Candidate:
@@ -115,17 +143,42 @@ def report(candidates: list[Candidate], tolerance: float, log: ResultLog) -> Non
     reference = min(candidates, key=lambda c: c.weight)
     rows = []
     for c in sorted(candidates, key=lambda c: c.weight):
-        rows.append((f"{c.weight:g}", f"{c.final_psnr:.2f}", f"{c.final_psnr - reference.final_psnr:+.2f}",
-                     f"{c.final_lpips:.4f}", f"{c.final_lpips - reference.final_lpips:+.4f}",
-                     f"{max(c.psnr):.2f}", f"{c.ms_per_step:.0f}", "<- chosen" if c is chosen else ""))
-    print(log.table(f"candidates (rule: lowest validation LPIPS within {tolerance:g} dB of the best PSNR)",
-                    ("c", "val PSNR", f"vs c={reference.weight:g}", "val LPIPS", f"vs c={reference.weight:g}",
-                     "best PSNR on curve", "ms/step", ""), rows))
-    print(f"\nrule: lowest validation LPIPS within {tolerance:g} dB of the best validation PSNR "
-          f"({max(c.final_psnr for c in candidates):.2f} dB) -> c = {chosen.weight:g}")
-    curves = [(f"{c.weight:g}", ", ".join(f"{s}: {p:.2f}/{v:.4f}" for s, p, v in zip(c.steps, c.psnr, c.lpips,
-                                                                                    strict=True)))
-              for c in sorted(candidates, key=lambda c: c.weight)]
+        rows.append(
+            (
+                f"{c.weight:g}",
+                f"{c.final_psnr:.2f}",
+                f"{c.final_psnr - reference.final_psnr:+.2f}",
+                f"{c.final_lpips:.4f}",
+                f"{c.final_lpips - reference.final_lpips:+.4f}",
+                f"{max(c.psnr):.2f}",
+                f"{c.ms_per_step:.0f}",
+                "<- chosen" if c is chosen else "",
+            )
+        )
+    print(
+        log.table(
+            f"candidates (rule: lowest validation LPIPS within {tolerance:g} dB of the best PSNR)",
+            (
+                "c",
+                "val PSNR",
+                f"vs c={reference.weight:g}",
+                "val LPIPS",
+                f"vs c={reference.weight:g}",
+                "best PSNR on curve",
+                "ms/step",
+                "",
+            ),
+            rows,
+        )
+    )
+    print(
+        f"\nrule: lowest validation LPIPS within {tolerance:g} dB of the best validation PSNR "
+        f"({max(c.final_psnr for c in candidates):.2f} dB) -> c = {chosen.weight:g}"
+    )
+    curves = [
+        (f"{c.weight:g}", ", ".join(f"{s}: {p:.2f}/{v:.4f}" for s, p, v in zip(c.steps, c.psnr, c.lpips, strict=True)))
+        for c in sorted(candidates, key=lambda c: c.weight)
+    ]
     print()
     print(log.table("validation curves", ("c", "step: PSNR / LPIPS"), curves))
 

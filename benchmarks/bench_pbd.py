@@ -41,8 +41,7 @@ DRAFT_FRAMES = {"train": 24, "test": 12}
 def _sequence(subject: str, sequence: str, frames: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
     """Posed face (T, V, 3) and hand (T, Vh, 3) and the true offsets (T, V, 3) of one draft sequence
     (rendered at a token resolution: only the motion and the soft tissue are used)."""
-    cap = generate(SyntheticConfig(subject, sequence, image_size=16, num_frames=frames, supersample=1,
-                                   num_cameras=2))
+    cap = generate(SyntheticConfig(subject, sequence, image_size=16, num_frames=frames, supersample=1, num_cameras=2))
     posed = posed_keypoints(cap.params, procedural_head(), procedural_hand())
     return torch.from_numpy(posed["face_vertices"]), torch.from_numpy(posed["hand_vertices"]), cap.face_offsets
 
@@ -50,8 +49,9 @@ def _sequence(subject: str, sequence: str, frames: int) -> tuple[torch.Tensor, t
 def _evaluate(data: list[tuple[torch.Tensor, torch.Tensor, np.ndarray]], cfg: PBDConfig) -> dict[str, float]:
     """Solve every sequence of ``data``; pooled errors (mm) and mean seconds per simulated frame."""
     head, hand = procedural_head(), procedural_hand()
-    stiffness, _ = face_relative_stiffness(head.num_vertices, head.inner_distance, None, cfg.reference_thickness_m,
-                                           cfg.stiffness_power)
+    stiffness, _ = face_relative_stiffness(
+        head.num_vertices, head.inner_distance, None, cfg.reference_thickness_m, cfg.stiffness_power
+    )
     faces, hand_faces = torch.tensor(np.array(head.faces)), torch.tensor(np.array(hand.faces))
     preds, refs, seconds, penetration, cpu = [], [], [], 0.0, 0.0
     for face, hand_v, truth in data:
@@ -65,53 +65,133 @@ def _evaluate(data: list[tuple[torch.Tensor, torch.Tensor, np.ndarray]], cfg: PB
     ref = np.concatenate(refs)
     errors = moving_vertex_errors(np.concatenate(preds), ref, np.abs(ref).reshape(len(ref), -1).max(axis=1) > 0)
     assert errors is not None
-    return {"mean": errors.mean_mm, "p95": errors.p95_mm, "zero_mean": errors.zero_mean_mm,
-            "zero_p95": errors.zero_p95_mm, "ratio": errors.mean_mm / errors.zero_mean_mm,
-            "s_per_frame": float(np.mean(seconds)), "cpu_per_frame": cpu / len(seconds), "frames": len(seconds),
-            "penetration": penetration}
+    return {
+        "mean": errors.mean_mm,
+        "p95": errors.p95_mm,
+        "zero_mean": errors.zero_mean_mm,
+        "zero_p95": errors.zero_p95_mm,
+        "ratio": errors.mean_mm / errors.zero_mean_mm,
+        "s_per_frame": float(np.mean(seconds)),
+        "cpu_per_frame": cpu / len(seconds),
+        "frames": len(seconds),
+        "penetration": penetration,
+    }
 
 
 def _table1(data: dict[str, list], base: PBDConfig, log: ResultLog) -> None:
-    solver = (f"direct, at most {base.direct_outer} x {base.direct_inner} solves" if base.method == "direct" else
-              f"{base.method}, Chebyshev rho {base.chebyshev_rho}, {base.iterations} sweeps")
+    solver = (
+        f"direct, at most {base.direct_outer} x {base.direct_inner} solves"
+        if base.method == "direct"
+        else f"{base.method}, Chebyshev rho {base.chebyshev_rho}, {base.iterations} sweeps"
+    )
     rows = []
     for subject, seqs in data.items():
         r = _evaluate(seqs, base)
-        rows.append((subject, r["frames"], f"{r['mean']:.3f}", f"{r['p95']:.3f}", f"{r['zero_mean']:.3f}",
-                     f"{r['zero_p95']:.3f}", f"{r['ratio']:.0%}", f"{r['penetration']:.3f}", f"{r['s_per_frame']:.3f}",
-                     f"{r['cpu_per_frame']:.3f}"))
-    print(log.table(f"Table 1: accuracy on contact frames at draft (defaults: {solver}, shear {base.shear_stiffness})",
-                    ("subject", "contact frames", "mean error mm", "p95 mm", "zero offsets mean mm", "zero p95 mm",
-                     "mean / zero", "max residual penetration mm", "wall s per contact frame",
-                     "CPU s per contact frame"), rows), flush=True)
+        rows.append(
+            (
+                subject,
+                r["frames"],
+                f"{r['mean']:.3f}",
+                f"{r['p95']:.3f}",
+                f"{r['zero_mean']:.3f}",
+                f"{r['zero_p95']:.3f}",
+                f"{r['ratio']:.0%}",
+                f"{r['penetration']:.3f}",
+                f"{r['s_per_frame']:.3f}",
+                f"{r['cpu_per_frame']:.3f}",
+            )
+        )
+    print(
+        log.table(
+            f"Table 1: accuracy on contact frames at draft (defaults: {solver}, shear {base.shear_stiffness})",
+            (
+                "subject",
+                "contact frames",
+                "mean error mm",
+                "p95 mm",
+                "zero offsets mean mm",
+                "zero p95 mm",
+                "mean / zero",
+                "max residual penetration mm",
+                "wall s per contact frame",
+                "CPU s per contact frame",
+            ),
+            rows,
+        ),
+        flush=True,
+    )
 
 
 def _table2(data: list, base: PBDConfig, subject: str, sweep_counts: list[int], log: ResultLog) -> None:
-    methods = {"Jacobi + Chebyshev": {"method": "jacobi"}, "Jacobi": {"method": "jacobi", "chebyshev_rho": 0.0},
-               "Gauss-Seidel": {"method": "gauss_seidel", "chebyshev_rho": 0.0}}
-    runs = [(name, str(sweeps), replace(base, iterations=sweeps, **settings))
-            for name, settings in methods.items() for sweeps in sweep_counts]
-    runs.append(("Direct (the fixed point the sweeps converge to)",
-                 f"{base.direct_outer} x {base.direct_inner} solves at most", replace(base, method="direct")))
+    methods = {
+        "Jacobi + Chebyshev": {"method": "jacobi"},
+        "Jacobi": {"method": "jacobi", "chebyshev_rho": 0.0},
+        "Gauss-Seidel": {"method": "gauss_seidel", "chebyshev_rho": 0.0},
+    }
+    runs = [
+        (name, str(sweeps), replace(base, iterations=sweeps, **settings))
+        for name, settings in methods.items()
+        for sweeps in sweep_counts
+    ]
+    runs.append(
+        (
+            "Direct (the fixed point the sweeps converge to)",
+            f"{base.direct_outer} x {base.direct_inner} solves at most",
+            replace(base, method="direct"),
+        )
+    )
     rows = []
     for name, sweeps, cfg in runs:
         r = _evaluate(data, cfg)
-        rows.append((name, sweeps, f"{r['mean']:.3f}", f"{r['p95']:.3f}", f"{r['ratio']:.0%}",
-                     f"{r['s_per_frame']:.3f}", f"{r['cpu_per_frame']:.3f}"))
-    print(log.table(f"Table 2: sweeps against error and time ({subject}, draft, train + test)",
-                    ("solver", "sweeps", "mean error mm", "p95 mm", "mean / zero", "wall s per contact frame",
-                     "CPU s per contact frame"), rows), flush=True)
+        rows.append(
+            (
+                name,
+                sweeps,
+                f"{r['mean']:.3f}",
+                f"{r['p95']:.3f}",
+                f"{r['ratio']:.0%}",
+                f"{r['s_per_frame']:.3f}",
+                f"{r['cpu_per_frame']:.3f}",
+            )
+        )
+    print(
+        log.table(
+            f"Table 2: sweeps against error and time ({subject}, draft, train + test)",
+            (
+                "solver",
+                "sweeps",
+                "mean error mm",
+                "p95 mm",
+                "mean / zero",
+                "wall s per contact frame",
+                "CPU s per contact frame",
+            ),
+            rows,
+        ),
+        flush=True,
+    )
 
 
 def _table3(data: list, base: PBDConfig, subject: str, log: ResultLog) -> None:
     rows = []
     for warm in (False, True):
         r = _evaluate(data, replace(base, warm_start=warm))
-        rows.append(("previous frame" if warm else "undeformed", f"{r['mean']:.3f}", f"{r['ratio']:.0%}",
-                     f"{r['s_per_frame']:.3f}", f"{r['cpu_per_frame']:.3f}"))
-    print(log.table(f"Table 3: warm start ({subject}, draft, defaults)",
-                    ("start", "mean error mm", "mean / zero", "wall s per contact frame", "CPU s per contact frame"),
-                    rows))
+        rows.append(
+            (
+                "previous frame" if warm else "undeformed",
+                f"{r['mean']:.3f}",
+                f"{r['ratio']:.0%}",
+                f"{r['s_per_frame']:.3f}",
+                f"{r['cpu_per_frame']:.3f}",
+            )
+        )
+    print(
+        log.table(
+            f"Table 3: warm start ({subject}, draft, defaults)",
+            ("start", "mean error mm", "mean / zero", "wall s per contact frame", "CPU s per contact frame"),
+            rows,
+        )
+    )
 
 
 def main() -> None:
@@ -136,6 +216,7 @@ def main() -> None:
         print()
         _table3(data[args.subject], base, args.subject, log)
     log.write(args.results)
+
 
 if __name__ == "__main__":
     main()

@@ -58,14 +58,25 @@ NV_FULL = ("novel_view", "full", "psnr")
 def run(preset: str, method: str, outputs: Path, fit_source: str, extra: list[str]) -> dict:
     """One DAG run until evaluate; the manifests of its stages and the evaluate metrics table."""
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"quality={preset}", f"paths.outputs={outputs}", "run.until=evaluate",
-                                           "run.progress=false", f"fit.source={fit_source}", f"method={method}",
-                                           *extra])
+        cfg = compose(
+            "config",
+            overrides=[
+                f"quality={preset}",
+                f"paths.outputs={outputs}",
+                "run.until=evaluate",
+                "run.progress=false",
+                f"fit.source={fit_source}",
+                f"method={method}",
+                *extra,
+            ],
+        )
     Runner(validate_config(cfg, REGISTRY), REGISTRY, log=lambda _m: None).run()
     root = outputs / cfg.subject
     folders = {s: root / s for s in SHARED} | {s: root / "methods" / method / s for s in PER_METHOD}
-    return {"manifests": {s: json.loads((f / "_manifest.json").read_text()) for s, f in folders.items()},
-            "metrics": read_table(folders["evaluate"] / "metrics.parquet", METRICS)}
+    return {
+        "manifests": {s: json.loads((f / "_manifest.json").read_text()) for s, f in folders.items()},
+        "metrics": read_table(folders["evaluate"] / "metrics.parquet", METRICS),
+    }
 
 
 def region_means(metrics: dict) -> dict[tuple[str, str, str], float]:
@@ -90,8 +101,11 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=["smoke", "draft"])
     parser.add_argument("--methods", nargs="+", default=["gaussian_avatars", "interactavatar"])
     parser.add_argument("--outputs", type=Path, default=None, help="keep artifacts here (default: a temp dir)")
-    parser.add_argument("--fit-source", default="ground_truth",
-                        help="fit.source: ground_truth (default) measures the avatar apart from fitting error")
+    parser.add_argument(
+        "--fit-source",
+        default="ground_truth",
+        help="fit.source: ground_truth (default) measures the avatar apart from fitting error",
+    )
     parser.add_argument("--early-stop", action="store_true", help="also measure stop_when_flat (two runs each)")
     parser.add_argument("--every", type=int, default=100, help="validation interval (steps) with --early-stop")
     add_results_argument(parser)
@@ -106,8 +120,9 @@ def main() -> None:
         for preset in args.presets:
             for variant, extra in variants.items():
                 for method in args.methods:
-                    results[(preset, method, variant)] = run(preset, method, base / variant / preset,
-                                                             args.fit_source, extra)
+                    results[(preset, method, variant)] = run(
+                        preset, method, base / variant / preset, args.fit_source, extra
+                    )
     largest = args.presets[-1]
     cost, quality = [], []
     for preset in args.presets:
@@ -120,24 +135,66 @@ def main() -> None:
             total = shared + wall(r, PER_METHOD)
             ref_total = wall(ref, SHARED) + wall(ref, PER_METHOD)
             peak = max(m["peak_memory_mb"] for m in r["manifests"].values())
-            cost.append((preset, method, f"{shared:.0f}", *(f"{r['manifests'][s]['timings']['wall_s']:.0f}"
-                                                            for s in PER_METHOD),
-                         f"{total:.0f}", f"{total / ref_total:.2f}", f"{peak:.0f}",
-                         r["manifests"]["dynamic"]["metrics"]["gaussians"]))
+            cost.append(
+                (
+                    preset,
+                    method,
+                    f"{shared:.0f}",
+                    *(f"{r['manifests'][s]['timings']['wall_s']:.0f}" for s in PER_METHOD),
+                    f"{total:.0f}",
+                    f"{total / ref_total:.2f}",
+                    f"{peak:.0f}",
+                    r["manifests"]["dynamic"]["metrics"]["gaussians"],
+                )
+            )
             means, ref_means = region_means(r["metrics"]), region_means(ref["metrics"])
-            quality.append((preset, method, *(f"{means[(s, reg, m)]:.{2 if m == 'psnr' else 4}f}"
-                                              for s in SPLITS for reg in REGIONS for m in ("psnr", "ssim", "lpips")),
-                            f"{100 * means[NV_FULL] / ref_means[NV_FULL]:.1f}"))
+            quality.append(
+                (
+                    preset,
+                    method,
+                    *(
+                        f"{means[(s, reg, m)]:.{2 if m == 'psnr' else 4}f}"
+                        for s in SPLITS
+                        for reg in REGIONS
+                        for m in ("psnr", "ssim", "lpips")
+                    ),
+                    f"{100 * means[NV_FULL] / ref_means[NV_FULL]:.1f}",
+                )
+            )
     load = os.getloadavg()
-    print(f"fit.source={args.fit_source}; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}; ratios "
-          f"against {largest}")
-    print(log.table(f"cost (fit.source={args.fit_source}; ratios against {largest})",
-                    ("preset", "method", "shared s", *(f"{s} s" for s in PER_METHOD), "total s", f"x {largest}",
-                     "peak MB", "Gaussians"), cost))
+    print(
+        f"fit.source={args.fit_source}; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}; ratios "
+        f"against {largest}"
+    )
+    print(
+        log.table(
+            f"cost (fit.source={args.fit_source}; ratios against {largest})",
+            (
+                "preset",
+                "method",
+                "shared s",
+                *(f"{s} s" for s in PER_METHOD),
+                "total s",
+                f"x {largest}",
+                "peak MB",
+                "Gaussians",
+            ),
+            cost,
+        )
+    )
     print()
-    print(log.table(f"quality (fit.source={args.fit_source}; NV: held-out camera, SR: held-out motion)",
-                    ("preset", "method", *(f"{SPLITS[s]} {reg} {m}" for s in SPLITS for reg in REGIONS
-                                           for m in ("PSNR", "SSIM", "LPIPS")), f"NV PSNR % {largest}"), quality))
+    print(
+        log.table(
+            f"quality (fit.source={args.fit_source}; NV: held-out camera, SR: held-out motion)",
+            (
+                "preset",
+                "method",
+                *(f"{SPLITS[s]} {reg} {m}" for s in SPLITS for reg in REGIONS for m in ("PSNR", "SSIM", "LPIPS")),
+                f"NV PSNR % {largest}",
+            ),
+            quality,
+        )
+    )
     if args.early_stop:
         rows = []
         for preset in args.presets:
@@ -147,13 +204,36 @@ def main() -> None:
                 s_steps = sum(stopped["manifests"][s]["metrics"]["steps"] for s in ("warmup", "dynamic"))
                 p_s, s_s = wall(planned, ("warmup", "dynamic")), wall(stopped, ("warmup", "dynamic"))
                 p_q, s_q = region_means(planned["metrics"]), region_means(stopped["metrics"])
-                rows.append((preset, method, p_steps, s_steps, f"{p_s:.0f}", f"{s_s:.0f}",
-                             f"{100 * (1 - s_s / p_s):.0f}",
-                             *(f"{s_q[(s, 'full', 'psnr')] - p_q[(s, 'full', 'psnr')]:+.2f}" for s in SPLITS)))
+                rows.append(
+                    (
+                        preset,
+                        method,
+                        p_steps,
+                        s_steps,
+                        f"{p_s:.0f}",
+                        f"{s_s:.0f}",
+                        f"{100 * (1 - s_s / p_s):.0f}",
+                        *(f"{s_q[(s, 'full', 'psnr')] - p_q[(s, 'full', 'psnr')]:+.2f}" for s in SPLITS),
+                    )
+                )
         print()
-        print(log.table("early stop (stop_when_flat) against the planned schedule",
-                        ("preset", "method", "planned steps", "steps run", "planned train s", "stopped train s",
-                         "time saved %", "NV PSNR change", "SR PSNR change"), rows))
+        print(
+            log.table(
+                "early stop (stop_when_flat) against the planned schedule",
+                (
+                    "preset",
+                    "method",
+                    "planned steps",
+                    "steps run",
+                    "planned train s",
+                    "stopped train s",
+                    "time saved %",
+                    "NV PSNR change",
+                    "SR PSNR change",
+                ),
+                rows,
+            )
+        )
     log.write(args.results)
 
 

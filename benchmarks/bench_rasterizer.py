@@ -70,9 +70,13 @@ def avatar_scene(n: int, size: int, device: str, seed: int = 0) -> tuple[list[to
     """N avatar-like Gaussians (requiring grad) and a ``size`` x ``size`` camera."""
     g = torch.Generator().manual_seed(seed)
     direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
-    params = [direction * 0.1 + torch.tensor([0.0, 0.0, 0.7]), torch.randn(n, 4, generator=g),
-              0.001 + 0.002 * torch.rand(n, 3, generator=g), torch.rand(n, generator=g),
-              torch.rand(n, 3, generator=g)]
+    params = [
+        direction * 0.1 + torch.tensor([0.0, 0.0, 0.7]),
+        torch.randn(n, 4, generator=g),
+        0.001 + 0.002 * torch.rand(n, 3, generator=g),
+        torch.rand(n, generator=g),
+        torch.rand(n, 3, generator=g),
+    ]
     f = 2.0 * size
     k = torch.tensor([[f, 0.0, (size - 1) / 2], [0.0, f, (size - 1) / 2], [0.0, 0.0, 1.0]])
     camera = (k.to(device), torch.eye(4, device=device), size, size, torch.zeros(3, device=device))
@@ -84,9 +88,11 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def _iteration(params: list[torch.Tensor], camera: tuple, backend: str,
-               tile_size: int | None = None) -> Callable[[], None]:
+def _iteration(
+    params: list[torch.Tensor], camera: tuple, backend: str, tile_size: int | None = None
+) -> Callable[[], None]:
     """One forward + backward; ``tile_size`` renders with ``render_cpu`` at that tile size."""
+
     def run() -> None:
         for p in params:
             p.grad = None
@@ -142,8 +148,14 @@ def time_interleaved(runs: dict[str, Callable[[], None]], repeats: int, device: 
     return {name: statistics.median(t) for name, t in times.items()}
 
 
-def bench_cpu_backends(configs: list[tuple[int, int]], threads: list[int], tile_sizes: list[int], repeats: int,
-                       memory: bool, log: ResultLog) -> None:
+def bench_cpu_backends(
+    configs: list[tuple[int, int]],
+    threads: list[int],
+    tile_sizes: list[int],
+    repeats: int,
+    memory: bool,
+    log: ResultLog,
+) -> None:
     """Time, memory and work tables of the torch and compiled cpu backends; the target verdicts."""
     cpu_names = [f"cpu/{ts}" for ts in tile_sizes]
     main_cpu = f"cpu/{DEFAULT_TILE_SIZE}" if DEFAULT_TILE_SIZE in tile_sizes else cpu_names[0]
@@ -157,32 +169,77 @@ def bench_cpu_backends(configs: list[tuple[int, int]], threads: list[int], tile_
             runs.update({name: _iteration(params, camera, "cpu", ts) for name, ts in zip(cpu_names, tile_sizes)})
             med = time_interleaved(runs, repeats, "cpu")
             medians[size, n, t] = med
-            time_rows.append((f"{size}x{size}", n, t, f"{med['torch']:.0f}",
-                              *(f"{med[name]:.1f}" for name in cpu_names), f"{med['torch'] / med[main_cpu]:.1f}"))
+            time_rows.append(
+                (
+                    f"{size}x{size}",
+                    n,
+                    t,
+                    f"{med['torch']:.0f}",
+                    *(f"{med[name]:.1f}" for name in cpu_names),
+                    f"{med['torch'] / med[main_cpu]:.1f}",
+                )
+            )
         torch.set_num_threads(threads[0])
         peaks = [f"{spawned_memory_mb(size, n, b, 'cpu'):.0f}" for b in ("torch", "cpu")] if memory else ["-", "-"]
         ns_alpha = 1e6 * medians[size, n, threads[0]][main_cpu] / (evaluations + contributions)
-        work_rows.append((f"{size}x{size}", n, *peaks, evaluations, contributions, f"{ns_alpha:.1f}",
-                          f"{ns_alpha / BOUND_NS_PER_ALPHA:.1f}"))
+        work_rows.append(
+            (
+                f"{size}x{size}",
+                n,
+                *peaks,
+                evaluations,
+                contributions,
+                f"{ns_alpha:.1f}",
+                f"{ns_alpha / BOUND_NS_PER_ALPHA:.1f}",
+            )
+        )
     print()
-    print(log.table("forward + backward per iteration, median ms (cpu/T: compiled backend, T x T tiles)",
-                    ("image", "gaussians", "threads", "torch", *cpu_names, f"torch / {main_cpu}"), time_rows))
+    print(
+        log.table(
+            "forward + backward per iteration, median ms (cpu/T: compiled backend, T x T tiles)",
+            ("image", "gaussians", "threads", "torch", *cpu_names, f"torch / {main_cpu}"),
+            time_rows,
+        )
+    )
     print()
-    print(log.table(f"peak memory of a first iteration ({threads[0]} thread(s)) and the compiled backend's work "
-                    f"({DEFAULT_TILE_SIZE}x{DEFAULT_TILE_SIZE} tiles, ns/alpha at {threads[0]} thread(s))",
-                    ("image", "gaussians", "torch MiB", "cpu MiB", "alpha evals", "contributing", "ns/alpha",
-                     f"x bound ({BOUND_NS_PER_ALPHA:g} ns)"), work_rows))
+    print(
+        log.table(
+            f"peak memory of a first iteration ({threads[0]} thread(s)) and the compiled backend's work "
+            f"({DEFAULT_TILE_SIZE}x{DEFAULT_TILE_SIZE} tiles, ns/alpha at {threads[0]} thread(s))",
+            (
+                "image",
+                "gaussians",
+                "torch MiB",
+                "cpu MiB",
+                "alpha evals",
+                "contributing",
+                "ns/alpha",
+                f"x bound ({BOUND_NS_PER_ALPHA:g} ns)",
+            ),
+            work_rows,
+        )
+    )
     verdicts = []
     for size, n in TARGETS:
         for t in threads:
             if (size, n, t) in medians:
                 ratio = medians[size, n, t]["torch"] / medians[size, n, t][main_cpu]
-                verdicts.append((f"cpu >= 10x faster than torch, {size}x{size}/{n // 1000}k, {t} thread(s)",
-                                 f"{ratio:.1f}x", "meets" if ratio >= 10 else "misses"))
+                verdicts.append(
+                    (
+                        f"cpu >= 10x faster than torch, {size}x{size}/{n // 1000}k, {t} thread(s)",
+                        f"{ratio:.1f}x",
+                        "meets" if ratio >= 10 else "misses",
+                    )
+                )
     goal = medians.get((256, 50_000, threads[0]))
     if goal:
-        verdicts.append(("torch 256x256, 50k Gaussians < 500 ms", f"{goal['torch']:.0f} ms",
-                         "meets" if goal["torch"] < 500 else "misses"))
+        verdicts.append(
+            (
+                "torch 256x256, 50k Gaussians < 500 ms",
+                f"{goal['torch']:.0f} ms",
+                "meets" if goal["torch"] < 500 else "misses",
+            )
+        )
     if verdicts:
         print()
         print(log.table("targets", ("target", "measured", "verdict"), verdicts))
@@ -212,12 +269,19 @@ def gsplat_beside_cpu(configs: list[tuple[int, int]], repeats: int, memory: bool
             theirs = render_gaussians(*gpu_params, *gpu_camera, backend="gsplat")
         rgb_diff = (theirs.rgb.cpu() - ours.rgb).abs()
         mse = float(rgb_diff.square().mean())
-        rows.append({"image": size, "gaussians": n, "cpu_ms": med["cpu"], "gsplat_ms": med["gsplat"],
-                     "speedup": med["cpu"] / med["gsplat"],
-                     "gsplat_peak_mib": spawned_memory_mb(size, n, "gsplat", "cuda") if memory else None,
-                     "max_rgb_diff": float(rgb_diff.max()),
-                     "max_alpha_diff": float((theirs.alpha.cpu() - ours.alpha).abs().max()),
-                     "psnr_vs_cpu": float("inf") if mse == 0 else -10 * math.log10(mse)})
+        rows.append(
+            {
+                "image": size,
+                "gaussians": n,
+                "cpu_ms": med["cpu"],
+                "gsplat_ms": med["gsplat"],
+                "speedup": med["cpu"] / med["gsplat"],
+                "gsplat_peak_mib": spawned_memory_mb(size, n, "gsplat", "cuda") if memory else None,
+                "max_rgb_diff": float(rgb_diff.max()),
+                "max_alpha_diff": float((theirs.alpha.cpu() - ours.alpha).abs().max()),
+                "psnr_vs_cpu": float("inf") if mse == 0 else -10 * math.log10(mse),
+            }
+        )
     return rows
 
 
@@ -225,14 +289,37 @@ def bench_gsplat(configs: list[tuple[int, int]], repeats: int, memory: bool, log
     """Print :func:`gsplat_beside_cpu`'s table."""
     rows = gsplat_beside_cpu(configs, repeats, memory)
     print()
-    print(log.table(f"gsplat backend ({torch.cuda.get_device_name()}) beside the compiled cpu backend "
-                    f"({torch.get_num_threads()} threads), forward + backward per iteration, median ms",
-                    ("image", "gaussians", "cpu ms", "gsplat ms", "cpu / gsplat", "gsplat peak MiB",
-                     "max |rgb diff|", "max |alpha diff|", "PSNR vs cpu dB"),
-                    [(f"{r['image']}x{r['image']}", r["gaussians"], f"{r['cpu_ms']:.1f}", f"{r['gsplat_ms']:.2f}",
-                      f"{r['speedup']:.0f}", "-" if r["gsplat_peak_mib"] is None else f"{r['gsplat_peak_mib']:.0f}",
-                      f"{r['max_rgb_diff']:.1e}", f"{r['max_alpha_diff']:.1e}", f"{r['psnr_vs_cpu']:.1f}")
-                     for r in rows]))
+    print(
+        log.table(
+            f"gsplat backend ({torch.cuda.get_device_name()}) beside the compiled cpu backend "
+            f"({torch.get_num_threads()} threads), forward + backward per iteration, median ms",
+            (
+                "image",
+                "gaussians",
+                "cpu ms",
+                "gsplat ms",
+                "cpu / gsplat",
+                "gsplat peak MiB",
+                "max |rgb diff|",
+                "max |alpha diff|",
+                "PSNR vs cpu dB",
+            ),
+            [
+                (
+                    f"{r['image']}x{r['image']}",
+                    r["gaussians"],
+                    f"{r['cpu_ms']:.1f}",
+                    f"{r['gsplat_ms']:.2f}",
+                    f"{r['speedup']:.0f}",
+                    "-" if r["gsplat_peak_mib"] is None else f"{r['gsplat_peak_mib']:.0f}",
+                    f"{r['max_rgb_diff']:.1e}",
+                    f"{r['max_alpha_diff']:.1e}",
+                    f"{r['psnr_vs_cpu']:.1f}",
+                )
+                for r in rows
+            ],
+        )
+    )
 
 
 def main() -> None:
@@ -240,19 +327,30 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help=f"only {QUICK}")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="torch.set_num_threads values")
-    parser.add_argument("--tile-sizes", type=int, nargs="+", default=[DEFAULT_TILE_SIZE],
-                        help="tile sizes of the compiled backend to time (8, 16)")
+    parser.add_argument(
+        "--tile-sizes",
+        type=int,
+        nargs="+",
+        default=[DEFAULT_TILE_SIZE],
+        help="tile sizes of the compiled backend to time (8, 16)",
+    )
     parser.add_argument("--no-memory", action="store_true", help="skip the spawned peak-memory runs")
-    parser.add_argument("--backend", choices=["all", "gsplat"], default="all",
-                        help="gsplat: only gsplat beside the compiled cpu backend (needs CUDA), not the torch backend")
+    parser.add_argument(
+        "--backend",
+        choices=["all", "gsplat"],
+        default="all",
+        help="gsplat: only gsplat beside the compiled cpu backend (needs CUDA), not the torch backend",
+    )
     add_results_argument(parser)
     args = parser.parse_args()
     log = ResultLog("bench_rasterizer")
     configs = QUICK if args.quick else FULL
     backends = available_backends()
     wait_policy = os.environ.get("OMP_WAIT_POLICY", "unset")
-    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, OMP_WAIT_POLICY={wait_policy}, "
-          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}; backends: {', '.join(backends)}")
+    print(
+        f"torch {torch.__version__}, {os.cpu_count()} CPUs, OMP_WAIT_POLICY={wait_policy}, "
+        f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}; backends: {', '.join(backends)}"
+    )
     if "cpu" not in backends:
         raise SystemExit("the compiled cpu backend is not built; see the warning above")
     if args.backend == "gsplat" and "gsplat" not in backends:

@@ -51,9 +51,18 @@ def main() -> None:
     log = ResultLog("bench_reenact", preset=args.quality)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = validate_config(compose("config", overrides=[f"subject={args.subject}", f"method={args.method}",
-                                                           f"quality={args.quality}",
-                                                           f"paths.outputs={args.outputs}"]), REGISTRY)
+        cfg = validate_config(
+            compose(
+                "config",
+                overrides=[
+                    f"subject={args.subject}",
+                    f"method={args.method}",
+                    f"quality={args.quality}",
+                    f"paths.outputs={args.outputs}",
+                ],
+            ),
+            REGISTRY,
+        )
     root = args.outputs / args.subject
     model = load_trained(root / "methods" / args.method / "dynamic")
     driven = drive(cfg, load_params(root / "fit", "test"), load_scene(root / "scene"))
@@ -79,20 +88,45 @@ def main() -> None:
                     w2c = torch.tensor(cameras[t], dtype=torch.float32)
                     for backend in args.backends:
                         start = time.perf_counter()
-                        render_gaussians(g.means, g.quats, g.scales, g.opacities, g.colors, K, w2c, size, size,
-                                         background, backend=backend)
+                        render_gaussians(
+                            g.means,
+                            g.quats,
+                            g.scales,
+                            g.opacities,
+                            g.colors,
+                            K,
+                            w2c,
+                            size,
+                            size,
+                            background,
+                            backend=backend,
+                        )
                         render_ms[(size, backend)].append(1000 * (time.perf_counter() - start))
     model_median = statistics.median(model_ms)
     rows = []
     for (size, backend), times in render_ms.items():
         median = statistics.median(times)
-        rows.append((size, resolve_backend(backend, vertices), f"{model_median:.1f}", f"{median:.1f}",
-                     f"{1000 / (model_median + median):.1f}", f"{1000 / median:.1f}"))
-    print(f"{args.method} on {args.subject} ({args.quality}): {len(g.means)} Gaussians, {T} frames x "
-          f"{args.repeats}; load average {load0:.1f} -> {os.getloadavg()[0]:.1f}")
-    print(log.table(f"{args.method} on {args.subject}: {len(g.means)} Gaussians, held-out motion, orbit view",
-                    ("px", "rasterizer", "model ms/frame", "render ms/view", "fps (model + render)",
-                     "fps (render only)"), rows))
+        rows.append(
+            (
+                size,
+                resolve_backend(backend, vertices),
+                f"{model_median:.1f}",
+                f"{median:.1f}",
+                f"{1000 / (model_median + median):.1f}",
+                f"{1000 / median:.1f}",
+            )
+        )
+    print(
+        f"{args.method} on {args.subject} ({args.quality}): {len(g.means)} Gaussians, {T} frames x "
+        f"{args.repeats}; load average {load0:.1f} -> {os.getloadavg()[0]:.1f}"
+    )
+    print(
+        log.table(
+            f"{args.method} on {args.subject}: {len(g.means)} Gaussians, held-out motion, orbit view",
+            ("px", "rasterizer", "model ms/frame", "render ms/view", "fps (model + render)", "fps (render only)"),
+            rows,
+        )
+    )
     log.write(args.results)
 
 

@@ -25,12 +25,11 @@ import torch
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
-from benchmarks.provenance import commit, cpu_name  # noqa: E402
-
 from avatar.fitting.fit import FitConfig, fit_sequence  # noqa: E402
 from avatar.fitting.refine import REFINE_MODES, RefineConfig, evidence_from_views  # noqa: E402
 from avatar.templates import procedural_hand, procedural_head  # noqa: E402
 from avatar.training.data import ViewSet  # noqa: E402
+from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.cameras import read_cameras  # noqa: E402
 from data_schemas.capture import CaptureIndex  # noqa: E402
 from data_schemas.keypoints import KEYPOINTS  # noqa: E402
@@ -44,8 +43,14 @@ ERRORS = ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_hand_mm", "vertex_erro
 
 def _subset(views: ViewSet, camera_ids: list[str]) -> ViewSet:
     idx = [views.camera_ids.index(c) for c in camera_ids]
-    return ViewSet(images=views.images[:, idx], labels=views.labels[:, idx], K=views.K[idx],
-                   world_to_cam=views.world_to_cam[idx], camera_ids=camera_ids, background=views.background)
+    return ViewSet(
+        images=views.images[:, idx],
+        labels=views.labels[:, idx],
+        K=views.K[idx],
+        world_to_cam=views.world_to_cam[idx],
+        camera_ids=camera_ids,
+        background=views.background,
+    )
 
 
 def measure(workspace: Path, sequence: str, modes: list[str], cameras: list[str] | None, detector: str) -> list[dict]:
@@ -53,10 +58,14 @@ def measure(workspace: Path, sequence: str, modes: list[str], cameras: list[str]
     head, hand = procedural_head(), procedural_hand()
     cap = workspace / "capture"
     info = CaptureIndex.read(cap).sequences[sequence]
-    train = [c for c in read_cameras(cap / "cameras.parquet") if c.split == "train"
-             and (cameras is None or c.camera_id in cameras)]
-    keypoints = _keypoints_by_camera(read_table(workspace / "keypoints" / sequence / "keypoints.parquet", KEYPOINTS),
-                                     info.num_frames)
+    train = [
+        c
+        for c in read_cameras(cap / "cameras.parquet")
+        if c.split == "train" and (cameras is None or c.camera_id in cameras)
+    ]
+    keypoints = _keypoints_by_camera(
+        read_table(workspace / "keypoints" / sequence / "keypoints.parquet", KEYPOINTS), info.num_frames
+    )
     keypoints = {c.camera_id: keypoints[c.camera_id] for c in train if c.camera_id in keypoints}
     views = _subset(load_views(cap, workspace / "frames", sequence, "train"), [c.camera_id for c in train])
     settings = RefineConfig()
@@ -70,8 +79,14 @@ def measure(workspace: Path, sequence: str, modes: list[str], cameras: list[str]
         row = {"mode": mode, **{k: round(v, 2) for k, v in errors.items()}, "views": len(train)}
         if result.refinement is not None:
             iou = result.refinement.silhouette_iou
-            row.update({f"iou_{p}_{when}": round(float(np.mean(list(iou[when][p].values()))), 3)
-                        for when in ("before", "after") for p in ("face", "hand") if iou[when][p]})
+            row.update(
+                {
+                    f"iou_{p}_{when}": round(float(np.mean(list(iou[when][p].values()))), 3)
+                    for when in ("before", "after")
+                    for p in ("face", "hand")
+                    if iou[when][p]
+                }
+            )
             row["s_per_frame_per_view"] = round(result.refinement.seconds / info.num_frames / len(train), 3)
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -91,10 +106,22 @@ def main() -> None:
     rows = measure(args.workspace, args.sequence, args.modes, args.cameras, args.detector)
     print(format_table(list(rows[0]), [[str(r.get(k, "-")) for k in rows[0]] for r in rows]))
     args.results.mkdir(parents=True, exist_ok=True)
-    (args.results / "bench_refine.json").write_text(json.dumps(
-        {"commit": commit(), "machine": cpu_name(), "cores": os.cpu_count(),
-         "load": os.getloadavg(), "workspace": str(args.workspace), "sequence": args.sequence,
-         "cameras": args.cameras, "settings": asdict(RefineConfig()), "rows": rows}, indent=1))
+    (args.results / "bench_refine.json").write_text(
+        json.dumps(
+            {
+                "commit": commit(),
+                "machine": cpu_name(),
+                "cores": os.cpu_count(),
+                "load": os.getloadavg(),
+                "workspace": str(args.workspace),
+                "sequence": args.sequence,
+                "cameras": args.cameras,
+                "settings": asdict(RefineConfig()),
+                "rows": rows,
+            },
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -55,8 +55,7 @@ def _timed(fn) -> float:
 def bench_in_process(n_stages: int, files: int, kb: int) -> list[tuple]:
     chain = [_payload_stage(f"s{i}", (f"s{i - 1}",) if i else (), files, kb) for i in range(n_stages)]
     registry = StageRegistry(chain)
-    with tempfile.TemporaryDirectory() as tmp, initialize_config_dir(config_dir=str(REPO / "conf"),
-                                                                      version_base="1.3"):
+    with tempfile.TemporaryDirectory() as tmp, initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["stage=[]", f"paths.outputs={tmp}", "run.progress=false"])
         cfg = validate_config(cfg, registry)
         quiet = lambda _msg: None  # noqa: E731
@@ -70,8 +69,7 @@ def bench_cli() -> list[tuple]:
     env_cmd = [sys.executable]
     with tempfile.TemporaryDirectory() as tmp:
         args = ["-m", "pipeline.cli", f"paths.outputs={tmp}", "quality=smoke", "run.progress=false"]
-        startup = _timed(lambda: subprocess.run([*env_cmd, "-c", "import pipeline.cli, stages"], cwd=REPO,
-                                                check=True))
+        startup = _timed(lambda: subprocess.run([*env_cmd, "-c", "import pipeline.cli, stages"], cwd=REPO, check=True))
         first = _timed(lambda: subprocess.run([*env_cmd, *args], cwd=REPO, check=True, capture_output=True))
         cached = _timed(lambda: subprocess.run([*env_cmd, *args], cwd=REPO, check=True, capture_output=True))
     return [("real DAG, quality=smoke, CLI", first, cached, cached / first, startup, cached - startup)]
@@ -87,12 +85,29 @@ def main() -> None:
     args = parser.parse_args()
     log = ResultLog("bench_runner")
     rows = bench_in_process(args.stages, args.files, args.kb)
-    print(log.table("synthetic chain, in-process",
-                    ("workload (in-process)", "first run s", "cached run s", "cached / first"), rows))
+    print(
+        log.table(
+            "synthetic chain, in-process",
+            ("workload (in-process)", "first run s", "cached run s", "cached / first"),
+            rows,
+        )
+    )
     if not args.skip_cli:
         print()
-        print(log.table("the real DAG through the CLI", ("workload", "first run s", "cached run s", "cached / first",
-                                                         "start-up s", "runner overhead s (goal < 2)"), bench_cli()))
+        print(
+            log.table(
+                "the real DAG through the CLI",
+                (
+                    "workload",
+                    "first run s",
+                    "cached run s",
+                    "cached / first",
+                    "start-up s",
+                    "runner overhead s (goal < 2)",
+                ),
+                bench_cli(),
+            )
+        )
     log.write(args.results)
 
 

@@ -39,23 +39,39 @@ from pipeline.runner import Runner  # noqa: E402
 from stages import REGISTRY  # noqa: E402
 
 TIMED = ("pbd", "warmup", "dynamic", "evaluate")
-SETTINGS = {"auto": [], "everything": [f"stage.scene.{d}=true" for d in ("model_hand", "model_pbd",
-                                                                          "model_interaction")]}
+SETTINGS = {
+    "auto": [],
+    "everything": [f"stage.scene.{d}=true" for d in ("model_hand", "model_pbd", "model_interaction")],
+}
 
 
 def run(preset: str, scene: str, setting: str, outputs: Path, fit_source: str, extra: list[str]) -> dict:
     """One DAG run until evaluate (forced, so a repeat recomputes); its manifests and the scene's decisions."""
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"quality={preset}", f"paths.outputs={outputs}", f"dataset.scene={scene}",
-                                           f"fit.source={fit_source}", "run.until=evaluate", "run.progress=false",
-                                           "stage.capture.cross_reenactment=false", *SETTINGS[setting], *extra])
+        cfg = compose(
+            "config",
+            overrides=[
+                f"quality={preset}",
+                f"paths.outputs={outputs}",
+                f"dataset.scene={scene}",
+                f"fit.source={fit_source}",
+                "run.until=evaluate",
+                "run.progress=false",
+                "stage.capture.cross_reenactment=false",
+                *SETTINGS[setting],
+                *extra,
+            ],
+        )
     Runner(validate_config(cfg, REGISTRY), REGISTRY, log=lambda _m: None).run()
     root = outputs / cfg.subject
     folder = {s: root / s if s == "pbd" else root / "methods" / "interactavatar" / s for s in TIMED}
     manifests = {s: json.loads((folder[s] / "_manifest.json").read_text()) for s in TIMED}
     parts = read_table(folder["warmup"] / "gaussians.parquet", BOUND_GAUSSIANS)["part"]
-    return {"scene": json.loads((root / "scene" / "scene.json").read_text()), "manifests": manifests,
-            "hand_gaussians": sum(p == "hand" for p in parts)}
+    return {
+        "scene": json.loads((root / "scene" / "scene.json").read_text()),
+        "manifests": manifests,
+        "hand_gaussians": sum(p == "hand" for p in parts),
+    }
 
 
 def _force_rerun(outputs: Path) -> None:
@@ -87,24 +103,53 @@ def main() -> None:
                     _force_rerun(outputs)
                     runs[setting].append(run(args.preset, scene, setting, outputs, args.fit_source, args.overrides))
             reference = statistics.median(
-                sum(r["manifests"][s]["timings"]["wall_s"] for s in TIMED) for r in runs["everything"])
+                sum(r["manifests"][s]["timings"]["wall_s"] for s in TIMED) for r in runs["everything"]
+            )
             for setting, results in runs.items():
                 last = results[-1]
                 m = {s: last["manifests"][s]["metrics"] for s in TIMED}
                 wall = statistics.median(sum(r["manifests"][s]["timings"]["wall_s"] for s in TIMED) for r in results)
-                decided = "".join(k[6].upper() if last["scene"][k] else "-"
-                                  for k in ("model_hand", "model_pbd", "model_interaction"))
-                rows.append((scene, setting, decided, f"{wall:.0f}", f"{wall / reference:.2f}",
-                             last["hand_gaussians"], m["dynamic"].get("interaction_mlp_evaluations", 0),
-                             m["pbd"]["simulated_frames"], f"{m['evaluate']['novel_view_psnr']:.2f}",
-                             f"{m['evaluate']['self_reenact_psnr']:.2f}"))
+                decided = "".join(
+                    k[6].upper() if last["scene"][k] else "-" for k in ("model_hand", "model_pbd", "model_interaction")
+                )
+                rows.append(
+                    (
+                        scene,
+                        setting,
+                        decided,
+                        f"{wall:.0f}",
+                        f"{wall / reference:.2f}",
+                        last["hand_gaussians"],
+                        m["dynamic"].get("interaction_mlp_evaluations", 0),
+                        m["pbd"]["simulated_frames"],
+                        f"{m['evaluate']['novel_view_psnr']:.2f}",
+                        f"{m['evaluate']['self_reenact_psnr']:.2f}",
+                    )
+                )
     load = os.getloadavg()
-    print(f"preset {args.preset}, fit.source={args.fit_source}, {' '.join(args.overrides)}, {args.repeats} round(s), "
-          f"load average {load[0]:.1f} / {load[1]:.1f}")
-    print(log.table(f"auto against everything (fit.source={args.fit_source}, {args.repeats} round(s) "
-                    f"{' '.join(args.overrides)})".replace(" )", ")"),
-                    ("scene", "setting", "modelled (H P I)", "pbd+warmup+dynamic+evaluate s", "x everything",
-                     "hand Gaussians", "I evaluations", "PBD frames", "NV PSNR", "SR PSNR"), rows))
+    print(
+        f"preset {args.preset}, fit.source={args.fit_source}, {' '.join(args.overrides)}, {args.repeats} round(s), "
+        f"load average {load[0]:.1f} / {load[1]:.1f}"
+    )
+    print(
+        log.table(
+            f"auto against everything (fit.source={args.fit_source}, {args.repeats} round(s) "
+            f"{' '.join(args.overrides)})".replace(" )", ")"),
+            (
+                "scene",
+                "setting",
+                "modelled (H P I)",
+                "pbd+warmup+dynamic+evaluate s",
+                "x everything",
+                "hand Gaussians",
+                "I evaluations",
+                "PBD frames",
+                "NV PSNR",
+                "SR PSNR",
+            ),
+            rows,
+        )
+    )
     log.write(args.results)
 
 

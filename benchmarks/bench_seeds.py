@@ -46,7 +46,6 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
-
 from data_schemas.metrics import COMPARISON  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
@@ -58,31 +57,63 @@ MEDIAPIPE = ["fit.source=fitted", "stage.keypoints.detector=mediapipe"]
 # (m0) and (m1) predate refine_params and were measured without it (the code path without it is unchanged)
 NO_TRAIN_REFINE = ["stage.warmup.refine_params=false", "stage.dynamic.refine_params=false"]
 SETTINGS: dict[str, dict] = {
-    "a": {"subjects": ("synth_a", "synth_b"), "overrides": ["fit.source=ground_truth"],
-          "what": "full appearance, 24 frames, ground-truth tracking"},
-    "b": {"subjects": ("synth_a",), "overrides": ["fit.source=ground_truth", "dataset.appearance=plain"],
-          "what": "plain appearance, 24 frames, ground-truth tracking"},
-    "c": {"subjects": ("synth_a",), "overrides": [*MEDIAPIPE, "quality.num_frames_train=8",
-                                                  "stage.warmup.validation.frames=2",
-                                                  "stage.dynamic.validation.frames=2"],
-          "what": "full appearance, 8 frames, fitted tracking (MediaPipe)"},
-    "d": {"subjects": ("synth_c",), "overrides": [*MEDIAPIPE, "stage.capture.cross_reenactment=false"],
-          "what": "held-out identity synth_c, 24 frames, fitted tracking (MediaPipe)"},
-    "a2": {"subjects": ("synth_a", "synth_b"), "overrides": ["fit.source=ground_truth"], "threads": 2,
-           "what": "as (a), two threads per run"},
-    "m0": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=none", *NO_TRAIN_REFINE],
-           "what": "full appearance, 24 frames, fitted tracking (MediaPipe), keypoint fit only"},
-    "m1": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=silhouette",
-                                                             *NO_TRAIN_REFINE],
-           "what": "full appearance, 24 frames, fitted tracking (MediaPipe) refined by the train views' silhouettes"},
-    "m2": {"subjects": ("synth_a", "synth_b"), "overrides": [*MEDIAPIPE, "stage.fit.refine=silhouette",
-                                                             "stage.warmup.refine_params=true",
-                                                             "stage.dynamic.refine_params=true"],
-           "what": "as (m1), and the train motion refined with the avatar in training (refine_params)"},
-    "p": {"subjects": ("synth_a", "synth_b"), "overrides": ["fit.source=ground_truth"],
-          "methods": ("interactavatar", "no_pbd"),
-          "what": "full appearance, 24 frames, ground-truth tracking, capture version 8: "
-                  "InteractAvatar against w/o PBD"},
+    "a": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": ["fit.source=ground_truth"],
+        "what": "full appearance, 24 frames, ground-truth tracking",
+    },
+    "b": {
+        "subjects": ("synth_a",),
+        "overrides": ["fit.source=ground_truth", "dataset.appearance=plain"],
+        "what": "plain appearance, 24 frames, ground-truth tracking",
+    },
+    "c": {
+        "subjects": ("synth_a",),
+        "overrides": [
+            *MEDIAPIPE,
+            "quality.num_frames_train=8",
+            "stage.warmup.validation.frames=2",
+            "stage.dynamic.validation.frames=2",
+        ],
+        "what": "full appearance, 8 frames, fitted tracking (MediaPipe)",
+    },
+    "d": {
+        "subjects": ("synth_c",),
+        "overrides": [*MEDIAPIPE, "stage.capture.cross_reenactment=false"],
+        "what": "held-out identity synth_c, 24 frames, fitted tracking (MediaPipe)",
+    },
+    "a2": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": ["fit.source=ground_truth"],
+        "threads": 2,
+        "what": "as (a), two threads per run",
+    },
+    "m0": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": [*MEDIAPIPE, "stage.fit.refine=none", *NO_TRAIN_REFINE],
+        "what": "full appearance, 24 frames, fitted tracking (MediaPipe), keypoint fit only",
+    },
+    "m1": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": [*MEDIAPIPE, "stage.fit.refine=silhouette", *NO_TRAIN_REFINE],
+        "what": "full appearance, 24 frames, fitted tracking (MediaPipe) refined by the train views' silhouettes",
+    },
+    "m2": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": [
+            *MEDIAPIPE,
+            "stage.fit.refine=silhouette",
+            "stage.warmup.refine_params=true",
+            "stage.dynamic.refine_params=true",
+        ],
+        "what": "as (m1), and the train motion refined with the avatar in training (refine_params)",
+    },
+    "p": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": ["fit.source=ground_truth"],
+        "methods": ("interactavatar", "no_pbd"),
+        "what": "full appearance, 24 frames, ground-truth tracking, capture version 8: InteractAvatar against w/o PBD",
+    },
 }
 REGIONS = (("full", "all"), ("hand", "all"), ("face", "all"), ("interaction", "all"), ("interaction", "contact"))
 SPLITS = {"novel_view": "NV", "self_reenact": "SR"}
@@ -114,12 +145,23 @@ def run(setting: str, subject: str, seeds: list[int], outputs: Path, extra: list
     spec = SETTINGS[setting]
     (outputs / setting).mkdir(parents=True, exist_ok=True)
     (outputs / setting / QUALITY_FILE).write_text(quality)
-    common = [f"paths.outputs={outputs / setting}", f"subject={subject}", f"quality={quality}", "run.progress=false",
-              *spec["overrides"], *extra]
+    common = [
+        f"paths.outputs={outputs / setting}",
+        f"subject={subject}",
+        f"quality={quality}",
+        "run.progress=false",
+        *spec["overrides"],
+        *extra,
+    ]
     seed_list, methods = ",".join(map(str, seeds)), ",".join(_methods(spec))
     _cli(_threads(spec), "-m", f"method={methods}", f"seed={seed_list}", "run.until=evaluate", *common)
-    _cli(_threads(spec), "run.only=compare", f"stage.compare.methods=[{methods}]", f"stage.compare.seeds=[{seed_list}]",
-         *common)
+    _cli(
+        _threads(spec),
+        "run.only=compare",
+        f"stage.compare.methods=[{methods}]",
+        f"stage.compare.seeds=[{seed_list}]",
+        *common,
+    )
 
 
 def _manifest(path: Path) -> dict:
@@ -135,18 +177,30 @@ def _kept(subject_dir: Path, seeds: list[int], methods: tuple[str, str]) -> list
             if not (folder / "_manifest.json").is_file():
                 continue
             m = _manifest(folder)["metrics"]
-            rows.append([method, str(seed), str(m.get("selected_step", "-")), str(m.get("selection_final_step", "-")),
-                         str(m.get("kept_hand_mlp", "-")), str(m.get("kept_interaction", "-")),
-                         f"{m.get('selection_selected_psnr', float('nan')):.2f}",
-                         f"{m.get('selection_final_psnr', float('nan')):.2f}",
-                         f"{m.get('selection_psnr_without_hand_mlp', float('nan')):.2f}",
-                         f"{m.get('selection_psnr_without_interaction', float('nan')):.2f}"])
+            rows.append(
+                [
+                    method,
+                    str(seed),
+                    str(m.get("selected_step", "-")),
+                    str(m.get("selection_final_step", "-")),
+                    str(m.get("kept_hand_mlp", "-")),
+                    str(m.get("kept_interaction", "-")),
+                    f"{m.get('selection_selected_psnr', float('nan')):.2f}",
+                    f"{m.get('selection_final_psnr', float('nan')):.2f}",
+                    f"{m.get('selection_psnr_without_hand_mlp', float('nan')):.2f}",
+                    f"{m.get('selection_psnr_without_interaction', float('nan')):.2f}",
+                ]
+            )
     return rows
 
 
 def _values(table: dict, method: str, split: str, region: str, group: str, metric: str) -> np.ndarray:
-    sel = ((np.asarray(table["method"]) == method) & (np.asarray(table["split"]) == split)
-           & (np.asarray(table["region"]) == region) & (np.asarray(table["contact"]) == group))
+    sel = (
+        (np.asarray(table["method"]) == method)
+        & (np.asarray(table["split"]) == split)
+        & (np.asarray(table["region"]) == region)
+        & (np.asarray(table["contact"]) == group)
+    )
     order = np.argsort(np.asarray(table["seed"])[sel])
     return np.asarray(table[metric], dtype=np.float64)[sel][order]
 
@@ -169,14 +223,27 @@ def _setting_rows(setting: str, subject: str, table: dict, methods: tuple[str, s
             if not (full.size and base.size):
                 continue
             diff = float(full.mean() - base.mean())
-            spread = max(float(full.std(ddof=1)) if full.size > 1 else 0.0,
-                         float(base.std(ddof=1)) if base.size > 1 else 0.0)
-            out.append({"setting": setting, "subject": subject, "split": split, "region": region, "group": group,
-                        "seeds": int(min(full.size, base.size)),
-                        "ia_psnr": full.tolist(), "ga_psnr": base.tolist(),
-                        "ia_lpips": lpips[methods[0]].tolist(), "ga_lpips": lpips[methods[1]].tolist(),
-                        "difference_db": diff, "larger_sd_db": spread, "welch_p": welch_p(full, base),
-                        "worse_beyond_spread": bool(diff < -spread)})
+            spread = max(
+                float(full.std(ddof=1)) if full.size > 1 else 0.0, float(base.std(ddof=1)) if base.size > 1 else 0.0
+            )
+            out.append(
+                {
+                    "setting": setting,
+                    "subject": subject,
+                    "split": split,
+                    "region": region,
+                    "group": group,
+                    "seeds": int(min(full.size, base.size)),
+                    "ia_psnr": full.tolist(),
+                    "ga_psnr": base.tolist(),
+                    "ia_lpips": lpips[methods[0]].tolist(),
+                    "ga_lpips": lpips[methods[1]].tolist(),
+                    "difference_db": diff,
+                    "larger_sd_db": spread,
+                    "welch_p": welch_p(full, base),
+                    "worse_beyond_spread": bool(diff < -spread),
+                }
+            )
     return out
 
 
@@ -184,8 +251,14 @@ def _load() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
-SUMMARY = (("novel_view", "full", "all"), ("novel_view", "hand", "all"), ("novel_view", "interaction", "contact"),
-           ("self_reenact", "full", "all"), ("self_reenact", "hand", "all"), ("self_reenact", "interaction", "contact"))
+SUMMARY = (
+    ("novel_view", "full", "all"),
+    ("novel_view", "hand", "all"),
+    ("novel_view", "interaction", "contact"),
+    ("self_reenact", "full", "all"),
+    ("self_reenact", "hand", "all"),
+    ("self_reenact", "interaction", "contact"),
+)
 
 
 def summary(rows: list[dict], meta: dict) -> str:
@@ -199,11 +272,19 @@ def summary(rows: list[dict], meta: dict) -> str:
         for split, region, group in SUMMARY:
             r = next((r for r in mine if (r["split"], r["region"], r["group"]) == (split, region, group)), None)
             cells.append("-" if r is None else f"{r['difference_db']:+.2f} ({r['larger_sd_db']:.2f})")
-        worse = [f"{SPLITS[r['split']]} {r['region']}{' (contact)' if r['group'] == 'contact' else ''}"
-                 for r in mine if r["worse_beyond_spread"]]
+        worse = [
+            f"{SPLITS[r['split']]} {r['region']}{' (contact)' if r['group'] == 'contact' else ''}"
+            for r in mine
+            if r["worse_beyond_spread"]
+        ]
         body.append([f"({setting})", subject, str(len(info["seeds"])), *cells, ", ".join(worse) or "none"])
-    headers = ("setting", "subject", "seeds", *(f"{SPLITS[s]} {r}{' (contact)' if g == 'contact' else ''}"
-                                                 for s, r, g in SUMMARY), "worse beyond the spread")
+    headers = (
+        "setting",
+        "subject",
+        "seeds",
+        *(f"{SPLITS[s]} {r}{' (contact)' if g == 'contact' else ''}" for s, r, g in SUMMARY),
+        "worse beyond the spread",
+    )
     return format_table(headers, body)
 
 
@@ -233,44 +314,119 @@ def table(outputs: Path, results: Path, settings: list[str], name: str) -> None:
             kept[f"{setting}/{subject}"] = _kept(outputs / setting / subject, seeds, methods)
             evaluate = _manifest(outputs / setting / subject / "methods" / methods[0] / "evaluate")
             quality_file = outputs / setting / QUALITY_FILE
-            meta[f"{setting}/{subject}"] = {"quality": quality_file.read_text() if quality_file.is_file() else "draft",
-                                            "seeds": seeds, "git": evaluate.get("git_sha", "?"),
-                                            "what": spec["what"], "overrides": spec["overrides"],
-                                            "threads": _threads(spec), "methods": list(methods)}
+            meta[f"{setting}/{subject}"] = {
+                "quality": quality_file.read_text() if quality_file.is_file() else "draft",
+                "seeds": seeds,
+                "git": evaluate.get("git_sha", "?"),
+                "what": spec["what"],
+                "overrides": spec["overrides"],
+                "threads": _threads(spec),
+                "methods": list(methods),
+            }
     if not meta:
-        raise SystemExit(f"no comparison of settings {settings} under {outputs}: nothing written (run them first; "
-                         f"{results / name}.md keeps its earlier table)")
-    lines = [f"# {name}: {full_label} against {base_label} with seeds", "",
-             f"Commit of this table: {commit()}; machine: {cpu_name()}, {os.cpu_count()} cores; load now: {_load()}; "
-             f"made {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", "",
-             f"## Summary: {full_label}'s PSNR minus {base_label}'s (dB, difference of the seed means; in brackets "
-             "the larger of the two seed standard deviations)", "", summary(rows, meta), ""]
+        raise SystemExit(
+            f"no comparison of settings {settings} under {outputs}: nothing written (run them first; "
+            f"{results / name}.md keeps its earlier table)"
+        )
+    lines = [
+        f"# {name}: {full_label} against {base_label} with seeds",
+        "",
+        f"Commit of this table: {commit()}; machine: {cpu_name()}, {os.cpu_count()} cores; load now: {_load()}; "
+        f"made {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.",
+        "",
+        f"## Summary: {full_label}'s PSNR minus {base_label}'s (dB, difference of the seed means; in brackets "
+        "the larger of the two seed standard deviations)",
+        "",
+        summary(rows, meta),
+        "",
+    ]
     for key, info in meta.items():
         setting, subject = key.split("/")
-        lines += [f"## ({setting}) {subject}: {info['what']}", "",
-                  f"quality={info.get('quality', 'draft')} {' '.join(info['overrides'])}; seeds {info['seeds']}; "
-                  f"{info['threads']} thread(s) per run; trained at {info['git']}.", ""]
-        body = [[SPLITS[r["split"]], r["region"] + (" (contact)" if r["group"] == "contact" else ""),
-                 _stat(np.array(r["ia_psnr"]), 2), _stat(np.array(r["ga_psnr"]), 2), f"{r['difference_db']:+.2f}",
-                 f"{r['larger_sd_db']:.2f}", "-" if not np.isfinite(r["welch_p"]) else f"{r['welch_p']:.3f}",
-                 "WORSE" if r["worse_beyond_spread"] else ("gain" if r["welch_p"] < 0.05 and r["difference_db"] > 0
-                                                          else "level"),
-                 _stat(np.array(r["ia_lpips"]), 4), _stat(np.array(r["ga_lpips"]), 4)]
-                for r in rows if (r["setting"], r["subject"]) == (setting, subject)]
-        lines += [format_table(("split", "region", f"{full_label} PSNR", f"{base_label} PSNR", "diff", "larger sd",
-                                "Welch p", "verdict", f"{full_label} LPIPS", f"{base_label} LPIPS"), body), ""]
-        lines += ["What stage two's selection kept:", "",
-                  format_table(("method", "seed", "kept step", "of", "H kept", "I kept", "val PSNR kept",
-                                "val PSNR last", "val w/o H", "val w/o I"), kept[key]), ""]
-    lines += [f"verdict: WORSE where {full_label}'s mean is below {base_label}'s by more than the larger of the two "
-              "seed standard deviations; gain where it is above with Welch's p < 0.05; level otherwise."]
+        lines += [
+            f"## ({setting}) {subject}: {info['what']}",
+            "",
+            f"quality={info.get('quality', 'draft')} {' '.join(info['overrides'])}; seeds {info['seeds']}; "
+            f"{info['threads']} thread(s) per run; trained at {info['git']}.",
+            "",
+        ]
+        body = [
+            [
+                SPLITS[r["split"]],
+                r["region"] + (" (contact)" if r["group"] == "contact" else ""),
+                _stat(np.array(r["ia_psnr"]), 2),
+                _stat(np.array(r["ga_psnr"]), 2),
+                f"{r['difference_db']:+.2f}",
+                f"{r['larger_sd_db']:.2f}",
+                "-" if not np.isfinite(r["welch_p"]) else f"{r['welch_p']:.3f}",
+                "WORSE"
+                if r["worse_beyond_spread"]
+                else ("gain" if r["welch_p"] < 0.05 and r["difference_db"] > 0 else "level"),
+                _stat(np.array(r["ia_lpips"]), 4),
+                _stat(np.array(r["ga_lpips"]), 4),
+            ]
+            for r in rows
+            if (r["setting"], r["subject"]) == (setting, subject)
+        ]
+        lines += [
+            format_table(
+                (
+                    "split",
+                    "region",
+                    f"{full_label} PSNR",
+                    f"{base_label} PSNR",
+                    "diff",
+                    "larger sd",
+                    "Welch p",
+                    "verdict",
+                    f"{full_label} LPIPS",
+                    f"{base_label} LPIPS",
+                ),
+                body,
+            ),
+            "",
+        ]
+        lines += [
+            "What stage two's selection kept:",
+            "",
+            format_table(
+                (
+                    "method",
+                    "seed",
+                    "kept step",
+                    "of",
+                    "H kept",
+                    "I kept",
+                    "val PSNR kept",
+                    "val PSNR last",
+                    "val w/o H",
+                    "val w/o I",
+                ),
+                kept[key],
+            ),
+            "",
+        ]
+    lines += [
+        f"verdict: WORSE where {full_label}'s mean is below {base_label}'s by more than the larger of the two "
+        "seed standard deviations; gain where it is above with Welch's p < 0.05; level otherwise."
+    ]
     text = "\n".join(lines) + "\n"
     print(text)
     results.mkdir(parents=True, exist_ok=True)
     (results / f"{name}.md").write_text(text)
-    (results / f"{name}.json").write_text(json.dumps(
-        {"commit": commit(), "machine": cpu_name(), "cores": os.cpu_count(), "load": _load(), "settings": meta,
-         "rows": rows, "kept": kept}, indent=1))
+    (results / f"{name}.json").write_text(
+        json.dumps(
+            {
+                "commit": commit(),
+                "machine": cpu_name(),
+                "cores": os.cpu_count(),
+                "load": _load(),
+                "settings": meta,
+                "rows": rows,
+                "kept": kept,
+            },
+            indent=1,
+        )
+    )
 
 
 def main() -> None:
@@ -286,8 +442,13 @@ def main() -> None:
     t = sub.add_parser("table")
     t.add_argument("--outputs", type=Path, default=REPO / "outputs" / "bench_seeds")
     t.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results")
-    t.add_argument("--settings", nargs="+", default=[k for k, v in SETTINGS.items() if "methods" not in v],
-                   choices=sorted(SETTINGS), help="settings to table (one method pair)")
+    t.add_argument(
+        "--settings",
+        nargs="+",
+        default=[k for k, v in SETTINGS.items() if "methods" not in v],
+        choices=sorted(SETTINGS),
+        help="settings to table (one method pair)",
+    )
     t.add_argument("--name", default="bench_seeds", help="result file name under --results")
     args = parser.parse_args()
     if args.command == "run":

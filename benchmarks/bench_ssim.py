@@ -94,13 +94,25 @@ def main() -> None:
                 times[v].append(time_loss(size, v))
         med = {v: 1000 * statistics.median(t) for v, t in times.items()}
         ref = med["shifted sums"]
-        rows.append((f"{size} x {size}", *(f"{med[v]:.2f}" for v in VARIANTS),
-                     *(f"{med[v] / ref:.1f}" for v in VARIANTS if v != "shifted sums")))
+        rows.append(
+            (
+                f"{size} x {size}",
+                *(f"{med[v]:.2f}" for v in VARIANTS),
+                *(f"{med[v] / ref:.1f}" for v in VARIANTS if v != "shifted sums"),
+            )
+        )
     load = os.getloadavg()
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), OMP_WAIT_POLICY="
-          f"{os.environ.get('OMP_WAIT_POLICY', 'unset')}, load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}")
-    print(log.table(f"D-SSIM forward + backward, median ms ({torch.get_num_threads()} thread(s), torch "
-                    f"{torch.__version__})", ("render", *(f"{v} ms" for v in VARIANTS), "x oneDNN", "x native"), rows))
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), OMP_WAIT_POLICY="
+        f"{os.environ.get('OMP_WAIT_POLICY', 'unset')}, load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}"
+    )
+    print(
+        log.table(
+            f"D-SSIM forward + backward, median ms ({torch.get_num_threads()} thread(s), torch {torch.__version__})",
+            ("render", *(f"{v} ms" for v in VARIANTS), "x oneDNN", "x native"),
+            rows,
+        )
+    )
     log.write(args.results)
 
 

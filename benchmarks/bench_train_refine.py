@@ -35,14 +35,13 @@ from omegaconf import OmegaConf
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
-from benchmarks.provenance import commit, cpu_name  # noqa: E402
-
 from avatar.gaussians.model import BoundGaussians  # noqa: E402
 from avatar.posing import posed_keypoints  # noqa: E402
 from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.frame_params import FrameParams, ParamLearningRates  # noqa: E402
 from avatar.training.static import StaticConfig, colors_from_views, render_frame, train_static  # noqa: E402
 from avatar.training.validation import ValidationConfig, Validator  # noqa: E402
+from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.capture import MASK_LABELS, CaptureIndex  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from stages.artifacts import load_ground_truth_params, load_views  # noqa: E402
@@ -54,8 +53,14 @@ BASE = ParamLearningRates()  # GaussianAvatars' values (the defaults of conf/sta
 
 
 def _cameras(views: ViewSet, index: list[int]) -> ViewSet:
-    return ViewSet(views.images[:, index], views.labels[:, index], views.K[index], views.world_to_cam[index],
-                   [views.camera_ids[c] for c in index], views.background)
+    return ViewSet(
+        views.images[:, index],
+        views.labels[:, index],
+        views.K[index],
+        views.world_to_cam[index],
+        [views.camera_ids[c] for c in index],
+        views.background,
+    )
 
 
 def _psnr(gt: torch.Tensor, pred: torch.Tensor) -> float:
@@ -75,35 +80,44 @@ def arm(workspace: Path, scale: float, centred: bool, hold: str, steps: int) -> 
     meshes = posed.meshes
     lrs = ParamLearningRates(*(scale * getattr(BASE, k) for k in ("rotation", "pose", "translation", "expression")))
     params = FrameParams(posed.params, head, hand, None, lrs, centred=centred) if scale > 0 else None
-    model = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, GAUSSIANS_PER_TRIANGLE,
-                                        init_opacity=INIT_OPACITY, seed=0)
+    model = BoundGaussians.on_triangles(
+        meshes.vertices[0], meshes.faces, meshes.face_part, GAUSSIANS_PER_TRIANGLE, init_opacity=INIT_OPACITY, seed=0
+    )
     with torch.no_grad():
         means, _, _ = model.world(meshes.vertices[0], meshes.faces)
     part_label = torch.tensor([MASK_LABELS[n] for n in meshes.part_names])[model.part]
     model.set_colors(colors_from_views(means, part_label, views, frame=0))
     validator = Validator(VALIDATION, views)
     start = time.perf_counter()
-    train_static(model, views, meshes, dataclasses.replace(DRAFT, steps=steps), validator=validator,
-                 params=params)
+    train_static(model, views, meshes, dataclasses.replace(DRAFT, steps=steps), validator=validator, params=params)
     seconds = time.perf_counter() - start - validator.validation_s
     trained = validator.train_frames
     with torch.no_grad():
         camera_psnr = []
         for f in map(int, trained):
-            out, _ = render_frame(model, meshes, withheld, f, 0, "auto",
-                                  params.vertices(f) if params is not None else None)
+            out, _ = render_frame(
+                model, meshes, withheld, f, 0, "auto", params.vertices(f) if params is not None else None
+            )
             camera_psnr.append(_psnr(*withheld.target_and_render(out.rgb.clamp(0, 1), f, 0)))
-    row = {"workspace": str(workspace), "scale": scale, "centred": centred, "withheld_camera": hold,
-           "withheld_frames_psnr": float(np.mean([r.psnr for r in validator.curve[-3:]])),
-           "withheld_camera_psnr": float(np.mean(camera_psnr)), "train_seconds": seconds, "steps": steps}
+    row = {
+        "workspace": str(workspace),
+        "scale": scale,
+        "centred": centred,
+        "withheld_camera": hold,
+        "withheld_frames_psnr": float(np.mean([r.psnr for r in validator.curve[-3:]])),
+        "withheld_camera_psnr": float(np.mean(camera_psnr)),
+        "train_seconds": seconds,
+        "steps": steps,
+    }
     if CaptureIndex.read(workspace / "capture").sequences["train"].has_ground_truth:
         truth = posed_keypoints(load_ground_truth_params(workspace / "capture", "train"), head, hand)
         after = params.arrays() if params is not None else posed.params
         for name, p in (("fit", posed.params), ("refined", after)):
             pose = posed_keypoints(p, head, hand)
             for key in ("hand", "face", "hand_vertices", "face_vertices"):
-                row[f"{name}_{key}_mm"] = float(1e3 * np.linalg.norm(pose[key] - truth[key], axis=-1)
-                                                .mean(-1)[trained].mean())
+                row[f"{name}_{key}_mm"] = float(
+                    1e3 * np.linalg.norm(pose[key] - truth[key], axis=-1).mean(-1)[trained].mean()
+                )
     return row
 
 
@@ -117,15 +131,25 @@ def cost(workspace: Path, steps: int, repeats: int) -> dict:
     posed = posed_sequence(workspace / "fit", "train", cfg, None)
     meshes, frames = posed.meshes, np.arange(views.num_frames)
     timings: dict[str, list[float]] = {"off": [], "on": []}
-    warm = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, GAUSSIANS_PER_TRIANGLE,
-                                       init_opacity=INIT_OPACITY, seed=0)
+    warm = BoundGaussians.on_triangles(
+        meshes.vertices[0], meshes.faces, meshes.face_part, GAUSSIANS_PER_TRIANGLE, init_opacity=INIT_OPACITY, seed=0
+    )
     train_static(warm, views, meshes, dataclasses.replace(DRAFT, steps=10))  # caches and allocator, not timed
     for _ in range(repeats):
         for name in timings:
-            params = FrameParams(posed.params, head, hand, None, ParamLearningRates(), centred=True) \
-                if name == "on" else None
-            model = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part,
-                                                GAUSSIANS_PER_TRIANGLE, init_opacity=INIT_OPACITY, seed=0)
+            params = (
+                FrameParams(posed.params, head, hand, None, ParamLearningRates(), centred=True)
+                if name == "on"
+                else None
+            )
+            model = BoundGaussians.on_triangles(
+                meshes.vertices[0],
+                meshes.faces,
+                meshes.face_part,
+                GAUSSIANS_PER_TRIANGLE,
+                init_opacity=INIT_OPACITY,
+                seed=0,
+            )
             start = time.perf_counter()
             train_static(model, views, meshes, dataclasses.replace(DRAFT, steps=steps), params=params)
             timings[name].append(1e3 * (time.perf_counter() - start) / steps)
@@ -148,8 +172,13 @@ def cost(workspace: Path, steps: int, repeats: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workspace", type=Path, required=True, help="a subject's folder under paths.outputs")
-    parser.add_argument("--scales", type=float, nargs="+", default=[0, 3, 10, 30],
-                        help="multiples of GaussianAvatars' learning rates (0: no refinement)")
+    parser.add_argument(
+        "--scales",
+        type=float,
+        nargs="+",
+        default=[0, 3, 10, 30],
+        help="multiples of GaussianAvatars' learning rates (0: no refinement)",
+    )
     parser.add_argument("--centred", action="store_true", help="also run each scale > 0 centred")
     parser.add_argument("--hold", default=None, help="the training camera withheld (default: the last)")
     parser.add_argument("--steps", type=int, default=DRAFT.steps)
@@ -167,17 +196,39 @@ def main() -> None:
         hold = args.hold or train_ids[-1]
         arms = [(s, False) for s in args.scales] + [(s, True) for s in args.scales if args.centred and s > 0]
         rows = [arm(args.workspace, s, c, hold, args.steps) for s, c in arms]
-        keys = ("scale", "centred", "withheld_frames_psnr", "withheld_camera_psnr", "refined_hand_mm",
-                "refined_face_mm", "train_seconds")
-        print(format_table(keys, [[f"{r.get(k, float('nan')):.2f}" if isinstance(r.get(k), float) else str(r.get(k))
-                                   for k in keys] for r in rows]))
+        keys = (
+            "scale",
+            "centred",
+            "withheld_frames_psnr",
+            "withheld_camera_psnr",
+            "refined_hand_mm",
+            "refined_face_mm",
+            "train_seconds",
+        )
+        print(
+            format_table(
+                keys,
+                [
+                    [f"{r.get(k, float('nan')):.2f}" if isinstance(r.get(k), float) else str(r.get(k)) for k in keys]
+                    for r in rows
+                ],
+            )
+        )
     args.results.mkdir(parents=True, exist_ok=True)
     out = args.results / "bench_train_refine.json"
     previous = json.loads(out.read_text()) if out.is_file() else {"runs": []}
-    previous["runs"].append({"commit": commit(), "machine": cpu_name(), "workspace": str(args.workspace),
-                             "load_before": load_before, "load_after": os.getloadavg(),
-                             "threads": torch.get_num_threads(), "kind": "cost" if args.cost else "arms",
-                             "rows": rows})
+    previous["runs"].append(
+        {
+            "commit": commit(),
+            "machine": cpu_name(),
+            "workspace": str(args.workspace),
+            "load_before": load_before,
+            "load_after": os.getloadavg(),
+            "threads": torch.get_num_threads(),
+            "kind": "cost" if args.cost else "arms",
+            "rows": rows,
+        }
+    )
     out.write_text(json.dumps(previous, indent=1))
     print(out)
 

@@ -41,8 +41,11 @@ FRAMES = 12
 def _params(subject: str, sequence: str, frames: int, performer: str | None = None) -> tuple[dict, np.ndarray]:
     """Ground-truth parameters and contact flags (T,) of one sequence (rendered at a token size: only the motion
     is used)."""
-    cap = generate(SyntheticConfig(subject, sequence, image_size=16, num_frames=frames, supersample=1, num_cameras=2,
-                                   performer=performer))
+    cap = generate(
+        SyntheticConfig(
+            subject, sequence, image_size=16, num_frames=frames, supersample=1, num_cameras=2, performer=performer
+        )
+    )
     return cap.params, cap.contact
 
 
@@ -56,8 +59,9 @@ def touches_kept(driver: dict, transferred: dict, head, hand) -> tuple[int, int]
         near = surface_twins(d["hand_vertices"][t], d["face_vertices"][t], faces).local[:, 2] < TOUCH_M
         if near.any():
             touching += int(near.sum())
-            kept += int((surface_twins(o["hand_vertices"][t][near], o["face_vertices"][t], faces).local[:, 2]
-                         < TOUCH_M).sum())
+            kept += int(
+                (surface_twins(o["hand_vertices"][t][near], o["face_vertices"][t], faces).local[:, 2] < TOUCH_M).sum()
+            )
     return touching, kept
 
 
@@ -74,12 +78,23 @@ def measure() -> list[dict]:
             began = time.perf_counter()
             result = transfer_motion(identity, driver_params, head, hand, placement)
             seconds = time.perf_counter() - began
-            error = 1e3 * np.linalg.norm(posed_keypoints(result.params, head, hand)["hand_vertices"] - truth_hand,
-                                         axis=2).mean(axis=1)
+            error = 1e3 * np.linalg.norm(
+                posed_keypoints(result.params, head, hand)["hand_vertices"] - truth_hand, axis=2
+            ).mean(axis=1)
             touching, kept = touches_kept(driver_params, result.params, head, hand)
-            rows.append({"target": target, "driver": driver, "placement": placement, "contact": contact.tolist(),
-                         "error_mm": error.tolist(), "seconds": seconds, "frames": result.frames,
-                         "touching_points": touching, "kept_points": kept})
+            rows.append(
+                {
+                    "target": target,
+                    "driver": driver,
+                    "placement": placement,
+                    "contact": contact.tolist(),
+                    "error_mm": error.tolist(),
+                    "seconds": seconds,
+                    "frames": result.frames,
+                    "touching_points": touching,
+                    "kept_points": kept,
+                }
+            )
     return rows
 
 
@@ -89,25 +104,83 @@ def tables(rows: list[dict]) -> str:
     for r in rows:
         err, contact = np.array(r["error_mm"]), np.array(r["contact"])
         touching = [f for f in r["frames"] if f["touching_points"]]
-        body.append([f"{r['target']} <- {r['driver']}", r["placement"], f"{err.mean():.1f}",
-                     f"{err[contact].mean():.1f}",
-                     f"{err[~contact].mean():.1f}", f"{err.max():.1f}",
-                     f"{np.mean([f['residual_mm'] for f in touching]):.1f}" if touching else "-",
-                     f"{r['kept_points'] / max(1, r['touching_points']):.0%}", f"{r['seconds']:.1f}"])
-    out = [format_table(("target <- driver", "placement", "hand error mean (mm)", "contact frames", "other frames",
-                         "worst frame", "touch residual (mm)", "touching points still touching", "seconds"), body), ""]
+        body.append(
+            [
+                f"{r['target']} <- {r['driver']}",
+                r["placement"],
+                f"{err.mean():.1f}",
+                f"{err[contact].mean():.1f}",
+                f"{err[~contact].mean():.1f}",
+                f"{err.max():.1f}",
+                f"{np.mean([f['residual_mm'] for f in touching]):.1f}" if touching else "-",
+                f"{r['kept_points'] / max(1, r['touching_points']):.0%}",
+                f"{r['seconds']:.1f}",
+            ]
+        )
+    out = [
+        format_table(
+            (
+                "target <- driver",
+                "placement",
+                "hand error mean (mm)",
+                "contact frames",
+                "other frames",
+                "worst frame",
+                "touch residual (mm)",
+                "touching points still touching",
+                "seconds",
+            ),
+            body,
+        ),
+        "",
+    ]
     for r in rows:
         if not r["frames"]:
             continue
-        per = [[str(f["frame"]), "yes" if c else "", f"{e:.1f}", f"{s:.1f}", str(f["matched_points"]),
-                str(f["touching_points"]), str(f["kept_points"]), f"{f['residual_mm']:.1f}", f"{f['moved_mm']:.1f}",
-                f"{f['turned_deg']:.1f}"]
-               for f, c, e, s in zip(r["frames"], r["contact"], r["error_mm"],
-                                     next(q["error_mm"] for q in rows if (q["target"], q["driver"], q["placement"])
-                                          == (r["target"], r["driver"], "scaled")))]
-        out += [f"{r['target']} driven by {r['driver']}, per frame ({r['placement']}):", "",
-                format_table(("frame", "contact (truth)", "error (mm)", "scaled error (mm)", "matched", "touching",
-                              "kept", "residual (mm)", "moved (mm)", "turned (deg)"), per), ""]
+        per = [
+            [
+                str(f["frame"]),
+                "yes" if c else "",
+                f"{e:.1f}",
+                f"{s:.1f}",
+                str(f["matched_points"]),
+                str(f["touching_points"]),
+                str(f["kept_points"]),
+                f"{f['residual_mm']:.1f}",
+                f"{f['moved_mm']:.1f}",
+                f"{f['turned_deg']:.1f}",
+            ]
+            for f, c, e, s in zip(
+                r["frames"],
+                r["contact"],
+                r["error_mm"],
+                next(
+                    q["error_mm"]
+                    for q in rows
+                    if (q["target"], q["driver"], q["placement"]) == (r["target"], r["driver"], "scaled")
+                ),
+            )
+        ]
+        out += [
+            f"{r['target']} driven by {r['driver']}, per frame ({r['placement']}):",
+            "",
+            format_table(
+                (
+                    "frame",
+                    "contact (truth)",
+                    "error (mm)",
+                    "scaled error (mm)",
+                    "matched",
+                    "touching",
+                    "kept",
+                    "residual (mm)",
+                    "moved (mm)",
+                    "turned (deg)",
+                ),
+                per,
+            ),
+            "",
+        ]
     return "\n".join(out)
 
 
@@ -117,14 +190,17 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     rows = measure()
-    text = (f"# bench_transfer: cross-actor hand placement against the generator's\n\nCommit {commit()}; machine: "
-            f"{cpu_name()}, {os.cpu_count()} cores, one torch thread; made "
-            f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.\n\n{tables(rows)}")
+    text = (
+        f"# bench_transfer: cross-actor hand placement against the generator's\n\nCommit {commit()}; machine: "
+        f"{cpu_name()}, {os.cpu_count()} cores, one torch thread; made "
+        f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.\n\n{tables(rows)}"
+    )
     print(text)
     args.results.mkdir(parents=True, exist_ok=True)
     (args.results / "bench_transfer.md").write_text(text)
-    (args.results / "bench_transfer.json").write_text(json.dumps(
-        {"commit": commit(), "machine": cpu_name(), "frames": FRAMES, "rows": rows}, indent=1))
+    (args.results / "bench_transfer.json").write_text(
+        json.dumps({"commit": commit(), "machine": cpu_name(), "frames": FRAMES, "rows": rows}, indent=1)
+    )
 
 
 if __name__ == "__main__":

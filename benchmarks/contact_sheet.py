@@ -27,8 +27,10 @@ def contact_sheet(size: int, num_frames: int, sequence: str) -> np.ndarray:
         cap = generate(SyntheticConfig(subject, sequence, size, num_frames))
         seconds = time.perf_counter() - start
         frame = int(np.argmax(cap.contact)) if cap.contact.any() else num_frames // 2
-        print(f"{subject}: {seconds / num_frames:.2f} s per frame ({len(cap.cameras)} views, {size} px), "
-              f"showing frame {frame}")
+        print(
+            f"{subject}: {seconds / num_frames:.2f} s per frame ({len(cap.cameras)} views, {size} px), "
+            f"showing frame {frame}"
+        )
         tiles = []
         for cam in cap.cameras:
             tile = np.ascontiguousarray(cap.frames[cam.camera_id][frame])

@@ -45,8 +45,8 @@ from avatar.metrics import image_metrics  # noqa: E402
 from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.dynamic import rasterize  # noqa: E402
 from avatar.training.static import render_frame  # noqa: E402
-from data_schemas.capture import MASK_LABELS  # noqa: E402
 from data_schemas.cameras import Camera, read_cameras  # noqa: E402
+from data_schemas.capture import MASK_LABELS  # noqa: E402
 from data_schemas.metrics import SPLIT_SOURCES  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from pipeline.workspace import method_run  # noqa: E402
@@ -118,8 +118,16 @@ def main() -> None:
     parser.add_argument("--set", nargs="*", default=[], help="config overrides the outputs were made with")
     args = parser.parse_args()
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=[f"subject={args.subject}", f"method={args.method}", f"seed={args.seed}",
-                                           f"paths.outputs={args.outputs}", *args.set])
+        cfg = compose(
+            "config",
+            overrides=[
+                f"subject={args.subject}",
+                f"method={args.method}",
+                f"seed={args.seed}",
+                f"paths.outputs={args.outputs}",
+                *args.set,
+            ],
+        )
     root = args.outputs / args.subject
     method_dir = root / "methods" / method_run(args.method, args.seed)
     model = load_dynamic(method_dir / "dynamic")
@@ -127,10 +135,16 @@ def main() -> None:
     warmup = load_gaussians(method_dir / "warmup", part_names)
     sequence, camera_split = SPLIT_SOURCES[args.split]
     views = load_views(root / "capture", root / "frames", sequence, camera_split)
-    meshes, cond = load_sequence(root / "fit", sequence, cfg, pbd_dir=applied_deformation(cfg, root / "pbd"),
-                                 params=method_params(method_dir / "dynamic", root / "fit", sequence))
-    train_cameras = sorted((c for c in read_cameras(root / "capture" / "cameras.parquet") if c.split == "train"),
-                           key=lambda c: c.camera_id)
+    meshes, cond = load_sequence(
+        root / "fit",
+        sequence,
+        cfg,
+        pbd_dir=applied_deformation(cfg, root / "pbd"),
+        params=method_params(method_dir / "dynamic", root / "fit", sequence),
+    )
+    train_cameras = sorted(
+        (c for c in read_cameras(root / "capture" / "cameras.parquet") if c.split == "train"), key=lambda c: c.camera_id
+    )
     face_vertices = templates(cfg.model)[0].num_vertices
 
     rows, table = [], []
@@ -150,9 +164,11 @@ def main() -> None:
         table.append((t, *(f"{v:.2f}" for v in psnr.values()), " ".join(f"{s:.2f}" for s in off)))
     mean = np.nanmean(np.array(rows), axis=0)
     table.append(("mean", *(f"{v:.2f}" for v in mean), ""))
-    print(f"{args.subject}, {method_run(args.method, args.seed)}, {args.split}: hand PSNR (dB) per frame; "
-          f"last column: share of the hand off each training camera's image "
-          f"({' '.join(c.camera_id for c in train_cameras)})")
+    print(
+        f"{args.subject}, {method_run(args.method, args.seed)}, {args.split}: hand PSNR (dB) per frame; "
+        f"last column: share of the hand off each training camera's image "
+        f"({' '.join(c.camera_id for c in train_cameras)})"
+    )
     print(format_table(("frame", *VARIANTS, "hand off-image"), table))
 
 

@@ -51,8 +51,12 @@ def machine() -> dict[str, Any]:
 def add_results_argument(parser: argparse.ArgumentParser) -> None:
     """``--results DIR``: where the benchmark writes ``<name>.json`` (default: the committed
     ``benchmarks/results/``; ``make bench`` passes a scratch folder)."""
-    parser.add_argument("--results", type=Path, default=REPO / "benchmarks" / "results",
-                        help="write <benchmark>.json here (default: benchmarks/results/)")
+    parser.add_argument(
+        "--results",
+        type=Path,
+        default=REPO / "benchmarks" / "results",
+        help="write <benchmark>.json here (default: benchmarks/results/)",
+    )
 
 
 class ResultLog:
@@ -70,8 +74,13 @@ class ResultLog:
 
     def table(self, title: str, headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
         """Record a table and return it as text (:func:`pipeline.summary.format_table`) to print."""
-        self.tables.append({"title": title, "columns": [str(h) for h in headers],
-                            "rows": [[format_value(c) for c in row] for row in rows]})
+        self.tables.append(
+            {
+                "title": title,
+                "columns": [str(h) for h in headers],
+                "rows": [[format_value(c) for c in row] for row in rows],
+            }
+        )
         return format_table(headers, rows)
 
     def write(self, results: Path) -> Path:
@@ -79,11 +88,18 @@ class ResultLog:
         results.mkdir(parents=True, exist_ok=True)
         path = results / f"{self.name}.json"
         data = json.loads(path.read_text()) if path.is_file() else {"benchmark": self.name, "runs": []}
-        data["runs"].append({
-            "commit": commit(), "date": self.date,
-            "machine": {**self.machine, "load_end": [round(x, 2) for x in os.getloadavg()]},
-            "preset": self.preset, "seeds": self.seeds, "wall_s": round(time.monotonic() - self.started, 1),
-            "argv": sys.argv[1:], "tables": self.tables})
+        data["runs"].append(
+            {
+                "commit": commit(),
+                "date": self.date,
+                "machine": {**self.machine, "load_end": [round(x, 2) for x in os.getloadavg()]},
+                "preset": self.preset,
+                "seeds": self.seeds,
+                "wall_s": round(time.monotonic() - self.started, 1),
+                "argv": sys.argv[1:],
+                "tables": self.tables,
+            }
+        )
         path.write_text(json.dumps(data, indent=1) + "\n")
         print(f"results: {path}")
         return path

@@ -29,9 +29,13 @@ DOCS_RESULTS = ROOT / "docs" / "results"
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 #: the settings the README shows (bench_seeds.py's docstring defines them), and its columns: (split, region, group)
 SETTINGS = ("a", "b", "c", "d")
-COLUMNS = (("novel_view", "full", "all", "NV full"), ("novel_view", "hand", "all", "NV hand"),
-           ("novel_view", "interaction", "contact", "NV contact"), ("self_reenact", "full", "all", "SR full"),
-           ("self_reenact", "interaction", "contact", "SR contact"))
+COLUMNS = (
+    ("novel_view", "full", "all", "NV full"),
+    ("novel_view", "hand", "all", "NV hand"),
+    ("novel_view", "interaction", "contact", "NV contact"),
+    ("self_reenact", "full", "all", "SR full"),
+    ("self_reenact", "interaction", "contact", "SR contact"),
+)
 
 
 def _cell(row: dict) -> str:
@@ -46,23 +50,34 @@ def _cell(row: dict) -> str:
 def render(data: dict) -> str:
     """The Markdown block (markers included) for the results in ``data``."""
     rows = {(r["setting"], r["subject"], r["split"], r["region"], r["group"]): r for r in data["rows"]}
-    lines = [BEGIN, "",
-             "InteractAvatar's PSNR minus GaussianAvatars' in dB at `quality=draft` (mean over "
-             "seeds; in brackets the larger of the two seed standard deviations; **bold**: Welch's p < 0.05; "
-             "NV = held-out camera, SR = held-out motion, contact = the hand-face box in contact frames).", "",
-             "| setting | subject | seeds | trained at | " + " | ".join(c[3] for c in COLUMNS) + " |",
-             "| --- | --- | --- | --- | " + " | ".join("---" for _ in COLUMNS) + " |"]
+    lines = [
+        BEGIN,
+        "",
+        "InteractAvatar's PSNR minus GaussianAvatars' in dB at `quality=draft` (mean over "
+        "seeds; in brackets the larger of the two seed standard deviations; **bold**: Welch's p < 0.05; "
+        "NV = held-out camera, SR = held-out motion, contact = the hand-face box in contact frames).",
+        "",
+        "| setting | subject | seeds | trained at | " + " | ".join(c[3] for c in COLUMNS) + " |",
+        "| --- | --- | --- | --- | " + " | ".join("---" for _ in COLUMNS) + " |",
+    ]
     for key, setting in data["settings"].items():
         name, subject = key.split("/")
         if name not in SETTINGS:
             continue
         cells = [_cell(rows[(name, subject, *c[:3])]) if (name, subject, *c[:3]) in rows else "-" for c in COLUMNS]
-        lines.append(f"| ({name}) {setting['what']} | {subject} | {len(setting['seeds'])} | "
-                     f"`{setting['git'][:7]}` | " + " | ".join(cells) + " |")
-    lines += ["", f"Rendered from `benchmarks/results/bench_seeds.json` (table made at `{data['commit']}` on "
-                  f"{data['machine']}, {data['cores']} cores, load {data['load']}) by "
-                  "`python benchmarks/render_results.py`; per-region tables with LPIPS and Welch's p: "
-                  "`benchmarks/results/bench_seeds.md`.", "", END]
+        lines.append(
+            f"| ({name}) {setting['what']} | {subject} | {len(setting['seeds'])} | "
+            f"`{setting['git'][:7]}` | " + " | ".join(cells) + " |"
+        )
+    lines += [
+        "",
+        f"Rendered from `benchmarks/results/bench_seeds.json` (table made at `{data['commit']}` on "
+        f"{data['machine']}, {data['cores']} cores, load {data['load']}) by "
+        "`python benchmarks/render_results.py`; per-region tables with LPIPS and Welch's p: "
+        "`benchmarks/results/bench_seeds.md`.",
+        "",
+        END,
+    ]
     return "\n".join(lines)
 
 
@@ -77,8 +92,7 @@ def _fence_text_tables(text: str) -> str:
     rule) put in a code fence, so that Markdown keeps its columns."""
     blocks = text.strip("\n").split("\n\n")
     rule = re.compile(r"^-{3,}(\s+-{3,})+\s*$", re.MULTILINE)
-    return "\n\n".join(f"```\n{b}\n```" if rule.search(b) and not b.startswith("```") else b
-                        for b in blocks) + "\n"
+    return "\n\n".join(f"```\n{b}\n```" if rule.search(b) and not b.startswith("```") else b for b in blocks) + "\n"
 
 
 def _cell_text(value: str) -> str:
@@ -102,17 +116,25 @@ def _purpose(name: str) -> str:
 def log_page(data: dict) -> str:
     """The page of a ``ResultLog`` file: every run, newest first, with where it came from and its tables."""
     name = data["benchmark"]
-    lines = [f"# {name}: {_purpose(name)}", "",
-             f"Written by `python benchmarks/{name}.py` (its arguments are given per run) into "
-             f"`benchmarks/results/{name}.json`.", ""]
+    lines = [
+        f"# {name}: {_purpose(name)}",
+        "",
+        f"Written by `python benchmarks/{name}.py` (its arguments are given per run) into "
+        f"`benchmarks/results/{name}.json`.",
+        "",
+    ]
     for run in reversed(data["runs"]):
         m = run["machine"]
         load = " ".join(f"{x:g}" for x in m["load"]) + " -> " + " ".join(f"{x:g}" for x in m["load_end"])
         preset = f", preset {run['preset']}" if run["preset"] else ""
-        lines += [f"## {run['date']}, commit `{run['commit']}`{preset}",
-                  "", f"{m['cpu']}, {m['cores']} cores, load {load}; {run['wall_s']:g} s"
-                  + (f"; seeds {', '.join(map(str, run['seeds']))}" if run["seeds"] else "")
-                  + f"; arguments: `{' '.join(run['argv']) or '(defaults)'}`", ""]
+        lines += [
+            f"## {run['date']}, commit `{run['commit']}`{preset}",
+            "",
+            f"{m['cpu']}, {m['cores']} cores, load {load}; {run['wall_s']:g} s"
+            + (f"; seeds {', '.join(map(str, run['seeds']))}" if run["seeds"] else "")
+            + f"; arguments: `{' '.join(run['argv']) or '(defaults)'}`",
+            "",
+        ]
         for table in run["tables"]:
             lines += [f"**{table['title']}**", "", _markdown_table(table["columns"], table["rows"]), ""]
     return "\n".join(lines)
@@ -123,17 +145,24 @@ def results_pages() -> dict[Path, str]:
     the index."""
     folder = ROOT / "benchmarks" / "results"
     sources = sorted(folder.glob("*.md"))
-    banner = ("<!-- generated from benchmarks/results/{} by benchmarks/render_results.py: edit the benchmark, "
-              "not this page -->\n\n")
+    banner = (
+        "<!-- generated from benchmarks/results/{} by benchmarks/render_results.py: edit the benchmark, "
+        "not this page -->\n\n"
+    )
     pages = {DOCS_RESULTS / s.name: banner.format(s.name) + _fence_text_tables(s.read_text()) for s in sources}
     for path in sorted(folder.glob("*.json")):
         data = json.loads(path.read_text())
         if path.with_suffix(".md").is_file() or not isinstance(data, dict) or "benchmark" not in data:
             continue
         pages[DOCS_RESULTS / f"{path.stem}.md"] = banner.format(path.name) + log_page(data)
-    lines = ["# Results", "", "Every page here is a benchmark's own result file (`benchmarks/results/<name>.md` or "
-             "`<name>.json`, with its commit, machine, load and seeds), rendered by "
-             "`benchmarks/render_results.py`. Dated analyses of them are in the notes.", ""]
+    lines = [
+        "# Results",
+        "",
+        "Every page here is a benchmark's own result file (`benchmarks/results/<name>.md` or "
+        "`<name>.json`, with its commit, machine, load and seeds), rendered by "
+        "`benchmarks/render_results.py`. Dated analyses of them are in the notes.",
+        "",
+    ]
     titles = {p: text.split("\n\n", 1)[1].splitlines()[0].lstrip("# ").strip() for p, text in pages.items()}
     lines += [f"- [{p.stem}]({p.name}): {titles[p].removeprefix(p.stem + ':').strip()}" for p in sorted(pages)]
     pages[DOCS_RESULTS / "index.md"] = "\n".join(lines) + "\n"

@@ -30,31 +30,76 @@ PY = sys.executable
 QUICK: dict[str, list[list[str]]] = {
     "bench_ssim": [["--sizes", "64", "128", "--repeats", "3", "--results", "{out}"]],
     "bench_runner": [["--stages", "5", "--files", "10", "--kb", "64", "--skip-cli", "--results", "{out}"]],
-    "bench_rasterizer": [["--quick", "--repeats", "2", "--threads", "1", "--no-memory",
-                         "--results", "{out}"]],
+    "bench_rasterizer": [["--quick", "--repeats", "2", "--threads", "1", "--no-memory", "--results", "{out}"]],
     "bench_fitting": [["--size", "96", "--frames", "4", "--results", "{out}"]],
     "bench_pbd": [["--sweeps", "50,100", "--tables", "1,2", "--results", "{out}"]],
     "bench_transfer": [["--results", "{out}"]],
-    "bench_seeds": [["run", "--setting", "a", "--subject", "synth_a", "--seeds", "0", "1", "--quality", "smoke",
-                     "--outputs", "{out}"], ["table", "--settings", "a", "--outputs", "{out}", "--results", "{out}"]],
-    "bench_scene": [["--preset", "smoke", "--scenes", "face_only", "--outputs", "{out}",
-                    "--results", "{out}"]],
-    "bench_quality": [["--presets", "smoke", "--methods", "gaussian_avatars", "--outputs", "{out}",
-                      "--results", "{out}"]],
-    "bench_dynamic": [["--presets", "smoke", "--subjects", "synth_a", "--outputs", "{out}", "--cost-steps", "5",
-                       "--cost-rounds", "1", "--results", "{out}"]],
-    "bench_patch_weight": [["--preset", "smoke", "--weights", "0", "0.03", "--every", "50", "--outputs", "{out}",
-                           "--results", "{out}"]],
+    "bench_seeds": [
+        [
+            "run",
+            "--setting",
+            "a",
+            "--subject",
+            "synth_a",
+            "--seeds",
+            "0",
+            "1",
+            "--quality",
+            "smoke",
+            "--outputs",
+            "{out}",
+        ],
+        ["table", "--settings", "a", "--outputs", "{out}", "--results", "{out}"],
+    ],
+    "bench_scene": [["--preset", "smoke", "--scenes", "face_only", "--outputs", "{out}", "--results", "{out}"]],
+    "bench_quality": [
+        ["--presets", "smoke", "--methods", "gaussian_avatars", "--outputs", "{out}", "--results", "{out}"]
+    ],
+    "bench_dynamic": [
+        [
+            "--presets",
+            "smoke",
+            "--subjects",
+            "synth_a",
+            "--outputs",
+            "{out}",
+            "--cost-steps",
+            "5",
+            "--cost-rounds",
+            "1",
+            "--results",
+            "{out}",
+        ]
+    ],
+    "bench_patch_weight": [
+        ["--preset", "smoke", "--weights", "0", "0.03", "--every", "50", "--outputs", "{out}", "--results", "{out}"]
+    ],
     "bench_reenact": [["--outputs", "{smoke}", "--sizes", "128", "--repeats", "1", "--results", "{out}"]],
-    "bench_refine": [["--workspace", "{smoke}/synth_a", "--detector", "ground_truth", "--modes", "none",
-                      "silhouette", "--results", "{out}"]],
-    "bench_train_refine": [["--workspace", "{smoke}/synth_a", "--scales", "0", "3", "--steps", "50",
-                            "--results", "{out}"]],
+    "bench_refine": [
+        [
+            "--workspace",
+            "{smoke}/synth_a",
+            "--detector",
+            "ground_truth",
+            "--modes",
+            "none",
+            "silhouette",
+            "--results",
+            "{out}",
+        ]
+    ],
+    "bench_train_refine": [
+        ["--workspace", "{smoke}/synth_a", "--scales", "0", "3", "--steps", "50", "--results", "{out}"]
+    ],
     "bench_gpu": [["--quick", "--skip-dag", "--json", "{out}/bench_gpu.json"]],
 }
 #: the arguments a benchmark needs even in its full mode
-NEEDS = {"bench_reenact": [["--outputs", "{smoke}"]], "bench_refine": [["--workspace", "{smoke}/synth_a"]],
-         "bench_train_refine": [["--workspace", "{smoke}/synth_a"]], "bench_seeds": [["table"]]}
+NEEDS = {
+    "bench_reenact": [["--outputs", "{smoke}"]],
+    "bench_refine": [["--workspace", "{smoke}/synth_a"]],
+    "bench_train_refine": [["--workspace", "{smoke}/synth_a"]],
+    "bench_seeds": [["table"]],
+}
 
 
 def _cuda() -> bool:
@@ -69,8 +114,12 @@ def _cuda() -> bool:
 def _smoke_dag(root: Path) -> Path:
     """A finished quality=smoke DAG (synth_a, the default method) under ``root``; its outputs folder."""
     outputs = root / "smoke"
-    subprocess.run([PY, "-m", "pipeline.cli", "quality=smoke", "run.progress=false", f"paths.outputs={outputs}"],
-                   cwd=REPO, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [PY, "-m", "pipeline.cli", "quality=smoke", "run.progress=false", f"paths.outputs={outputs}"],
+        cwd=REPO,
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
     return outputs
 
 
@@ -115,8 +164,10 @@ def main() -> None:
     print("\n| benchmark | arguments | status | wall s |\n| --- | --- | --- | --- |")
     for row in rows:
         print("| " + " | ".join(row) + " |")
-    print(f"\nload average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f}; "
-          f"{os.cpu_count()} CPUs; scratch: {root if args.keep else 'removed'}")
+    print(
+        f"\nload average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f}; "
+        f"{os.cpu_count()} CPUs; scratch: {root if args.keep else 'removed'}"
+    )
     if args.keep is None:
         shutil.rmtree(root, ignore_errors=True)
     sys.exit(0 if all(r[2].startswith(("ok", "skipped")) for r in rows) else 1)

@@ -69,8 +69,10 @@ def check_camera(path: Path, cam: Camera) -> None:
     if K.shape != (3, 3) or not np.isfinite(K).all():
         raise SchemaError(f"{where}: K must be a finite 3x3 matrix")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or abs(np.linalg.det(K)) < 1e-9 or not np.allclose(K[2], [0, 0, 1]):
-        raise SchemaError(f"{where}: K is singular or not a pinhole matrix [[fx,s,cx],[0,fy,cy],[0,0,1]] "
-                          f"with fx, fy > 0; fix the calibration")
+        raise SchemaError(
+            f"{where}: K is singular or not a pinhole matrix [[fx,s,cx],[0,fy,cy],[0,0,1]] "
+            f"with fx, fy > 0; fix the calibration"
+        )
     T = cam.world_to_cam
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise SchemaError(f"{where}: world_to_cam must be a finite 4x4 matrix")
@@ -93,24 +95,34 @@ def write_cameras(path: str | Path, cameras: list[Camera]) -> None:
     dist_len = {len(c.dist) for c in cameras}
     if len(dist_len) != 1:
         raise SchemaError(f"{path}: column 'dist': all cameras need the same number of coefficients")
-    write_table(path, CAMERAS, {
-        "camera_id": ids,
-        "width": np.array([c.width for c in cameras]),
-        "height": np.array([c.height for c in cameras]),
-        "K": np.stack([c.K.reshape(9) for c in cameras]),
-        "world_to_cam": np.stack([c.world_to_cam.reshape(16) for c in cameras]),
-        "dist": np.stack([np.asarray(c.dist, dtype=np.float64) for c in cameras]),
-        "split": [c.split for c in cameras],
-    })
+    write_table(
+        path,
+        CAMERAS,
+        {
+            "camera_id": ids,
+            "width": np.array([c.width for c in cameras]),
+            "height": np.array([c.height for c in cameras]),
+            "K": np.stack([c.K.reshape(9) for c in cameras]),
+            "world_to_cam": np.stack([c.world_to_cam.reshape(16) for c in cameras]),
+            "dist": np.stack([np.asarray(c.dist, dtype=np.float64) for c in cameras]),
+            "split": [c.split for c in cameras],
+        },
+    )
 
 
 def read_cameras(path: str | Path) -> list[Camera]:
     path = Path(path)
     t = read_table(path, CAMERAS)
     cams = [
-        Camera(camera_id=t["camera_id"][i], width=int(t["width"][i]), height=int(t["height"][i]),
-               K=t["K"][i].reshape(3, 3), world_to_cam=t["world_to_cam"][i].reshape(4, 4),
-               dist=t["dist"][i], split=t["split"][i])
+        Camera(
+            camera_id=t["camera_id"][i],
+            width=int(t["width"][i]),
+            height=int(t["height"][i]),
+            K=t["K"][i].reshape(3, 3),
+            world_to_cam=t["world_to_cam"][i].reshape(4, 4),
+            dist=t["dist"][i],
+            split=t["split"][i],
+        )
         for i in range(len(t["camera_id"]))
     ]
     if len({c.camera_id for c in cams}) != len(cams):

@@ -45,7 +45,7 @@ class SequenceInfo:
     has_masks: bool
     has_ground_truth: bool
     provided: tuple[str, ...] = ()  # which PROVIDED_TABLES exist under <sequence>/provided/
-    notes: tuple[str, ...] = ()     # what the dataset ships that was not imported, and why
+    notes: tuple[str, ...] = ()  # what the dataset ships that was not imported, and why
 
     def has_provided(self, name: str) -> bool:
         """Whether ``<sequence>/provided/<name>.parquet`` exists (``name`` in PROVIDED_TABLES)."""
@@ -59,8 +59,12 @@ class CaptureIndex:
     sequences: dict[str, SequenceInfo]
 
     def write(self, root: Path) -> None:
-        body = {"schema_version": CAPTURE_VERSION, "subject": self.subject, "dataset": self.dataset,
-                "sequences": {k: asdict(v) for k, v in self.sequences.items()}}
+        body = {
+            "schema_version": CAPTURE_VERSION,
+            "subject": self.subject,
+            "dataset": self.dataset,
+            "sequences": {k: asdict(v) for k, v in self.sequences.items()},
+        }
         write_json(root / CAPTURE_INDEX, body, "capture index")
 
     @classmethod
@@ -70,9 +74,10 @@ class CaptureIndex:
             body = json.loads(path.read_text())
             if body.get("schema_version") != CAPTURE_VERSION:
                 raise SchemaError(f"{path}: schema_version {body.get('schema_version')} != {CAPTURE_VERSION}")
-            sequences = {k: SequenceInfo(**{**v, "provided": tuple(v.get("provided", ())),
-                                            "notes": tuple(v.get("notes", ()))})
-                         for k, v in body["sequences"].items()}
+            sequences = {
+                k: SequenceInfo(**{**v, "provided": tuple(v.get("provided", ())), "notes": tuple(v.get("notes", ()))})
+                for k, v in body["sequences"].items()
+            }
             return cls(subject=body["subject"], dataset=body["dataset"], sequences=sequences)
         except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
             raise SchemaError(f"{path}: missing or malformed capture index ({exc})") from exc

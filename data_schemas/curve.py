@@ -19,9 +19,18 @@ CURVE = TableSchema(
     columns=(
         Column("step", "int32", doc="optimiser steps done"),
         Column("wall_s", "float32", unit="s", doc="training wall time so far, validation excluded"),
-        Column("psnr", "float32", unit="dB", finite=False, doc="mean per-image PSNR of the withheld frames "
-                                                              "(+inf where a render equals its ground truth)"),
-        Column("lpips", "float32", finite=False, doc="mean LPIPS-alex of the withheld frames (NaN: not measured, "
-                                                      "validation.lpips off)"),
+        Column(
+            "psnr",
+            "float32",
+            unit="dB",
+            finite=False,
+            doc="mean per-image PSNR of the withheld frames (+inf where a render equals its ground truth)",
+        ),
+        Column(
+            "lpips",
+            "float32",
+            finite=False,
+            doc="mean LPIPS-alex of the withheld frames (NaN: not measured, validation.lpips off)",
+        ),
     ),
 )

@@ -80,9 +80,12 @@ def _numpy_allow_list() -> dict[tuple[str, str], Any]:
         from numpy.core import multiarray, numeric  # type: ignore[no-redef]
     # Protocol 2, written by Python 3, stores an array's bytes as _codecs.encode(<latin1 text>, "latin1"):
     # a pure conversion from text to bytes, so it is safe to allow.
-    allowed: dict[tuple[str, str], Any] = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype,
-                                           ("collections", "OrderedDict"): OrderedDict,
-                                           ("_codecs", "encode"): codecs.encode}
+    allowed: dict[tuple[str, str], Any] = {
+        ("numpy", "ndarray"): np.ndarray,
+        ("numpy", "dtype"): np.dtype,
+        ("collections", "OrderedDict"): OrderedDict,
+        ("_codecs", "encode"): codecs.encode,
+    }
     for package in ("numpy.core", "numpy._core"):
         allowed[(f"{package}.multiarray", "_reconstruct")] = multiarray._reconstruct
         allowed[(f"{package}.multiarray", "scalar")] = multiarray.scalar
@@ -184,21 +187,28 @@ def read_calibration(path: Path) -> dict[str, dict[str, np.ndarray]]:
     """``cameras.pkl`` -> camera id -> ``K`` (3, 3), ``world_to_cam`` (4, 4), ``dist`` (D,)."""
     data = load_pickle(path)
     if not isinstance(data, dict) or not data:
-        raise SchemaError(f"{path}: expected a dict camera id -> {{'intrinsic', 'extrinsic'}}, "
-                          f"found {type(data).__name__}{' (empty)' if isinstance(data, dict) else ''}")
+        raise SchemaError(
+            f"{path}: expected a dict camera id -> {{'intrinsic', 'extrinsic'}}, "
+            f"found {type(data).__name__}{' (empty)' if isinstance(data, dict) else ''}"
+        )
     out: dict[str, dict[str, np.ndarray]] = {}
     for key, entry in data.items():
         cam = str(key)
         if not isinstance(entry, dict) or "intrinsic" not in entry or "extrinsic" not in entry:
             found = sorted(map(str, entry)) if isinstance(entry, dict) else type(entry).__name__
-            raise SchemaError(f"{path}: camera '{cam}' needs keys 'intrinsic' (3x3) and 'extrinsic' "
-                              f"(4x4 world-to-camera), found {found}")
+            raise SchemaError(
+                f"{path}: camera '{cam}' needs keys 'intrinsic' (3x3) and 'extrinsic' "
+                f"(4x4 world-to-camera), found {found}"
+            )
         dist_key = next((k for k in DISTORTION_KEYS if k in entry), None)
         out[cam] = {
             "K": _array(path, f"camera '{cam}' intrinsic", entry["intrinsic"], (3, 3)),
             "world_to_cam": _array(path, f"camera '{cam}' extrinsic", entry["extrinsic"], (4, 4)),
-            "dist": (_array(path, f"camera '{cam}' {dist_key}", np.ravel(entry[dist_key]), (None,))
-                     if dist_key else np.zeros(5)),
+            "dist": (
+                _array(path, f"camera '{cam}' {dist_key}", np.ravel(entry[dist_key]), (None,))
+                if dist_key
+                else np.zeros(5)
+            ),
         }
     return out
 
@@ -220,8 +230,9 @@ def scan_sequence(root: Path, mode: str, subject: str) -> DecafSequence:
     video; views, segmentations and keypoint files agree on frame count and size."""
     videos_dir = root / mode / "videos" / subject
     if not videos_dir.is_dir():
-        raise SchemaError(f"{videos_dir}: missing; DECAF keeps one video per camera in "
-                          f"<root>/{mode}/videos/<subject>/<camera>.mp4")
+        raise SchemaError(
+            f"{videos_dir}: missing; DECAF keeps one video per camera in <root>/{mode}/videos/<subject>/<camera>.mp4"
+        )
     videos = {p.stem: p for p in sorted(videos_dir.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES}
     if not videos:
         raise SchemaError(f"{videos_dir}: no videos ({', '.join(VIDEO_SUFFIXES)}); expected <camera>.mp4 per camera")
@@ -229,30 +240,46 @@ def scan_sequence(root: Path, mode: str, subject: str) -> DecafSequence:
     calibrated = {camera_key(c) for c in read_calibration(seq.cameras_pkl)}
     without_camera = [c for c in videos if camera_key(c) not in calibrated]
     if without_camera:
-        raise SchemaError(f"{videos[without_camera[0]]}: video has no camera '{without_camera[0]}' in "
-                          f"{seq.cameras_pkl}; add its calibration or remove the video")
+        raise SchemaError(
+            f"{videos[without_camera[0]]}: video has no camera '{without_camera[0]}' in "
+            f"{seq.cameras_pkl}; add its calibration or remove the video"
+        )
     without_video = sorted(calibrated - {camera_key(c) for c in videos})
     if without_video:
-        raise SchemaError(f"{seq.cameras_pkl}: camera '{without_video[0]}' has no video in {videos_dir}; "
-                          f"add <camera>.mp4 or remove the camera")
+        raise SchemaError(
+            f"{seq.cameras_pkl}: camera '{without_video[0]}' has no video in {videos_dir}; "
+            f"add <camera>.mp4 or remove the camera"
+        )
     probes = {cam: _probe(path) for cam, path in videos.items()}
     counts = {cam: p[0] for cam, p in probes.items()}
     if len(set(counts.values())) != 1 or 0 in counts.values():
-        raise SchemaError(f"{videos_dir}: views disagree on frame count {counts}; DECAF's videos of one "
-                          f"subject are synchronised, re-export them from the release")
+        raise SchemaError(
+            f"{videos_dir}: views disagree on frame count {counts}; DECAF's videos of one "
+            f"subject are synchronised, re-export them from the release"
+        )
     num_frames = next(iter(counts.values()))
-    seq = DecafSequence(root=root, mode=mode, subject=subject, videos=videos, num_frames=num_frames,
-                        frame_rate=video_fps(next(iter(videos.values()))),
-                        sizes={cam: (p[1], p[2]) for cam, p in probes.items()})
+    seq = DecafSequence(
+        root=root,
+        mode=mode,
+        subject=subject,
+        videos=videos,
+        num_frames=num_frames,
+        frame_rate=video_fps(next(iter(videos.values()))),
+        sizes={cam: (p[1], p[2]) for cam, p in probes.items()},
+    )
     if seq.has_segmentations:
         for cam in videos:
             frames, width, height = _probe(seq.segmentation(cam)) if seq.segmentation(cam).is_file() else (-1, 0, 0)
             if frames < 0:
-                raise SchemaError(f"{seq.segmentation(cam)}: missing; every camera needs a segmentation video "
-                                  f"(or remove {seq.folder('segmentations')} to key the background instead)")
+                raise SchemaError(
+                    f"{seq.segmentation(cam)}: missing; every camera needs a segmentation video "
+                    f"(or remove {seq.folder('segmentations')} to key the background instead)"
+                )
             if (frames, width, height) != (num_frames, *seq.sizes[cam]):
-                raise SchemaError(f"{seq.segmentation(cam)}: {frames} frames of {width}x{height}, but the video has "
-                                  f"{num_frames} of {seq.sizes[cam][0]}x{seq.sizes[cam][1]}")
+                raise SchemaError(
+                    f"{seq.segmentation(cam)}: {frames} frames of {width}x{height}, but the video has "
+                    f"{num_frames} of {seq.sizes[cam][0]}x{seq.sizes[cam][1]}"
+                )
     for part in KEYPOINT_FOLDERS:
         if seq.has_keypoints(part):
             for cam in videos:
@@ -269,8 +296,14 @@ def decaf_cameras(seq: DecafSequence, test_cameras: set[str]) -> list[Camera]:
     for cam in sorted(seq.videos):
         c = calib[camera_key(cam)]
         dist = np.concatenate([c["dist"], np.zeros(width - len(c["dist"]))])
-        camera = Camera(cam, *seq.sizes[cam], K=c["K"], world_to_cam=c["world_to_cam"], dist=dist,
-                        split="test" if camera_key(cam) in held_out else "train")
+        camera = Camera(
+            cam,
+            *seq.sizes[cam],
+            K=c["K"],
+            world_to_cam=c["world_to_cam"],
+            dist=dist,
+            split="test" if camera_key(cam) in held_out else "train",
+        )
         check_camera(seq.cameras_pkl, camera)
         cameras.append(camera)
     return cameras
@@ -286,8 +319,10 @@ def _keypoint_array(path: Path, part: str, num_frames: int) -> np.ndarray:
         raise SchemaError(f"{path}: not a readable .npy array ({exc})") from exc
     k = KEYPOINT_COUNTS[part]
     if arr.ndim != 3 or arr.shape[0] != num_frames or arr.shape[1] != k or arr.shape[2] < 2:
-        raise SchemaError(f"{path}: shape {arr.shape}, expected ({num_frames}, {k}, 2 or more): one row per "
-                          f"video frame, {k} {part} keypoints, pixel u and v first")
+        raise SchemaError(
+            f"{path}: shape {arr.shape}, expected ({num_frames}, {k}, 2 or more): one row per "
+            f"video frame, {k} {part} keypoints, pixel u and v first"
+        )
     return arr
 
 
@@ -347,11 +382,14 @@ def read_params(seq: DecafSequence) -> DecafParams:
     path = seq.params_pkl
     data = load_pickle(path)
     if not isinstance(data, dict):
-        raise SchemaError(f"{path}: expected a dict frame -> {{'head': ..., 'right_hand': ...}}, "
-                          f"found {type(data).__name__}")
+        raise SchemaError(
+            f"{path}: expected a dict frame -> {{'head': ..., 'right_hand': ...}}, found {type(data).__name__}"
+        )
     if len(data) != seq.num_frames:
-        raise SchemaError(f"{path}: {len(data)} frames, but the videos of {seq.mode}/{seq.subject} have "
-                          f"{seq.num_frames}; use the params file that belongs to these videos")
+        raise SchemaError(
+            f"{path}: {len(data)} frames, but the videos of {seq.mode}/{seq.subject} have "
+            f"{seq.num_frames}; use the params file that belongs to these videos"
+        )
     columns: dict[str, list[np.ndarray]] = {name: [] for name in _PARAM_KEYS}
     for key in _frame_order(list(data)):
         entry = data[key]
@@ -360,9 +398,11 @@ def read_params(seq: DecafSequence) -> DecafParams:
             try:
                 value = entry[part][field_name]
             except (KeyError, TypeError, IndexError):
-                raise SchemaError(f"{path}: frame {key!r} lacks {part}.{field_name}; each frame needs 'head' "
-                                  f"(shape_params, expression_params, pose_params, global_orient, transl) and "
-                                  f"'right_hand' (betas, hand_pose, global_orient, transl)") from None
+                raise SchemaError(
+                    f"{path}: frame {key!r} lacks {part}.{field_name}; each frame needs 'head' "
+                    f"(shape_params, expression_params, pose_params, global_orient, transl) and "
+                    f"'right_hand' (betas, hand_pose, global_orient, transl)"
+                ) from None
             arr = _array(path, where, value, (width,))
             if columns[name] and len(arr) != len(columns[name][0]):
                 raise SchemaError(f"{path}: {where} has {len(arr)} values, earlier frames {len(columns[name][0])}")
@@ -393,11 +433,15 @@ def read_contacts(seq: DecafSequence, frames: np.ndarray) -> tuple[np.ndarray, n
         try:
             arr = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as exc:
-            raise SchemaError(f"{path}: missing or not a readable .npy array ({exc}); {path.parent} needs "
-                              f"contacts_head.npy and contacts_rh.npy") from exc
+            raise SchemaError(
+                f"{path}: missing or not a readable .npy array ({exc}); {path.parent} needs "
+                f"contacts_head.npy and contacts_rh.npy"
+            ) from exc
         if arr.ndim != 2 or arr.shape[0] != seq.num_frames:
-            raise SchemaError(f"{path}: shape {arr.shape}, expected ({seq.num_frames}, vertices): one row of "
-                              f"per-vertex flags per video frame")
+            raise SchemaError(
+                f"{path}: shape {arr.shape}, expected ({seq.num_frames}, vertices): one row of "
+                f"per-vertex flags per video frame"
+            )
         out.append(np.asarray(arr[frames]) != 0)
     return out[0], out[1]
 

@@ -51,8 +51,15 @@ class GaussianCloud:
             raise SchemaError(f"GaussianCloud.sh_rest: expected (N, K-1, 3), got {self.sh_rest.shape}")
 
     @classmethod
-    def from_rgb(cls, means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, opacity_logits: np.ndarray,
-                 rgb: np.ndarray, sh_degree: int = 0) -> GaussianCloud:
+    def from_rgb(
+        cls,
+        means: np.ndarray,
+        log_scales: np.ndarray,
+        quats: np.ndarray,
+        opacity_logits: np.ndarray,
+        rgb: np.ndarray,
+        sh_degree: int = 0,
+    ) -> GaussianCloud:
         """Build from linear colours in [0, 1] (N, 3); higher SH bands of ``sh_degree`` are zero."""
         rest = np.zeros((len(means), (sh_degree + 1) ** 2 - 1, 3), np.float32)
         return cls(means, log_scales, quats, opacity_logits, (np.asarray(rgb) - 0.5) / SH_C0, rest)
@@ -63,17 +70,26 @@ class GaussianCloud:
 
 
 def _property_names(n_rest: int) -> list[str]:
-    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-            + [f"f_rest_{i}" for i in range(3 * n_rest)]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(3 * n_rest)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
 
 
 def write_gaussians_ply(path: str | Path, cloud: GaussianCloud) -> None:
     path = Path(path)
     n, n_rest = len(cloud.means), cloud.sh_rest.shape[1]
     rest = np.transpose(cloud.sh_rest, (0, 2, 1)).reshape(n, -1)  # channel-major, as the reference code
-    columns = [cloud.means, np.zeros((n, 3)), cloud.sh_dc, rest, cloud.opacity_logits[:, None],
-               cloud.log_scales, cloud.quats]
+    columns = [
+        cloud.means,
+        np.zeros((n, 3)),
+        cloud.sh_dc,
+        rest,
+        cloud.opacity_logits[:, None],
+        cloud.log_scales,
+        cloud.quats,
+    ]
     data = np.concatenate([np.asarray(c, dtype=np.float32).reshape(n, -1) for c in columns], axis=1)
     if not np.isfinite(data).all():
         raise SchemaError(f"{path}: Gaussians contain NaN or Inf; refusing to write a broken PLY")
@@ -105,17 +121,17 @@ def read_gaussians_ply(path: str | Path) -> GaussianCloud:
     n_rest = sum(name.startswith("f_rest_") for name in names) // 3
     if names != _property_names(n_rest):
         raise SchemaError(f"{path}: properties {names[:12]}... are not the 3DGS layout")
-    body = raw[end + len(b"end_header\n"):]
+    body = raw[end + len(b"end_header\n") :]
     if len(body) != n * len(names) * 4:
         raise SchemaError(f"{path}: truncated: expected {n} vertices of {len(names)} floats")
     data = np.frombuffer(body, dtype="<f4").reshape(n, len(names)).astype(np.float32)
     col = {name: i for i, name in enumerate(names)}
-    rest = data[:, col["f_dc_2"] + 1: col["opacity"]].reshape(n, 3, n_rest).transpose(0, 2, 1)
+    rest = data[:, col["f_dc_2"] + 1 : col["opacity"]].reshape(n, 3, n_rest).transpose(0, 2, 1)
     return GaussianCloud(
         means=data[:, 0:3],
-        log_scales=data[:, col["scale_0"]: col["scale_2"] + 1],
-        quats=data[:, col["rot_0"]: col["rot_3"] + 1],
+        log_scales=data[:, col["scale_0"] : col["scale_2"] + 1],
+        quats=data[:, col["rot_0"] : col["rot_3"] + 1],
         opacity_logits=data[:, col["opacity"]],
-        sh_dc=data[:, col["f_dc_0"]: col["f_dc_2"] + 1],
+        sh_dc=data[:, col["f_dc_0"] : col["f_dc_2"] + 1],
         sh_rest=np.ascontiguousarray(rest),
     )

@@ -51,8 +51,13 @@ COMPARISON = TableSchema(
         Column("ssim", "float32", finite=False),
         Column("lpips", "float32", finite=False),
         Column("train_steps", "int32", doc="warm-up plus stage-two optimisation steps"),
-        Column("train_wall_s", "float32", unit="s", doc="warm-up plus stage-two wall time (a shared warm-up "
-                                                          "counts in full for each method that starts from it)"),
+        Column(
+            "train_wall_s",
+            "float32",
+            unit="s",
+            doc="warm-up plus stage-two wall time (a shared warm-up "
+            "counts in full for each method that starts from it)",
+        ),
         Column("gaussians", "int64", doc="Gaussians of the trained model"),
     ),
 )

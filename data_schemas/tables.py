@@ -158,7 +158,6 @@ def write_records(path: str | Path, schema: TableSchema, records: Sequence[Any])
     write_table(path, schema, {name: np.array([getattr(r, name) for r in records]) for name in schema.column_names})
 
 
-
 def read_table(path: str | Path, schema: TableSchema) -> dict[str, np.ndarray | list[Any]]:
     """Read and validate a table: scalars as 1-D arrays, ``vec_*`` as ``(N, size)``, strings and
     ``list_f32`` as lists."""
@@ -191,8 +190,10 @@ def validate_table(path: Path, table: pa.Table, schema: TableSchema) -> None:
     if artifact != schema.name:
         raise SchemaError(f"{path}: expected a '{schema.name}' table, found '{artifact or 'no artifact tag'}'")
     if version != str(schema.version):
-        raise SchemaError(f"{path}: {schema.name} schema_version {version or '?'} != supported {schema.version}; "
-                          f"regenerate it with this version of the pipeline")
+        raise SchemaError(
+            f"{path}: {schema.name} schema_version {version or '?'} != supported {schema.version}; "
+            f"regenerate it with this version of the pipeline"
+        )
     for c in schema.columns:
         if c.name not in table.column_names:
             raise SchemaError(f"{path}: missing column '{c.name}' ({c.kind})")
@@ -206,4 +207,3 @@ def validate_table(path: Path, table: pa.Table, schema: TableSchema) -> None:
             flat = values.flatten() if c.kind in _VECTOR_DTYPES else values
             if len(flat) and not np.isfinite(flat.to_numpy(zero_copy_only=False)).all():
                 raise SchemaError(f"{path}: column '{c.name}' contains NaN or Inf")
-

@@ -61,10 +61,16 @@ def checked_frame(path: Path, frame: np.ndarray, index: int, size: tuple[int, in
     """``frame`` as an array if it is (H, W, 3) uint8 RGB of the first frame's ``size`` (None: any), else
     one error naming the video ``path`` and the frame ``index``."""
     frame = np.asarray(frame)
-    if frame.ndim != 3 or frame.shape[-1] != 3 or frame.dtype != np.uint8 or \
-            (size is not None and frame.shape[:2] != size):
-        raise SchemaError(f"{path}: frame {index} is {frame.shape} {frame.dtype}; expected "
-                          f"{size or '(H, W)'} x 3 uint8 like the first frame")
+    if (
+        frame.ndim != 3
+        or frame.shape[-1] != 3
+        or frame.dtype != np.uint8
+        or (size is not None and frame.shape[:2] != size)
+    ):
+        raise SchemaError(
+            f"{path}: frame {index} is {frame.shape} {frame.dtype}; expected "
+            f"{size or '(H, W)'} x 3 uint8 like the first frame"
+        )
     return frame
 
 
@@ -78,8 +84,11 @@ def _check_written(path: Path, count: int) -> None:
     finally:
         cap.release()
     if announced != count or not decodes:
-        raise write_failed(path, f"video ({count} frames encoded, {announced} in the file, "
-                                 f"{'first decodes' if decodes else 'none decodes'})")
+        raise write_failed(
+            path,
+            f"video ({count} frames encoded, {announced} in the file, "
+            f"{'first decodes' if decodes else 'none decodes'})",
+        )
 
 
 def read_video(path: str | Path) -> np.ndarray:
@@ -122,9 +131,11 @@ def check_fully_decoded(path: str | Path, decoded: int) -> None:
     truncated stretch stops the decoder), which is not the same fault as views of unequal length."""
     announced = video_frame_count(path)
     if announced and decoded < announced:
-        raise SchemaError(f"{path}: the file is damaged: only {decoded} of the {announced} frames its container "
-                          f"announces decode (corrupt or truncated data); re-export or re-encode it, e.g. "
-                          f"ffmpeg -i <original> -c:v libx264 -pix_fmt yuv420p {Path(path).name}")
+        raise SchemaError(
+            f"{path}: the file is damaged: only {decoded} of the {announced} frames its container "
+            f"announces decode (corrupt or truncated data); re-export or re-encode it, e.g. "
+            f"ffmpeg -i <original> -c:v libx264 -pix_fmt yuv420p {Path(path).name}"
+        )
 
 
 def video_fps(path: str | Path) -> float:

@@ -52,8 +52,7 @@ def write_web_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) 
                     stream = container.add_stream(CODEC, rate=Fraction(fps).limit_denominator(1001))
                     stream.width, stream.height = size[1] + size[1] % 2, size[0] + size[0] % 2
                     stream.pix_fmt = "yuv420p"
-                    stream.options = {"crf": str(CRF), "profile": "high", "preset": "medium",
-                                      "x264-params": "mbtree=0"}
+                    stream.options = {"crf": str(CRF), "profile": "high", "preset": "medium", "x264-params": "mbtree=0"}
                 assert size is not None  # set with the stream, from the first frame
                 padded = np.pad(frame, ((0, size[0] % 2), (0, size[1] % 2), (0, 0)), mode="edge")
                 container.mux(stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(padded), format="rgb24")))

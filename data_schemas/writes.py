@@ -49,8 +49,11 @@ def write_failed(path: str | Path, what: str, cause: BaseException | None = None
         reason = str(cause).strip().splitlines()[0] if cause is not None and str(cause).strip() else ""
     reason = reason.rstrip(". ")
     free = _free_bytes(path.parent)
-    full = code == errno.ENOSPC or "no space left on device" in reason.lower() or \
-        (free is not None and free < NEARLY_FULL_BYTES)
+    full = (
+        code == errno.ENOSPC
+        or "no space left on device" in reason.lower()
+        or (free is not None and free < NEARLY_FULL_BYTES)
+    )
     if full:
         code = errno.ENOSPC
         if "no space left on device" not in reason.lower():

@@ -18,8 +18,9 @@ from omegaconf import DictConfig, OmegaConf
 SLURM_LAUNCHER = "SlurmLauncher"
 
 
-def slurm_accounting_problem(config: DictConfig,
-                             run: Callable[..., subprocess.CompletedProcess[str]] = subprocess.run) -> str | None:
+def slurm_accounting_problem(
+    config: DictConfig, run: Callable[..., subprocess.CompletedProcess[str]] = subprocess.run
+) -> str | None:
     """Why a SLURM batch would never finish on this cluster, or ``None``.
 
     submitit learns its jobs' states only from ``sacct``; where SLURM keeps no accounting, ``sacct`` fails, a
@@ -29,18 +30,27 @@ def slurm_accounting_problem(config: DictConfig,
     if not target.endswith(SLURM_LAUNCHER):
         return None
     if shutil.which("sacct") is None:
-        return ("hydra/launcher=slurm: no `sacct` on this machine's PATH. submitit follows the batch's jobs "
-                "with sacct: start the batch where SLURM's client commands are installed (a login node)")
-    done = run(["sacct", "--noheader", "--allocations", "--starttime", "now", "--format", "JobID"],
-               capture_output=True, text=True, check=False, timeout=60)
+        return (
+            "hydra/launcher=slurm: no `sacct` on this machine's PATH. submitit follows the batch's jobs "
+            "with sacct: start the batch where SLURM's client commands are installed (a login node)"
+        )
+    done = run(
+        ["sacct", "--noheader", "--allocations", "--starttime", "now", "--format", "JobID"],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=60,
+    )
     if done.returncode == 0:
         return None
     said = " ".join((done.stderr or done.stdout or "").split())
     if "disabled" in said.lower():
-        return (f"hydra/launcher=slurm: this cluster keeps no job accounting (sacct: {said}). submitit learns "
-                f"its jobs' states from sacct, so a cancelled job would never be seen to end and the batch "
-                f"would wait forever. Ask for accounting (slurmdbd, AccountingStorageType=accounting_storage/"
-                f"slurmdbd in slurm.conf), or submit one job per subject with sbatch yourself")
+        return (
+            f"hydra/launcher=slurm: this cluster keeps no job accounting (sacct: {said}). submitit learns "
+            f"its jobs' states from sacct, so a cancelled job would never be seen to end and the batch "
+            f"would wait forever. Ask for accounting (slurmdbd, AccountingStorageType=accounting_storage/"
+            f"slurmdbd in slurm.conf), or submit one job per subject with sbatch yourself"
+        )
     return f"hydra/launcher=slurm: `sacct` failed ({said or f'exit status {done.returncode}'}); submitit needs it"
 
 

@@ -75,9 +75,11 @@ def comparison_fixes(cfg: DictConfig, reports: list[StageReport]) -> list[str]:
     for key, kind in (("methods_stale", "stale"), ("methods_corrupt", "corrupted")):
         value = str(metrics.get(key, "-"))
         for run in [] if value == "-" else value.split(","):
-            lines.append(f"comparison: {run} left out ({kind}); recompute it with "
-                         f"`{fix_command(cfg, *run_overrides(run), 'run.until=evaluate')}`, then "
-                         f"`{fix_command(cfg, 'run.only=compare')}`")
+            lines.append(
+                f"comparison: {run} left out ({kind}); recompute it with "
+                f"`{fix_command(cfg, *run_overrides(run), 'run.until=evaluate')}`, then "
+                f"`{fix_command(cfg, 'run.only=compare')}`"
+            )
     return lines
 
 

@@ -47,8 +47,11 @@ def fix_command(cfg: DictConfig, *args: str) -> str:
     ``paths.outputs``, ``subject``, ``quality``, ``fit.source``, ...; not ``run.*``, ``method``, ``seed``) and
     ``args``, which win over an override of the same key. Run as printed, it computes in the same DAG."""
     own = {arg.split("=", 1)[0].lstrip("+") for arg in args}
-    kept = [o for o in (OmegaConf.select(cfg, "run.overrides") or ())
-            if not str(o).startswith(_NOT_REPEATED) and str(o).split("=", 1)[0].lstrip("+") not in own]
+    kept = [
+        o
+        for o in (OmegaConf.select(cfg, "run.overrides") or ())
+        if not str(o).startswith(_NOT_REPEATED) and str(o).split("=", 1)[0].lstrip("+") not in own
+    ]
     return " ".join(["interactavatar", *(shlex.quote(str(o)) for o in kept), *(shlex.quote(a) for a in args)])
 
 
@@ -80,16 +83,31 @@ class QualityConfig:
     @classmethod
     def validate(cls, conf: Any) -> list[str]:
         """Range problems, one line each, keyed relative to ``quality``."""
-        limits = {"capture_size": (16, 8192), "image_size": (16, 8192), "num_frames_train": (1, None),
-                  "num_frames_test": (1, None), "supersample": (1, 8), "gaussians_per_triangle": (1, 1000),
-                  "warmup_steps": (1, None), "dynamic_steps": (0, None), "dynamic_width": (1, 4096),
-                  "dynamic_hand_depth": (1, 32), "dynamic_interaction_depth": (1, 32),
-                  "geometry_feature_dim": (1, 8192), "pointnet_width": (0.01, 16)}
-        problems = [problem for key, (low, high) in limits.items()
-                    if (problem := _range_problem(key, getattr(conf, key), low, high))]
+        limits = {
+            "capture_size": (16, 8192),
+            "image_size": (16, 8192),
+            "num_frames_train": (1, None),
+            "num_frames_test": (1, None),
+            "supersample": (1, 8),
+            "gaussians_per_triangle": (1, 1000),
+            "warmup_steps": (1, None),
+            "dynamic_steps": (0, None),
+            "dynamic_width": (1, 4096),
+            "dynamic_hand_depth": (1, 32),
+            "dynamic_interaction_depth": (1, 32),
+            "geometry_feature_dim": (1, 8192),
+            "pointnet_width": (0.01, 16),
+        }
+        problems = [
+            problem
+            for key, (low, high) in limits.items()
+            if (problem := _range_problem(key, getattr(conf, key), low, high))
+        ]
         if len(conf.pointnet_centres) != 2 or min(conf.pointnet_centres) < 1:
-            problems.append(f"pointnet_centres={list(conf.pointnet_centres)}: must be two positive counts "
-                            f"(centres of the two set-abstraction levels)")
+            problems.append(
+                f"pointnet_centres={list(conf.pointnet_centres)}: must be two positive counts "
+                f"(centres of the two set-abstraction levels)"
+            )
         return problems
 
 
@@ -180,14 +198,17 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
     if any(s.per_method for s in stages):
         problem = method_problem(OmegaConf.select(cfg, "method.name", default=None))
         if problem:
-            errors.append(f"{problem} (stages {', '.join(s.name for s in stages if s.per_method)} keep one "
-                          f"artifact per method)")
+            errors.append(
+                f"{problem} (stages {', '.join(s.name for s in stages if s.per_method)} keep one artifact per method)"
+            )
         problem = seed_problem(OmegaConf.select(cfg, "seed", default=0))
         if problem:
             errors.append(f"{problem} (the training run's seed: stage.warmup.seed and stage.dynamic.seed follow it)")
     for s in stages:
-        for list_key, what, problem_of in ((s.methods_key, "method names", method_problem),
-                                           (s.seeds_key, "seeds, e.g. [0, 1, 2]", seed_problem)):
+        for list_key, what, problem_of in (
+            (s.methods_key, "method names", method_problem),
+            (s.seeds_key, "seeds, e.g. [0, 1, 2]", seed_problem),
+        ):
             if list_key is None:
                 continue
             values = OmegaConf.select(cfg, list_key, default=None)
@@ -273,15 +294,19 @@ def dataset_problems(cfg: DictConfig) -> list[str]:
             problems.append(_int_problem(f"dataset.{key}", dataset[key], minimum))
     train = dataset.get("train_cameras")
     if train is not None:
-        if not OmegaConf.is_list(train) or not train or not all(isinstance(c, (str, int)) and not isinstance(c, bool)
-                                                                 for c in train):
+        if (
+            not OmegaConf.is_list(train)
+            or not train
+            or not all(isinstance(c, (str, int)) and not isinstance(c, bool) for c in train)
+        ):
             problems.append(f"dataset.train_cameras={train}: a non-empty list of camera ids, e.g. [cam04], or null")
         elif dataset.get("name") == "synthetic":
             count = int(OmegaConf.select(cfg, "stage.capture.num_cameras", default=0) or 0)
             ids = [SYNTHETIC_CAMERA_IDS.format(i) for i in range(count)]
             if not {str(c) for c in train} < set(ids):
-                problems.append(f"dataset.train_cameras={list(train)}: choose some but not all of the synthetic "
-                                f"rig's cameras {ids}")
+                problems.append(
+                    f"dataset.train_cameras={list(train)}: choose some but not all of the synthetic rig's cameras {ids}"
+                )
     return [p for p in problems if p]
 
 
@@ -291,8 +316,9 @@ def key_config(cfg: DictConfig, s: Stage) -> dict[str, Any]:
     unused = tuple(s.unused_keys(cfg)) if s.unused_keys is not None else ()
     for key in unused:
         if not any(key == k or key.startswith(f"{k}.") for k in s.config_keys):
-            raise ValueError(f"stage '{s.name}': unused key '{key}' is not one of its config_keys {s.config_keys} "
-                             f"or below one")
+            raise ValueError(
+                f"stage '{s.name}': unused key '{key}' is not one of its config_keys {s.config_keys} or below one"
+            )
     return config_subset(cfg, tuple(k for k in s.config_keys if k not in unused), s.cache_exclude + unused)
 
 
@@ -307,7 +333,7 @@ def config_subset(cfg: DictConfig, keys: tuple[str, ...], exclude: tuple[str, ..
         owner = next((k for k in keys if path.startswith(f"{k}.")), None)
         if owner is None:  # the whole key is left out (or is not among keys)
             continue
-        *parents, leaf = path[len(owner) + 1:].split(".")
+        *parents, leaf = path[len(owner) + 1 :].split(".")
         node = out[owner]
         for part in parents:
             node = node.get(part) if isinstance(node, dict) else None

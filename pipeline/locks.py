@@ -98,6 +98,5 @@ def flock_all(requests: Sequence[tuple[Path, bool, str]], timeout_s: float) -> I
     deadline = time.monotonic() + timeout_s
     with ExitStack() as stack:
         for path, shared, what in requests:
-            stack.enter_context(flock(path, shared=shared, timeout_s=max(deadline - time.monotonic(), 0.0),
-                                      what=what))
+            stack.enter_context(flock(path, shared=shared, timeout_s=max(deadline - time.monotonic(), 0.0), what=what))
         yield

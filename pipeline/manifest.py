@@ -46,8 +46,9 @@ def hash_outputs(stage_dir: Path) -> dict[str, str]:
     return {p.relative_to(stage_dir).as_posix(): sha256_file(p) for p in files}
 
 
-def cache_key(stage: str, version: str, config: dict[str, Any], upstream: dict[str, str],
-              sources: dict[str, str] | None = None) -> str:
+def cache_key(
+    stage: str, version: str, config: dict[str, Any], upstream: dict[str, str], sources: dict[str, str] | None = None
+) -> str:
     """sha256 over the stage name, its code version, its config subset, the upstream output digests and,
     for stages that import user files, those files' digests."""
     body: dict[str, Any] = {"stage": stage, "version": version, "config": config, "upstream": upstream}
@@ -153,8 +154,9 @@ def verify_outputs(stage_dir: Path, manifest: Manifest, declared: tuple[str, ...
     for rel in declared:
         if not (stage_dir / rel).exists():
             return f"outputs missing: {rel}"
-    on_disk = sorted(p.relative_to(stage_dir).as_posix() for p in stage_dir.rglob("*")
-                     if p.is_file() and p.name != MANIFEST_NAME)
+    on_disk = sorted(
+        p.relative_to(stage_dir).as_posix() for p in stage_dir.rglob("*") if p.is_file() and p.name != MANIFEST_NAME
+    )
     recorded = sorted(manifest.outputs)
     if on_disk != recorded:
         missing = sorted(set(recorded) - set(on_disk))

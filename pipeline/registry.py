@@ -53,17 +53,23 @@ class StageRegistry:
                 raise RegistryError(f"stage '{s.name}' reads unknown stage(s) {missing}")
             shared = [i for i in s.inputs if self._stages[i].per_method and not s.per_method]
             if shared:
-                raise RegistryError(f"stage '{s.name}' is shared by every method but reads the per-method "
-                                    f"stage(s) {shared}: declare it per_method, or read them through "
-                                    f"cross_method_inputs")
+                raise RegistryError(
+                    f"stage '{s.name}' is shared by every method but reads the per-method "
+                    f"stage(s) {shared}: declare it per_method, or read them through "
+                    f"cross_method_inputs"
+                )
             per_method = [i for i in s.subject_inputs if self._stages[i].per_method]
             if per_method:
-                raise RegistryError(f"stage '{s.name}' reads {per_method} of another subject; only stages shared by "
-                                    f"every method can be read across subjects")
+                raise RegistryError(
+                    f"stage '{s.name}' reads {per_method} of another subject; only stages shared by "
+                    f"every method can be read across subjects"
+                )
             single = [i for i in s.cross_method_inputs if not self._stages[i].per_method]
             if single:
-                raise RegistryError(f"stage '{s.name}' reads {single} of several methods, but they are shared "
-                                    f"by every method: list them in inputs")
+                raise RegistryError(
+                    f"stage '{s.name}' reads {single} of several methods, but they are shared "
+                    f"by every method: list them in inputs"
+                )
         done: dict[str, Stage] = {}
         pending = list(self._stages.values())
         while pending:

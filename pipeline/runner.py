@@ -126,8 +126,9 @@ class Runner:
         self.ws = Workspace(Path(cfg.paths.outputs), cfg.subject)
         method = OmegaConf.select(cfg, "method.name", default=None)
         # the run's folder under methods/: the method's name, with its seed unless 0 (pipeline.workspace.method_run)
-        self.method: str | None = (None if method is None
-                                   else method_run(str(method), int(OmegaConf.select(cfg, "seed", default=0))))
+        self.method: str | None = (
+            None if method is None else method_run(str(method), int(OmegaConf.select(cfg, "seed", default=0)))
+        )
         self.selection = Selection.from_cfg(cfg.run)
         self.show_progress = bool(cfg.run.get("progress", True))
         self.lock_timeout_s = float(cfg.run.get("lock_timeout_s", 3600.0))
@@ -152,9 +153,11 @@ class Runner:
                 out[a.key] = a
         other = s.input_subject(self.cfg) if s.input_subject is not None else None
         if other is not None and other == self.ws.subject:
-            raise ConfigError(f"stage '{s.name}' reads another subject's artifacts, but the config names this run's "
-                              f"own subject '{other}' for them; name a different subject, or 'self' for this "
-                              f"subject's own data (e.g. reenact.driver=self)")
+            raise ConfigError(
+                f"stage '{s.name}' reads another subject's artifacts, but the config names this run's "
+                f"own subject '{other}' for them; name a different subject, or 'self' for this "
+                f"subject's own data (e.g. reenact.driver=self)"
+            )
         if other is not None:
             problem = subject_problem(other)
             if problem:
@@ -179,8 +182,9 @@ class Runner:
             problems.setdefault(str(a.method), f"{a.stage}: {self._integrity(a)[1]}")
         return problems
 
-    def _context_inputs(self, s: Stage, inputs: dict[str, Artifact]
-                        ) -> tuple[dict[str, Path], dict[str, dict[str, Path]], dict[str, Path]]:
+    def _context_inputs(
+        self, s: Stage, inputs: dict[str, Artifact]
+    ) -> tuple[dict[str, Path], dict[str, dict[str, Path]], dict[str, Path]]:
         """(stage -> dir of the regular inputs, stage -> method -> dir of the cross-method ones,
         stage -> dir of the other subject's)."""
         regular = {name: self.ws.artifact_dir(inputs[name]) for name in s.inputs}
@@ -194,8 +198,9 @@ class Runner:
         return regular, cross, other
 
     # ----------------------------------------------------------------- decisions
-    def _upstream_digests(self, s: Stage, inputs: dict[str, Artifact],
-                          pending: set[str]) -> tuple[dict[str, str], list[str]]:
+    def _upstream_digests(
+        self, s: Stage, inputs: dict[str, Artifact], pending: set[str]
+    ) -> tuple[dict[str, str], list[str]]:
         """Output digest of each input, and the inputs that are planned to rerun (dry runs only)."""
         digests: dict[str, str] = {}
         rerunning: list[str] = []
@@ -206,10 +211,16 @@ class Runner:
             manifest = self._verified.get(a.key) or self._verify(a)
             if manifest is None:
                 up_dir = self.ws.artifact_dir(a)
-                fix = fix_command(self.cfg, f"subject={a.subject or self.ws.subject}",
-                                  *(run_overrides(a.method) if a.method else ()), f"run.until={a.stage}")
-                raise MissingUpstream(f"stage '{s.name}' reads '{a.key}', which has no complete artifact in {up_dir}; "
-                                      f"run it first (e.g. {fix})")
+                fix = fix_command(
+                    self.cfg,
+                    f"subject={a.subject or self.ws.subject}",
+                    *(run_overrides(a.method) if a.method else ()),
+                    f"run.until={a.stage}",
+                )
+                raise MissingUpstream(
+                    f"stage '{s.name}' reads '{a.key}', which has no complete artifact in {up_dir}; "
+                    f"run it first (e.g. {fix})"
+                )
             digests[key] = _input_digest(s, manifest)
         return digests, rerunning
 
@@ -260,13 +271,17 @@ class Runner:
         for key, digest in d.upstream.items():
             current = self._readable_manifest(d.inputs[key])
             if current is None or _input_digest(s, current) != digest:
-                raise RuntimeError(f"input '{key}' was replaced while the stage ran (by a run that did not hold "
-                                   f"its lock); nothing was published: rerun")
+                raise RuntimeError(
+                    f"input '{key}' was replaced while the stage ran (by a run that did not hold "
+                    f"its lock); nothing was published: rerun"
+                )
         if d.sources is not None:
             changed = changed_sources(d.sources, self._source_digests(s) or {})
             if changed:
-                raise RuntimeError(f"source files changed while the stage ran ({', '.join(changed)}); nothing "
-                                   f"was published: rerun once they are complete")
+                raise RuntimeError(
+                    f"source files changed while the stage ran ({', '.join(changed)}); nothing "
+                    f"was published: rerun once they are complete"
+                )
 
     def _decide(self, s: Stage, force: bool, pending: set[str]) -> _Decision:
         inputs = self._inputs(s, pending)
@@ -356,9 +371,17 @@ class Runner:
             if s.per_method and not self.selection.force:
                 # Another method's run may be computing this very artifact (same key) now: wait for it, then
                 # share its result. Taken before the stage's locks and released after them (LIFO).
-                held.enter_context(self.ws.key_lock(s.name, d.key, self.lock_timeout_s, on_wait=lambda: self.log(
-                    f"[{self._where(s.name)}] {s.name:<10} waits     for another method's run computing the same "
-                    f"artifact (same cache key), to share it")))
+                held.enter_context(
+                    self.ws.key_lock(
+                        s.name,
+                        d.key,
+                        self.lock_timeout_s,
+                        on_wait=lambda: self.log(
+                            f"[{self._where(s.name)}] {s.name:<10} waits     for another method's run computing the "
+                            f"same artifact (same cache key), to share it"
+                        ),
+                    )
+                )
             held.enter_context(self.ws.lock(a, reads, order, self.lock_timeout_s))
             d = self._redecide(s)
             if not d.run:
@@ -446,8 +469,11 @@ class Runner:
         try:
             with self.ws.read_lock(other):
                 manifest = self._readable_manifest(other)
-                if manifest is None or manifest.key != d.key or \
-                        verify_outputs(self.ws.artifact_dir(other), manifest, s.outputs) is not None:
+                if (
+                    manifest is None
+                    or manifest.key != d.key
+                    or verify_outputs(self.ws.artifact_dir(other), manifest, s.outputs) is not None
+                ):
                     shutil.rmtree(tmp, ignore_errors=True)
                     return None
                 self.ws.link_copy(other, tmp)
@@ -460,15 +486,20 @@ class Runner:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         self._verified[a.key] = manifest
-        report = StageReport(s.name, "shared", f"{d.reason}; same key as method {other.method}: its artifact "
-                             f"is shared, not recomputed", metrics=manifest.metrics)
+        report = StageReport(
+            s.name,
+            "shared",
+            f"{d.reason}; same key as method {other.method}: its artifact is shared, not recomputed",
+            metrics=manifest.metrics,
+        )
         self._log_decision(report)
         return report
 
     def _where(self, stage: str) -> str:
         """``<subject>/<method>`` for a per-method stage, else ``<subject>``: how log lines name the artifact."""
-        return f"{self.ws.subject}/{self.method}" if self.method and self.registry[stage].per_method \
-            else self.ws.subject
+        return (
+            f"{self.ws.subject}/{self.method}" if self.method and self.registry[stage].per_method else self.ws.subject
+        )
 
     def _log_decision(self, r: StageReport) -> None:
         self.log(f"[{self._where(r.stage)}] {r.stage:<10} {r.action:<9} {r.reason}")
@@ -479,8 +510,9 @@ def _input_digest(s: Stage, manifest: Manifest) -> str:
     return manifest.record_digest if s.reads_manifests else manifest.output_digest
 
 
-def _why_key_changed(manifest: Manifest, version: str, config: dict[str, Any], upstream: dict[str, str],
-                     sources: dict[str, str] | None) -> str:
+def _why_key_changed(
+    manifest: Manifest, version: str, config: dict[str, Any], upstream: dict[str, str], sources: dict[str, str] | None
+) -> str:
     """Human reason for a cache-key mismatch, most specific first."""
     reasons = []
     if sources is not None:

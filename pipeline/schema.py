@@ -41,8 +41,10 @@ def section_schema(name: str, core: type, *, exclude: Iterable[str] = (), own: t
         if clash:
             raise ValueError(f"{own.__name__} redefines {sorted(clash)} of {core.__name__}: define each setting once")
     schema = dataclasses.make_dataclass(name, derived, bases=(own,) if own is not None else ())
-    schema.__doc__ = (f"Types of a section feeding {core.__module__}.{core.__name__} (its fields less "
-                      f"{', '.join(exclude) or 'none'})" + (f" and {own.__name__}'s own settings." if own else "."))
+    schema.__doc__ = (
+        f"Types of a section feeding {core.__module__}.{core.__name__} (its fields less "
+        f"{', '.join(exclude) or 'none'})" + (f" and {own.__name__}'s own settings." if own else ".")
+    )
     return schema
 
 

@@ -63,8 +63,10 @@ def hash_sources(sources: SourceFiles, cache_path: Path) -> dict[str, str]:
         else:
             digest = sha256_file(path)
             if _stamp(path.stat()) != stamp:
-                raise OSError(f"{path}: the file changed while it was being hashed; wait until it is "
-                              f"written completely, then rerun")
+                raise OSError(
+                    f"{path}: the file changed while it was being hashed; wait until it is "
+                    f"written completely, then rerun"
+                )
             cache[str(path)] = [*stamp, digest]
             changed = True
         digests[path.relative_to(sources.root).as_posix() if path.is_relative_to(sources.root) else str(path)] = digest

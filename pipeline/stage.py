@@ -90,25 +90,27 @@ class StageContext:
         try:
             return self.inputs[stage]
         except KeyError as exc:
-            raise KeyError(
-                f"stage reads '{stage}' but does not declare it in inputs={sorted(self.inputs)}"
-            ) from exc
+            raise KeyError(f"stage reads '{stage}' but does not declare it in inputs={sorted(self.inputs)}") from exc
 
     def subject_input_dir(self, stage: str) -> Path:
         """Artifact directory of a declared ``subject_inputs`` stage of the other subject ``input_subject`` names."""
         try:
             return self.subject_inputs[stage]
         except KeyError as exc:
-            raise KeyError(f"stage reads '{stage}' of another subject, but input_subject names none for this "
-                           f"config or the stage does not declare it in subject_inputs") from exc
+            raise KeyError(
+                f"stage reads '{stage}' of another subject, but input_subject names none for this "
+                f"config or the stage does not declare it in subject_inputs"
+            ) from exc
 
     def method_dirs(self, stage: str) -> Mapping[str, Path]:
         """method name -> complete artifact directory of ``stage``, for a declared cross-method input."""
         try:
             return self.method_inputs[stage]
         except KeyError as exc:
-            raise KeyError(f"stage reads '{stage}' of several methods but does not declare it in "
-                           f"cross_method_inputs={sorted(self.method_inputs)}") from exc
+            raise KeyError(
+                f"stage reads '{stage}' of several methods but does not declare it in "
+                f"cross_method_inputs={sorted(self.method_inputs)}"
+            ) from exc
 
     def progress(self, items: Iterable[T], desc: str, total: int | None = None) -> Iterator[T]:
         """Wrap a long loop in a progress bar (a no-op when progress is off)."""
@@ -164,8 +166,10 @@ class Stage:
             raise ValueError(f"stage '{self.name}': subject_inputs and input_subject go together")
         for key in self.cache_exclude:
             if not any(key.startswith(f"{k}.") for k in self.config_keys):
-                raise ValueError(f"stage '{self.name}': cache_exclude key '{key}' is not below one of its "
-                                 f"config_keys {self.config_keys}")
+                raise ValueError(
+                    f"stage '{self.name}': cache_exclude key '{key}' is not below one of its "
+                    f"config_keys {self.config_keys}"
+                )
 
 
 def stage(

@@ -27,8 +27,13 @@ def format_value(value: Any) -> str:
 def stage_table(reports: Sequence[StageReport]) -> str:
     """Per-stage decision, wall time and peak resident memory."""
     rows = [
-        (r.stage, r.action, f"{r.wall_s:.2f}" if r.action == "run" else "-",
-         f"{r.peak_rss_mb:.0f}" if r.action == "run" else "-", r.reason)
+        (
+            r.stage,
+            r.action,
+            f"{r.wall_s:.2f}" if r.action == "run" else "-",
+            f"{r.peak_rss_mb:.0f}" if r.action == "run" else "-",
+            r.reason,
+        )
         for r in reports
     ]
     return format_table(("stage", "decision", "wall s", "peak MB", "reason"), rows)

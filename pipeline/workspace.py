@@ -40,14 +40,25 @@ from pathlib import Path
 
 from pipeline.locks import LockTimeout, flock, flock_all
 
-__all__ = ["Artifact", "LockTimeout", "METHODS_DIR", "SUBJECT_RULE", "Workspace", "method_problem", "method_run",
-           "outputs_problem", "run_overrides", "seed_problem", "subject_problem"]
+__all__ = [
+    "Artifact",
+    "LockTimeout",
+    "METHODS_DIR",
+    "SUBJECT_RULE",
+    "Workspace",
+    "method_problem",
+    "method_run",
+    "outputs_problem",
+    "run_overrides",
+    "seed_problem",
+    "subject_problem",
+]
 
 SUBJECT_RULE = "letters, digits, '-' or '_', starting with a letter or digit"
 _SUBJECT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
 METHODS_DIR = "methods"
-_UNIQUE_HEX = 12        # hex digits naming one temporary dir of an artifact
-_SCRATCH_KEY_HEX = 16   # hex digits of the cache key naming one scratch dir of an artifact
+_UNIQUE_HEX = 12  # hex digits naming one temporary dir of an artifact
+_SCRATCH_KEY_HEX = 16  # hex digits of the cache key naming one scratch dir of an artifact
 ATTEMPT_FILE = "_attempt.json"  # in a scratch dir: when the run now using it started, and what it carries
 
 
@@ -114,11 +125,15 @@ def outputs_problem(outputs: str | Path) -> str | None:
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
     if not existing.is_dir():
-        return (f"paths.outputs={outputs}: {existing} is a file, not a folder; point paths.outputs at a folder "
-                f"(it is created if missing)")
+        return (
+            f"paths.outputs={outputs}: {existing} is a file, not a folder; point paths.outputs at a folder "
+            f"(it is created if missing)"
+        )
     if not os.access(existing, os.W_OK | os.X_OK):
-        return (f"paths.outputs={outputs}: {existing} is not writable (read-only file system or no permission); "
-                f"choose a writable folder, e.g. paths.outputs=$HOME/interactavatar-outputs")
+        return (
+            f"paths.outputs={outputs}: {existing} is not writable (read-only file system or no permission); "
+            f"choose a writable folder, e.g. paths.outputs=$HOME/interactavatar-outputs"
+        )
     return None
 
 
@@ -159,8 +174,9 @@ class Workspace:
         return self.root / ".tmp"
 
     @contextmanager
-    def lock(self, artifact: Artifact, reads: Sequence[Artifact], order: Sequence[str],
-             timeout_s: float, write: bool = True) -> Iterator[None]:
+    def lock(
+        self, artifact: Artifact, reads: Sequence[Artifact], order: Sequence[str], timeout_s: float, write: bool = True
+    ) -> Iterator[None]:
         """Write lock (``write=False``: a read lock) on ``artifact`` and read locks on the artifacts it ``reads``,
         across processes.
 
@@ -172,8 +188,9 @@ class Workspace:
         wanted = {a: True for a in reads} | {artifact: not write}
         rank = {name: i for i, name in enumerate(order)}
         ordered = sorted(wanted, key=lambda a: (rank[a.stage], a.subject or self.subject, a.method or ""))
-        requests = [(self._lock_path(a), wanted[a], f"stage '{a.id}' of subject '{a.subject or self.subject}'")
-                    for a in ordered]
+        requests = [
+            (self._lock_path(a), wanted[a], f"stage '{a.id}' of subject '{a.subject or self.subject}'") for a in ordered
+        ]
         with flock_all(requests, timeout_s):
             yield
 
@@ -203,8 +220,12 @@ class Workspace:
     @contextmanager
     def read_lock(self, artifact: Artifact) -> Iterator[None]:
         """A read lock on ``artifact`` if it is free now, else :class:`LockTimeout` at once (never waits)."""
-        with flock(self._lock_path(artifact), shared=True, timeout_s=0.0,
-                   what=f"stage '{artifact.id}' of subject '{self.subject}'"):
+        with flock(
+            self._lock_path(artifact),
+            shared=True,
+            timeout_s=0.0,
+            what=f"stage '{artifact.id}' of subject '{self.subject}'",
+        ):
             yield
 
     def new_tmp_dir(self, artifact: Artifact) -> Path:
@@ -262,8 +283,13 @@ class Workspace:
         runs before it. With no checkpoint left nothing is reused and nothing is carried.
         """
         marker = scratch / ATTEMPT_FILE
-        saved = [p.stat().st_mtime for p in scratch.rglob("*") if p.is_file() and ATTEMPT_FILE not in p.name
-                 and not any(part.endswith(".tmp") for part in p.relative_to(scratch).parts)]
+        saved = [
+            p.stat().st_mtime
+            for p in scratch.rglob("*")
+            if p.is_file()
+            and ATTEMPT_FILE not in p.name
+            and not any(part.endswith(".tmp") for part in p.relative_to(scratch).parts)
+        ]
         carried = 0.0
         if saved and marker.exists():
             try:

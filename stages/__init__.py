@@ -14,5 +14,6 @@ from stages.report import report
 from stages.scene import scene
 from stages.warmup import warmup
 
-REGISTRY = StageRegistry([capture, frames, keypoints, fit, scene, pbd, warmup, dynamic, evaluate, compare, reenact,
-                          report])
+REGISTRY = StageRegistry(
+    [capture, frames, keypoints, fit, scene, pbd, warmup, dynamic, evaluate, compare, reenact, report]
+)

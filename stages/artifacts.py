@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from avatar.render.gaussians import WorldGaussians
 from avatar.scene import SceneDecision
 from avatar.training.data import ViewSet
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, provided_path
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.frames import FRAMES_INDEX, crop_mask_path, rgb_path
-from avatar.render.gaussians import WorldGaussians
 from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
 from data_schemas.images import read_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
@@ -27,8 +27,10 @@ def load_ground_truth_params(capture_dir: Path, sequence: str) -> dict[str, np.n
     """The capture's ground-truth FLAME/MANO parameters of ``sequence``."""
     index = CaptureIndex.read(capture_dir)
     if not index.sequences[sequence].has_ground_truth:
-        raise SchemaError(f"{capture_dir}: fit.source=ground_truth needs a capture with ground truth "
-                          f"(dataset=synthetic); this one has none")
+        raise SchemaError(
+            f"{capture_dir}: fit.source=ground_truth needs a capture with ground truth "
+            f"(dataset=synthetic); this one has none"
+        )
     table = read_table(gt_path(capture_dir, sequence, "params"), PARAMS)
     return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
 
@@ -39,9 +41,11 @@ def load_provided_params(capture_dir: Path, sequence: str) -> dict[str, np.ndarr
     info = index.sequences[sequence]
     if not info.has_provided("params"):
         why = "".join(f"; {note}" for note in info.notes if "param" in note)
-        raise SchemaError(f"{capture_dir / sequence}: fit.source=provided needs parameters shipped with the dataset "
-                          f"(dataset=decaf), but the '{index.dataset}' capture of '{index.subject}' has none for "
-                          f"sequence '{sequence}'{why}")
+        raise SchemaError(
+            f"{capture_dir / sequence}: fit.source=provided needs parameters shipped with the dataset "
+            f"(dataset=decaf), but the '{index.dataset}' capture of '{index.subject}' has none for "
+            f"sequence '{sequence}'{why}"
+        )
     table = read_table(provided_path(capture_dir, sequence, "params"), PARAMS)
     return {k: np.asarray(table[k]) for k in PARAM_COLUMNS}
 
@@ -115,8 +119,10 @@ def load_face_offsets(pbd_dir: Path, sequence: str, num_frames: int, num_vertice
     path = pbd_dir / sequence / "deform.parquet"
     offsets = np.asarray(read_table(path, DEFORM)["offsets"], dtype=np.float64)
     if offsets.shape != (num_frames, num_vertices * 3):
-        raise SchemaError(f"{path}: offsets of shape {offsets.shape}, expected ({num_frames}, {num_vertices * 3}) "
-                          f"for {num_frames} frames of a {num_vertices}-vertex head; rerun the pbd stage")
+        raise SchemaError(
+            f"{path}: offsets of shape {offsets.shape}, expected ({num_frames}, {num_vertices * 3}) "
+            f"for {num_frames} frames of a {num_vertices}-vertex head; rerun the pbd stage"
+        )
     return offsets.reshape(num_frames, num_vertices, 3)
 
 
@@ -124,19 +130,25 @@ def load_views(capture_dir: Path, frames_dir: Path, sequence: str, split: str) -
     """The crops of ``sequence`` seen by the cameras of ``split`` (``train`` or ``test``)."""
     index = read_table(frames_dir / "index.parquet", FRAMES_INDEX)
     cameras = {c.camera_id: c for c in read_cameras(capture_dir / "cameras.parquet") if c.split == split}
-    rows = [i for i, (seq, cam) in enumerate(zip(index["sequence"], index["camera_id"]))
-            if seq == sequence and cam in cameras]
+    rows = [
+        i
+        for i, (seq, cam) in enumerate(zip(index["sequence"], index["camera_id"]))
+        if seq == sequence and cam in cameras
+    ]
     if not rows:
         raise SchemaError(f"{frames_dir / 'index.parquet'}: no crops of sequence '{sequence}' for split '{split}'")
     camera_ids = sorted(cameras)
     frames = sorted({int(index["frame"][i]) for i in rows})
     K = {index["camera_id"][i]: index["K"][i].reshape(3, 3) for i in rows}
-    images = np.stack([np.stack([read_png(rgb_path(frames_dir, sequence, c, t), 3) for c in camera_ids])
-                       for t in frames])
-    labels = np.stack([np.stack([read_png(crop_mask_path(frames_dir, sequence, c, t), 1) for c in camera_ids])
-                       for t in frames])
-    background = images[labels == 0].reshape(-1, 3).astype(np.float64).mean(0) / 255.0 \
-        if (labels == 0).any() else np.zeros(3)
+    images = np.stack(
+        [np.stack([read_png(rgb_path(frames_dir, sequence, c, t), 3) for c in camera_ids]) for t in frames]
+    )
+    labels = np.stack(
+        [np.stack([read_png(crop_mask_path(frames_dir, sequence, c, t), 1) for c in camera_ids]) for t in frames]
+    )
+    background = (
+        images[labels == 0].reshape(-1, 3).astype(np.float64).mean(0) / 255.0 if (labels == 0).any() else np.zeros(3)
+    )
     return ViewSet(
         images=torch.from_numpy(images),
         labels=torch.from_numpy(labels),
@@ -150,8 +162,9 @@ def load_views(capture_dir: Path, frames_dir: Path, sequence: str, split: str) -
 def load_scene(scene_dir: Path) -> SceneDecision:
     """The scene stage's decisions (``scene.json``): what the downstream stages model, and why."""
     info = json.loads((scene_dir / "scene.json").read_text())
-    return SceneDecision(bool(info["model_hand"]), bool(info["model_pbd"]), bool(info["model_interaction"]),
-                         dict(info["why"]))
+    return SceneDecision(
+        bool(info["model_hand"]), bool(info["model_pbd"]), bool(info["model_interaction"]), dict(info["why"])
+    )
 
 
 def write_frame_ply(path: Path, g: WorldGaussians) -> None:
@@ -159,6 +172,13 @@ def write_frame_ply(path: Path, g: WorldGaussians) -> None:
     ``colors`` attributes, e.g. an :class:`avatar.dynamic.DynamicFrame`)."""
     with torch.no_grad():
         o = g.opacities.clamp(1e-6, 1 - 1e-6)
-        write_gaussians_ply(path, GaussianCloud.from_rgb(
-            g.means.numpy(), torch.log(g.scales).numpy(), g.quats.numpy(), torch.log(o / (1 - o)).numpy(),
-            g.colors.numpy()))
+        write_gaussians_ply(
+            path,
+            GaussianCloud.from_rgb(
+                g.means.numpy(),
+                torch.log(g.scales).numpy(),
+                g.quats.numpy(),
+                torch.log(o / (1 - o)).numpy(),
+                g.colors.numpy(),
+            ),
+        )

@@ -16,10 +16,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig
 
-from data_schemas.capture import (
-    CaptureIndex, SequenceInfo, cross_sequence, gt_path, mask_path, video_path,
-)
 from data_schemas.cameras import Camera, read_cameras, write_cameras
+from data_schemas.capture import (
+    CaptureIndex,
+    SequenceInfo,
+    cross_sequence,
+    gt_path,
+    mask_path,
+    video_path,
+)
 from data_schemas.deform import DEFORM
 from data_schemas.images import write_png
 from data_schemas.keypoints import write_keypoints
@@ -74,8 +79,14 @@ def _files_below(folder: Path) -> tuple[Path, ...]:
 
 @stage(
     "capture",
-    config_keys=("dataset", "quality.capture_size", "quality.num_frames_train", "quality.num_frames_test",
-                 "quality.supersample", "stage.capture"),
+    config_keys=(
+        "dataset",
+        "quality.capture_size",
+        "quality.num_frames_train",
+        "quality.num_frames_test",
+        "quality.supersample",
+        "stage.capture",
+    ),
     outputs=("cameras.parquet", "capture.json"),
     version="8",
     config_schema=CaptureConfig,
@@ -95,8 +106,9 @@ def capture(ctx: StageContext) -> None:
 
         index = import_decaf(dataset, ctx.subject, ctx.out_dir, float(ctx.cfg.stage.capture.default_frame_rate))
     else:
-        raise SchemaError(f"dataset.name={dataset.name!r}: unknown dataset; use dataset=synthetic, dataset=folder "
-                          f"or dataset=decaf")
+        raise SchemaError(
+            f"dataset.name={dataset.name!r}: unknown dataset; use dataset=synthetic, dataset=folder or dataset=decaf"
+        )
     if dataset.get("train_cameras") is not None:
         _train_only(ctx.out_dir / "cameras.parquet", [str(c) for c in dataset.train_cameras])
     index.write(ctx.out_dir)
@@ -118,8 +130,10 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
     from avatar.synthetic.capture import SUBJECTS
 
     if ctx.subject not in (*ctx.cfg.dataset.subjects, *SUBJECTS):
-        raise SchemaError(f"subject={ctx.subject!r} is not in the synthetic dataset; "
-                          f"choose one of {list(dict.fromkeys((*ctx.cfg.dataset.subjects, *SUBJECTS)))}")
+        raise SchemaError(
+            f"subject={ctx.subject!r} is not in the synthetic dataset; "
+            f"choose one of {list(dict.fromkeys((*ctx.cfg.dataset.subjects, *SUBJECTS)))}"
+        )
     frames_per_sequence = {"train": q.num_frames_train, "test": q.num_frames_test}
     # name -> (script, performer): the two sequences, and with stage.capture.cross_reenactment this identity
     # performing every other subject's held-out motion (the ground truth of cross-actor reenactment); every
@@ -127,19 +141,33 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
     plan = {seq: (seq, None) for seq in SEQUENCES}
     if conf.cross_reenactment:
         plan |= {cross_sequence(other): ("test", other) for other in ctx.cfg.dataset.subjects if other != ctx.subject}
-    configs = {seq: SyntheticConfig(subject=ctx.subject, sequence=script, image_size=int(q.capture_size),
-                                    num_frames=int(frames_per_sequence[script]), supersample=int(q.supersample),
-                                    seed=int(ctx.cfg.dataset.seed), num_cameras=int(conf.num_cameras),
-                                    performer=performer, scene=str(ctx.cfg.dataset.scene),
-                                    appearance=str(ctx.cfg.dataset.get("appearance", "full")))
-               for seq, (script, performer) in plan.items()}
+    configs = {
+        seq: SyntheticConfig(
+            subject=ctx.subject,
+            sequence=script,
+            image_size=int(q.capture_size),
+            num_frames=int(frames_per_sequence[script]),
+            supersample=int(q.supersample),
+            seed=int(ctx.cfg.dataset.seed),
+            num_cameras=int(conf.num_cameras),
+            performer=performer,
+            scene=str(ctx.cfg.dataset.scene),
+            appearance=str(ctx.cfg.dataset.get("appearance", "full")),
+        )
+        for seq, (script, performer) in plan.items()
+    }
     rendered = _render_sequences(ctx, configs)
     sequences: dict[str, SequenceInfo] = {}
     for seq in configs:  # plan order, whatever order the workers finished in
         info = rendered[seq]
-        sequences[seq] = SequenceInfo(num_frames=info.num_frames, frame_rate=info.frame_rate,
-                                      width=info.cameras[0].width, height=info.cameras[0].height,
-                                      has_masks=True, has_ground_truth=True)
+        sequences[seq] = SequenceInfo(
+            num_frames=info.num_frames,
+            frame_rate=info.frame_rate,
+            width=info.cameras[0].width,
+            height=info.cameras[0].height,
+            has_masks=True,
+            has_ground_truth=True,
+        )
         ctx.metrics[f"{seq}_contact_frames"] = info.contact_frames
     write_cameras(ctx.out_dir / "cameras.parquet", rendered[next(iter(configs))].cameras)
     return CaptureIndex(subject=ctx.subject, dataset="synthetic", sequences=sequences)
@@ -172,8 +200,9 @@ def _render_sequences(ctx: StageContext, configs: dict[str, SyntheticConfig]) ->
     if workers <= 1:
         return dict(_render_sequence(*job) for job in ctx.progress(jobs, desc=desc))
     # spawn, not fork: a forked child of a process whose OpenMP pool has started can hang in it
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_die_with_parent, initargs=(os.getpid(),)) as pool:
+    with ProcessPoolExecutor(
+        workers, mp_context=multiprocessing.get_context("spawn"), initializer=_die_with_parent, initargs=(os.getpid(),)
+    ) as pool:
         futures = [pool.submit(_render_sequence, *job) for job in jobs]
         return dict(future.result() for future in ctx.progress(as_completed(futures), desc=desc, total=len(jobs)))
 
@@ -194,8 +223,12 @@ def _render_sequence(root: Path, seq: str, cfg: SyntheticConfig) -> tuple[str, _
 
     cap = generate(cfg)
     _write_synthetic_sequence(root, seq, cap)
-    return seq, _Rendered(cameras=cap.cameras, num_frames=len(cap.contact), frame_rate=cap.frame_rate,
-                          contact_frames=int(cap.contact.sum()))
+    return seq, _Rendered(
+        cameras=cap.cameras,
+        num_frames=len(cap.contact),
+        frame_rate=cap.frame_rate,
+        contact_frames=int(cap.contact.sum()),
+    )
 
 
 def _write_synthetic_sequence(root: Path, seq: str, cap: SyntheticCapture) -> None:
@@ -205,11 +238,13 @@ def _write_synthetic_sequence(root: Path, seq: str, cap: SyntheticCapture) -> No
         for t in range(num_frames):
             write_png(mask_path(root, seq, cam.camera_id, t), cap.masks[cam.camera_id][t])
     frames = np.arange(num_frames)
-    write_table(gt_path(root, seq, "params"), PARAMS,
-                {"frame": frames, **{k: cap.params[k] for k in PARAM_COLUMNS}})
+    write_table(gt_path(root, seq, "params"), PARAMS, {"frame": frames, **{k: cap.params[k] for k in PARAM_COLUMNS}})
     write_keypoints(gt_path(root, seq, "keypoints"), cap.keypoints, num_frames)
-    write_table(gt_path(root, seq, "deform"), DEFORM,
-                {"frame": frames, "contact": cap.contact, "offsets": cap.face_offsets.reshape(num_frames, -1)})
+    write_table(
+        gt_path(root, seq, "deform"),
+        DEFORM,
+        {"frame": frames, "contact": cap.contact, "offsets": cap.face_offsets.reshape(num_frames, -1)},
+    )
 
 
 def _train_only(path: Path, train: list[str]) -> None:

@@ -35,8 +35,18 @@ from avatar.templates.loaders import ModelKind
 from data_schemas.cameras import Camera, write_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, copy_into_capture, mask_path, provided_path, video_path
 from data_schemas.decaf import (
-    MODES, DecafParams, DecafSequence, camera_key, decaf_cameras, iter_matte, read_contacts, read_deforms,
-    read_keypoints, read_neck_vertices, read_params, scan_sequence,
+    MODES,
+    DecafParams,
+    DecafSequence,
+    camera_key,
+    decaf_cameras,
+    iter_matte,
+    read_contacts,
+    read_deforms,
+    read_keypoints,
+    read_neck_vertices,
+    read_params,
+    scan_sequence,
 )
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.images import write_png
@@ -66,14 +76,20 @@ def import_decaf(dataset: DictConfig, subject: str, out: Path, default_frame_rat
         raise SchemaError(f"dataset.hand_keypoint_order={dataset.hand_keypoint_order!r}: choose one of {HAND_ORDERS}")
     if not (root / "train" / "videos" / subject).is_dir():
         on_disk = sorted(p.name for p in (root / "train" / "videos").glob("*") if p.is_dir())
-        raise SchemaError(f"{root / 'train' / 'videos' / subject}: missing; set dataset.root to the unpacked "
-                          f"DecafDataset folder and subject to one of {on_disk or 'its subjects'}")
-    scans = {mode: scan_sequence(root, mode, subject) for mode in MODES
-             if mode == "train" or (root / mode / "videos" / subject).is_dir()}
+        raise SchemaError(
+            f"{root / 'train' / 'videos' / subject}: missing; set dataset.root to the unpacked "
+            f"DecafDataset folder and subject to one of {on_disk or 'its subjects'}"
+        )
+    scans = {
+        mode: scan_sequence(root, mode, subject)
+        for mode in MODES
+        if mode == "train" or (root / mode / "videos" / subject).is_dir()
+    }
     cameras = _cameras(scans, dataset.test_cameras)
     models = _Models(head=_official(dataset.flame_path, "flame"), hand=_official(dataset.mano_path, "mano"))
-    sequences = {mode: _import_sequence(scan, out, cameras, models, dataset, default_frame_rate)
-                 for mode, scan in scans.items()}
+    sequences = {
+        mode: _import_sequence(scan, out, cameras, models, dataset, default_frame_rate) for mode, scan in scans.items()
+    }
     write_cameras(out / "cameras.parquet", cameras)
     return CaptureIndex(subject=subject, dataset="decaf", sequences=sequences)
 
@@ -100,21 +116,32 @@ def _cameras(scans: dict[str, DecafSequence], test_cameras: list[str] | None) ->
             continue
         other = {c.camera_id: c for c in decaf_cameras(scan, set(held_out))}
         if sorted(other) != ids:
-            raise SchemaError(f"{scan.root / mode / 'videos' / scan.subject}: cameras {sorted(other)} differ from "
-                              f"train's {ids}; the capture layout needs the same cameras in every sequence")
+            raise SchemaError(
+                f"{scan.root / mode / 'videos' / scan.subject}: cameras {sorted(other)} differ from "
+                f"train's {ids}; the capture layout needs the same cameras in every sequence"
+            )
         for cam in cameras:
             o = other[cam.camera_id]
             if (o.width, o.height) != (cam.width, cam.height) or not (
-                    np.allclose(o.K, cam.K, rtol=1e-6, atol=1e-6)
-                    and np.allclose(o.world_to_cam, cam.world_to_cam, rtol=1e-6, atol=1e-6)):
-                raise SchemaError(f"{scan.cameras_pkl}: camera '{cam.camera_id}' differs from "
-                                  f"{scans['train'].cameras_pkl} (or its video size does); the capture layout "
-                                  f"holds one calibration per camera")
+                np.allclose(o.K, cam.K, rtol=1e-6, atol=1e-6)
+                and np.allclose(o.world_to_cam, cam.world_to_cam, rtol=1e-6, atol=1e-6)
+            ):
+                raise SchemaError(
+                    f"{scan.cameras_pkl}: camera '{cam.camera_id}' differs from "
+                    f"{scans['train'].cameras_pkl} (or its video size does); the capture layout "
+                    f"holds one calibration per camera"
+                )
     return cameras
 
 
-def _import_sequence(scan: DecafSequence, out: Path, cameras: list[Camera], models: _Models,
-                     dataset: DictConfig, default_frame_rate: float) -> SequenceInfo:
+def _import_sequence(
+    scan: DecafSequence,
+    out: Path,
+    cameras: list[Camera],
+    models: _Models,
+    dataset: DictConfig,
+    default_frame_rate: float,
+) -> SequenceInfo:
     seq = scan.mode
     frames = selected_frames(scan.num_frames, dataset, f"{scan.root}/{seq}: sequence of subject {scan.subject}")
     notes: list[str] = []
@@ -128,20 +155,26 @@ def _import_sequence(scan: DecafSequence, out: Path, cameras: list[Camera], mode
         write_keypoints(provided_path(out, seq, "keypoints"), keypoints, len(frames))
         provided.append("keypoints")
     else:
-        notes.append(f"no {_rel(scan.folder('head_keys'), scan)} or {_rel(scan.folder('right_hand_keys'), scan)}: "
-                     f"no provided keypoints")
+        notes.append(
+            f"no {_rel(scan.folder('head_keys'), scan)} or {_rel(scan.folder('right_hand_keys'), scan)}: "
+            f"no provided keypoints"
+        )
     if params is not None:
         selected = params.select(frames)
         if _write_params(provided_path(out, seq, "params"), scan, selected, models, notes):
             provided.append("params")
         contact = None if contacts is None else np.asarray(contacts[0].any(axis=1))
-        if scan.deforms_npy.is_file() and _write_deform(provided_path(out, seq, "deform"), scan, frames, selected,
-                                                         contact, models, notes):
+        if scan.deforms_npy.is_file() and _write_deform(
+            provided_path(out, seq, "deform"), scan, frames, selected, contact, models, notes
+        ):
             provided.append("deform")
     if contacts is not None:
         face, hand = contacts
-        write_table(provided_path(out, seq, "contacts"), CONTACTS, {
-            "frame": np.arange(len(frames)), "contact": face.any(axis=1), "face": face, "hand": hand})
+        write_table(
+            provided_path(out, seq, "contacts"),
+            CONTACTS,
+            {"frame": np.arange(len(frames)), "contact": face.any(axis=1), "face": face, "hand": hand},
+        )
         provided.append("contacts")
     fps = (scan.frame_rate or float(default_frame_rate)) / int(dataset.frame_step)
     for cam in cameras:
@@ -151,9 +184,16 @@ def _import_sequence(scan: DecafSequence, out: Path, cameras: list[Camera], mode
             _import_masks(scan, cam.camera_id, frames, out, hands, float(dataset.hand_mask_margin))
     if not scan.has_segmentations:
         notes.append(f"no {_rel(scan.folder('segmentations'), scan)}: the frames stage keys the background")
-    return SequenceInfo(num_frames=len(frames), frame_rate=fps, width=cameras[0].width, height=cameras[0].height,
-                        has_masks=scan.has_segmentations, has_ground_truth=False, provided=tuple(provided),
-                        notes=tuple(notes))
+    return SequenceInfo(
+        num_frames=len(frames),
+        frame_rate=fps,
+        width=cameras[0].width,
+        height=cameras[0].height,
+        has_masks=scan.has_segmentations,
+        has_ground_truth=False,
+        provided=tuple(provided),
+        notes=tuple(notes),
+    )
 
 
 def _rel(path: Path, scan: DecafSequence) -> Path:
@@ -162,32 +202,43 @@ def _rel(path: Path, scan: DecafSequence) -> Path:
 
 
 # ---------------------------------------------------------------------------- keypoints
-def _read_keypoints(scan: DecafSequence, cameras: list[Camera], frames: np.ndarray, hand_order: str
-                    ) -> dict[str, dict[str, np.ndarray]]:
+def _read_keypoints(
+    scan: DecafSequence, cameras: list[Camera], frames: np.ndarray, hand_order: str
+) -> dict[str, dict[str, np.ndarray]]:
     """camera id -> part -> (T, K, 3) for the parts the dataset ships."""
     out: dict[str, dict[str, np.ndarray]] = {}
     for cam in cameras:
         for part in ("hand", "face"):
             if scan.has_keypoints(part):
                 kp = read_keypoints(scan, part, cam.camera_id, frames)
-                out.setdefault(cam.camera_id, {})[part] = kp[:, list(OPENPOSE_FROM_MANO)] \
-                    if part == "hand" and hand_order == "mano" else kp
+                out.setdefault(cam.camera_id, {})[part] = (
+                    kp[:, list(OPENPOSE_FROM_MANO)] if part == "hand" and hand_order == "mano" else kp
+                )
     return out
 
 
 # ---------------------------------------------------------------------------- params and deformations
 def _write_params(path: Path, scan: DecafSequence, params: DecafParams, models: _Models, notes: list[str]) -> bool:
     if models.head is None or models.hand is None:
-        notes.append(f"{_rel(scan.params_pkl, scan)} not imported: DECAF's FLAME/MANO parameters need the "
-                     f"official models; set model.flame_path (FLAME 2020 generic_model.pkl) and "
-                     f"model.mano_path (MANO_RIGHT.pkl)")
+        notes.append(
+            f"{_rel(scan.params_pkl, scan)} not imported: DECAF's FLAME/MANO parameters need the "
+            f"official models; set model.flame_path (FLAME 2020 generic_model.pkl) and "
+            f"model.mano_path (MANO_RIGHT.pkl)"
+        )
         return False
     try:
         columns = {
-            **decaf_head_to_flame(models.head, params.head_shape, params.head_expression, params.head_pose,
-                                  params.head_global_orient, params.head_transl),
-            **decaf_hand_to_mano(models.hand, params.hand_betas, params.hand_pose, params.hand_global_orient,
-                                 params.hand_transl),
+            **decaf_head_to_flame(
+                models.head,
+                params.head_shape,
+                params.head_expression,
+                params.head_pose,
+                params.head_global_orient,
+                params.head_transl,
+            ),
+            **decaf_hand_to_mano(
+                models.hand, params.hand_betas, params.hand_pose, params.hand_global_orient, params.hand_transl
+            ),
         }
     except ValueError as exc:
         raise SchemaError(f"{scan.params_pkl}: {exc}") from exc
@@ -195,8 +246,15 @@ def _write_params(path: Path, scan: DecafSequence, params: DecafParams, models: 
     return True
 
 
-def _write_deform(path: Path, scan: DecafSequence, frames: np.ndarray, params: DecafParams,
-                  contact: np.ndarray | None, models: _Models, notes: list[str]) -> bool:
+def _write_deform(
+    path: Path,
+    scan: DecafSequence,
+    frames: np.ndarray,
+    params: DecafParams,
+    contact: np.ndarray | None,
+    models: _Models,
+    notes: list[str],
+) -> bool:
     """Only when the deformations have one offset per vertex of the configured head model. ``contact``
     (T,) from the shipped contacts; without them, frames with any non-zero offset."""
     deforms = read_deforms(scan, frames)
@@ -204,9 +262,11 @@ def _write_deform(path: Path, scan: DecafSequence, frames: np.ndarray, params: D
     head = models.head or procedural_head()
     if head.num_vertices != vertices:
         which = "the official head model" if models.head else "the procedural head (model.flame_path unset)"
-        notes.append(f"{_rel(scan.deforms_npy, scan)} not imported: {vertices} vertices, but {which} has "
-                     f"{head.num_vertices}; set model.flame_path to the official FLAME 2020 generic_model.pkl "
-                     f"(5023 vertices)")
+        notes.append(
+            f"{_rel(scan.deforms_npy, scan)} not imported: {vertices} vertices, but {which} has "
+            f"{head.num_vertices}; set model.flame_path to the official FLAME 2020 generic_model.pkl "
+            f"(5023 vertices)"
+        )
         return False
     neck = read_neck_vertices(scan.root)
     if neck is not None:
@@ -214,8 +274,9 @@ def _write_deform(path: Path, scan: DecafSequence, frames: np.ndarray, params: D
     offsets = decaf_world_offsets(deforms, params.head_global_orient)
     if contact is None:
         contact = np.abs(offsets).reshape(len(frames), -1).max(axis=1) > 0
-    write_table(path, DEFORM, {"frame": np.arange(len(frames)), "contact": contact,
-                               "offsets": offsets.reshape(len(frames), -1)})
+    write_table(
+        path, DEFORM, {"frame": np.arange(len(frames)), "contact": contact, "offsets": offsets.reshape(len(frames), -1)}
+    )
     return True
 
 
@@ -228,12 +289,15 @@ def _import_video(scan: DecafSequence, camera_id: str, frames: np.ndarray, dst: 
     wanted = set(frames.tolist())
     written = write_video_stream(dst, (f for t, f in enumerate(iter_video(src)) if t in wanted), fps)
     if written != len(frames):
-        raise SchemaError(f"{src}: decoded too few frames for the {len(frames)} selected (of {scan.num_frames} the "
-                          f"container announces); the video is truncated or corrupt")
+        raise SchemaError(
+            f"{src}: decoded too few frames for the {len(frames)} selected (of {scan.num_frames} the "
+            f"container announces); the video is truncated or corrupt"
+        )
 
 
-def _import_masks(scan: DecafSequence, camera_id: str, frames: np.ndarray, out: Path, hands: np.ndarray | None,
-                  margin: float) -> None:
+def _import_masks(
+    scan: DecafSequence, camera_id: str, frames: np.ndarray, out: Path, hands: np.ndarray | None, margin: float
+) -> None:
     index = {int(t): i for i, t in enumerate(frames)}
     written = 0
     for t, matte in enumerate(iter_matte(scan, camera_id)):
@@ -244,5 +308,7 @@ def _import_masks(scan: DecafSequence, camera_id: str, frames: np.ndarray, out: 
         write_png(mask_path(out, scan.mode, camera_id, i), label_parts(matte, points, margin))
         written += 1
     if written != len(frames):
-        raise SchemaError(f"{scan.segmentation(camera_id)}: decoded {written} of the {len(frames)} selected frames; "
-                          f"the segmentation video is truncated or corrupt")
+        raise SchemaError(
+            f"{scan.segmentation(camera_id)}: decoded {written} of the {len(frames)} selected frames; "
+            f"the segmentation video is truncated or corrupt"
+        )

@@ -42,8 +42,10 @@ from stages.frame_selection import selected_frames
 CALIBRATIONS = ("auto", "parquet", "colmap", "nerfstudio")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEFAULT_INTRINSICS = "none: default intrinsics"  # source of a single uncalibrated camera (dataset.default_fov_deg)
-PARQUET_HELP = ("cameras.parquet, one row per camera (camera_id, width, height, K, world_to_cam, dist, split; "
-                "data_schemas.cameras.write_cameras writes it), a COLMAP sparse model or a nerfstudio transforms.json")
+PARQUET_HELP = (
+    "cameras.parquet, one row per camera (camera_id, width, height, K, world_to_cam, dist, split; "
+    "data_schemas.cameras.write_cameras writes it), a COLMAP sparse model or a nerfstudio transforms.json"
+)
 
 
 @dataclass(frozen=True)
@@ -97,30 +99,40 @@ def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_ra
     if not src.is_dir():
         raise SchemaError(f"{src}: capture folder missing; set dataset.root so that <root>/{subject} exists")
     if not any(src.iterdir()):
-        raise SchemaError(f"{src}: capture folder is empty; put {PARQUET_HELP} and one video per camera in "
-                          f"<sequence>/videos/<camera_id>.mp4 in it, as in docs/reference/artifacts.md")
+        raise SchemaError(
+            f"{src}: capture folder is empty; put {PARQUET_HELP} and one video per camera in "
+            f"<sequence>/videos/<camera_id>.mp4 in it, as in docs/reference/artifacts.md"
+        )
     cameras, calibration = read_calibration(src, dataset)
     seq_names = sorted(p.name for p in src.iterdir() if _is_sequence(p))
     if not seq_names:
-        raise SchemaError(f"{src}: no <sequence>/videos/ or <sequence>/images/ folder; put one video per camera in "
-                          f"e.g. {src}/train/videos/<camera_id>.mp4, or one image folder per camera in "
-                          f"{src}/train/images/<camera_id>/")
-    selections = {name: _validate_sequence(src, name, cameras, calibration, dataset, default_frame_rate)
-                  for name in seq_names}
+        raise SchemaError(
+            f"{src}: no <sequence>/videos/ or <sequence>/images/ folder; put one video per camera in "
+            f"e.g. {src}/train/videos/<camera_id>.mp4, or one image folder per camera in "
+            f"{src}/train/images/<camera_id>/"
+        )
+    selections = {
+        name: _validate_sequence(src, name, cameras, calibration, dataset, default_frame_rate) for name in seq_names
+    }
     write_cameras(out / "cameras.parquet", [replace(c, dist=np.zeros_like(c.dist)) for c in cameras])
     for cam in cameras:
         undistort = Undistorter(cam.K, cam.dist, cam.width, cam.height) if is_distorted(cam.dist) else None
         for name, (info, frames) in selections.items():
             _import_view(src, out, name, cam, info, frames, undistort)
     defaulted = calibration == DEFAULT_INTRINSICS
-    write_json(out / "calibration.json", {
-        "source": calibration,
-        "default_fov_deg": float(dataset.get("default_fov_deg", 60.0)) if defaulted else None,
-        "scale_m": dataset.get("calibration_scale_m"),
-        "undistorted": {c.camera_id: c.dist.tolist() for c in cameras if is_distorted(c.dist)},
-    }, "calibration record")
-    return CaptureIndex(subject=subject, dataset="folder",
-                        sequences={name: info for name, (info, _) in selections.items()})
+    write_json(
+        out / "calibration.json",
+        {
+            "source": calibration,
+            "default_fov_deg": float(dataset.get("default_fov_deg", 60.0)) if defaulted else None,
+            "scale_m": dataset.get("calibration_scale_m"),
+            "undistorted": {c.camera_id: c.dist.tolist() for c in cameras if is_distorted(c.dist)},
+        },
+        "calibration record",
+    )
+    return CaptureIndex(
+        subject=subject, dataset="folder", sequences={name: info for name, (info, _) in selections.items()}
+    )
 
 
 def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], str]:
@@ -133,13 +145,22 @@ def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], str]
     test_cameras = dataset.get("test_cameras")
     parquet, model, transforms = src / "cameras.parquet", find_model(src), src / "transforms.json"
     if choice == "auto":
-        choice = ("parquet" if parquet.is_file() else "colmap" if model is not None
-                  else "nerfstudio" if transforms.is_file() else "")
+        choice = (
+            "parquet"
+            if parquet.is_file()
+            else "colmap"
+            if model is not None
+            else "nerfstudio"
+            if transforms.is_file()
+            else ""
+        )
         if not choice:
             camera = _default_camera(src, float(dataset.get("default_fov_deg", 60.0)))
             if camera is None:
-                raise SchemaError(f"{src}: camera calibration missing; add {PARQUET_HELP} (only a single camera, a "
-                                  f"monocular video, may go without one)")
+                raise SchemaError(
+                    f"{src}: camera calibration missing; add {PARQUET_HELP} (only a single camera, a "
+                    f"monocular video, may go without one)"
+                )
             return [camera], DEFAULT_INTRINSICS
     if choice == "parquet":
         if not parquet.is_file():
@@ -156,8 +177,12 @@ def read_calibration(src: Path, dataset: DictConfig) -> tuple[list[Camera], str]
         if not transforms.is_file():
             raise SchemaError(f"{transforms}: missing; dataset.calibration=nerfstudio reads it")
         images, where = read_transforms(transforms), transforms
-    cameras = rig_cameras(images, str(where), 1.0 if scale is None else float(scale),
-                          None if test_cameras is None else [str(c) for c in test_cameras])
+    cameras = rig_cameras(
+        images,
+        str(where),
+        1.0 if scale is None else float(scale),
+        None if test_cameras is None else [str(c) for c in test_cameras],
+    )
     return cameras, str(where)
 
 
@@ -165,8 +190,12 @@ def _default_camera(src: Path, fov_deg: float) -> Camera | None:
     """The one camera of a monocular capture without calibration: a pinhole with ``fov_deg`` horizontal field of
     view, principal point at the image centre, no distortion, at the world origin (world = camera axes).
     None when the folder has more than one camera (a rig needs its calibration)."""
-    sources = [(cam_id, view) for seq in sorted(src.iterdir()) if _is_sequence(seq)
-               for cam_id, view in view_sources(seq).items()]
+    sources = [
+        (cam_id, view)
+        for seq in sorted(src.iterdir())
+        if _is_sequence(seq)
+        for cam_id, view in view_sources(seq).items()
+    ]
     ids = sorted({cam_id for cam_id, _ in sources})
     if len(ids) != 1:
         return None
@@ -176,8 +205,9 @@ def _default_camera(src: Path, fov_deg: float) -> Camera | None:
     height, width = first.shape[:2]
     focal = (width / 2) / np.tan(np.deg2rad(fov_deg) / 2)
     K = np.array([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]])
-    return Camera(camera_id=ids[0], width=width, height=height, K=K, world_to_cam=np.eye(4), dist=np.zeros(5),
-                  split="train")
+    return Camera(
+        camera_id=ids[0], width=width, height=height, K=K, world_to_cam=np.eye(4), dist=np.zeros(5), split="train"
+    )
 
 
 def _scaled(world_to_cam: np.ndarray, scale: float) -> np.ndarray:
@@ -186,8 +216,15 @@ def _scaled(world_to_cam: np.ndarray, scale: float) -> np.ndarray:
     return out
 
 
-def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo, frames: np.ndarray | None,
-                 undistort: Undistorter | None) -> None:
+def _import_view(
+    src: Path,
+    out: Path,
+    seq: str,
+    cam: Camera,
+    info: SequenceInfo,
+    frames: np.ndarray | None,
+    undistort: Undistorter | None,
+) -> None:
     """Copy one camera's video (and masks) of ``seq``, or encode the selected source ``frames`` (T,; None:
     all; from a video or an image folder), undistorted where the camera is distorted."""
     view = view_sources(src / seq)[cam.camera_id]
@@ -198,8 +235,11 @@ def _import_view(src: Path, out: Path, seq: str, cam: Camera, info: SequenceInfo
         wanted = set(sources.tolist())
         decoded = itertools.islice(view.frames(), int(sources[-1]) + 1)  # nothing past the last one
         kept = (f for t, f in enumerate(decoded) if t in wanted)
-        write_video_stream(video_path(out, seq, cam.camera_id),
-                           kept if undistort is None else (undistort.image(f) for f in kept), info.frame_rate)
+        write_video_stream(
+            video_path(out, seq, cam.camera_id),
+            kept if undistort is None else (undistort.image(f) for f in kept),
+            info.frame_rate,
+        )
     if not info.has_masks:
         return
     for t, source_t in enumerate(sources):
@@ -215,21 +255,26 @@ def _scan(view: ViewSource) -> tuple[int, tuple[int, int]]:
     sits in memory); one clear error when a file is damaged, an image folder is empty or its images differ in
     size."""
     if not view.is_video and not view.images():
-        raise SchemaError(f"{view.path}: image folder without {'/'.join(IMAGE_SUFFIXES)} images; put the camera's "
-                          f"frames in it (name order is frame order) or remove the folder")
+        raise SchemaError(
+            f"{view.path}: image folder without {'/'.join(IMAGE_SUFFIXES)} images; put the camera's "
+            f"frames in it (name order is frame order) or remove the folder"
+        )
     count, size = 0, (0, 0)
     for count, frame in enumerate(view.frames(), start=1):
         if count > 1 and frame.shape[:2] != size:
-            raise SchemaError(f"{view.images()[count - 1]}: image is {frame.shape[1]}x{frame.shape[0]}, the "
-                              f"camera's earlier frames {size[1]}x{size[0]}; every frame of a camera has one size")
+            raise SchemaError(
+                f"{view.images()[count - 1]}: image is {frame.shape[1]}x{frame.shape[0]}, the "
+                f"camera's earlier frames {size[1]}x{size[0]}; every frame of a camera has one size"
+            )
         size = frame.shape[:2]
     if view.is_video:
         check_fully_decoded(view.path, count)
     return count, size
 
 
-def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: str, dataset: DictConfig,
-                       default_frame_rate: float) -> tuple[SequenceInfo, np.ndarray | None]:
+def _validate_sequence(
+    src: Path, seq: str, cameras: list[Camera], calibration: str, dataset: DictConfig, default_frame_rate: float
+) -> tuple[SequenceInfo, np.ndarray | None]:
     """The sequence's record in the capture and the source frames (T,) it imports (``dataset.start_frame``,
     ``frame_step``, ``max_frames``), None when that is every frame."""
     on_disk = view_sources(src / seq)
@@ -242,23 +287,30 @@ def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: 
         images = (src / seq / "images").is_dir()
         expected = src / seq / "images" / cam_id if images else video_path(src, seq, cam_id)
         noun = "image folder" if images else "video"
-        raise SchemaError(f"{expected}: camera '{cam_id}' in {calibration} has no {noun} ({noun}s here: "
-                          f"{sorted(on_disk)}); add the {noun} or remove {remove}")
+        raise SchemaError(
+            f"{expected}: camera '{cam_id}' in {calibration} has no {noun} ({noun}s here: "
+            f"{sorted(on_disk)}); add the {noun} or remove {remove}"
+        )
     if without_camera:
         cam_id = without_camera[0]
         noun = "video" if on_disk[cam_id].is_video else "image folder"
-        raise SchemaError(f"{on_disk[cam_id].path}: {noun} has no camera '{cam_id}' in {calibration} (cameras: "
-                          f"{sorted(ids)}); add its calibration or remove the {noun}")
+        raise SchemaError(
+            f"{on_disk[cam_id].path}: {noun} has no camera '{cam_id}' in {calibration} (cameras: "
+            f"{sorted(ids)}); add its calibration or remove the {noun}"
+        )
     counts: dict[str, int] = {}
     for cam in cameras:
         path = on_disk[cam.camera_id].path
         counts[cam.camera_id], (height, width) = _scan(on_disk[cam.camera_id])
         if (height, width) != (cam.height, cam.width):
-            raise SchemaError(f"{path}: frames are {width}x{height} but {calibration} says "
-                              f"{cam.width}x{cam.height}; fix the calibration or the video")
+            raise SchemaError(
+                f"{path}: frames are {width}x{height} but {calibration} says "
+                f"{cam.width}x{cam.height}; fix the calibration or the video"
+            )
     if len(set(counts.values())) != 1:
-        raise SchemaError(f"{videos_dir}: views disagree on frame count {counts}; trim the views to the same "
-                          f"synchronised range")
+        raise SchemaError(
+            f"{videos_dir}: views disagree on frame count {counts}; trim the views to the same synchronised range"
+        )
     length = next(iter(counts.values()))
     frames = selected_frames(length, dataset, str(videos_dir))
     has_masks = (src / seq / "masks").is_dir()
@@ -267,10 +319,17 @@ def _validate_sequence(src: Path, seq: str, cameras: list[Camera], calibration: 
             for t in frames:
                 mask = read_png(mask_path(src, seq, cam.camera_id, int(t)), 1)
                 if mask.shape != (cam.height, cam.width):
-                    raise SchemaError(f"{mask_path(src, seq, cam.camera_id, int(t))}: mask is {mask.shape[::-1]}, "
-                                      f"expected {cam.width}x{cam.height}")
-    fps = (on_disk[cameras[0].camera_id].frame_rate() or float(default_frame_rate)) / int(
-        dataset.get("frame_step", 1))
-    info = SequenceInfo(num_frames=len(frames), frame_rate=fps, width=cameras[0].width, height=cameras[0].height,
-                        has_masks=has_masks, has_ground_truth=False)
+                    raise SchemaError(
+                        f"{mask_path(src, seq, cam.camera_id, int(t))}: mask is {mask.shape[::-1]}, "
+                        f"expected {cam.width}x{cam.height}"
+                    )
+    fps = (on_disk[cameras[0].camera_id].frame_rate() or float(default_frame_rate)) / int(dataset.get("frame_step", 1))
+    info = SequenceInfo(
+        num_frames=len(frames),
+        frame_rate=fps,
+        width=cameras[0].width,
+        height=cameras[0].height,
+        has_masks=has_masks,
+        has_ground_truth=False,
+    )
     return info, None if np.array_equal(frames, np.arange(length)) else frames

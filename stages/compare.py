@@ -87,8 +87,12 @@ class MethodRun:
         ``stage.<stage>.validation.every`` > 0): training, not measuring it. A stage resumed after a kill counts
         the earlier run's work it resumed from too (``timings.resumed_s``: up to that run's last checkpoint)."""
         stages = [self.manifests[s] for s in ("warmup", "dynamic")]
-        return sum(float(m["timings"]["wall_s"]) + float(m["timings"].get("resumed_s", 0.0))
-                   - float(m["metrics"].get("validation_s", 0.0)) for m in stages)
+        return sum(
+            float(m["timings"]["wall_s"])
+            + float(m["timings"].get("resumed_s", 0.0))
+            - float(m["metrics"].get("validation_s", 0.0))
+            for m in stages
+        )
 
     @property
     def resumed(self) -> bool:
@@ -116,36 +120,60 @@ class MethodRun:
         return None if values is None else dict(zip(METRIC_NAMES, map(float, values)))
 
 
-@stage("compare", inputs=SHARED_STAGES, config_keys=("stage.compare",),
-       outputs=("comparison.parquet", "tables.json", "tables.md", "figures"), config_schema=CompareConfig,
-       cross_method_inputs=("warmup", "dynamic", "evaluate"), methods_key="stage.compare.methods",
-       seeds_key="stage.compare.seeds", reads_manifests=True, version="5")  # 5: resumed time; 4: scene; 3: seeds
+@stage(
+    "compare",
+    inputs=SHARED_STAGES,
+    config_keys=("stage.compare",),
+    outputs=("comparison.parquet", "tables.json", "tables.md", "figures"),
+    config_schema=CompareConfig,
+    cross_method_inputs=("warmup", "dynamic", "evaluate"),
+    methods_key="stage.compare.methods",
+    seeds_key="stage.compare.seeds",
+    reads_manifests=True,
+    version="5",
+)  # 5: resumed time; 4: scene; 3: seeds
 def compare(ctx: StageContext) -> None:
     """Tables 1 and 2 and the image rows of the paper for every evaluated method of stage.compare.methods and
     training seed of stage.compare.seeds (mean and spread over the seeds)."""
     conf = ctx.cfg.stage.compare
     listed = [(str(m), int(seed)) for m in conf.methods for seed in conf.seeds]
     dirs = {stage: ctx.method_dirs(stage) for stage in ("warmup", "dynamic", "evaluate")}
-    found = [_read_run(m, seed, {stage: dirs[stage][method_run(m, seed)] for stage in dirs}) for m, seed in listed
-             if all(method_run(m, seed) in dirs[stage] for stage in dirs)]
+    found = [
+        _read_run(m, seed, {stage: dirs[stage][method_run(m, seed)] for stage in dirs})
+        for m, seed in listed
+        if all(method_run(m, seed) in dirs[stage] for stage in dirs)
+    ]
     shared = {name: _manifest(ctx.input_dir(name)) for name in SHARED_STAGES}
-    stale = {r.run: (why, _run_args(r.name, r.seed)) for r in found
-             if (why := stale_reason(r.manifests, shared)) is not None}
+    stale = {
+        r.run: (why, _run_args(r.name, r.seed)) for r in found if (why := stale_reason(r.manifests, shared)) is not None
+    }
     runs = [r for r in found if r.run not in stale]
-    corrupt = {method_run(m, seed): (ctx.method_problems[method_run(m, seed)], _run_args(m, seed))
-               for m, seed in listed if method_run(m, seed) in ctx.method_problems}
+    corrupt = {
+        method_run(m, seed): (ctx.method_problems[method_run(m, seed)], _run_args(m, seed))
+        for m, seed in listed
+        if method_run(m, seed) in ctx.method_problems
+    }
     command = functools.partial(fix_command, ctx.cfg)
     if not runs and (corrupt or stale):  # publishing would replace the last good comparison with an empty one
-        raise RuntimeError("nothing left to compare, so the last comparison is kept: " + "; ".join(
-            f"{run} is {kind} ({why}): rerun it with `{command(*fix.split(), 'run.until=evaluate')}`"
-            for kind, problems in (("corrupted", corrupt), ("stale", stale))
-            for run, (why, fix) in problems.items()))
-    missing = [(m, seed) for m, seed in listed
-               if method_run(m, seed) not in {r.run for r in found} and method_run(m, seed) not in corrupt]
+        raise RuntimeError(
+            "nothing left to compare, so the last comparison is kept: "
+            + "; ".join(
+                f"{run} is {kind} ({why}): rerun it with `{command(*fix.split(), 'run.until=evaluate')}`"
+                for kind, problems in (("corrupted", corrupt), ("stale", stale))
+                for run, (why, fix) in problems.items()
+            )
+        )
+    missing = [
+        (m, seed)
+        for m, seed in listed
+        if method_run(m, seed) not in {r.run for r in found} and method_run(m, seed) not in corrupt
+    ]
     rows = _comparison_rows(runs)
-    write_table(ctx.out_dir / "comparison.parquet", COMPARISON,
-                {c.name: (rows[c.name] if c.kind == "string" else np.asarray(rows[c.name]))
-                 for c in COMPARISON.columns})
+    write_table(
+        ctx.out_dir / "comparison.parquet",
+        COMPARISON,
+        {c.name: (rows[c.name] if c.kind == "string" else np.asarray(rows[c.name])) for c in COMPARISON.columns},
+    )
     cost = _cost(runs, shared)
     tables = _tables(runs, rows, missing, cost, stale, corrupt)  # artifacts hold no run's command line: see _tables
     write_json(ctx.out_dir / "tables.json", tables, "the comparison tables")
@@ -157,12 +185,17 @@ def compare(ctx: StageContext) -> None:
             figure = _figure(first_seed, ctx.input_dir("frames"), split, sequence, crop, int(conf.crop_px))
             if figure is not None:
                 write_png(ctx.out_dir / "figures" / f"{split}_{crop}.png", figure)
-    ctx.metrics.update({"methods_compared": len(runs),
-                        "methods_missing": ",".join(method_run(m, seed) for m, seed in missing) or "-",
-                        "methods_stale": ",".join(stale) or "-",
-                        "methods_corrupt": ",".join(corrupt) or "-",
-                        "seeds": ",".join(str(int(seed)) for seed in conf.seeds),
-                        "same_train_steps": int(len({r.train_steps for r in runs}) <= 1), **cost})
+    ctx.metrics.update(
+        {
+            "methods_compared": len(runs),
+            "methods_missing": ",".join(method_run(m, seed) for m, seed in missing) or "-",
+            "methods_stale": ",".join(stale) or "-",
+            "methods_corrupt": ",".join(corrupt) or "-",
+            "seeds": ",".join(str(int(seed)) for seed in conf.seeds),
+            "same_train_steps": int(len({r.train_steps for r in runs}) <= 1),
+            **cost,
+        }
+    )
 
 
 def _split_sequences(runs: list[MethodRun]) -> dict[str, str]:
@@ -202,8 +235,9 @@ def _read_run(method: str, seed: int, dirs: dict[str, Path]) -> MethodRun:
     manifests = {stage: _manifest(d) for stage, d in dirs.items()}
     label = manifests["evaluate"]["config"]["method"].get("label", method)
     table = read_table(dirs["evaluate"] / "metrics.parquet", METRICS)
-    return MethodRun(method, seed, str(label), dirs["evaluate"], {k: np.asarray(v) for k, v in table.items()},
-                     manifests)
+    return MethodRun(
+        method, seed, str(label), dirs["evaluate"], {k: np.asarray(v) for k, v in table.items()}, manifests
+    )
 
 
 def _comparison_rows(runs: list[MethodRun]) -> dict[str, list]:
@@ -217,33 +251,48 @@ def _comparison_rows(runs: list[MethodRun]) -> dict[str, list]:
                     sel = (t["split"] == split) & (t["region"] == region)
                     if group != "all":
                         sel &= t["contact"] == (group == "contact")
-                    values = {m: np.where(np.isinf(t[m][sel]), np.nan, t[m][sel]).astype(np.float64)
-                              for m in METRIC_NAMES}
+                    values = {
+                        m: np.where(np.isinf(t[m][sel]), np.nan, t[m][sel]).astype(np.float64) for m in METRIC_NAMES
+                    }
                     images = int(np.isfinite(values["ssim"]).sum())
                     if images == 0:
                         continue
-                    for key, value in (("method", run.name), ("seed", run.seed), ("label", run.label), ("split", split),
-                                       ("region", region), ("contact", group), ("images", images),
-                                       *((m, float(np.nanmean(values[m]))) for m in METRIC_NAMES),
-                                       ("train_steps", run.train_steps), ("train_wall_s", run.train_wall_s),
-                                       ("gaussians", run.gaussians)):
+                    for key, value in (
+                        ("method", run.name),
+                        ("seed", run.seed),
+                        ("label", run.label),
+                        ("split", split),
+                        ("region", region),
+                        ("contact", group),
+                        ("images", images),
+                        *((m, float(np.nanmean(values[m]))) for m in METRIC_NAMES),
+                        ("train_steps", run.train_steps),
+                        ("train_wall_s", run.train_wall_s),
+                        ("gaussians", run.gaussians),
+                    ):
                         rows[key].append(value)
     return rows
 
 
-def _seed_values(rows: dict[str, list], method: str, split: str, region: str, group: str = "all"
-                 ) -> dict[str, np.ndarray]:
+def _seed_values(
+    rows: dict[str, list], method: str, split: str, region: str, group: str = "all"
+) -> dict[str, np.ndarray]:
     """metric -> (S,) the value of each seed's run of ``method`` (empty where it has no such row)."""
-    found = [i for i in range(len(rows["method"]))
-             if (rows["method"][i], rows["split"][i], rows["region"][i], rows["contact"][i])
-             == (method, split, region, group)]
+    found = [
+        i
+        for i in range(len(rows["method"]))
+        if (rows["method"][i], rows["split"][i], rows["region"][i], rows["contact"][i])
+        == (method, split, region, group)
+    ]
     return {m: np.array([rows[m][i] for i in found], dtype=np.float64) for m in METRIC_NAMES}
 
 
 def _lookup(rows: dict[str, list], method: str, split: str, region: str, group: str = "all") -> dict[str, float]:
     """metric -> the mean over ``method``'s seeds (NaN where it has no row)."""
-    return {m: float(np.nanmean(v)) if v.size and np.isfinite(v).any() else float("nan")
-            for m, v in _seed_values(rows, method, split, region, group).items()}
+    return {
+        m: float(np.nanmean(v)) if v.size and np.isfinite(v).any() else float("nan")
+        for m, v in _seed_values(rows, method, split, region, group).items()
+    }
 
 
 def welch_p(a: np.ndarray, b: np.ndarray) -> float:
@@ -268,8 +317,11 @@ def _cost(runs: list[MethodRun], shared: dict[str, dict[str, Any]]) -> dict[str,
     warmups = {r.manifests["warmup"]["key"]: float(r.manifests["warmup"]["timings"]["wall_s"]) for r in runs}
     own = sum(float(r.manifests[s]["timings"]["wall_s"]) for r in runs for s in ("dynamic", "evaluate"))
     every = sum(float(r.manifests["warmup"]["timings"]["wall_s"]) for r in runs)
-    return {"total_wall_s": shared_s + sum(warmups.values()) + own, "warmups_trained": len(warmups),
-            "unshared_wall_s": len(runs) * shared_s + every + own}
+    return {
+        "total_wall_s": shared_s + sum(warmups.values()) + own,
+        "warmups_trained": len(warmups),
+        "unshared_wall_s": len(runs) * shared_s + every + own,
+    }
 
 
 def _fmt(value: float, digits: int) -> str:
@@ -316,10 +368,24 @@ def _seed_table(rows: dict[str, list], present: dict[str, str], full: str, split
                 diff = float(np.nanmean(a) - np.nanmean(b))
                 spread = float(np.nanmax([_spread(a), _spread(b)])) if max(a.size, b.size) >= 2 else float("nan")
                 p = welch_p(a, b)
-                verdict = ("one seed: no spread" if not np.isfinite(spread) else
-                           "supported" if np.isfinite(p) and p < SIGNIFICANCE else "within the spread")
-                out.append([split, present[method], region + (" (contact)" if group == "contact" else ""),
-                            f"{diff:+.2f}", _fmt(spread, 2), _fmt(p, 3), verdict])
+                verdict = (
+                    "one seed: no spread"
+                    if not np.isfinite(spread)
+                    else "supported"
+                    if np.isfinite(p) and p < SIGNIFICANCE
+                    else "within the spread"
+                )
+                out.append(
+                    [
+                        split,
+                        present[method],
+                        region + (" (contact)" if group == "contact" else ""),
+                        f"{diff:+.2f}",
+                        _fmt(spread, 2),
+                        _fmt(p, 3),
+                        verdict,
+                    ]
+                )
     return out
 
 
@@ -328,9 +394,14 @@ def _run_args(method: str, seed: int) -> str:
     return f"method={method}" + (f" seed={seed}" if seed else "")
 
 
-def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[str, int]], cost: dict[str, float],
-            stale: dict[str, tuple[str, str]] | None = None,
-            corrupt: dict[str, tuple[str, str]] | None = None) -> dict[str, Any]:
+def _tables(
+    runs: list[MethodRun],
+    rows: dict[str, list],
+    missing: list[tuple[str, int]],
+    cost: dict[str, float],
+    stale: dict[str, tuple[str, str]] | None = None,
+    corrupt: dict[str, tuple[str, str]] | None = None,
+) -> dict[str, Any]:
     """The comparison as titled tables (headers, rows of strings) plus notes, for tables.md and the report.
     ``stale``, ``corrupt``: run -> (why, the overrides that select it). The notes' commands carry no run's
     command line (an artifact is a function of its cache key, which no command line is part of); the CLI prints
@@ -340,18 +411,40 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
     seeds = sorted({r.seed for r in runs})
     paper_cells = lambda m, split: _metric_cells(paper) if (paper := present[m].paper(split)) else ["-"] * 3  # noqa: E731
     splits = [s for s in SPLITS if s in set(rows["split"])]
-    in_table = {t: sorted((m for m, r in present.items() if r.position(t) is not None),
-                          key=lambda m: (present[m].position(t), m)) for t in TABLES}
+    in_table = {
+        t: sorted(
+            (m for m, r in present.items() if r.position(t) is not None), key=lambda m: (present[m].position(t), m)
+        )
+        for t in TABLES
+    }
     full = min((m for m, r in present.items() if r.role.get("full_model")), default=None)
-    table1 = [[split, present[m].label, *_stat_cells(rows, m, split, "full"), *paper_cells(m, split)]
-              for split in splits for m in in_table["baselines"]]
-    table2 = [[split, present[m].label,
-               *(_stat(_seed_values(rows, m, split, region)["psnr"], 2) for region in ("full", "hand", "interaction")),
-               *(_stat(_seed_values(rows, m, split, region)["lpips"], 4) for region in ("full", "hand", "interaction")),
-               _stat(_seed_values(rows, m, split, "interaction", "contact")["psnr"], 2), *paper_cells(m, split)]
-              for split in splits for m in in_table["ablations"]]
-    budget = [[r.label, str(r.seed), str(r.train_steps), f"{r.train_wall_s:.0f}" + (" (resumed)" if r.resumed else ""),
-               str(r.gaussians)] for r in runs]
+    table1 = [
+        [split, present[m].label, *_stat_cells(rows, m, split, "full"), *paper_cells(m, split)]
+        for split in splits
+        for m in in_table["baselines"]
+    ]
+    table2 = [
+        [
+            split,
+            present[m].label,
+            *(_stat(_seed_values(rows, m, split, region)["psnr"], 2) for region in ("full", "hand", "interaction")),
+            *(_stat(_seed_values(rows, m, split, region)["lpips"], 4) for region in ("full", "hand", "interaction")),
+            _stat(_seed_values(rows, m, split, "interaction", "contact")["psnr"], 2),
+            *paper_cells(m, split),
+        ]
+        for split in splits
+        for m in in_table["ablations"]
+    ]
+    budget = [
+        [
+            r.label,
+            str(r.seed),
+            str(r.train_steps),
+            f"{r.train_wall_s:.0f}" + (" (resumed)" if r.resumed else ""),
+            str(r.gaussians),
+        ]
+        for r in runs
+    ]
     steps = {r.train_steps for r in runs}
     notes = [
         f"Training seeds: {', '.join(map(str, seeds))}. A cell is the mean over the seeds' runs, with ± the sample "
@@ -361,71 +454,130 @@ def _tables(runs: list[MethodRun], rows: dict[str, list], missing: list[tuple[st
         "training motion; self-reenactment: the training cameras on the held-out motion; cross-reenactment "
         "(when reenact.driver names another subject): the training cameras on that subject's held-out motion "
         "transferred onto this one, against the synthetic ground truth of this identity performing it.",
-        ("No method to compare yet." if not steps else
-         "Every method trained the same number of optimisation steps (warm-up plus stage two: "
-         f"{next(iter(steps))}) on the same frames and views." if len(steps) == 1 else
-         f"The methods trained different numbers of steps ({sorted(steps)}): the comparison is not fair."),
+        (
+            "No method to compare yet."
+            if not steps
+            else "Every method trained the same number of optimisation steps (warm-up plus stage two: "
+            f"{next(iter(steps))}) on the same frames and views."
+            if len(steps) == 1
+            else f"The methods trained different numbers of steps ({sorted(steps)}): the comparison is not fair."
+        ),
         "Paper: InteractAvatar (ICCV 2025) on DECAF at 512x512; it gives no numbers for w/o PBD and w/o L_patch.",
         f"Cost: {cost['total_wall_s']:.0f} s of stage wall time as computed (shared stages once, "
         f"{cost['warmups_trained']:.0f} distinct warm-ups), against {cost['unshared_wall_s']:.0f} s with every "
         f"method computed from scratch.",
     ]
     if any(r.resumed for r in runs):
-        notes.append("Training seconds marked (resumed): the warm-up or stage two was killed and resumed from its "
-                     "checkpoint; the time counts the killed run up to its last checkpoint (the steps it lost after "
-                     "that were redone and count once).")
-    crossed = {r.label: r.manifests["evaluate"]["config"].get("reenact", {}).get("driver", "self") for r in runs
-               if "cross_reenact" in set(r.metrics["split"])}
+        notes.append(
+            "Training seconds marked (resumed): the warm-up or stage two was killed and resumed from its "
+            "checkpoint; the time counts the killed run up to its last checkpoint (the steps it lost after "
+            "that were redone and count once)."
+        )
+    crossed = {
+        r.label: r.manifests["evaluate"]["config"].get("reenact", {}).get("driver", "self")
+        for r in runs
+        if "cross_reenact" in set(r.metrics["split"])
+    }
     if crossed:
         drivers = set(crossed.values())
-        notes.append(f"Cross-reenactment driven by {', '.join(sorted(drivers))} ({', '.join(crossed)})"
-                     + ("" if len(drivers) == 1 else ": different drivers, the rows are not comparable") + "; "
-                     "methods evaluated without another subject as reenact.driver have no cross_reenact rows.")
+        notes.append(
+            f"Cross-reenactment driven by {', '.join(sorted(drivers))} ({', '.join(crossed)})"
+            + ("" if len(drivers) == 1 else ": different drivers, the rows are not comparable")
+            + "; "
+            "methods evaluated without another subject as reenact.driver have no cross_reenact rows."
+        )
     if missing:
         methods = ",".join(dict.fromkeys(m for m, _ in missing))
         missing_seeds = ",".join(dict.fromkeys(str(seed) for _, seed in missing))
         seeds_arg = [f"seed={missing_seeds}"] if missing_seeds != "0" else []
-        notes.append(f"Not evaluated yet: {', '.join(method_run(m, seed) for m, seed in missing)}. Add them with "
-                     f"`{command('-m', f'method={methods}', *seeds_arg)}`, then `{command('run.only=compare')}`, with "
-                     "this comparison's paths.outputs, subject, preset and capture settings.")
+        notes.append(
+            f"Not evaluated yet: {', '.join(method_run(m, seed) for m, seed in missing)}. Add them with "
+            f"`{command('-m', f'method={methods}', *seeds_arg)}`, then `{command('run.only=compare')}`, with "
+            "this comparison's paths.outputs, subject, preset and capture settings."
+        )
     for run, (why, fix) in (corrupt or {}).items():
-        notes.append(f"Left out, corrupted: {run}: {why} (`{command(*fix.split(), 'run.until=evaluate')}` "
-                     "recomputes it).")
+        notes.append(
+            f"Left out, corrupted: {run}: {why} (`{command(*fix.split(), 'run.until=evaluate')}` recomputes it)."
+        )
     for run, (why, fix) in (stale or {}).items():
-        notes.append(f"Left out, stale: {run}: {why} (`{command(*fix.split(), 'run.until=evaluate')}`, "
-                     f"then `{command('run.only=compare')}`).")
-    return {"tables": [
-        {"title": "Table 1: baselines against the full model (full image)",
-         "headers": ["split", "method", "PSNR", "SSIM", "LPIPS", "paper PSNR", "paper SSIM", "paper LPIPS"],
-         "rows": table1},
-        {"title": "Table 2: ablations per region (PSNR dB, then LPIPS)",
-         "headers": ["split", "method", "PSNR full", "PSNR hand", "PSNR interaction", "LPIPS full", "LPIPS hand",
-                     "LPIPS interaction", "PSNR interaction (contact frames)", "paper PSNR", "paper SSIM",
-                     "paper LPIPS"],
-         "rows": table2},
-        {"title": "Training budget", "headers": ["method", "seed", "steps", "train wall s", "Gaussians"],
-         "rows": budget},
-        *([{"title": f"Seeds: {present[full].label}'s PSNR minus each method's (dB); 'supported' where Welch's "
-                     f"t-test gives p < {SIGNIFICANCE} over the seeds",
-            "headers": ["split", "method", "region", "difference of means", "larger seed sd", "Welch p", "seeds say"],
-            "rows": _seed_table(rows, {m: r.label for m, r in present.items()}, full, splits)}]
-          if full is not None and len(seeds) >= 2 else []),
-    ], "notes": notes, "missing": missing}
+        notes.append(
+            f"Left out, stale: {run}: {why} (`{command(*fix.split(), 'run.until=evaluate')}`, "
+            f"then `{command('run.only=compare')}`)."
+        )
+    return {
+        "tables": [
+            {
+                "title": "Table 1: baselines against the full model (full image)",
+                "headers": ["split", "method", "PSNR", "SSIM", "LPIPS", "paper PSNR", "paper SSIM", "paper LPIPS"],
+                "rows": table1,
+            },
+            {
+                "title": "Table 2: ablations per region (PSNR dB, then LPIPS)",
+                "headers": [
+                    "split",
+                    "method",
+                    "PSNR full",
+                    "PSNR hand",
+                    "PSNR interaction",
+                    "LPIPS full",
+                    "LPIPS hand",
+                    "LPIPS interaction",
+                    "PSNR interaction (contact frames)",
+                    "paper PSNR",
+                    "paper SSIM",
+                    "paper LPIPS",
+                ],
+                "rows": table2,
+            },
+            {
+                "title": "Training budget",
+                "headers": ["method", "seed", "steps", "train wall s", "Gaussians"],
+                "rows": budget,
+            },
+            *(
+                [
+                    {
+                        "title": f"Seeds: {present[full].label}'s PSNR minus each method's (dB); 'supported' where "
+                        f"Welch's t-test gives p < {SIGNIFICANCE} over the seeds",
+                        "headers": [
+                            "split",
+                            "method",
+                            "region",
+                            "difference of means",
+                            "larger seed sd",
+                            "Welch p",
+                            "seeds say",
+                        ],
+                        "rows": _seed_table(rows, {m: r.label for m, r in present.items()}, full, splits),
+                    }
+                ]
+                if full is not None and len(seeds) >= 2
+                else []
+            ),
+        ],
+        "notes": notes,
+        "missing": missing,
+    }
 
 
 def _markdown(tables: dict[str, Any]) -> str:
     out = ["# Methods side by side", ""]
     for table in tables["tables"]:
-        out += [f"## {table['title']}", "", "| " + " | ".join(table["headers"]) + " |",
-                "|" + "---|" * len(table["headers"])]
+        out += [
+            f"## {table['title']}",
+            "",
+            "| " + " | ".join(table["headers"]) + " |",
+            "|" + "---|" * len(table["headers"]),
+        ]
         out += ["| " + " | ".join(row) + " |" for row in table["rows"]]
         out.append("")
     out += [f"- {note}" for note in tables["notes"]]
     return "\n".join(out) + "\n"
 
 
-def _figure(runs: list[MethodRun], frames_dir: Path, split: str, sequence: str, crop: str, px: int
-            ) -> np.ndarray | None:
+def _figure(
+    runs: list[MethodRun], frames_dir: Path, split: str, sequence: str, crop: str, px: int
+) -> np.ndarray | None:
     """Rows of showcase frames, columns ground truth then each method that rendered ``split``, cropped to the
     hand box or the hand-face overlap box of the ground truth's labels; ``None`` when no frame has that box."""
     runs = [r for r in runs if (r.evaluate_dir / "renders" / split).is_dir()]
@@ -461,5 +613,5 @@ def _crop(image: np.ndarray, box: np.ndarray, px: int) -> np.ndarray:
     lo_x = int(np.clip(round(cx - side / 2), 0, max(size - side, 0)))
     lo_y = int(np.clip(round(cy - side / 2), 0, max(size - side, 0)))
     side_px = int(min(round(side), size))
-    patch = image[lo_y:lo_y + side_px, lo_x:lo_x + side_px]
+    patch = image[lo_y : lo_y + side_px, lo_x : lo_x + side_px]
     return cv2.resize(patch, (px, px), interpolation=cv2.INTER_AREA if side_px > px else cv2.INTER_NEAREST)

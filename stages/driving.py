@@ -48,8 +48,9 @@ class DrivenSequence:
     stiffness_source: str | None
 
 
-def drive(cfg: DictConfig, params: dict[str, np.ndarray], scene: SceneDecision, head_scale: float = 1.0
-          ) -> DrivenSequence:
+def drive(
+    cfg: DictConfig, params: dict[str, np.ndarray], scene: SceneDecision, head_scale: float = 1.0
+) -> DrivenSequence:
     """Pose ``params`` (already on the target's identity) and, for methods with ``method.pbd`` on a scene
     whose analysis models PBD, simulate the contact on the face with the pbd stage's solver, settings and
     stiffness, as the pbd stage does."""
@@ -59,19 +60,21 @@ def drive(cfg: DictConfig, params: dict[str, np.ndarray], scene: SceneDecision, 
     if bool(cfg.method.pbd) and scene.model_pbd:
         solver = pbd_solver_config(cfg)
         stiffness, stiffness_source = face_stiffness(cfg, head, solver)
-        deform = simulate_sequence(face_v, hand_v, torch.tensor(np.array(head.faces)),
-                                   torch.tensor(np.array(hand.faces)), stiffness, solver)
+        deform = simulate_sequence(
+            face_v, hand_v, torch.tensor(np.array(head.faces)), torch.tensor(np.array(hand.faces)), stiffness, solver
+        )
         offsets, frames = deform.offsets, deform.frames
     else:
         offsets, frames, stiffness_source = np.zeros(face_v.shape), [], None
     meshes = posed_meshes(params, head, hand)
-    meshes.vertices[:, :head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
+    meshes.vertices[:, : head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
     cond = sequence_conditioning(params, head, hand, torch.from_numpy(offsets))
     return DrivenSequence(params, meshes, cond, offsets, frames, head_scale, stiffness_source)
 
 
-def transferred_params(cfg: DictConfig, target_fit_dir: Path, driver: dict[str, np.ndarray], source: Path
-                       ) -> MotionTransfer:
+def transferred_params(
+    cfg: DictConfig, target_fit_dir: Path, driver: dict[str, np.ndarray], source: Path
+) -> MotionTransfer:
     """The driver's motion on the target whose fit is ``target_fit_dir`` (its train sequence's identity), placed
     as ``reenact.placement`` says; one error naming ``source`` when the driver cannot drive it."""
     placement = str(cfg.reenact.placement)
@@ -91,10 +94,13 @@ def transfer_summary(frames: list[dict]) -> dict[str, float]:
     if not frames:
         return {}
     touching = [f for f in frames if f["touching_points"]]
-    return {"transfer_touch_frames": len(touching),
-            "transfer_kept_fraction": (sum(f["kept_points"] for f in touching)
-                                       / max(1, sum(f["touching_points"] for f in touching))),
-            "transfer_residual_mm": float(np.mean([f["residual_mm"] for f in touching])) if touching else 0.0}
+    return {
+        "transfer_touch_frames": len(touching),
+        "transfer_kept_fraction": (
+            sum(f["kept_points"] for f in touching) / max(1, sum(f["touching_points"] for f in touching))
+        ),
+        "transfer_residual_mm": float(np.mean([f["residual_mm"] for f in touching])) if touching else 0.0,
+    }
 
 
 def pbd_solver_config(cfg: DictConfig) -> PBDConfig:
@@ -112,9 +118,13 @@ def face_stiffness(cfg: DictConfig, head: TemplateModel, solver: PBDConfig) -> t
     """(V,) relative attachment stiffness of the face and where it came from (``model.face_stiffness_path``,
     the template's skin-to-skull distance, or a uniform estimate)."""
     try:
-        rel, source = face_relative_stiffness(head.num_vertices, head.inner_distance,
-                                              cfg.model.get("face_stiffness_path"), solver.reference_thickness_m,
-                                              solver.stiffness_power)
+        rel, source = face_relative_stiffness(
+            head.num_vertices,
+            head.inner_distance,
+            cfg.model.get("face_stiffness_path"),
+            solver.reference_thickness_m,
+            solver.stiffness_power,
+        )
     except StiffnessFileError as exc:
         raise SchemaError(f"model.face_stiffness_path: {exc}") from exc
     return torch.from_numpy(rel), source

@@ -57,45 +57,70 @@ class DynamicStageSettings:
             problems.append(f"contact_fraction={fraction:g}: must lie in [0, 1] (the share of steps on contact frames)")
         share = float(conf.max_contact_frame_share)
         if not 0.0 < share <= 1.0:
-            problems.append(f"max_contact_frame_share={share:g}: must lie in (0, 1] (the most steps one contact frame "
-                            "may take; 1 leaves contact_fraction uncapped)")
+            problems.append(
+                f"max_contact_frame_share={share:g}: must lie in (0, 1] (the most steps one contact frame "
+                "may take; 1 leaves contact_fraction uncapped)"
+            )
         colour = conf.colour_delta
         if colour not in COLOUR_DELTAS:
-            problems.append(f"colour_delta={colour}: must be one of {', '.join(COLOUR_DELTAS)} "
-                            "(add: c_i + d_c as the paper; scale: c_i exp(d_c))")
+            problems.append(
+                f"colour_delta={colour}: must be one of {', '.join(COLOUR_DELTAS)} "
+                "(add: c_i + d_c as the paper; scale: c_i exp(d_c))"
+            )
         d_max = float(conf.d_max)
         if not d_max > 0.0:
             problems.append(f"d_max={d_max:g}: must be positive (metres; the paper uses 0.05)")
         select = selection_config(conf)
         problems += [f"select.{problem}" for problem in select.problems()]
         if select.enabled and int(conf.validation.every) <= 0:
-            problems.append("select.enabled=true needs validation frames: set stage.dynamic.validation.every > 0 "
-                            "(e.g. 50), or select.enabled=false")
+            problems.append(
+                "select.enabled=true needs validation frames: set stage.dynamic.validation.every > 0 "
+                "(e.g. 50), or select.enabled=false"
+            )
         return problems + validation_problems(conf) + refinement_problems(conf)
-
-
 
 
 #: The settings of ``stage.dynamic`` that the model's :class:`DynamicModelConfig` holds (its widths and depths come
 #: from the quality preset) and the stage's own.
-DynamicSettings = section_schema("DynamicSettings", DynamicModelConfig, exclude=PRESET_ARCHITECTURE,
-                                 own=DynamicStageSettings)
+DynamicSettings = section_schema(
+    "DynamicSettings", DynamicModelConfig, exclude=PRESET_ARCHITECTURE, own=DynamicStageSettings
+)
 
 #: Types of ``stage.dynamic`` (values in conf/stage/dynamic.yaml): every hyperparameter of the training loop's
 #: :class:`DynamicTrainConfig` (its steps come from ``quality.dynamic_steps``, its selection from ``select``), of
 #: the model's :class:`DynamicModelConfig` but its size, and the stage's own settings.
-DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("steps", "selection"),
-                               own=DynamicSettings)
+DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("steps", "selection"), own=DynamicSettings)
+
 
 @stage(
     "dynamic",
     inputs=("capture", "frames", "fit", "scene", "pbd", "warmup"),
-    config_keys=("quality.dynamic_steps", "quality.dynamic_width", "quality.dynamic_hand_depth",
-                 "quality.dynamic_interaction_depth", "quality.geometry_feature_dim", "quality.pointnet_width",
-                 "quality.pointnet_centres", "model", "stage.dynamic", "method.representation", "method.pbd",
-                 "splatting", "stage.warmup", "fit.source", "stage.keypoints.detector"),  # refines_params
-    outputs=("gaussians.parquet", "networks.pt", "model.json", "train_log.parquet", "ply", "curve.parquet",
-             "params.parquet"),
+    config_keys=(
+        "quality.dynamic_steps",
+        "quality.dynamic_width",
+        "quality.dynamic_hand_depth",
+        "quality.dynamic_interaction_depth",
+        "quality.geometry_feature_dim",
+        "quality.pointnet_width",
+        "quality.pointnet_centres",
+        "model",
+        "stage.dynamic",
+        "method.representation",
+        "method.pbd",
+        "splatting",
+        "stage.warmup",
+        "fit.source",
+        "stage.keypoints.detector",
+    ),  # refines_params
+    outputs=(
+        "gaussians.parquet",
+        "networks.pt",
+        "model.json",
+        "train_log.parquet",
+        "ply",
+        "curve.parquet",
+        "params.parquet",
+    ),
     # 11: model.json names the representation (the registry loads the model by it); 10: issue 33's faster step
     # (fused layers, fused Adam; rounding-level changes); 9: refine_params, stage two posed from the warm-up's
     # params.parquet; 8: stage.dynamic.select (the kept step and modules); 7: SSIM filtered by
@@ -121,6 +146,11 @@ def dynamic(ctx: StageContext) -> None:
     torch.manual_seed(conf.seed)
     fit_dir, pbd_dir = ctx.input_dir("fit"), ctx.input_dir("pbd")
     views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train")
-    posed = posed_sequence(fit_dir, TRAIN_SEQUENCE, ctx.cfg, applied_deformation(ctx.cfg, pbd_dir),
-                           method_params(ctx.input_dir("warmup"), fit_dir, TRAIN_SEQUENCE))
+    posed = posed_sequence(
+        fit_dir,
+        TRAIN_SEQUENCE,
+        ctx.cfg,
+        applied_deformation(ctx.cfg, pbd_dir),
+        method_params(ctx.input_dir("warmup"), fit_dir, TRAIN_SEQUENCE),
+    )
     representation(ctx.cfg).train(ctx, views, posed)

@@ -15,6 +15,7 @@ from avatar.metrics import LPIPS, image_metrics
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import resolve_backend
+from avatar.training.data import ViewSet
 from avatar.training.dynamic import rasterize
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
@@ -28,8 +29,7 @@ from stages.artifacts import contact_frames, load_params, load_scene, load_views
 from stages.dependencies import contact_sources, unused_driving_settings
 from stages.driving import drive, driver_subject, transfer_summary, transferred_params
 from stages.posing import applied_deformation, load_sequence
-from stages.representations import load_trained
-
+from stages.representations import TrainedAvatar, load_trained
 
 
 @dataclass
@@ -45,11 +45,19 @@ Renderer = Callable[[int, int], torch.Tensor]
 
 
 # version 9: SSIM filtered by shifted sums instead of conv2d (rounding-level changes)
-@stage("evaluate", inputs=("capture", "frames", "fit", "scene", "pbd", "dynamic"),
-       config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
-       outputs=("metrics.parquet", "grids", "renders", "splits.json"), version="11", config_schema=EvaluateConfig,
-       sources=contact_sources, per_method=True, subject_inputs=("fit",), input_subject=driver_subject,
-       unused_keys=unused_driving_settings)
+@stage(
+    "evaluate",
+    inputs=("capture", "frames", "fit", "scene", "pbd", "dynamic"),
+    config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
+    outputs=("metrics.parquet", "grids", "renders", "splits.json"),
+    version="11",
+    config_schema=EvaluateConfig,
+    sources=contact_sources,
+    per_method=True,
+    subject_inputs=("fit",),
+    input_subject=driver_subject,
+    unused_keys=unused_driving_settings,
+)
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion (and, when reenact.driver names another subject
     whose motion the capture has this identity perform, that cross-actor reenactment) with the method's
@@ -65,14 +73,15 @@ def evaluate(ctx: StageContext) -> None:
     for split, why in _unmeasurable(cap_dir, splits).items():  # e.g. a monocular capture has no held-out camera
         del splits[split]
         ctx.metrics[f"{split}_skipped"] = why
-    write_json(ctx.out_dir / "splits.json", {split: sequence for split, (sequence, _) in splits.items()},
-               "the sequence each split renders")
+    write_json(
+        ctx.out_dir / "splits.json",
+        {split: sequence for split, (sequence, _) in splits.items()},
+        "the sequence each split renders",
+    )
     for split, (sequence, camera_split) in splits.items():
         views = load_views(cap_dir, frames_dir, sequence, camera_split)
         meshes, cond = _split_sequence(ctx, split, sequence, views.num_frames)
-        # used within this iteration only, so the loop's variables are the ones meant
-        render: Renderer = lambda t, c: rasterize(model.pose(cond, meshes.vertices[t], t), views, c,  # noqa: E731, B023
-                                                  conf.backend).rgb
+        render = _renderer(model, cond, meshes, views, conf.backend)
         contact = contact_frames(cap_dir, sequence, views.num_frames)
         showcase = set(showcase_pairs(contact, int(conf.showcase_frames)))
         (ctx.out_dir / "renders" / split).mkdir(parents=True)
@@ -85,18 +94,40 @@ def evaluate(ctx: StageContext) -> None:
             gt, pred = (image.permute(2, 0, 1) for image in views.target_and_render(raw, t, c))
             for region, mask in _regions(views.labels[t, c].numpy()).items():
                 m = image_metrics(pred, gt, None if mask is None else torch.from_numpy(mask), lpips_model=lpips)
-                for key, value in (("method", method), ("split", split), ("camera_id", views.camera_ids[c]),
-                                   ("frame", t), ("region", region), ("contact", bool(contact[t])),
-                                   ("psnr", m["psnr"]), ("ssim", m["ssim"]), ("lpips", m["lpips"])):
+                for key, value in (
+                    ("method", method),
+                    ("split", split),
+                    ("camera_id", views.camera_ids[c]),
+                    ("frame", t),
+                    ("region", region),
+                    ("contact", bool(contact[t])),
+                    ("psnr", m["psnr"]),
+                    ("ssim", m["ssim"]),
+                    ("lpips", m["lpips"]),
+                ):
                     rows[key].append(value)
             if (t, c) in showcase:
                 write_png(showcase_path(ctx.out_dir, split, t, views.camera_ids[c]), _to_u8(raw.permute(2, 0, 1)))
             if i % max(len(pairs) // max(conf.grid_samples, 1), 1) == 0 and len(grid) < conf.grid_samples:
                 grid.append(_grid_row(gt, [pred]))
         write_png(ctx.out_dir / "grids" / f"{split}.png", np.concatenate(grid, axis=0))
-    write_table(ctx.out_dir / "metrics.parquet", METRICS,
-                {k: (v if METRICS.column(k).kind == "string" else np.asarray(v)) for k, v in rows.items()})
+    write_table(
+        ctx.out_dir / "metrics.parquet",
+        METRICS,
+        {k: (v if METRICS.column(k).kind == "string" else np.asarray(v)) for k, v in rows.items()},
+    )
     ctx.metrics.update(_summary(rows))
+
+
+def _renderer(
+    model: TrainedAvatar, cond: SequenceConditioning, meshes: MeshSequence, views: ViewSet, backend: str
+) -> Renderer:
+    """Frame ``t`` of the sequence (``cond``, ``meshes``) rendered from camera ``c`` of ``views``, (S, S, 3)."""
+
+    def render(t: int, c: int) -> torch.Tensor:
+        return rasterize(model.pose(cond, meshes.vertices[t], t), views, c, backend).rgb
+
+    return render
 
 
 def _unmeasurable(cap_dir: Path, splits: dict[str, tuple[str, str]]) -> dict[str, str]:
@@ -125,22 +156,30 @@ def _splits(ctx: StageContext) -> dict[str, tuple[str, str]]:
     return splits
 
 
-def _split_sequence(ctx: StageContext, split: str, sequence: str, num_frames: int
-                    ) -> tuple[MeshSequence, SequenceConditioning]:
+def _split_sequence(
+    ctx: StageContext, split: str, sequence: str, num_frames: int
+) -> tuple[MeshSequence, SequenceConditioning]:
     """The meshes and conditioning a split renders: the fit of its sequence (the train motion as the method refined
     it: :func:`method_params`; with the pbd stage's offsets when the method uses them), or for cross-actor
     reenactment the driver's motion transferred onto this subject with its contact simulated, exactly as stage
     reenact does."""
     if split != "cross_reenact":
         pbd_dir, fit_dir = applied_deformation(ctx.cfg, ctx.input_dir("pbd")), ctx.input_dir("fit")
-        return load_sequence(fit_dir, sequence, ctx.cfg, pbd_dir=pbd_dir,
-                             params=method_params(ctx.input_dir("dynamic"), fit_dir, sequence))
+        return load_sequence(
+            fit_dir,
+            sequence,
+            ctx.cfg,
+            pbd_dir=pbd_dir,
+            params=method_params(ctx.input_dir("dynamic"), fit_dir, sequence),
+        )
     driver_sequence = str(ctx.cfg.reenact.sequence)
     path = ctx.subject_input_dir("fit") / driver_sequence / "params.parquet"
     params = load_params(ctx.subject_input_dir("fit"), driver_sequence)
     if len(params["flame_global_orient"]) != num_frames:
-        raise SchemaError(f"{path}: {len(params['flame_global_orient'])} frames, but the ground truth "
-                          f"'{sequence}' of the capture has {num_frames}; fit the driver at the same preset")
+        raise SchemaError(
+            f"{path}: {len(params['flame_global_orient'])} frames, but the ground truth "
+            f"'{sequence}' of the capture has {num_frames}; fit the driver at the same preset"
+        )
     transfer = transferred_params(ctx.cfg, ctx.input_dir("fit"), params, path)
     driven = drive(ctx.cfg, transfer.params, load_scene(ctx.input_dir("scene")), transfer.head_scale)
     ctx.metrics["cross_reenact_head_scale"] = transfer.head_scale
@@ -180,8 +219,12 @@ def _regions(labels: np.ndarray) -> dict[str, np.ndarray | None]:
     if box is not None:
         x0, y0, x1, y1 = box.astype(int)
         interaction[y0:y1, x0:x1] = True
-    masks: dict[str, np.ndarray | None] = {"full": None if observed.all() else observed, "hand": hand, "face": face,
-                                           "interaction": interaction}
+    masks: dict[str, np.ndarray | None] = {
+        "full": None if observed.all() else observed,
+        "hand": hand,
+        "face": face,
+        "interaction": interaction,
+    }
     assert tuple(masks) == REGIONS
     return masks
 

@@ -26,22 +26,38 @@ from stages.posing import load_sequence
 from stages.representations import load_trained
 
 
-def export_frame(subject_dir: Path, sequence: str, frame: int, out: Path, method: str = "interactavatar",
-                 flame_path: str | None = None, mano_path: str | None = None) -> None:
+def export_frame(
+    subject_dir: Path,
+    sequence: str,
+    frame: int,
+    out: Path,
+    method: str = "interactavatar",
+    flame_path: str | None = None,
+    mano_path: str | None = None,
+) -> None:
     """Write frame ``frame`` of ``sequence`` of ``method``'s trained model under ``subject_dir`` to ``out``."""
     dynamic_dir = subject_dir / METHODS_DIR / method / "dynamic"
     if not (dynamic_dir / MANIFEST_NAME).is_file():
-        raise SystemExit(f"{dynamic_dir}: no trained model of method '{method}'; train it first "
-                         f"(interactavatar subject={subject_dir.name} method={method})")
+        raise SystemExit(
+            f"{dynamic_dir}: no trained model of method '{method}'; train it first "
+            f"(interactavatar subject={subject_dir.name} method={method})"
+        )
     uses_pbd = bool(json.loads((dynamic_dir / MANIFEST_NAME).read_text())["config"]["method.pbd"])
     cfg = OmegaConf.create({"model": {"flame_path": flame_path, "mano_path": mano_path}})
     fit_dir = subject_dir / "fit"
-    meshes, cond = load_sequence(fit_dir, sequence, cfg, pbd_dir=subject_dir / "pbd" if uses_pbd else None,
-                                 params=method_params(dynamic_dir, fit_dir, sequence))
+    meshes, cond = load_sequence(
+        fit_dir,
+        sequence,
+        cfg,
+        pbd_dir=subject_dir / "pbd" if uses_pbd else None,
+        params=method_params(dynamic_dir, fit_dir, sequence),
+    )
     num_frames = meshes.vertices.shape[0]
     if not 0 <= frame < num_frames:
-        raise SystemExit(f"{fit_dir / sequence / 'params.parquet'}: frame {frame} out of range; "
-                         f"sequence '{sequence}' has frames 0..{num_frames - 1}")
+        raise SystemExit(
+            f"{fit_dir / sequence / 'params.parquet'}: frame {frame} out of range; "
+            f"sequence '{sequence}' has frames 0..{num_frames - 1}"
+        )
     model = load_trained(dynamic_dir)
     with torch.no_grad():
         write_frame_ply(out, model.pose(cond, meshes.vertices[frame], frame))
@@ -58,8 +74,9 @@ def main() -> None:
     parser.add_argument("--flame-path", default=None, help="the model.flame_path the run used, if any")
     parser.add_argument("--mano-path", default=None, help="the model.mano_path the run used, if any")
     args = parser.parse_args()
-    export_frame(args.outputs / args.subject, args.sequence, args.frame, args.out, args.method, args.flame_path,
-                 args.mano_path)
+    export_frame(
+        args.outputs / args.subject, args.sequence, args.frame, args.out, args.method, args.flame_path, args.mano_path
+    )
     print(args.out)
 
 

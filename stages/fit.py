@@ -16,7 +16,11 @@ import torch
 from avatar.fitting.errors import landmark_error, mpjpe, per_vertex_error
 from avatar.fitting.fit import FitConfig, FitResult, WorldScaleError, fit_sequence
 from avatar.fitting.refine import (
-    REFINE_MODES, RefineConfig, RefineResult, evidence_from_views, tracking_outlines,
+    REFINE_MODES,
+    RefineConfig,
+    RefineResult,
+    evidence_from_views,
+    tracking_outlines,
 )
 from avatar.posing import posed_keypoints
 from avatar.templates import TemplateModel
@@ -72,18 +76,28 @@ class FitStageConfig:
 
     @staticmethod
     def validate(conf: FitStageConfig) -> list[str]:
-        problems = [] if conf.refine in REFINE_CHOICES \
+        problems = (
+            []
+            if conf.refine in REFINE_CHOICES
             else [f"refine={conf.refine}: choose one of {', '.join(REFINE_CHOICES)}"]
-        problems += [f"refinement.{key}={getattr(conf.refinement, key)}: must be at least 1"
-                     for key in ("render_size", "exact_every") if getattr(conf.refinement, key) < 1]
+        )
+        problems += [
+            f"refinement.{key}={getattr(conf.refinement, key)}: must be at least 1"
+            for key in ("render_size", "exact_every")
+            if getattr(conf.refinement, key) < 1
+        ]
         return problems
 
 
-@stage("fit", inputs=("capture", "frames", "keypoints"),
-       config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
-       outputs=("train/params.parquet", "fit_report.json"),
-       version="8",  # 8: image refinement (stage.fit.refine), keypoint-fit errors kept beside the refined ones
-       config_schema=FitStageConfig, sources=model_sources)
+@stage(
+    "fit",
+    inputs=("capture", "frames", "keypoints"),
+    config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
+    outputs=("train/params.parquet", "fit_report.json"),
+    version="8",  # 8: image refinement (stage.fit.refine), keypoint-fit errors kept beside the refined ones
+    config_schema=FitStageConfig,
+    sources=model_sources,
+)
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors and, per sequence,
     whether the hand was fitted (false: no hand keypoint to fit, see :data:`ABSENT_HAND_DROP_M`). With
@@ -97,11 +111,15 @@ def fit(ctx: StageContext) -> None:
     index = CaptureIndex.read(cap_dir)
     head, hand = templates(ctx.cfg.model)
     cameras = [c for c in read_cameras(cap_dir / "cameras.parquet") if c.split == "train"]
-    settings = {f.name: getattr(ctx.cfg.stage.fit, f.name) for f in fields(FitStageConfig)
-                if f.name not in ("refine", "refinement")}
-    conf = FitConfig(**{k: v for k, v in settings.items() if k != "identity_space"},
-                     face_shape_columns=face_shape_columns(head, settings["identity_space"],
-                                                           str(ctx.cfg.stage.keypoints.detector)))
+    settings = {
+        f.name: getattr(ctx.cfg.stage.fit, f.name)
+        for f in fields(FitStageConfig)
+        if f.name not in ("refine", "refinement")
+    }
+    conf = FitConfig(
+        **{k: v for k, v in settings.items() if k != "identity_space"},
+        face_shape_columns=face_shape_columns(head, settings["identity_space"], str(ctx.cfg.stage.keypoints.detector)),
+    )
     # train_views: 1 is a monocular fit (avatar.fitting.monocular): depth comes from the templates' sizes.
     report: dict = {"source": source, "train_views": len(cameras), "sequences": {}}
     refine = refine_mode(str(ctx.cfg.stage.fit.refine), str(ctx.cfg.stage.keypoints.detector), len(cameras))
@@ -126,8 +144,9 @@ def fit(ctx: StageContext) -> None:
             params = load_provided_params(cap_dir, seq)
             entry = {}
         else:
-            kp = _keypoints_by_camera(read_table(ctx.input_dir("keypoints") / seq / "keypoints.parquet", KEYPOINTS),
-                                      info.num_frames)
+            kp = _keypoints_by_camera(
+                read_table(ctx.input_dir("keypoints") / seq / "keypoints.parquet", KEYPOINTS), info.num_frames
+            )
             # Only the train views: the held-out camera's detections would leak the novel view into the fit.
             train_kp = {c.camera_id: kp[c.camera_id] for c in cameras if c.camera_id in kp}
             hand_fitted = _sees_hand(train_kp)
@@ -139,9 +158,16 @@ def fit(ctx: StageContext) -> None:
             # Without any hand keypoint the hand stays where its initialisation puts it, inside the head, and the
             # interpenetration term pushes the face: fit the face alone, then write the placeholder hand.
             try:
-                result = fit_sequence(train_kp, cameras, head, hand,
-                                      conf if hand_fitted else replace(conf, penetration_mm=0.0),
-                                      evidence, refine, refine_cfg)
+                result = fit_sequence(
+                    train_kp,
+                    cameras,
+                    head,
+                    hand,
+                    conf if hand_fitted else replace(conf, penetration_mm=0.0),
+                    evidence,
+                    refine,
+                    refine_cfg,
+                )
             except WorldScaleError as exc:
                 raise SchemaError(f"{cap_dir / 'cameras.parquet'}: {exc}") from exc
             params = result.params if hand_fitted else _placeholder_hand(result.params)
@@ -151,29 +177,36 @@ def fit(ctx: StageContext) -> None:
                 _write_overlay(ctx.out_dir / seq / REFINEMENT_FIGURE, views, result, head, hand, hand_fitted)
                 keypoint_only = _fit_entry(result, keypoint_fit=True)
                 if info.has_ground_truth:
-                    keypoint_params = result.keypoint_params if hand_fitted \
-                        else _placeholder_hand(result.keypoint_params)
+                    keypoint_params = (
+                        result.keypoint_params if hand_fitted else _placeholder_hand(result.keypoint_params)
+                    )
                     errors = _errors(keypoint_params, load_ground_truth_params(cap_dir, seq), head, hand)
                     keypoint_only.update({k: v for k, v in errors.items() if hand_fitted or "hand" not in k})
                 entry["keypoint_fit"] = keypoint_only
-                ctx.metrics[f"{seq}_refine_ms_per_frame_per_view"] = \
+                ctx.metrics[f"{seq}_refine_ms_per_frame_per_view"] = (
                     1e3 * result.refinement.seconds / info.num_frames / len(cameras)
+                )
             # Timings go to the manifest (its metrics), never into an artifact: a rerun must write the same bytes.
-            ctx.metrics[f"{seq}_fit_ms_per_frame_per_view"] = \
+            ctx.metrics[f"{seq}_fit_ms_per_frame_per_view"] = (
                 1e3 * result.timing.get("total_s", 0.0) / info.num_frames / len(cameras)
+            )
         entry["hand_fitted"] = hand_fitted
         if info.has_ground_truth:
             errors = _errors(params, load_ground_truth_params(cap_dir, seq), head, hand)
             entry.update({k: v for k, v in errors.items() if hand_fitted or "hand" not in k})
-        write_table(ctx.out_dir / seq / "params.parquet", PARAMS,
-                    {"frame": np.arange(info.num_frames), **{k: params[k] for k in PARAM_COLUMNS}})
+        write_table(
+            ctx.out_dir / seq / "params.parquet",
+            PARAMS,
+            {"frame": np.arange(info.num_frames), **{k: params[k] for k in PARAM_COLUMNS}},
+        )
         report["sequences"][seq] = entry
         for key in ("mpjpe_hand_mm", "mpjpe_face_mm"):
             if key in entry:
                 ctx.metrics[f"{seq}_{key}"] = entry[key]
         if checkpoints is not None:
-            checkpoints.save(seq, ctx.out_dir / seq, entry,
-                             {k: v for k, v in ctx.metrics.items() if metrics_before.get(k) != v})
+            checkpoints.save(
+                seq, ctx.out_dir / seq, entry, {k: v for k, v in ctx.metrics.items() if metrics_before.get(k) != v}
+            )
     write_json(ctx.out_dir / "fit_report.json", report, "fit report")
 
 
@@ -192,8 +225,11 @@ class SequenceCheckpoints:
         tmp = self.root / f".{seq}.tmp"
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.copytree(out, tmp / "out")
-        write_json(tmp / "entry.json", {"entry": entry, "metrics": metrics, "sha256": hash_outputs(tmp / "out")},
-                   "fit checkpoint")
+        write_json(
+            tmp / "entry.json",
+            {"entry": entry, "metrics": metrics, "sha256": hash_outputs(tmp / "out")},
+            "fit checkpoint",
+        )
         shutil.rmtree(self.root / seq, ignore_errors=True)
         os.replace(tmp, self.root / seq)
 
@@ -229,23 +265,37 @@ def refine_mode(setting: str, detector: str, train_views: int) -> str:
     return "silhouette" if detector == "mediapipe" and train_views >= 2 else "none"
 
 
-def _write_overlay(path: Path, views: ViewSet, result: FitResult, head: TemplateModel, hand: TemplateModel,
-                   hand_fitted: bool) -> None:
+def _write_overlay(
+    path: Path, views: ViewSet, result: FitResult, head: TemplateModel, hand: TemplateModel, hand_fitted: bool
+) -> None:
     """The keypoint fit's (red) and the refined (green) mesh outlines over the first training view's crop, in the
     frame where the refinement moved the meshes most."""
     assert result.refinement is not None  # called only for a fit the image refinement ran on
     moved = result.refinement.moved_mm["hand"] if hand_fitted else result.refinement.moved_mm["face"]
     frame = int(np.argmax(moved))
-    write_png(path, tracking_outlines(views.images[frame, 0].numpy(), views.K[0], views.world_to_cam[0],
-                                      [result.keypoint_params, result.params], frame, head, hand, hand_fitted))
+    write_png(
+        path,
+        tracking_outlines(
+            views.images[frame, 0].numpy(),
+            views.K[0],
+            views.world_to_cam[0],
+            [result.keypoint_params, result.params],
+            frame,
+            head,
+            hand,
+            hand_fitted,
+        ),
+    )
 
 
 def _fit_entry(result: FitResult, keypoint_fit: bool = False) -> dict:
     """The report's reprojection errors and weakly constrained frames of the written parameters (or, with
     ``keypoint_fit``, of the keypoint fit before the image refinement)."""
     reprojection = result.keypoint_reprojection_px if keypoint_fit else result.reprojection_px
-    return {"reprojection_px": {p: float(np.nanmean(v)) for p, v in reprojection.items() if np.isfinite(v).any()},
-            "weak_frames": {p: np.flatnonzero(v).tolist() for p, v in result.weak_frames.items()}}
+    return {
+        "reprojection_px": {p: float(np.nanmean(v)) for p, v in reprojection.items() if np.isfinite(v).any()},
+        "weak_frames": {p: np.flatnonzero(v).tolist() for p, v in result.weak_frames.items()},
+    }
 
 
 def _refinement_entry(refinement: RefineResult, hand_fitted: bool) -> dict:
@@ -256,10 +306,15 @@ def _refinement_entry(refinement: RefineResult, hand_fitted: bool) -> dict:
     return {
         "iterations": len(refinement.losses),
         "loss": {"first": float(refinement.losses[0]), "last": float(refinement.losses[-1])}
-        if len(refinement.losses) else {},
-        "silhouette_iou": {stage: {p: iou[p] for p in parts} for stage, iou in
-                           (("keypoint_fit", refinement.silhouette_iou["before"]),
-                            ("refined", refinement.silhouette_iou["after"]))},
+        if len(refinement.losses)
+        else {},
+        "silhouette_iou": {
+            stage: {p: iou[p] for p in parts}
+            for stage, iou in (
+                ("keypoint_fit", refinement.silhouette_iou["before"]),
+                ("refined", refinement.silhouette_iou["after"]),
+            )
+        },
         "moved_mm": {p: np.round(refinement.moved_mm[p], 4).tolist() for p in parts},
         "rotated_deg": {p: np.round(refinement.rotated_deg[p], 4).tolist() for p in parts},
         "unseen_frames": {p: refinement.frozen[p] for p in parts},
@@ -270,9 +325,11 @@ def _check_evidence(labels: torch.Tensor, frames_dir: Path, sequence: str) -> No
     """One clear error when the train views' masks of ``sequence`` (labels (T, C, S, S) uint8) hold no
     foreground at all: the refinement would pull the meshes out of every view."""
     if not ((labels >= 1) & (labels <= 3)).any():
-        raise SchemaError(f"{frames_dir / sequence}/<camera>/mask/: every mask of the training cameras is empty "
-                          f"(no face, hand or foreground label): check the segmentation (stage.frames.segmenter, "
-                          f"stage.frames.key_threshold) and rerun frames, or set stage.fit.refine=none")
+        raise SchemaError(
+            f"{frames_dir / sequence}/<camera>/mask/: every mask of the training cameras is empty "
+            f"(no face, hand or foreground label): check the segmentation (stage.frames.segmenter, "
+            f"stage.frames.key_threshold) and rerun frames, or set stage.fit.refine=none"
+        )
 
 
 def face_shape_columns(head: TemplateModel, identity_space: str, detector: str) -> int | None:

@@ -25,7 +25,9 @@ def selected_frames(num_frames: int, dataset: DictConfig, where: str) -> np.ndar
     if limit is not None and int(limit) < 1:
         raise SchemaError(f"dataset.max_frames={limit}: must be 1 or more, or null for all frames")
     if start >= num_frames:
-        raise SchemaError(f"{where}: {num_frames} frames, shorter than the frames requested "
-                          f"(dataset.start_frame={start}); lower dataset.start_frame or use a longer recording")
+        raise SchemaError(
+            f"{where}: {num_frames} frames, shorter than the frames requested "
+            f"(dataset.start_frame={start}); lower dataset.start_frame or use a longer recording"
+        )
     frames = np.arange(start, num_frames, step)
     return frames if limit is None else frames[: int(limit)]

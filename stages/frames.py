@@ -58,37 +58,43 @@ def frames(ctx: StageContext) -> None:
     if conf.segmenter not in SEGMENTERS:
         raise SchemaError(f"stage.frames.segmenter={conf.segmenter!r}: choose one of {SEGMENTERS}")
     if conf.mediapipe.handedness not in HANDEDNESS:
-        raise SchemaError(f"stage.frames.mediapipe.handedness={conf.mediapipe.handedness!r}: "
-                          f"choose one of {HANDEDNESS}")
+        raise SchemaError(
+            f"stage.frames.mediapipe.handedness={conf.mediapipe.handedness!r}: choose one of {HANDEDNESS}"
+        )
     rows: dict[str, list] = {c.name: [] for c in FRAMES_INDEX.columns}
     jobs = [(seq, cam) for seq in index.sequences for cam in cameras]
     for seq, cam in ctx.progress(jobs, desc="frames: views"):
         info = index.sequences[seq]
         video = read_video(video_path(cap_dir, seq, cam.camera_id))
         if video.shape[:3] != (info.num_frames, cam.height, cam.width):
-            raise SchemaError(f"{video_path(cap_dir, seq, cam.camera_id)}: {video.shape[:3]} (frames, H, W) but the "
-                              f"capture says {(info.num_frames, cam.height, cam.width)}; rerun capture")
+            raise SchemaError(
+                f"{video_path(cap_dir, seq, cam.camera_id)}: {video.shape[:3]} (frames, H, W) but the "
+                f"capture says {(info.num_frames, cam.height, cam.width)}; rerun capture"
+            )
         labels = _labels(cap_dir, seq, cam, video, info.has_masks, conf)
         crop = _sequence_crop(labels, conf.margin, size)
         _write_view(ctx.out_dir, seq, cam, video, labels, crop, rows)
-    write_table(ctx.out_dir / "index.parquet", FRAMES_INDEX,
-                {k: (v if FRAMES_INDEX.column(k).kind == "string" else np.asarray(v)) for k, v in rows.items()})
+    write_table(
+        ctx.out_dir / "index.parquet",
+        FRAMES_INDEX,
+        {k: (v if FRAMES_INDEX.column(k).kind == "string" else np.asarray(v)) for k, v in rows.items()},
+    )
     ctx.metrics["views"] = len(cameras)
     ctx.metrics["crops"] = len(rows["frame"])
     ctx.metrics["hand_visible_fraction"] = float(np.mean(rows["hand_visible"]))
     ctx.metrics["foreground_fraction"] = float(np.mean(rows["foreground_fraction"]))
 
 
-def _labels(cap_dir: Path, seq: str, cam: Camera, video: np.ndarray, has_masks: bool,
-            conf: FramesConfig) -> np.ndarray:
+def _labels(cap_dir: Path, seq: str, cam: Camera, video: np.ndarray, has_masks: bool, conf: FramesConfig) -> np.ndarray:
     """(T, H, W) uint8 part labels: the capture's masks, else the configured segmenter's."""
     if has_masks:
         labels = np.stack([read_png(mask_path(cap_dir, seq, cam.camera_id, t), 1) for t in range(len(video))])
         fix = "fix or delete the mask (without masks the stage segments with stage.frames.segmenter)"
     elif conf.segmenter == "mediapipe":
         labels = _segment_mediapipe(video, conf.mediapipe)
-        fix = ("MediaPipe's selfie segmentation found no person; check the video or lower "
-               "stage.frames.mediapipe.threshold")
+        fix = (
+            "MediaPipe's selfie segmentation found no person; check the video or lower stage.frames.mediapipe.threshold"
+        )
     else:
         labels = key_foreground(video, background_colour(video), conf.key_threshold) * UNKNOWN_PART
         fix = "the subject must be visible in every view and frame; check the video or lower stage.frames.key_threshold"
@@ -109,8 +115,12 @@ def _segment_mediapipe(video: np.ndarray, conf: MediapipeSegmenterConfig) -> np.
     if not conf.parts:
         return foreground.astype(np.uint8) * UNKNOWN_PART
     with LandmarkDetector(handedness=conf.handedness, mirrored=conf.mirrored, feature=feature) as detector:
-        return np.stack([part_labels(fg, detector.detect(frame), MASK_LABELS["face"], MASK_LABELS["hand"],
-                                     UNKNOWN_PART) for frame, fg in zip(video, foreground)])
+        return np.stack(
+            [
+                part_labels(fg, detector.detect(frame), MASK_LABELS["face"], MASK_LABELS["hand"], UNKNOWN_PART)
+                for frame, fg in zip(video, foreground)
+            ]
+        )
 
 
 def _sequence_crop(labels: np.ndarray, margin: float, size: int) -> SquareCrop:
@@ -119,8 +129,9 @@ def _sequence_crop(labels: np.ndarray, margin: float, size: int) -> SquareCrop:
     return square_crop(union_box([b for b in boxes if b is not None]), margin, size)
 
 
-def _write_view(out: Path, seq: str, cam: Camera, video: np.ndarray, labels: np.ndarray, crop: SquareCrop,
-                rows: dict[str, list]) -> None:
+def _write_view(
+    out: Path, seq: str, cam: Camera, video: np.ndarray, labels: np.ndarray, crop: SquareCrop, rows: dict[str, list]
+) -> None:
     """Write the crops of one view: RGB padded with the background colour where the crop reaches past the
     image, labels padded with UNOBSERVED there (so no loss or metric compares a render with the padding)."""
     fill = background_colour(video).astype(np.uint8)

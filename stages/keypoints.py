@@ -41,8 +41,14 @@ class KeypointsConfig:
     mediapipe: MediapipeConfig
 
 
-@stage("keypoints", inputs=("capture",), config_keys=("stage.keypoints",), outputs=("train/keypoints.parquet",),
-       version="2", config_schema=KeypointsConfig)
+@stage(
+    "keypoints",
+    inputs=("capture",),
+    config_keys=("stage.keypoints",),
+    outputs=("train/keypoints.parquet",),
+    version="2",
+    config_schema=KeypointsConfig,
+)
 def keypoints(ctx: StageContext) -> None:
     """Detect (or, for the synthetic capture, corrupt the projected ground-truth) 2D keypoints."""
     conf = ctx.cfg.stage.keypoints
@@ -61,15 +67,25 @@ def keypoints(ctx: StageContext) -> None:
     detected = 0
     for seq, info in index.sequences.items():
         if not info.has_ground_truth:
-            raise SchemaError(f"{cap_dir / seq}: stage.keypoints.detector=ground_truth needs a capture with "
-                              f"ground-truth keypoints (dataset=synthetic), and this '{index.dataset}' capture has "
-                              f"none: set stage.keypoints.detector=mediapipe to detect them (real footage; "
-                              f"docs/how-to/real-footage.md) or stage.keypoints.detector=provided for keypoints "
-                              f"shipped with the dataset")
+            raise SchemaError(
+                f"{cap_dir / seq}: stage.keypoints.detector=ground_truth needs a capture with "
+                f"ground-truth keypoints (dataset=synthetic), and this '{index.dataset}' capture has "
+                f"none: set stage.keypoints.detector=mediapipe to detect them (real footage; "
+                f"docs/how-to/real-footage.md) or stage.keypoints.detector=provided for keypoints "
+                f"shipped with the dataset"
+            )
         table = read_table(gt_path(cap_dir, seq, "keypoints"), KEYPOINTS)
-        uvc = [corrupt_keypoints(np.asarray(kp, np.float64).reshape(-1, 3), conf.pixel_noise, conf.drop_rate,
-                                 conf.outlier_rate, sizes[cam], rng)
-               for kp, cam in zip(table["uvc"], table["camera_id"])]
+        uvc = [
+            corrupt_keypoints(
+                np.asarray(kp, np.float64).reshape(-1, 3),
+                conf.pixel_noise,
+                conf.drop_rate,
+                conf.outlier_rate,
+                sizes[cam],
+                rng,
+            )
+            for kp, cam in zip(table["uvc"], table["camera_id"])
+        ]
         detected += int(sum((k[:, 2] > 0).sum() for k in uvc))
         write_table(ctx.out_dir / seq / "keypoints.parquet", KEYPOINTS, {**table, "uvc": uvc})
     ctx.metrics["detections"] = detected
@@ -88,8 +104,13 @@ def _detect_mediapipe(ctx: StageContext, cap_dir: Path, index: CaptureIndex, con
         rows: dict[str, list] = {"frame": [], "camera_id": [], "part": [], "uvc": []}
         for cam in ctx.progress(cameras, desc=f"keypoints: {seq} views"):
             video = read_video(video_path(cap_dir, seq, cam.camera_id))
-            with LandmarkDetector(conf.tracking, conf.min_confidence, conf.handedness, conf.mirrored,
-                                  feature="stage.keypoints.detector=mediapipe") as detector:
+            with LandmarkDetector(
+                conf.tracking,
+                conf.min_confidence,
+                conf.handedness,
+                conf.mirrored,
+                feature="stage.keypoints.detector=mediapipe",
+            ) as detector:
                 detections = [detector.detect(frame) for frame in video]
             frames_seen += len(video)
             for part in PARTS:
@@ -113,9 +134,11 @@ def _copy_provided(ctx: StageContext, cap_dir: Path, index: CaptureIndex) -> Non
     detected = 0
     for seq, info in index.sequences.items():
         if not info.has_provided("keypoints"):
-            raise SchemaError(f"{cap_dir / seq}: detector=provided needs keypoints shipped with the dataset "
-                              f"(dataset=decaf), but the '{index.dataset}' capture of '{index.subject}' has none "
-                              f"for sequence '{seq}'{''.join('; ' + n for n in info.notes if 'keypoints' in n)}")
+            raise SchemaError(
+                f"{cap_dir / seq}: detector=provided needs keypoints shipped with the dataset "
+                f"(dataset=decaf), but the '{index.dataset}' capture of '{index.subject}' has none "
+                f"for sequence '{seq}'{''.join('; ' + n for n in info.notes if 'keypoints' in n)}"
+            )
         table = read_table(provided_path(cap_dir, seq, "keypoints"), KEYPOINTS)
         detected += int(sum((np.reshape(k, (-1, 3))[:, 2] > 0).sum() for k in table["uvc"]))
         write_table(ctx.out_dir / seq / "keypoints.parquet", KEYPOINTS, table)

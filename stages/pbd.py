@@ -22,7 +22,12 @@ import numpy as np
 import torch
 
 from avatar.pbd import (
-    PBDConfig, SequenceDeformation, detect_contacts, moving_vertex_errors, simulate_sequence, single_threaded,
+    PBDConfig,
+    SequenceDeformation,
+    detect_contacts,
+    moving_vertex_errors,
+    simulate_sequence,
+    single_threaded,
 )
 from avatar.posing import posed_keypoints
 from avatar.templates import TemplateModel
@@ -49,9 +54,16 @@ class PBDStageConfig:
     solver: PBDConfig
 
 
-@stage("pbd", inputs=("capture", "fit", "scene"), config_keys=("model", "stage.pbd"),
-       outputs=("train/deform.parquet", "train/contacts.parquet", "pbd_report.json"), version="2",
-       config_schema=PBDStageConfig, sources=contact_sources, unused_keys=unused_solver_settings)
+@stage(
+    "pbd",
+    inputs=("capture", "fit", "scene"),
+    config_keys=("model", "stage.pbd"),
+    outputs=("train/deform.parquet", "train/contacts.parquet", "pbd_report.json"),
+    version="2",
+    config_schema=PBDStageConfig,
+    sources=contact_sources,
+    unused_keys=unused_solver_settings,
+)
 def pbd(ctx: StageContext) -> None:
     """Face offsets and contact flags per frame from stage.pbd.source; pbd_report.json."""
     conf = ctx.cfg.stage.pbd
@@ -62,8 +74,11 @@ def pbd(ctx: StageContext) -> None:
     index = CaptureIndex.read(cap_dir)
     head, hand = templates(ctx.cfg.model)
     stiffness = None
-    report: dict = {"source": conf.source, "frame_convention": "world-frame offsets added to the posed face",
-                    "sequences": {}}
+    report: dict = {
+        "source": conf.source,
+        "frame_convention": "world-frame offsets added to the posed face",
+        "sequences": {},
+    }
     scene = load_scene(ctx.input_dir("scene"))
     if not scene.model_pbd:
         report["skipped"] = f"scene analysis: {scene.why['model_pbd']}"
@@ -97,9 +112,18 @@ def pbd(ctx: StageContext) -> None:
     _metrics(ctx, report, preds, refs, contacts, seconds)
 
 
-def _from_source(source: str, cap_dir: Path, seq: str, info: SequenceInfo, face: torch.Tensor, hand: torch.Tensor,
-                 faces: torch.Tensor, hand_faces: torch.Tensor, head: TemplateModel, cfg: PBDConfig
-                 ) -> SequenceDeformation:
+def _from_source(
+    source: str,
+    cap_dir: Path,
+    seq: str,
+    info: SequenceInfo,
+    face: torch.Tensor,
+    hand: torch.Tensor,
+    faces: torch.Tensor,
+    hand_faces: torch.Tensor,
+    head: TemplateModel,
+    cfg: PBDConfig,
+) -> SequenceDeformation:
     """Offsets from the ground truth, the dataset, or zeros; contact flags detected on the undeformed
     meshes (or the dataset's own contacts for ``provided``, when it ships them)."""
     T, V = face.shape[:2]
@@ -107,16 +131,22 @@ def _from_source(source: str, cap_dir: Path, seq: str, info: SequenceInfo, face:
         offsets = np.zeros((T, V, 3))
     else:
         if source == "ground_truth" and not info.has_ground_truth:
-            raise SchemaError(f"{cap_dir / seq}: stage.pbd.source=ground_truth needs a capture with ground truth "
-                              f"(dataset=synthetic); use simulate, provided or none")
+            raise SchemaError(
+                f"{cap_dir / seq}: stage.pbd.source=ground_truth needs a capture with ground truth "
+                f"(dataset=synthetic); use simulate, provided or none"
+            )
         if source == "provided" and not info.has_provided("deform"):
-            raise SchemaError(f"{cap_dir / seq}: stage.pbd.source=provided needs deformations shipped with the "
-                              f"dataset (provided/deform.parquet, dataset=decaf with the official FLAME); use simulate")
+            raise SchemaError(
+                f"{cap_dir / seq}: stage.pbd.source=provided needs deformations shipped with the "
+                f"dataset (provided/deform.parquet, dataset=decaf with the official FLAME); use simulate"
+            )
         path = gt_path(cap_dir, seq, "deform") if source == "ground_truth" else provided_path(cap_dir, seq, "deform")
         offsets = np.asarray(read_table(path, DEFORM)["offsets"], np.float64)
         if offsets.shape != (T, V * 3):
-            raise SchemaError(f"{path}: offsets of shape {offsets.shape}, but the fit has {T} frames of a "
-                              f"{head.num_vertices}-vertex head (expected ({T}, {V * 3}))")
+            raise SchemaError(
+                f"{path}: offsets of shape {offsets.shape}, but the fit has {T} frames of a "
+                f"{head.num_vertices}-vertex head (expected ({T}, {V * 3}))"
+            )
         offsets = offsets.reshape(T, V, 3)
     with single_threaded():
         flags = [detect_contacts(face[t], hand[t], hand_faces, faces, cfg) for t in range(T)]
@@ -126,17 +156,27 @@ def _from_source(source: str, cap_dir: Path, seq: str, info: SequenceInfo, face:
         shipped = read_table(provided_path(cap_dir, seq, "contacts"), CONTACTS)
         face_contact, hand_contact = np.asarray(shipped["face"]) > 0.5, np.asarray(shipped["hand"]) > 0.5
     out = SequenceDeformation(offsets, face_contact, hand_contact)
-    out.frames = [{"frame": t, "near": bool(face_contact[t].any()), "simulated": False, "iterations": 0,
-                   "contact_vertices": int(face_contact[t].sum()),
-                   "max_offset_mm": float(np.linalg.norm(offsets[t], axis=1).max()) * 1e3} for t in range(T)]
+    out.frames = [
+        {
+            "frame": t,
+            "near": bool(face_contact[t].any()),
+            "simulated": False,
+            "iterations": 0,
+            "contact_vertices": int(face_contact[t].sum()),
+            "max_offset_mm": float(np.linalg.norm(offsets[t], axis=1).max()) * 1e3,
+        }
+        for t in range(T)
+    ]
     return out
 
 
 def _skipped(T: int, V: int, Vh: int) -> SequenceDeformation:
     """Zero offsets and no contact for T frames (V face, Vh hand vertices): PBD not modelled."""
     out = SequenceDeformation(np.zeros((T, V, 3)), np.zeros((T, V), bool), np.zeros((T, Vh), bool))
-    out.frames = [{"frame": t, "near": False, "simulated": False, "iterations": 0, "contact_vertices": 0,
-                   "max_offset_mm": 0.0} for t in range(T)]
+    out.frames = [
+        {"frame": t, "near": False, "simulated": False, "iterations": 0, "contact_vertices": 0, "max_offset_mm": 0.0}
+        for t in range(T)
+    ]
     return out
 
 
@@ -144,15 +184,31 @@ def _write(seq_dir: Path, deform: SequenceDeformation) -> None:
     """deform.parquet and contacts.parquet of one sequence."""
     T = deform.offsets.shape[0]
     contact = deform.face_contact.any(axis=1) | (np.abs(deform.offsets).reshape(T, -1).max(axis=1) > 0)
-    write_table(seq_dir / "deform.parquet", DEFORM,
-                {"frame": np.arange(T), "contact": contact, "offsets": deform.offsets.reshape(T, -1)})
-    write_table(seq_dir / "contacts.parquet", CONTACTS,
-                {"frame": np.arange(T), "contact": deform.face_contact.any(axis=1),
-                 "face": deform.face_contact.astype(np.float32), "hand": deform.hand_contact.astype(np.float32)})
+    write_table(
+        seq_dir / "deform.parquet",
+        DEFORM,
+        {"frame": np.arange(T), "contact": contact, "offsets": deform.offsets.reshape(T, -1)},
+    )
+    write_table(
+        seq_dir / "contacts.parquet",
+        CONTACTS,
+        {
+            "frame": np.arange(T),
+            "contact": deform.face_contact.any(axis=1),
+            "face": deform.face_contact.astype(np.float32),
+            "hand": deform.hand_contact.astype(np.float32),
+        },
+    )
 
 
-def _metrics(ctx: StageContext, report: dict, preds: list[np.ndarray], refs: list[np.ndarray],
-             contacts: list[np.ndarray], seconds: list[float]) -> None:
+def _metrics(
+    ctx: StageContext,
+    report: dict,
+    preds: list[np.ndarray],
+    refs: list[np.ndarray],
+    contacts: list[np.ndarray],
+    seconds: list[float],
+) -> None:
     """simulated_frames, penetration_max_mm, the ground-truth errors pooled over sequences, and the
     mean wall time per simulated (contact) frame."""
     rows = [f for s in report["sequences"].values() for f in s["frames"]]

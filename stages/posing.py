@@ -30,8 +30,9 @@ def applied_deformation(cfg: DictConfig, pbd_dir: Path) -> Path | None:
     return pbd_dir if bool(cfg.method.pbd) else None
 
 
-def load_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path | None,
-                  params: dict[str, np.ndarray] | None = None) -> tuple[MeshSequence, Conditioning]:
+def load_sequence(
+    fit_dir: Path, sequence: str, cfg: DictConfig, *, pbd_dir: Path | None, params: dict[str, np.ndarray] | None = None
+) -> tuple[MeshSequence, Conditioning]:
     """Posed face + hand meshes of every frame of ``sequence`` from the fit stage's ``params.parquet`` (or from
     ``params``, e.g. a method's refined ones: :func:`method_params`), the face deformed by the pbd stage's contact
     offsets (``pbd_dir``; None: undeformed), and the dynamic model's conditioning of every frame."""
@@ -54,8 +55,9 @@ class PosedSequence:
         return sequence_conditioning(self.params, head, hand, torch.from_numpy(self.offsets))
 
 
-def posed_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, pbd_dir: Path | None,
-                   params: dict[str, np.ndarray] | None = None) -> PosedSequence:
+def posed_sequence(
+    fit_dir: Path, sequence: str, cfg: DictConfig, pbd_dir: Path | None, params: dict[str, np.ndarray] | None = None
+) -> PosedSequence:
     """``sequence`` posed with ``params`` (default: the fit stage's) and the pbd stage's offsets (``pbd_dir``)."""
     head, hand = templates(cfg.model)
     params = load_params(fit_dir, sequence) if params is None else params
@@ -65,5 +67,5 @@ def posed_sequence(fit_dir: Path, sequence: str, cfg: DictConfig, pbd_dir: Path 
         return PosedSequence(params, meshes, np.zeros((num_frames, head.num_vertices, 3)))
     offsets = load_face_offsets(pbd_dir, sequence, num_frames, head.num_vertices)
     # posed_meshes concatenates the parts in order, face first: its vertices are the first V
-    meshes.vertices[:, :head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
+    meshes.vertices[:, : head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
     return PosedSequence(params, meshes, offsets)

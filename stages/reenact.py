@@ -42,7 +42,7 @@ from data_schemas.web_video import write_web_video
 from data_schemas.writes import write_json
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
-from stages.artifacts import load_params, load_scene, method_params, TRAIN_SEQUENCE, write_frame_ply
+from stages.artifacts import TRAIN_SEQUENCE, load_params, load_scene, method_params, write_frame_ply
 from stages.dependencies import contact_sources, unused_driving_settings
 from stages.driving import drive, driver_subject, is_parameter_file, transfer_summary, transferred_params
 from stages.representations import load_trained
@@ -70,21 +70,34 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
         return files
     path = Path(driver).resolve()
     if not path.is_file():
-        raise SchemaError(f"reenact.driver={driver}: no such file; give a params.parquet (the fit stage's "
-                          f"schema), 'self', or a subject of this outputs folder")
+        raise SchemaError(
+            f"reenact.driver={driver}: no such file; give a params.parquet (the fit stage's "
+            f"schema), 'self', or a subject of this outputs folder"
+        )
     return SourceFiles(Path("/"), (*files.files, path))
 
 
-@stage("reenact", inputs=("capture", "fit", "scene", "dynamic"),
-       config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
-       outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
-       version="8", config_schema=ReenactConfig, per_method=True, subject_inputs=("fit",),
-       input_subject=driver_subject, sources=_sources, unused_keys=unused_driving_settings)
+@stage(
+    "reenact",
+    inputs=("capture", "fit", "scene", "dynamic"),
+    config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
+    outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
+    version="8",
+    config_schema=ReenactConfig,
+    per_method=True,
+    subject_inputs=("fit",),
+    input_subject=driver_subject,
+    sources=_sources,
+    unused_keys=unused_driving_settings,
+)
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""
     conf, cfg = ctx.cfg.stage.reenact, ctx.cfg
-    sequence, sequence_note = (self_sequence(ctx.input_dir("capture"), str(cfg.reenact.sequence))
-                               if str(cfg.reenact.driver) == "self" else (str(cfg.reenact.sequence), ""))
+    sequence, sequence_note = (
+        self_sequence(ctx.input_dir("capture"), str(cfg.reenact.sequence))
+        if str(cfg.reenact.driver) == "self"
+        else (str(cfg.reenact.sequence), "")
+    )
     params, driver_label, scale, transfer_frames = _driving_params(ctx, sequence)
     driven = drive(cfg, params, load_scene(ctx.input_dir("scene")), scale)
     meshes, cond, offsets, pbd_frames = driven.meshes, driven.cond, driven.offsets, driven.pbd_frames
@@ -104,10 +117,19 @@ def reenact(ctx: StageContext) -> None:
             model_s += time.perf_counter() - start
             for name, (K, w2c) in views.items():
                 start = time.perf_counter()
-                out = render_gaussians(g.means, g.quats, g.scales, g.opacities, g.colors,
-                                       torch.tensor(K[t], dtype=torch.float32),
-                                       torch.tensor(w2c[t], dtype=torch.float32), size, size, background,
-                                       backend=conf.backend)
+                out = render_gaussians(
+                    g.means,
+                    g.quats,
+                    g.scales,
+                    g.opacities,
+                    g.colors,
+                    torch.tensor(K[t], dtype=torch.float32),
+                    torch.tensor(w2c[t], dtype=torch.float32),
+                    size,
+                    size,
+                    background,
+                    backend=conf.backend,
+                )
                 render_s += time.perf_counter() - start
                 rendered[name].append((out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
             if conf.ply:
@@ -124,34 +146,60 @@ def reenact(ctx: StageContext) -> None:
     capture_K = {c.camera_id: c.K for c in read_cameras(ctx.input_dir("capture") / "cameras.parquet")}
     for name in truth_cameras:
         assert truth_sequence is not None  # there are truth cameras only with a ground-truth sequence
-        truth = _write_ground_truth(ctx, truth_sequence, name, capture_K[name], views[name][0], size, background,
-                                    fps)
-        write_web_video(ctx.out_dir / "videos" / f"{name}_vs_gt.mp4",
-                        (np.concatenate([ours, gt], axis=1) for ours, gt in zip(rendered[name], truth)), fps)
+        truth = _write_ground_truth(ctx, truth_sequence, name, capture_K[name], views[name][0], size, background, fps)
+        write_web_video(
+            ctx.out_dir / "videos" / f"{name}_vs_gt.mp4",
+            (np.concatenate([ours, gt], axis=1) for ours, gt in zip(rendered[name], truth)),
+            fps,
+        )
     write_table(ctx.out_dir / "params.parquet", PARAMS, {"frame": np.arange(T), **params})
     contact = np.abs(offsets).reshape(T, -1).max(axis=1) > 0
-    write_table(ctx.out_dir / "deform.parquet", DEFORM,
-                {"frame": np.arange(T), "contact": contact, "offsets": offsets.reshape(T, -1)})
-    timings = {"model_ms_per_frame": 1000 * model_s / T, "render_ms_per_view": 1000 * render_s / (T * len(views)),
-               "image_size": size}
+    write_table(
+        ctx.out_dir / "deform.parquet",
+        DEFORM,
+        {"frame": np.arange(T), "contact": contact, "offsets": offsets.reshape(T, -1)},
+    )
+    timings = {
+        "model_ms_per_frame": 1000 * model_s / T,
+        "render_ms_per_view": 1000 * render_s / (T * len(views)),
+        "image_size": size,
+    }
     timings["frames_per_second"] = 1000 / (timings["model_ms_per_frame"] + timings["render_ms_per_view"])
     simulated = [f for f in pbd_frames if f["simulated"]]
-    write_json(ctx.out_dir / "reenact_report.json", {
-        "driver": driver_label, "sequence": sequence, "sequence_note": sequence_note, "frames": T, "head_scale": scale,
-        "views": {name: {"K": K.tolist(), "world_to_cam": w2c.tolist()} for name, (K, w2c) in views.items()},
-        "views_note": "per frame: K (T, 3, 3) and world_to_cam (T, 4, 4)",
-        "pbd": {"simulated": bool(cfg.method.pbd), "stiffness": driven.stiffness_source, "frames": pbd_frames},
-        "ground_truth": {"sequence": truth_sequence, "cameras": truth_cameras, "note": truth_note},
-        "transfer": {"placement": "none" if str(cfg.reenact.driver) == "self" else str(cfg.reenact.placement),
-                     "frames": transfer_frames},
-        "video_fps": fps}, "reenactment report")
-    ctx.metrics.update({
-        "frames": T, "views": len(views), "head_scale": scale, "contact_frames": int(contact.sum()),
-        "simulated_frames": len(simulated), "ground_truth_videos": len(truth_cameras),
-        "penetration_max_mm": max((f["penetration_max_mm"] for f in simulated), default=0.0),
-        **timings, "rasterizer": resolve_backend(conf.backend, meshes.vertices),
-        **transfer_summary(transfer_frames),
-    })
+    write_json(
+        ctx.out_dir / "reenact_report.json",
+        {
+            "driver": driver_label,
+            "sequence": sequence,
+            "sequence_note": sequence_note,
+            "frames": T,
+            "head_scale": scale,
+            "views": {name: {"K": K.tolist(), "world_to_cam": w2c.tolist()} for name, (K, w2c) in views.items()},
+            "views_note": "per frame: K (T, 3, 3) and world_to_cam (T, 4, 4)",
+            "pbd": {"simulated": bool(cfg.method.pbd), "stiffness": driven.stiffness_source, "frames": pbd_frames},
+            "ground_truth": {"sequence": truth_sequence, "cameras": truth_cameras, "note": truth_note},
+            "transfer": {
+                "placement": "none" if str(cfg.reenact.driver) == "self" else str(cfg.reenact.placement),
+                "frames": transfer_frames,
+            },
+            "video_fps": fps,
+        },
+        "reenactment report",
+    )
+    ctx.metrics.update(
+        {
+            "frames": T,
+            "views": len(views),
+            "head_scale": scale,
+            "contact_frames": int(contact.sum()),
+            "simulated_frames": len(simulated),
+            "ground_truth_videos": len(truth_cameras),
+            "penetration_max_mm": max((f["penetration_max_mm"] for f in simulated), default=0.0),
+            **timings,
+            "rasterizer": resolve_backend(conf.backend, meshes.vertices),
+            **transfer_summary(transfer_frames),
+        }
+    )
 
 
 HELD_OUT = "test"  # the held-out motion reenact.sequence names by default; a capture of one's own may lack it
@@ -163,9 +211,11 @@ def self_sequence(capture_dir: Path, requested: str) -> tuple[str, str]:
     instead of failing at the end of the DAG; any other sequence the capture lacks stays an error (listed)."""
     sequences = CaptureIndex.read(capture_dir).sequences
     if requested == HELD_OUT and HELD_OUT not in sequences and TRAIN_SEQUENCE in sequences:
-        return TRAIN_SEQUENCE, (f"the capture has no held-out '{HELD_OUT}' sequence: the avatar reenacts the "
-                                f"training motion '{TRAIN_SEQUENCE}' instead (add <capture>/{HELD_OUT}/ for a "
-                                "held-out motion)")
+        return TRAIN_SEQUENCE, (
+            f"the capture has no held-out '{HELD_OUT}' sequence: the avatar reenacts the "
+            f"training motion '{TRAIN_SEQUENCE}' instead (add <capture>/{HELD_OUT}/ for a "
+            "held-out motion)"
+        )
     return requested, ""
 
 
@@ -173,8 +223,10 @@ def _check_fitted(fit_dir: Path, sequence: str, whose: str) -> None:
     """One clear error when ``fit_dir`` has no fitted ``sequence``, listing the sequences it has."""
     if not (fit_dir / sequence / "params.parquet").is_file():
         there = sorted(p.parent.name for p in fit_dir.glob("*/params.parquet"))
-        raise SchemaError(f"reenact.sequence={sequence}: {whose} has no fitted sequence '{sequence}' ({fit_dir}); "
-                          f"choose one of {there}")
+        raise SchemaError(
+            f"reenact.sequence={sequence}: {whose} has no fitted sequence '{sequence}' ({fit_dir}); "
+            f"choose one of {there}"
+        )
 
 
 def _driving_params(ctx: StageContext, sequence: str) -> tuple[dict[str, np.ndarray], str, float, list[dict]]:
@@ -198,16 +250,18 @@ def _driving_params(ctx: StageContext, sequence: str) -> tuple[dict[str, np.ndar
     return transfer.params, label, transfer.head_scale, transfer.frames
 
 
-def _views(ctx: StageContext, points: np.ndarray, params: dict[str, np.ndarray], size: int
-           ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _views(
+    ctx: StageContext, points: np.ndarray, params: dict[str, np.ndarray], size: int
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """name -> (K (T, 3, 3), world_to_cam (T, 4, 4)) per frame: the chosen capture cameras, cropped to
     ``points`` (all frames' vertices), and the orbit around them (one turn over the T frames)."""
     conf = ctx.cfg.stage.reenact
     path = ctx.input_dir("capture") / "cameras.parquet"
     cameras = read_cameras(path)
     by_id = {c.camera_id: c for c in cameras}
-    wanted = list(conf.cameras) or [c.camera_id for c in cameras if c.split == "test"] + \
-        [next(c.camera_id for c in cameras if c.split == "train")]
+    wanted = list(conf.cameras) or [c.camera_id for c in cameras if c.split == "test"] + [
+        next(c.camera_id for c in cameras if c.split == "train")
+    ]
     unknown = [c for c in wanted if c not in by_id]
     if unknown:
         raise SchemaError(f"stage.reenact.cameras: {unknown} are not cameras of {path}; choose among {sorted(by_id)}")
@@ -241,15 +295,26 @@ def _ground_truth_sequence(ctx: StageContext, num_frames: int, sequence: str) ->
         sequence = cross_sequence(driver)
     info = CaptureIndex.read(ctx.input_dir("capture")).sequences.get(sequence)
     if info is None:
-        return None, f"the capture has no sequence '{sequence}' (synthetic captures render it with " \
-                     f"stage.capture.cross_reenactment=true)"
+        return (
+            None,
+            f"the capture has no sequence '{sequence}' (synthetic captures render it with "
+            f"stage.capture.cross_reenactment=true)",
+        )
     if info.num_frames != num_frames:
         return None, f"the capture's '{sequence}' has {info.num_frames} frames, the driving motion {num_frames}"
     return sequence, f"the capture's '{sequence}' through the same crops"
 
 
-def _write_ground_truth(ctx: StageContext, sequence: str, camera_id: str, K_capture: np.ndarray, K: np.ndarray,
-                        size: int, background: torch.Tensor, fps: float) -> list[np.ndarray]:
+def _write_ground_truth(
+    ctx: StageContext,
+    sequence: str,
+    camera_id: str,
+    K_capture: np.ndarray,
+    K: np.ndarray,
+    size: int,
+    background: torch.Tensor,
+    fps: float,
+) -> list[np.ndarray]:
     """Write ``videos/<camera_id>_gt.mp4``: the capture's ``sequence`` from camera ``camera_id`` reframed to
     the reenactment's per-frame intrinsics ``K`` (T, 3, 3) at ``size`` px from the camera's own ``K_capture``
     (3, 3), put on the reenactment's background where the capture has masks; return its frames (size, size, 3)
@@ -261,8 +326,9 @@ def _write_ground_truth(ctx: StageContext, sequence: str, camera_id: str, K_capt
         truth = reframe(image, K_capture, K[t], size, tuple(fill.tolist())).astype(np.float32)
         mask = mask_path(capture_dir, sequence, camera_id, t)
         if mask.is_file():
-            alpha = reframe((read_png(mask, 1) > 0).astype(np.float32), K_capture, K[t], size,
-                            (0.0, 0.0, 0.0))[..., None]  # one channel: OpenCV uses the first border value
+            alpha = reframe((read_png(mask, 1) > 0).astype(np.float32), K_capture, K[t], size, (0.0, 0.0, 0.0))[
+                ..., None
+            ]  # one channel: OpenCV uses the first border value
             truth = truth * alpha + fill * (1 - alpha)
         frames.append((truth + 0.5).clip(0, 255).astype(np.uint8))
     write_web_video(ctx.out_dir / "videos" / f"{camera_id}_gt.mp4", frames, fps)

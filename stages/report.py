@@ -18,14 +18,14 @@ from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
 from data_schemas.curve import CURVE
 from data_schemas.frames import FRAMES_INDEX, rgb_path
-from data_schemas.metrics import COMPARISON, METRICS, REGIONS, SPLITS
 from data_schemas.images import read_png
+from data_schemas.metrics import COMPARISON, METRICS, REGIONS, SPLITS
 from data_schemas.tables import TableSchema, read_table
 from data_schemas.writes import write_bytes
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
-from stages.artifacts import contact_frames, contact_source, load_params, load_views, read_params, TRAIN_SEQUENCE
+from stages.artifacts import TRAIN_SEQUENCE, contact_frames, contact_source, load_params, load_views, read_params
 from stages.posing import templates
 from stages.representations import representation_class
 
@@ -39,10 +39,16 @@ class ReportConfig:
     thumbnail_px: int
 
 
-@stage("report", inputs=UPSTREAM,
-       config_keys=("quality.name", "method.name", "method.label", "stage.report", "model"),
-       outputs=("report.html",), version="15", config_schema=ReportConfig, per_method=True,
-       reads_manifests=True)  # its Stages table shows timings
+@stage(
+    "report",
+    inputs=UPSTREAM,
+    config_keys=("quality.name", "method.name", "method.label", "stage.report", "model"),
+    outputs=("report.html",),
+    version="15",
+    config_schema=ReportConfig,
+    per_method=True,
+    reads_manifests=True,
+)  # its Stages table shows timings
 def report(ctx: StageContext) -> None:
     """Write report.html: what was captured and modeled, per-stage timings and metrics, the methods side by
     side, a contact sheet."""
@@ -53,8 +59,9 @@ def report(ctx: StageContext) -> None:
     manifests = {name: json.loads((ctx.input_dir(name) / MANIFEST_NAME).read_text()) for name in UPSTREAM}
     seq = "train" if "train" in index.sequences else next(iter(index.sequences))
     frame, why = _showcase_frame(cap_dir, seq, index)
-    sheet = _contact_sheet(frames_dir, seq, [c.camera_id for c in cameras], frame,
-                           int(ctx.cfg.stage.report.thumbnail_px))
+    sheet = _contact_sheet(
+        frames_dir, seq, [c.camera_id for c in cameras], frame, int(ctx.cfg.stage.report.thumbnail_px)
+    )
     hand_share = float(np.mean(frames_index["hand_visible"]))
     grids = ctx.input_dir("evaluate") / "grids"
     sections = [
@@ -62,21 +69,41 @@ def report(ctx: StageContext) -> None:
         f"<p>method <b>{html.escape(str(ctx.cfg.method.label))}</b> ({html.escape(str(ctx.method))}), "
         f"dataset <b>{html.escape(index.dataset)}</b>, quality preset <b>{html.escape(ctx.cfg.quality.name)}</b>, "
         f"{len(cameras)} cameras, sequences: "
-        + ", ".join(f"{k} ({v.num_frames} frames, {v.width}x{v.height})" for k, v in index.sequences.items()) + "</p>",
+        + ", ".join(f"{k} ({v.num_frames} frames, {v.width}x{v.height})" for k, v in index.sequences.items())
+        + "</p>",
         "<h2>What the scene contains</h2>",
         f"<p>The hand is visible in {100 * hand_share:.0f}% of the crops.</p>",
         _contact_summary(cap_dir, index),
         "<h2>What was modelled, and why</h2>",
         _scene_section(ctx.input_dir("scene"), manifests),
         "<h2>Stages</h2>",
-        _table(("stage", "wall s", "peak MB", "metrics", "written"),
-               [(n, f"{m['timings']['wall_s']:.2f}", f"{m['peak_memory_mb']:.0f}",
-                 ", ".join(f"{k}={format_value(v)}" for k, v in sorted(m["metrics"].items())), m["created"])
-                for n, m in manifests.items()]),
+        _table(
+            ("stage", "wall s", "peak MB", "metrics", "written"),
+            [
+                (
+                    n,
+                    f"{m['timings']['wall_s']:.2f}",
+                    f"{m['peak_memory_mb']:.0f}",
+                    ", ".join(f"{k}={format_value(v)}" for k, v in sorted(m["metrics"].items())),
+                    m["created"],
+                )
+                for n, m in manifests.items()
+            ],
+        ),
         "<h2>Cameras</h2>",
-        _table(("camera", "split", "size", "fx", "position (m)"),
-               [(c.camera_id, c.split, f"{c.width}x{c.height}", f"{c.K[0, 0]:.1f}",
-                 np.array2string(c.cam_to_world[:3, 3], precision=3)) for c in cameras]),
+        _table(
+            ("camera", "split", "size", "fx", "position (m)"),
+            [
+                (
+                    c.camera_id,
+                    c.split,
+                    f"{c.width}x{c.height}",
+                    f"{c.K[0, 0]:.1f}",
+                    np.array2string(c.cam_to_world[:3, 3], precision=3),
+                )
+                for c in cameras
+            ],
+        ),
         "<h2>Fitted meshes</h2>",
         _fit_section(ctx.input_dir("fit")),
         _trained_tracking_section(ctx, manifests),
@@ -91,48 +118,72 @@ def report(ctx: StageContext) -> None:
         "<h2>Training</h2>",
         "<p>Stage one, the warm-up, then stage two (for InteractAvatar and its ablations the hand MLPs H, the "
         "interaction MLPs I and PointNet++; for the baselines the same Gaussians trained on): "
-        + _dynamic_summary(manifests["dynamic"]) + "</p>",
-        *(f'<img alt="{name} loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir(name), *curve)}">'
-          for name, curve in representation_class(str(ctx.cfg.method.representation)).train_logs.items()),
+        + _dynamic_summary(manifests["dynamic"])
+        + "</p>",
+        *(
+            f'<img alt="{name} loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir(name), *curve)}">'
+            for name, curve in representation_class(str(ctx.cfg.method.representation)).train_logs.items()
+        ),
         _validation_section(ctx.input_dir("warmup"), ctx.input_dir("dynamic")),
         f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
         f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
         f"<h2>Renders: ground truth | {html.escape(str(ctx.cfg.method.label))} | its error x4</h2>",
-        *(f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_base64_file(grids / (s + '.png'))}'>"
-          for s in SPLITS if (grids / (s + '.png')).is_file()),
+        *(
+            f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_base64_file(grids / (s + '.png'))}'>"
+            for s in SPLITS
+            if (grids / (s + ".png")).is_file()
+        ),
     ]
-    page = "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>" \
-           "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}" \
-           "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}</style>\n" + "\n".join(sections)
+    page = (
+        "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>"
+        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
+        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}</style>\n" + "\n".join(sections)
+    )
     write_bytes(ctx.out_dir / "report.html", page.encode(), "report")
 
 
 def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
     """The scene stage's decisions with their reasons, and the work they left out."""
     info = json.loads((scene_dir / "scene.json").read_text())
-    rows = [(name.removeprefix("model_"), "yes" if info[name] else "no", info["why"][name])
-            for name in ("model_hand", "model_pbd", "model_interaction")]
+    rows = [
+        (name.removeprefix("model_"), "yes" if info[name] else "no", info["why"][name])
+        for name in ("model_hand", "model_pbd", "model_interaction")
+    ]
     dynamic = manifests["dynamic"]["metrics"]
-    work = (f"PBD simulated {manifests['pbd']['metrics'].get('simulated_frames', 0)} frames; the interaction MLPs "
-            f"ran {dynamic.get('interaction_mlp_evaluations', 0)} Gaussian evaluations in training; "
-            f"{len(info['deforming_triangles'])} of {info['face_triangles']} face triangles lie within d_max = "
-            f"{info['d_max_m'] * 100:g} cm of the hand in some training contact frame (the only ones the interaction "
-            f"module and PBD can reach). Decided on the '{info['decided_on']}' sequence; stage.scene.* overrides.")
+    work = (
+        f"PBD simulated {manifests['pbd']['metrics'].get('simulated_frames', 0)} frames; the interaction MLPs "
+        f"ran {dynamic.get('interaction_mlp_evaluations', 0)} Gaussian evaluations in training; "
+        f"{len(info['deforming_triangles'])} of {info['face_triangles']} face triangles lie within d_max = "
+        f"{info['d_max_m'] * 100:g} cm of the hand in some training contact frame (the only ones the interaction "
+        f"module and PBD can reach). Decided on the '{info['decided_on']}' sequence; stage.scene.* overrides."
+    )
     left_out = []
     if not info["model_hand"]:
         per_triangle = int(manifests["warmup"]["config"]["quality.gaussians_per_triangle"])
-        left_out.append(f"{info['hand_triangles']} MANO triangles without Gaussians (about "
-                        f"{info['hand_triangles'] * per_triangle} Gaussians not created at this preset) "
-                        "and no hand MLPs")
+        left_out.append(
+            f"{info['hand_triangles']} MANO triangles without Gaussians (about "
+            f"{info['hand_triangles'] * per_triangle} Gaussians not created at this preset) "
+            "and no hand MLPs"
+        )
     if not info["model_pbd"]:
         left_out.append("no contact simulated in any frame")
     if not info["model_interaction"]:
         left_out.append("no interaction MLPs and no PointNet++")
-    saved = ("Left out: " + "; ".join(left_out) + ". benchmarks/bench_scene.py measures the time this saves "
-             "against modelling everything (docs/explanation/scene.md).") if left_out else ""
-    return _table(("modelled", "", "why"), rows) + f"<p>{html.escape(work)}</p>" + \
-        (f"<p>{html.escape(saved)}</p>" if saved else "") + _contact_draws_paragraph(manifests["dynamic"]) + \
-        _selection_paragraph(dynamic)
+    saved = (
+        (
+            "Left out: " + "; ".join(left_out) + ". benchmarks/bench_scene.py measures the time this saves "
+            "against modelling everything (docs/explanation/scene.md)."
+        )
+        if left_out
+        else ""
+    )
+    return (
+        _table(("modelled", "", "why"), rows)
+        + f"<p>{html.escape(work)}</p>"
+        + (f"<p>{html.escape(saved)}</p>" if saved else "")
+        + _contact_draws_paragraph(manifests["dynamic"])
+        + _selection_paragraph(dynamic)
+    )
 
 
 def _contact_draws_paragraph(dynamic: dict) -> str:
@@ -145,9 +196,11 @@ def _contact_draws_paragraph(dynamic: dict) -> str:
     fraction = float(conf["contact_fraction"])
     text = f"Stage two drew a contact frame first with probability {p:.2f}, else any training frame"
     if p < fraction:
-        text += (f" (contact_fraction {fraction:g}, lowered so that no contact frame takes more than "
-                 f"{float(conf['max_contact_frame_share']):g} of the steps: with few contact frames the Gaussians "
-                 "would fit their tracking error)")
+        text += (
+            f" (contact_fraction {fraction:g}, lowered so that no contact frame takes more than "
+            f"{float(conf['max_contact_frame_share']):g} of the steps: with few contact frames the Gaussians "
+            "would fit their tracking error)"
+        )
     return f"<p>{html.escape(text)}.</p>"
 
 
@@ -155,20 +208,25 @@ def _selection_paragraph(dynamic: dict) -> str:
     """What stage two's selection kept (stage.dynamic.select), on the validation figures it rests on; nothing
     when it did not run."""
     if "selected_step" not in dynamic:
-        return ("<p>Stage two kept its last step and every module it built (stage.dynamic.select.enabled=false).</p>")
+        return "<p>Stage two kept its last step and every module it built (stage.dynamic.select.enabled=false).</p>"
     step, final = int(dynamic["selected_step"]), int(dynamic["selection_final_step"])
-    text = (f"Stage two kept step {step} of {final}" + (" (the warm-up's model: H and I at zero)" if step == 0 else "")
-            + f": validation PSNR {dynamic['selection_selected_psnr']:.2f} dB against "
-            f"{dynamic['selection_final_psnr']:.2f} dB at the last step, on training frames that neither stage "
-            "trained on.")
+    text = (
+        f"Stage two kept step {step} of {final}"
+        + (" (the warm-up's model: H and I at zero)" if step == 0 else "")
+        + f": validation PSNR {dynamic['selection_selected_psnr']:.2f} dB against "
+        f"{dynamic['selection_final_psnr']:.2f} dB at the last step, on training frames that neither stage "
+        "trained on."
+    )
     for module, name in (("hand_mlp", "the hand MLPs H"), ("interaction", "the interaction MLPs I")):
         without = dynamic.get(f"selection_psnr_without_{module}")
         if without is None:
             text += f" {name[0].upper()}{name[1:]}: not built."
             continue
         kept = bool(dynamic[f"kept_{module}"])
-        text += (f" {name[0].upper()}{name[1:]}: {'kept' if kept else 'switched off'} (validation PSNR without them "
-                 f"{without:.2f} dB).")
+        text += (
+            f" {name[0].upper()}{name[1:]}: {'kept' if kept else 'switched off'} (validation PSNR without them "
+            f"{without:.2f} dB)."
+        )
     return f"<p>{html.escape(text)} Rule: docs/explanation/selection.md.</p>"
 
 
@@ -181,9 +239,12 @@ def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, 
 
 
 def _contact_summary(cap_dir: Path, index: CaptureIndex) -> str:
-    parts = [f"{seq}: {int(contact_frames(cap_dir, seq, info.num_frames).sum())} of {info.num_frames} frames "
-             f"with contact ({source})" for seq, info in index.sequences.items()
-             if (source := contact_source(info)) is not None]
+    parts = [
+        f"{seq}: {int(contact_frames(cap_dir, seq, info.num_frames).sum())} of {info.num_frames} frames "
+        f"with contact ({source})"
+        for seq, info in index.sequences.items()
+        if (source := contact_source(info)) is not None
+    ]
     return "<p>" + "; ".join(parts) + "</p>" if parts else "<p>No contact labels in this capture.</p>"
 
 
@@ -191,40 +252,76 @@ def _fit_section(fit_dir: Path) -> str:
     """Where the FLAME/MANO parameters came from and, per sequence, how well they fit."""
     report = json.loads((fit_dir / "fit_report.json").read_text())
     source = report["source"]
-    intro = {"fitted": "fitted to the keypoints of the train views",
-             "ground_truth": "the synthetic capture's own parameters (the avatar is measured apart from fitting error)",
-             "provided": "the dataset's own fit"}.get(source, source)
+    intro = {
+        "fitted": "fitted to the keypoints of the train views",
+        "ground_truth": "the synthetic capture's own parameters (the avatar is measured apart from fitting error)",
+        "provided": "the dataset's own fit",
+    }.get(source, source)
     refine = report.get("refine", "none")
     rows, moves, figures = [], [], []
     for seq, entry in report["sequences"].items():
-        stages = [(seq, entry)] if "keypoint_fit" not in entry else \
-            [(f"{seq} (keypoint fit)", entry["keypoint_fit"]), (f"{seq} (refined: {refine})", entry)]
+        stages = (
+            [(seq, entry)]
+            if "keypoint_fit" not in entry
+            else [(f"{seq} (keypoint fit)", entry["keypoint_fit"]), (f"{seq} (refined: {refine})", entry)]
+        )
         for name, values in stages:
             reproj = values.get("reprojection_px", {})
             weak = values.get("weak_frames", {})
-            rows.append((name, *(format_value(values[k]) if k in values else "-"
-                                 for k in ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_hand_mm",
-                                           "vertex_error_face_mm")),
-                         *(format_value(reproj[p]) if p in reproj else "-" for p in ("hand", "face")),
-                         "; ".join(f"{p}: {v}" for p, v in weak.items() if v) or "-"))
+            rows.append(
+                (
+                    name,
+                    *(
+                        format_value(values[k]) if k in values else "-"
+                        for k in ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_hand_mm", "vertex_error_face_mm")
+                    ),
+                    *(format_value(reproj[p]) if p in reproj else "-" for p in ("hand", "face")),
+                    "; ".join(f"{p}: {v}" for p, v in weak.items() if v) or "-",
+                )
+            )
         if "refinement" in entry:
             moves.append((seq, *_refinement_cells(entry["refinement"])))
             figure = fit_dir / seq / "refinement.png"
             if figure.is_file():
-                figures.append(f"<figure><img alt='{html.escape(seq)}: keypoint fit and refined meshes' "
-                               f"src='data:image/png;base64,{_base64_file(figure)}'><figcaption>{html.escape(seq)}: "
-                               f"keypoint fit (red) and refined (green) mesh outlines, the frame that moved most"
-                               f"</figcaption></figure>")
-    table = _table(("sequence", "hand MPJPE mm", "face landmarks mm", "hand vertices mm", "face vertices mm",
-                    "hand reprojection px", "face reprojection px", "weakly constrained frames"), rows)
+                figures.append(
+                    f"<figure><img alt='{html.escape(seq)}: keypoint fit and refined meshes' "
+                    f"src='data:image/png;base64,{_base64_file(figure)}'><figcaption>{html.escape(seq)}: "
+                    f"keypoint fit (red) and refined (green) mesh outlines, the frame that moved most"
+                    f"</figcaption></figure>"
+                )
+    table = _table(
+        (
+            "sequence",
+            "hand MPJPE mm",
+            "face landmarks mm",
+            "hand vertices mm",
+            "face vertices mm",
+            "hand reprojection px",
+            "face reprojection px",
+            "weakly constrained frames",
+        ),
+        rows,
+    )
     text = f"<p>Parameters: {html.escape(intro)}. Errors against ground truth where the capture has it.</p>{table}"
     if moves:
-        text += (f"<p>The keypoint fit refined by the train views' {html.escape(refine)} (never the held-out "
-                 f"camera): silhouette IoU of the parts (mean over views, keypoint fit → refined) and how far "
-                 f"each part moved per frame (mean vertex displacement; change of global rotation).</p>"
-                 + _table(("sequence", "face IoU", "hand IoU", "face moved mm (mean / max)",
-                           "hand moved mm (mean / max)", "face rotated deg (max)", "hand rotated deg (max)"), moves)
-                 + "".join(figures))
+        text += (
+            f"<p>The keypoint fit refined by the train views' {html.escape(refine)} (never the held-out "
+            f"camera): silhouette IoU of the parts (mean over views, keypoint fit → refined) and how far "
+            f"each part moved per frame (mean vertex displacement; change of global rotation).</p>"
+            + _table(
+                (
+                    "sequence",
+                    "face IoU",
+                    "hand IoU",
+                    "face moved mm (mean / max)",
+                    "hand moved mm (mean / max)",
+                    "face rotated deg (max)",
+                    "hand rotated deg (max)",
+                ),
+                moves,
+            )
+            + "".join(figures)
+        )
     return text
 
 
@@ -240,8 +337,10 @@ def _refinement_cells(refinement: dict) -> list[str]:
     for p in ("face", "hand"):
         moved = refinement["moved_mm"].get(p)
         cells.append(f"{format_value(float(np.mean(moved)))} / {format_value(float(np.max(moved)))}" if moved else "-")
-    cells += [format_value(float(np.max(refinement["rotated_deg"][p]))) if refinement["rotated_deg"].get(p) else "-"
-              for p in ("face", "hand")]
+    cells += [
+        format_value(float(np.max(refinement["rotated_deg"][p]))) if refinement["rotated_deg"].get(p) else "-"
+        for p in ("face", "hand")
+    ]
     return cells
 
 
@@ -255,27 +354,41 @@ def _trained_tracking_section(ctx: StageContext, manifests: dict[str, dict]) -> 
         return ""
     refined = [name for name in ("warmup", "dynamic") if manifests[name]["metrics"].get("params_refined")]
     if not refined:
-        return ("<p>Training used these parameters as they are (stage.warmup.refine_params and "
-                "stage.dynamic.refine_params off; <code>auto</code> is off with ground-truth tracking).</p>")
+        return (
+            "<p>Training used these parameters as they are (stage.warmup.refine_params and "
+            "stage.dynamic.refine_params off; <code>auto</code> is off with ground-truth tracking).</p>"
+        )
     head, hand = templates(ctx.cfg.model)
     fitted = load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE)
     after = read_params(trained)
     moved = parameter_movement(fitted, after, head, hand)
-    rows = [(t, *(format_value(float(moved[kind][part][t])) for part in ("face", "hand")
-                  for kind in ("moved_mm", "rotated_deg"))) for t in range(len(moved["moved_mm"]["face"]))]
+    rows = [
+        (
+            t,
+            *(
+                format_value(float(moved[kind][part][t]))
+                for part in ("face", "hand")
+                for kind in ("moved_mm", "rotated_deg")
+            ),
+        )
+        for t in range(len(moved["moved_mm"]["face"]))
+    ]
     views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), TRAIN_SEQUENCE, "train")
     frame = int(np.argmax(moved["moved_mm"]["face"] + moved["moved_mm"]["hand"]))
-    figure = tracking_outlines(views.images[frame, 0].numpy(), views.K[0], views.world_to_cam[0], [fitted, after],
-                               frame, head, hand)
-    return (f"<p>Training refined the train motion's parameters with the avatar ({' and '.join(refined)}; "
-            f"GaussianAvatars' fine-tuning of the tracking, against the train views only; the frames withheld for "
-            f"validation and the held-out motion stay as fitted). Per frame, how far each part moved from the fit "
-            f"(mean vertex displacement, mm; change of global rotation, degrees):</p>"
-            + _table(("frame", "face mm", "face deg", "hand mm", "hand deg"), rows)
-            + f"<figure><img alt='fitted and refined meshes, train frame {frame}' src='data:image/png;base64,"
-              f"{_image_png(figure)}'><figcaption>Train frame {frame}, camera "
-              f"{html.escape(views.camera_ids[0])}: fitted (red) and refined in training (green) mesh outlines"
-              f"</figcaption></figure>")
+    figure = tracking_outlines(
+        views.images[frame, 0].numpy(), views.K[0], views.world_to_cam[0], [fitted, after], frame, head, hand
+    )
+    return (
+        f"<p>Training refined the train motion's parameters with the avatar ({' and '.join(refined)}; "
+        f"GaussianAvatars' fine-tuning of the tracking, against the train views only; the frames withheld for "
+        f"validation and the held-out motion stay as fitted). Per frame, how far each part moved from the fit "
+        f"(mean vertex displacement, mm; change of global rotation, degrees):</p>"
+        + _table(("frame", "face mm", "face deg", "hand mm", "hand deg"), rows)
+        + f"<figure><img alt='fitted and refined meshes, train frame {frame}' src='data:image/png;base64,"
+        f"{_image_png(figure)}'><figcaption>Train frame {frame}, camera "
+        f"{html.escape(views.camera_ids[0])}: fitted (red) and refined in training (green) mesh outlines"
+        f"</figcaption></figure>"
+    )
 
 
 def _pbd_section(pbd_dir: Path) -> str:
@@ -286,16 +399,36 @@ def _pbd_section(pbd_dir: Path) -> str:
         frames = entry["frames"]
         simulated = [f for f in frames if f["simulated"]]
         errors = entry.get("ground_truth_error") or {}
-        rows.append((seq, len(frames), sum(f["near"] for f in frames), len(simulated),
-                     format_value(max((f["penetration_max_mm"] for f in simulated), default=0.0)),
-                     format_value(max(f["max_offset_mm"] for f in frames)),
-                     *(format_value(errors[k]) if k in errors else "-" for k in ("mean_mm", "zero_mean_mm"))))
-    table = _table(("sequence", "frames", "hand near the face", "simulated", "residual penetration mm",
-                    "largest offset mm", "vertex error mm", "zero offsets mm"), rows)
+        rows.append(
+            (
+                seq,
+                len(frames),
+                sum(f["near"] for f in frames),
+                len(simulated),
+                format_value(max((f["penetration_max_mm"] for f in simulated), default=0.0)),
+                format_value(max(f["max_offset_mm"] for f in frames)),
+                *(format_value(errors[k]) if k in errors else "-" for k in ("mean_mm", "zero_mean_mm")),
+            )
+        )
+    table = _table(
+        (
+            "sequence",
+            "frames",
+            "hand near the face",
+            "simulated",
+            "residual penetration mm",
+            "largest offset mm",
+            "vertex error mm",
+            "zero offsets mm",
+        ),
+        rows,
+    )
     stiffness = f", stiffness from {report['stiffness']}" if "stiffness" in report else ""
     intro = f"Offsets: {report['source']}{stiffness} ({report['frame_convention']})"
-    return (f"<p>{html.escape(intro)}; frames whose hand stays clear of the face are not simulated. Vertex errors "
-            f"over the vertices that move in contact frames, against ground truth where the capture has it.</p>{table}")
+    return (
+        f"<p>{html.escape(intro)}; frames whose hand stays clear of the face are not simulated. Vertex errors "
+        f"over the vertices that move in contact frames, against ground truth where the capture has it.</p>{table}"
+    )
 
 
 def _metrics_section(evaluate_dir: Path) -> str:
@@ -305,14 +438,24 @@ def _metrics_section(evaluate_dir: Path) -> str:
     for method in sorted(set(t["method"])):
         for split in SPLITS:
             for region in REGIONS:
-                sel = [i for i in range(len(t["frame"]))
-                       if t["method"][i] == method and t["split"][i] == split and t["region"][i] == region]
+                sel = [
+                    i
+                    for i in range(len(t["frame"]))
+                    if t["method"][i] == method and t["split"][i] == split and t["region"][i] == region
+                ]
                 vals = {m: np.asarray(t[m])[sel] for m in ("psnr", "ssim", "lpips")}
                 defined = np.isfinite(vals["ssim"]) | np.isfinite(vals["psnr"])
                 if not defined.any():
                     continue
-                rows.append((method, split, region, int(defined.sum()),
-                             *(f"{np.nanmean(np.where(np.isinf(v), np.nan, v)):.4g}" for v in vals.values())))
+                rows.append(
+                    (
+                        method,
+                        split,
+                        region,
+                        int(defined.sum()),
+                        *(f"{np.nanmean(np.where(np.isinf(v), np.nan, v)):.4g}" for v in vals.values()),
+                    )
+                )
     return _table(("method", "split", "region", "images", "PSNR dB", "SSIM", "LPIPS"), rows)
 
 
@@ -322,24 +465,34 @@ def _reenact_section(reenact_dir: Path) -> str:
     metrics = json.loads((reenact_dir / MANIFEST_NAME).read_text())["metrics"]
     simulated = [f for f in info["pbd"]["frames"] if f["simulated"]]
     worst = max((f["penetration_max_mm"] for f in simulated), default=0.0)
-    text = (f"Driver: {info['driver']}, {info['frames']} frames, head-size ratio {info['head_scale']:.3f}; contact "
-            + (f"simulated on {len(simulated)} frames (worst residual penetration {worst:.2f} mm)"
-               if info["pbd"]["simulated"] else "not simulated (the method has no PBD)")
-            + f"; {metrics['frames_per_second']:.1f} frames per second at {metrics['image_size']} px "
-              f"(model {metrics['model_ms_per_frame']:.0f} ms per frame, rasterizer "
-              f"{metrics['render_ms_per_view']:.0f} ms per view).")
+    text = (
+        f"Driver: {info['driver']}, {info['frames']} frames, head-size ratio {info['head_scale']:.3f}; contact "
+        + (
+            f"simulated on {len(simulated)} frames (worst residual penetration {worst:.2f} mm)"
+            if info["pbd"]["simulated"]
+            else "not simulated (the method has no PBD)"
+        )
+        + f"; {metrics['frames_per_second']:.1f} frames per second at {metrics['image_size']} px "
+        f"(model {metrics['model_ms_per_frame']:.0f} ms per frame, rasterizer "
+        f"{metrics['render_ms_per_view']:.0f} ms per view)."
+    )
     transfer = info.get("transfer", {"frames": []})
     touching = [f for f in transfer["frames"] if f["touching_points"]]
     if touching:
-        text += (f" The driver's hand touches its face in {len(touching)} frames; placed to keep those touches "
-                 f"(reenact.placement={transfer['placement']}), {metrics['transfer_kept_fraction']:.0%} of the "
-                 f"touching points touch this face too, a mean {metrics['transfer_residual_mm']:.1f} mm from the "
-                 f"same surface points.")
+        text += (
+            f" The driver's hand touches its face in {len(touching)} frames; placed to keep those touches "
+            f"(reenact.placement={transfer['placement']}), {metrics['transfer_kept_fraction']:.0%} of the "
+            f"touching points touch this face too, a mean {metrics['transfer_residual_mm']:.1f} mm from the "
+            f"same surface points."
+        )
     if info.get("sequence_note"):  # e.g. a capture without the held-out motion reenacts its training motion
         text += f" {info['sequence_note'][0].upper()}{info['sequence_note'][1:]}."
     truth = info["ground_truth"]
-    text += (f" Beside the ground truth ({truth['sequence']}) on camera(s) {', '.join(truth['cameras'])}."
-             if truth["cameras"] else f" No ground truth to show: {truth['note']}.")
+    text += (
+        f" Beside the ground truth ({truth['sequence']}) on camera(s) {', '.join(truth['cameras'])}."
+        if truth["cameras"]
+        else f" No ground truth to show: {truth['note']}."
+    )
     shown = []  # per view: reenacted | ground truth where the capture has it, else the reenactment alone
     for path in sorted((reenact_dir / "videos").glob("*.mp4")):
         if path.stem.endswith(("_gt", "_vs_gt")):
@@ -349,7 +502,9 @@ def _reenact_section(reenact_dir: Path) -> str:
     videos = "".join(
         f"<figure style='display:inline-block;margin:4px'><video controls autoplay loop muted playsinline "
         f"src='data:video/mp4;base64,{_base64_file(path)}'></video><figcaption>{html.escape(caption)}</figcaption>"
-        f"</figure>" for path, caption in shown)
+        f"</figure>"
+        for path, caption in shown
+    )
     return f"<p>{html.escape(text)}</p>{videos}"
 
 
@@ -362,8 +517,10 @@ def _comparison_section(compare_dir: Path) -> str:
     parts.append("<ul>" + "".join(f"<li>{html.escape(note)}</li>" for note in tables["notes"]) + "</ul>")
     parts.append(_pareto_plot(compare_dir))
     for figure in sorted((compare_dir / "figures").glob("*.png")):
-        parts.append(f"<h3>{html.escape(figure.stem.replace('_', ' '))}: ground truth, then each method</h3>"
-                     f"<img alt='{html.escape(figure.stem)}' src='data:image/png;base64,{_base64_file(figure)}'>")
+        parts.append(
+            f"<h3>{html.escape(figure.stem.replace('_', ' '))}: ground truth, then each method</h3>"
+            f"<img alt='{html.escape(figure.stem)}' src='data:image/png;base64,{_base64_file(figure)}'>"
+        )
     return "\n".join(parts)
 
 
@@ -371,10 +528,13 @@ def _dynamic_summary(manifest: dict) -> str:
     """One sentence on the dynamic stage's cost: steps, ms per step, interaction-MLP evaluations."""
     m = manifest["metrics"]
     if "interaction_steps" not in m:  # SplattingAvatar: no MLPs
-        return html.escape(f"{m['steps']} steps at {m['ms_per_step']:.0f} ms each, {m.get('walked', 0)} triangle "
-                           f"changes by walking")
-    return html.escape(f"{m['steps']} steps at {m['ms_per_step']:.0f} ms each; the interaction MLPs ran in "
-                       f"{m['interaction_steps']} steps on {m['interaction_mlp_evaluations']} Gaussians in all")
+        return html.escape(
+            f"{m['steps']} steps at {m['ms_per_step']:.0f} ms each, {m.get('walked', 0)} triangle changes by walking"
+        )
+    return html.escape(
+        f"{m['steps']} steps at {m['ms_per_step']:.0f} ms each; the interaction MLPs ran in "
+        f"{m['interaction_steps']} steps on {m['interaction_mlp_evaluations']} Gaussians in all"
+    )
 
 
 def _loss_curve(train_dir: Path, schema: TableSchema, terms: tuple[str, ...]) -> str:
@@ -426,8 +586,11 @@ def _pareto_plot(compare_dir: Path) -> str:
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.5), dpi=100)
     for ax, split in zip(axes, ("novel_view", "self_reenact")):
-        rows = [i for i in range(len(table["method"])) if table["split"][i] == split
-                and table["region"][i] == "full" and table["contact"][i] == "all"]
+        rows = [
+            i
+            for i in range(len(table["method"]))
+            if table["split"][i] == split and table["region"][i] == "full" and table["contact"][i] == "all"
+        ]
         if not rows:
             continue
         cost = np.array([table["train_wall_s"][i] for i in rows], float)
@@ -441,20 +604,26 @@ def _pareto_plot(compare_dir: Path) -> str:
         ax.set_xlabel("training wall time (s, warm-up + stage two)")
         ax.set_ylabel(f"{split.replace('_', ' ')} PSNR (dB)")
     png = _figure_png(fig)
-    return ("<h3>Quality against training time (red: the Pareto front, methods no other beats on both)</h3>"
-            f"<img alt='quality against time' src='data:image/png;base64,{png}'>")
+    return (
+        "<h3>Quality against training time (red: the Pareto front, methods no other beats on both)</h3>"
+        f"<img alt='quality against time' src='data:image/png;base64,{png}'>"
+    )
 
 
 def _validation_section(warmup_dir: Path, dynamic_dir: Path) -> str:
     """The validation curves of the two training stages (stage.*.validation), one time axis: nothing when
     neither validated."""
-    curves = {name: read_table(d / "curve.parquet", CURVE) for name, d in (("warm-up", warmup_dir),
-                                                                        ("stage two", dynamic_dir))
-              if (d / "curve.parquet").is_file()}
+    curves = {
+        name: read_table(d / "curve.parquet", CURVE)
+        for name, d in (("warm-up", warmup_dir), ("stage two", dynamic_dir))
+        if (d / "curve.parquet").is_file()
+    }
     curves = {name: c for name, c in curves.items() if len(c["step"])}
     if not curves:
-        return ("<p>No validation curve: stage.warmup.validation.every and stage.dynamic.validation.every "
-                "are 0 (docs/how-to/quality-during-training.md).</p>")
+        return (
+            "<p>No validation curve: stage.warmup.validation.every and stage.dynamic.validation.every "
+            "are 0 (docs/how-to/quality-during-training.md).</p>"
+        )
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6, 3), dpi=100)
     with_lpips = any(np.isfinite(np.asarray(c["lpips"], float)).any() for c in curves.values())
@@ -462,7 +631,7 @@ def _validation_section(warmup_dir: Path, dynamic_dir: Path) -> str:
     offset = 0.0
     for name, curve in curves.items():
         wall = np.asarray(curve["wall_s"], float) + offset
-        line, = ax.plot(wall, curve["psnr"], marker=".", label=name)
+        (line,) = ax.plot(wall, curve["psnr"], marker=".", label=name)
         if ax_lpips is not None:  # validation.lpips: dashed, same colour, right axis
             ax_lpips.plot(wall, curve["lpips"], linestyle="--", marker=".", color=line.get_color())
         offset = float(wall[-1])
@@ -472,8 +641,10 @@ def _validation_section(warmup_dir: Path, dynamic_dir: Path) -> str:
         ax_lpips.set_ylabel("validation LPIPS (dashed)")
     ax.legend()
     title = "Validation PSNR" + (" and LPIPS" if with_lpips else "")
-    return (f"<h3>{title} during training (withheld training frames, training cameras)</h3>"
-            f"<img alt='validation curve' src='data:image/png;base64,{_figure_png(fig)}'>")
+    return (
+        f"<h3>{title} during training (withheld training frames, training cameras)</h3>"
+        f"<img alt='validation curve' src='data:image/png;base64,{_figure_png(fig)}'>"
+    )
 
 
 def _base64_file(path: Path) -> str:
@@ -482,8 +653,10 @@ def _base64_file(path: Path) -> str:
 
 
 def _contact_sheet(frames_dir: Path, seq: str, camera_ids: list[str], frame: int, px: int) -> str:
-    tiles = [cv2.resize(read_png(rgb_path(frames_dir, seq, cid, frame), 3), (px, px), interpolation=cv2.INTER_AREA)
-             for cid in camera_ids]
+    tiles = [
+        cv2.resize(read_png(rgb_path(frames_dir, seq, cid, frame), 3), (px, px), interpolation=cv2.INTER_AREA)
+        for cid in camera_ids
+    ]
     sheet = np.concatenate(tiles, axis=1)
     return _image_png(sheet)
 

@@ -44,12 +44,22 @@ class SceneConfig:
     @classmethod
     def validate(cls, conf: object) -> list[str]:
         """One line per decision that is not auto, true or false (YAML reads true/false as booleans)."""
-        return [f"{name}={getattr(conf, name)!r}: choose auto, true or false" for name in DECISIONS
-                if str(getattr(conf, name)).lower() not in ("auto", "true", "false")]
+        return [
+            f"{name}={getattr(conf, name)!r}: choose auto, true or false"
+            for name in DECISIONS
+            if str(getattr(conf, name)).lower() not in ("auto", "true", "false")
+        ]
 
 
-@stage("scene", inputs=("capture", "frames", "fit"), config_keys=("model", "stage.scene", "stage.dynamic.d_max"),
-       outputs=("scene.json", "scene.parquet"), version="3", config_schema=SceneConfig, sources=model_sources)
+@stage(
+    "scene",
+    inputs=("capture", "frames", "fit"),
+    config_keys=("model", "stage.scene", "stage.dynamic.d_max"),
+    outputs=("scene.json", "scene.parquet"),
+    version="3",
+    config_schema=SceneConfig,
+    sources=model_sources,
+)
 def scene(ctx: StageContext) -> None:
     """scene.parquet (per frame: hand views, distance, contact) and scene.json (what to model, and why)."""
     conf, d_max = ctx.cfg.stage.scene, float(ctx.cfg.stage.dynamic.d_max)
@@ -71,17 +81,33 @@ def scene(ctx: StageContext) -> None:
     decision = decide(train, float(conf.min_hand_fraction), {name: str(conf[name]).lower() for name in DECISIONS})
     triangles = deforming_triangles(train.near_vertices, np.asarray(head.faces))
     _write_frames(ctx, facts)
-    write_json(ctx.out_dir / "scene.json", {
-        **asdict(decision), "reasons": decision.reasons, "decided_on": DECIDED_ON, "d_max_m": d_max,
-        "thresholds": {"min_hand_area": float(conf.min_hand_area), "min_views": min_views,
-                       "min_hand_fraction": float(conf.min_hand_fraction)},
-        "sequences": {seq: _summary(f) for seq, f in facts.items()},
-        "deforming_triangles": np.flatnonzero(triangles).tolist(), "face_triangles": len(head.faces),
-        "hand_triangles": len(hand.faces),
-    }, "scene analysis")
+    write_json(
+        ctx.out_dir / "scene.json",
+        {
+            **asdict(decision),
+            "reasons": decision.reasons,
+            "decided_on": DECIDED_ON,
+            "d_max_m": d_max,
+            "thresholds": {
+                "min_hand_area": float(conf.min_hand_area),
+                "min_views": min_views,
+                "min_hand_fraction": float(conf.min_hand_fraction),
+            },
+            "sequences": {seq: _summary(f) for seq, f in facts.items()},
+            "deforming_triangles": np.flatnonzero(triangles).tolist(),
+            "face_triangles": len(head.faces),
+            "hand_triangles": len(hand.faces),
+        },
+        "scene analysis",
+    )
     ctx.metrics.update({name: getattr(decision, name) for name in DECISIONS})
-    ctx.metrics.update({"hand_frames": int(train.hand_present.sum()), "contact_frames": int(train.contact.sum()),
-                        "deforming_triangles": int(triangles.sum())})
+    ctx.metrics.update(
+        {
+            "hand_frames": int(train.hand_present.sum()),
+            "contact_frames": int(train.contact.sum()),
+            "deforming_triangles": int(triangles.sum()),
+        }
+    )
 
 
 def _hand_views(frames_dir: Path, min_area: float) -> tuple[dict[tuple[str, int], int], int]:
@@ -101,8 +127,12 @@ def _hand_views(frames_dir: Path, min_area: float) -> tuple[dict[tuple[str, int]
 def _summary(facts: SceneFacts) -> dict:
     """Counts and the closest approach of one sequence."""
     closest = float(np.nanmin(facts.distance_m)) * 1e3 if facts.hand_present.any() else None
-    return {"frames": len(facts.contact), "hand_frames": int(facts.hand_present.sum()),
-            "contact_frames": int(facts.contact.sum()), "closest_mm": closest}
+    return {
+        "frames": len(facts.contact),
+        "hand_frames": int(facts.hand_present.sum()),
+        "contact_frames": int(facts.contact.sum()),
+        "closest_mm": closest,
+    }
 
 
 def _write_frames(ctx: StageContext, facts: dict[str, SceneFacts]) -> None:
@@ -111,9 +141,17 @@ def _write_frames(ctx: StageContext, facts: dict[str, SceneFacts]) -> None:
     for seq, f in facts.items():
         T = len(f.contact)
         rows["sequence"] += [seq] * T
-        for name, values in (("frame", np.arange(T)), ("hand_views", f.hand_views),
-                             ("hand_present", f.hand_present), ("distance_m", f.distance_m),
-                             ("contact", f.contact), ("near_vertices", f.near_vertices.sum(axis=1))):
+        for name, values in (
+            ("frame", np.arange(T)),
+            ("hand_views", f.hand_views),
+            ("hand_present", f.hand_present),
+            ("distance_m", f.distance_m),
+            ("contact", f.contact),
+            ("near_vertices", f.near_vertices.sum(axis=1)),
+        ):
             rows[name].append(values)
-    write_table(ctx.out_dir / "scene.parquet", SCENE_FRAMES,
-                {k: (v if k == "sequence" else np.concatenate(v)) for k, v in rows.items()})
+    write_table(
+        ctx.out_dir / "scene.parquet",
+        SCENE_FRAMES,
+        {k: (v if k == "sequence" else np.concatenate(v)) for k, v in rows.items()},
+    )

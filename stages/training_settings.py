@@ -38,8 +38,10 @@ def refines_params(cfg: DictConfig, section: DictConfig) -> bool:
         detected = source == "fitted" and str(cfg.stage.keypoints.detector) != "ground_truth"
         return (detected or source == "provided") and can_refine
     if value == "true" and not can_refine:
-        raise ValueError(f"refine_params=true: method.representation={cfg.method.representation} does not refine "
-                         f"the tracking; set refine_params=auto or false")
+        raise ValueError(
+            f"refine_params=true: method.representation={cfg.method.representation} does not refine "
+            f"the tracking; set refine_params=auto or false"
+        )
     return value == "true"
 
 
@@ -50,8 +52,11 @@ def param_learning_rates(section: DictConfig) -> ParamLearningRates:
 
 def refinement_problems(section: DictConfig) -> list[str]:
     """Range problems of a training stage's ``refine_params`` and ``params_lr``, keyed relative to the stage."""
-    problems = [] if str(section.refine_params).lower() in REFINE_PARAMS else \
-        [f"refine_params={section.refine_params}: use one of {', '.join(REFINE_PARAMS)}"]
+    problems = (
+        []
+        if str(section.refine_params).lower() in REFINE_PARAMS
+        else [f"refine_params={section.refine_params}: use one of {', '.join(REFINE_PARAMS)}"]
+    )
     return problems + [f"params_lr.{p}" for p in param_learning_rates(section).problems()]
 
 
@@ -65,8 +70,9 @@ class ParamsLrSchema:
     expression: float
 
 
-def record_refinement(ctx: StageContext, fitted: dict[str, np.ndarray], trained_on: dict[str, np.ndarray],
-                      params: FrameParams | None) -> None:
+def record_refinement(
+    ctx: StageContext, fitted: dict[str, np.ndarray], trained_on: dict[str, np.ndarray], params: FrameParams | None
+) -> None:
     """Write the stage's ``params.parquet``: the train motion as this stage left it (``params`` refined here, or
     ``trained_on`` unchanged when None), and the manifest's summary of how far it lies from the fit's ``fitted``
     (``params_refined``: whether this stage refined; ``params_moved_<part>_mm_mean``/``_max``: mean vertex
@@ -88,8 +94,14 @@ def frame_params(cfg: DictConfig, section: DictConfig, posed: PosedSequence) -> 
     if not refines_params(cfg, section):
         return None
     head, hand = templates(cfg.model)
-    return FrameParams(posed.params, head, hand, torch.from_numpy(posed.offsets), param_learning_rates(section),
-                       centred=bool(section.params_centred))
+    return FrameParams(
+        posed.params,
+        head,
+        hand,
+        torch.from_numpy(posed.offsets),
+        param_learning_rates(section),
+        centred=bool(section.params_centred),
+    )
 
 
 @dataclass
@@ -114,8 +126,12 @@ class ValidationSchema:
 def validation_config(conf: DictConfig) -> ValidationConfig:
     """The training loops' :class:`ValidationConfig` of a ``stage.<warmup|dynamic>.validation`` block."""
     stop = conf.stop_when_flat
-    return ValidationConfig(int(conf.every), int(conf.frames), bool(conf.lpips),
-                            FlatStop(bool(stop.enabled), float(stop.min_gain_db), int(stop.window)))
+    return ValidationConfig(
+        int(conf.every),
+        int(conf.frames),
+        bool(conf.lpips),
+        FlatStop(bool(stop.enabled), float(stop.min_gain_db), int(stop.window)),
+    )
 
 
 def validation_problems(conf: DictConfig) -> list[str]:

@@ -20,8 +20,14 @@ from stages.dependencies import model_sources, unused_training_settings
 from stages.posing import applied_deformation, posed_sequence
 from stages.representations import representation, representation_problems
 from stages.training_settings import (
-    ParamsLrSchema, ValidationSchema, frame_params, record_refinement, record_validation, refinement_problems,
-    validation_config, validation_problems,
+    ParamsLrSchema,
+    ValidationSchema,
+    frame_params,
+    record_refinement,
+    record_validation,
+    refinement_problems,
+    validation_config,
+    validation_problems,
 )
 
 
@@ -48,22 +54,32 @@ class WarmupSettings:
         problems = []
         opacity = float(conf.init_opacity)
         if not 0.0 < opacity < 1.0:  # also refuses NaN
-            problems.append(f"init_opacity={opacity:g}: must lie strictly between 0 and 1 (the opacity logit is "
-                            f"infinite at 0 and 1); use e.g. 0.1, the 3DGS default")
+            problems.append(
+                f"init_opacity={opacity:g}: must lie strictly between 0 and 1 (the opacity logit is "
+                f"infinite at 0 and 1); use e.g. 0.1, the 3DGS default"
+            )
         return problems + validation_problems(conf) + refinement_problems(conf)
-
 
 
 #: Types of ``stage.warmup`` (values in conf/stage/warmup.yaml): every hyperparameter of the training loop's
 #: :class:`StaticConfig` (its steps come from ``quality.warmup_steps``) and the stage's own settings.
 WarmupConfig = section_schema("WarmupConfig", StaticConfig, exclude=("steps",), own=WarmupSettings)
 
+
 @stage(
     "warmup",
     inputs=("capture", "frames", "fit", "scene", "pbd"),
-    config_keys=("quality.gaussians_per_triangle", "quality.warmup_steps", "model", "stage.warmup",
-                 "method.representation", "method.pbd", "splatting", "fit.source",
-                 "stage.keypoints.detector"),
+    config_keys=(
+        "quality.gaussians_per_triangle",
+        "quality.warmup_steps",
+        "model",
+        "stage.warmup",
+        "method.representation",
+        "method.pbd",
+        "splatting",
+        "fit.source",
+        "stage.keypoints.detector",
+    ),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet", "params.parquet"),
     version="8",
     # 8: refine_params (the train motion's parameters refined with the Gaussians; params.parquet);
@@ -88,29 +104,42 @@ def warmup(ctx: StageContext) -> None:
     torch.manual_seed(conf.seed)
     cap_dir = ctx.input_dir("capture")
     views = load_views(cap_dir, ctx.input_dir("frames"), "train", "train")
-    posed = posed_sequence(ctx.input_dir("fit"), TRAIN_SEQUENCE, ctx.cfg,
-                           applied_deformation(ctx.cfg, ctx.input_dir("pbd")))
+    posed = posed_sequence(
+        ctx.input_dir("fit"), TRAIN_SEQUENCE, ctx.cfg, applied_deformation(ctx.cfg, ctx.input_dir("pbd"))
+    )
     meshes, params = posed.meshes, frame_params(ctx.cfg, conf, posed)
     canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
     rep = representation(ctx.cfg)
     populate = None  # every triangle; without a hand in the scene, only the face's (a face-only avatar)
     if not load_scene(ctx.input_dir("scene")).model_hand:
         populate = meshes.face_part != meshes.part_names.index("hand")
-    model = rep.populate(canonical, meshes, int(q.gaussians_per_triangle), init_opacity=conf.init_opacity,
-                         seed=conf.seed, populate=populate)
+    model = rep.populate(
+        canonical,
+        meshes,
+        int(q.gaussians_per_triangle),
+        init_opacity=conf.init_opacity,
+        seed=conf.seed,
+        populate=populate,
+    )
     with torch.no_grad():
         means, _, _ = model.world(canonical, meshes.faces)
     part_label = torch.tensor([MASK_LABELS[name] for name in meshes.part_names])[model.part]
     model.set_colors(colors_from_views(means, part_label, views, frame=0))
     validator = Validator(validation_config(conf.validation), views)
-    final_loss = rep.warm_up(ctx, model, views, meshes, params, validator,
-                             lambda steps: ctx.progress(steps, desc="warmup"))
+    final_loss = rep.warm_up(
+        ctx, model, views, meshes, params, validator, lambda steps: ctx.progress(steps, desc="warmup")
+    )
     frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
     with torch.no_grad():
         vertices = params.vertices(frame) if params is not None else meshes.vertices[frame]
         means, scales, quats = model.world(vertices, meshes.faces)
-        cloud = GaussianCloud.from_rgb(means.numpy(), torch.log(scales).numpy(), quats.numpy(),
-                                       model.opacity_logits.numpy(), model.colors().numpy())
+        cloud = GaussianCloud.from_rgb(
+            means.numpy(),
+            torch.log(scales).numpy(),
+            quats.numpy(),
+            model.opacity_logits.numpy(),
+            model.colors().numpy(),
+        )
     write_gaussians_ply(ctx.out_dir / "gaussians.ply", cloud)
     record_refinement(ctx, posed.params, posed.params, params)
     ctx.metrics["gaussians"] = model.num_gaussians

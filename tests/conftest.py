@@ -16,9 +16,7 @@ from omegaconf import DictConfig
 
 REPO = Path(__file__).resolve().parent.parent
 CONF_DIR = REPO / "conf"
-TOY_OVERRIDES = ["pipeline.stages_module=tests.toy_dag", "stage=[]"] + [
-    f"+stage.{n}.value=1" for n in "abcd"
-]
+TOY_OVERRIDES = ["pipeline.stages_module=tests.toy_dag", "stage=[]"] + [f"+stage.{n}.value=1" for n in "abcd"]
 
 
 def compose_cfg(overrides: Sequence[str]) -> DictConfig:
@@ -50,8 +48,9 @@ def cli_command(*args: str) -> list[str]:
 
 def run_cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
     """Run ``interactavatar`` with these arguments from the repo root."""
-    return subprocess.run(cli_command(*args), cwd=REPO, env=cli_env(), capture_output=True, text=True,
-                          timeout=timeout, check=False)
+    return subprocess.run(
+        cli_command(*args), cwd=REPO, env=cli_env(), capture_output=True, text=True, timeout=timeout, check=False
+    )
 
 
 @pytest.fixture

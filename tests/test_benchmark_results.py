@@ -41,8 +41,24 @@ def test_the_results_page_shows_every_run_newest_first_and_escapes_bars(tmp_path
 
 
 def test_a_benchmark_run_writes_its_rows_where_it_is_told(tmp_path: Path) -> None:
-    subprocess.run([sys.executable, "benchmarks/bench_runner.py", "--stages", "2", "--files", "2", "--kb", "1",
-                    "--skip-cli", "--results", str(tmp_path)], cwd=REPO, check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "benchmarks/bench_runner.py",
+            "--stages",
+            "2",
+            "--files",
+            "2",
+            "--kb",
+            "1",
+            "--skip-cli",
+            "--results",
+            str(tmp_path),
+        ],
+        cwd=REPO,
+        check=True,
+        capture_output=True,
+    )
     run = json.loads((tmp_path / "bench_runner.json").read_text())["runs"][0]
     assert run["argv"][:2] == ["--stages", "2"] and len(run["tables"][0]["rows"]) == 1
 

@@ -11,10 +11,10 @@ import pytest
 from omegaconf import OmegaConf
 
 from avatar.dynamic.model import DynamicModelConfig
+from avatar.scene import SceneDecision
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.static import StaticConfig
-from avatar.scene import SceneDecision
 from pipeline.config import ConfigError, validate_config
 from pipeline.schema import core_config, core_fields, section_schema
 from stages import REGISTRY
@@ -40,10 +40,12 @@ SECTIONS = [
 ]
 
 
-@pytest.mark.parametrize(("core", "file", "key", "exclude", "schema"), SECTIONS,
-                         ids=[f"{s[2]}-{s[0].__name__}" for s in SECTIONS])
-def test_each_section_sets_every_hyperparameter_of_its_loop_at_the_loops_default(core, file, key, exclude, schema
-                                                                                  ) -> None:
+@pytest.mark.parametrize(
+    ("core", "file", "key", "exclude", "schema"), SECTIONS, ids=[f"{s[2]}-{s[0].__name__}" for s in SECTIONS]
+)
+def test_each_section_sets_every_hyperparameter_of_its_loop_at_the_loops_default(
+    core, file, key, exclude, schema
+) -> None:
     loaded = OmegaConf.load(CONF_DIR / file)  # the defaults, before any preset's choices
     section = loaded if file.startswith("stage/") else loaded[key]
     defaults = {f.name: f.default for f in dataclasses.fields(core)}
@@ -54,12 +56,23 @@ def test_each_section_sets_every_hyperparameter_of_its_loop_at_the_loops_default
             value = tuple(section[name]) if isinstance(defaults[name], tuple) else section[name]
             assert value == defaults[name], (
                 f"{key}.{name}={section[name]} but {core.__name__}.{name} defaults to {defaults[name]}: one default "
-                f"per setting (change both, or state the pipeline's reason in PIPELINE_CHOICES)")
+                f"per setting (change both, or state the pipeline's reason in PIPELINE_CHOICES)"
+            )
 
 
 def test_the_loops_configs_are_built_from_their_sections_whole() -> None:
-    cfg = validate_config(compose_cfg(["quality=draft", "stage.warmup.lr_scale=0.02", "stage.dynamic.lr_color=0.01",
-                                       "splatting.max_hops=8", "stage.warmup.grad_threshold=0.0003"]), REGISTRY)
+    cfg = validate_config(
+        compose_cfg(
+            [
+                "quality=draft",
+                "stage.warmup.lr_scale=0.02",
+                "stage.dynamic.lr_color=0.01",
+                "splatting.max_hops=8",
+                "stage.warmup.grad_threshold=0.0003",
+            ]
+        ),
+        REGISTRY,
+    )
     static, dynamic = static_config(cfg), dynamic_train_config(cfg)
     splat = splatting_config(cfg, 7, cfg.stage.warmup, densify=True)
     assert (static.lr_scale, static.grad_threshold, static.steps) == (0.02, 0.0003, cfg.quality.warmup_steps)
@@ -74,8 +87,9 @@ def test_the_loops_configs_are_built_from_their_sections_whole() -> None:
     assert arch.hand_width == cfg.quality.dynamic_width
 
 
-@pytest.mark.parametrize("override", ["stage.warmup.lr_opacity=fast", "stage.dynamic.lr_position=fast",
-                                      "splatting.grad_threshold=fast"])
+@pytest.mark.parametrize(
+    "override", ["stage.warmup.lr_opacity=fast", "stage.dynamic.lr_position=fast", "splatting.grad_threshold=fast"]
+)
 def test_a_hyperparameter_of_the_wrong_type_is_refused_before_any_stage(override: str) -> None:
     method = ["method=splatting_avatar"] if override.startswith("splatting") else []
     with pytest.raises(ConfigError, match=override.split("=")[0].replace(".", r"\.")):

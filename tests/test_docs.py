@@ -28,8 +28,9 @@ def test_readme_is_a_front_door():
 def test_the_config_reference_matches_conf_and_the_schemas():
     from pipeline.config_reference import PAGE, default_config, render
 
-    assert PAGE.read_text() == render(default_config()), \
+    assert PAGE.read_text() == render(default_config()), (
         "docs/reference/config-keys.md is stale: run `python -m pipeline.config_reference`"
+    )
     assert "`stage.dynamic.d_max`" in PAGE.read_text()
 
 
@@ -40,8 +41,11 @@ def test_the_results_pages_match_the_committed_data():
         import render_results
     finally:
         sys.path.pop(0)
-    stale = [str(p.relative_to(REPO)) for p, text in render_results.rendered().items()
-             if not p.is_file() or p.read_text() != text]
+    stale = [
+        str(p.relative_to(REPO))
+        for p, text in render_results.rendered().items()
+        if not p.is_file() or p.read_text() != text
+    ]
     assert stale == [], f"stale generated pages {stale}: run `python benchmarks/render_results.py`"
     assert "| (a) full appearance" in (REPO / "README.md").read_text()
 
@@ -52,8 +56,13 @@ def test_the_documentation_site_builds_strictly(tmp_path):
     command = [str(mkdocs)] if mkdocs.exists() else [sys.executable, "-m", "mkdocs"]
     if subprocess.run([*command, "--version"], capture_output=True).returncode != 0:
         pytest.fail("mkdocs is not installed: `make test` installs it (the `test` extra)")
-    done = subprocess.run([*command, "build", "--strict", "--site-dir", str(tmp_path / "site")], cwd=REPO,
-                          capture_output=True, text=True, env={**os.environ, "NO_MKDOCS_2_WARNING": "1"},
-                          timeout=300)
+    done = subprocess.run(
+        [*command, "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "NO_MKDOCS_2_WARNING": "1"},
+        timeout=300,
+    )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert (tmp_path / "site" / "reference" / "config-keys" / "index.html").is_file()

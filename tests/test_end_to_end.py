@@ -22,10 +22,17 @@ from stages import REGISTRY
 from stages.export_ply import export_frame
 from tests.conftest import run_cli
 
-
 #: every method of the comparison, the test-only one included
-METHODS = ("interactavatar", "gaussian_avatars", "splatting_avatar", "no_hand_mlp", "no_interaction", "no_pbd",
-           "no_patch", "eighth")
+METHODS = (
+    "interactavatar",
+    "gaussian_avatars",
+    "splatting_avatar",
+    "no_hand_mlp",
+    "no_interaction",
+    "no_pbd",
+    "no_patch",
+    "eighth",
+)
 EIGHTH_METHOD = """# @package _global_
 method:
   name: eighth
@@ -92,8 +99,10 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert warm["params_refined"] is False and dynamic["params_refined"] is False
     assert dynamic["params_moved_hand_mm_mean"] == 0 and dynamic["params_moved_face_mm_mean"] == 0
     export_frame(subject, "train", 0, tmp_path / "train_0.ply")
-    np.testing.assert_array_equal(read_gaussians_ply(tmp_path / "train_0.ply").means,
-                                  read_gaussians_ply(stage_dir(subject, "dynamic") / "ply" / "train_0.ply").means)
+    np.testing.assert_array_equal(
+        read_gaussians_ply(tmp_path / "train_0.ply").means,
+        read_gaussians_ply(stage_dir(subject, "dynamic") / "ply" / "train_0.ply").means,
+    )
     export_frame(subject, "test", 1, tmp_path / "test_1.ply")  # any frame of any sequence, on request
     exported = read_gaussians_ply(tmp_path / "test_1.ply")
     assert len(exported.means) == len(read_gaussians_ply(stage_dir(subject, "dynamic") / "ply" / "train_0.ply").means)
@@ -123,8 +132,9 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     # parameters is one clear error and changes nothing.
     driver = tmp_path / "driver.parquet"
     shutil.copy(subject / "fit" / "test" / "params.parquet", driver)
-    by_file = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact",
-                      f"reenact.driver={driver}")
+    by_file = run_cli(
+        f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact", f"reenact.driver={driver}"
+    )
     assert by_file.returncode == 0, by_file.stdout[-3000:] + by_file.stderr[-3000:]
     manifest = json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text())
     assert abs(manifest["metrics"]["head_scale"] - 1.0) < 0.02 and manifest["sources"]
@@ -133,8 +143,9 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     columns = table.to_pydict()
     columns["mano_hand_pose"][1][0] = float("nan")
     pq.write_table(pa.Table.from_pydict(columns, schema=table.schema), driver)
-    bad = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact",
-                  f"reenact.driver={driver}")
+    bad = run_cli(
+        f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact", f"reenact.driver={driver}"
+    )
     assert bad.returncode == 1 and str(driver) in bad.stderr and "contains NaN" in bad.stderr, bad.stderr
     assert json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text()) == manifest
     restored = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact")
@@ -151,19 +162,28 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     # by rerunning them by themselves on the same inputs.
     with_records = {s.name for s in REGISTRY if s.reads_manifests}
     assert with_records == {"compare", "report"}
-    digests = lambda: {s.name: json.loads((stage_dir(subject, s.name) / "_manifest.json").read_text())["outputs"]  # noqa: E731
-                       for s in REGISTRY}
+
+    def digests() -> dict[str, dict]:
+        return {
+            s.name: json.loads((stage_dir(subject, s.name) / "_manifest.json").read_text())["outputs"] for s in REGISTRY
+        }
+
     before = digests()
     forced = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.force=true")
     assert forced.returncode == 0, forced.stderr[-3000:]
     after = digests()
     for s in REGISTRY:
         if s.name not in with_records:
-            changed = sorted(k for k in set(before[s.name]) | set(after[s.name])
-                             if before[s.name].get(k) != after[s.name].get(k))
+            changed = sorted(
+                k for k in set(before[s.name]) | set(after[s.name]) if before[s.name].get(k) != after[s.name].get(k)
+            )
             assert not changed, f"stage {s.name} is not deterministic: {changed}"
-    alone = lambda name: run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false",  # noqa: E731
-                                 f"run.only={name}", "run.force=true").returncode
+
+    def alone(name: str) -> int:
+        return run_cli(
+            f"paths.outputs={out}", "quality=smoke", "run.progress=false", f"run.only={name}", "run.force=true"
+        ).returncode
+
     assert alone("compare") == 0 and digests()["compare"] == after["compare"]
     assert alone("report") == 0 and (report := digests()["report"]) and alone("report") == 0
     assert digests()["report"] == report
@@ -182,9 +202,15 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     extra_conf = tmp_path / "conf"
     (extra_conf / "method").mkdir(parents=True)
     (extra_conf / "method" / "eighth.yaml").write_text(EIGHTH_METHOD)
-    multi = run_cli("-m", f"paths.outputs={out}", "quality=smoke", "run.progress=false",
-                    f"hydra.searchpath=[file://{extra_conf}]", "stage.compare.methods=[" + ",".join(METHODS) + "]",
-                    "method=gaussian_avatars,no_patch,splatting_avatar,eighth")
+    multi = run_cli(
+        "-m",
+        f"paths.outputs={out}",
+        "quality=smoke",
+        "run.progress=false",
+        f"hydra.searchpath=[file://{extra_conf}]",
+        "stage.compare.methods=[" + ",".join(METHODS) + "]",
+        "method=gaussian_avatars,no_patch,splatting_avatar,eighth",
+    )
     assert multi.returncode == 0, multi.stdout[-3000:] + multi.stderr[-3000:]
     assert f"{log_prefix('warmup', 'eighth')} shared" in multi.stdout
     assert f"{log_prefix('dynamic', 'eighth')} run" in multi.stdout
@@ -193,10 +219,10 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert f"{log_prefix('warmup', 'splatting_avatar')} run" in multi.stdout
     assert "[synth_a] capture    cached" in multi.stdout and "[synth_a] pbd        cached" in multi.stdout
     comparison = read_table(subject / "compare" / "comparison.parquet", COMPARISON)
-    assert set(comparison["method"]) == {"interactavatar", "gaussian_avatars", "no_patch", "splatting_avatar",
-                                         "eighth"}
-    splatting_psnr = np.asarray(comparison["psnr"])[(np.asarray(comparison["method"]) == "splatting_avatar")
-                                                    & (np.asarray(comparison["region"]) == "full")]
+    assert set(comparison["method"]) == {"interactavatar", "gaussian_avatars", "no_patch", "splatting_avatar", "eighth"}
+    splatting_psnr = np.asarray(comparison["psnr"])[
+        (np.asarray(comparison["method"]) == "splatting_avatar") & (np.asarray(comparison["region"]) == "full")
+    ]
     assert np.isfinite(splatting_psnr).all() and splatting_psnr.min() > 15.0, splatting_psnr
     export_frame(subject, "test", 1, tmp_path / "splatting_1.ply", method="splatting_avatar")
     assert np.isfinite(read_gaussians_ply(tmp_path / "splatting_1.ply").means).all()
@@ -213,8 +239,9 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     # Cross-actor reenactment: synth_b (fitted in the same outputs folder) drives synth_a. The driver's fit is
     # an input of evaluate and reenact; evaluate measures it against the capture's ground truth of synth_a
     # performing synth_b's held-out motion.
-    driver_fit = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "subject=synth_b",
-                         "run.until=fit")
+    driver_fit = run_cli(
+        f"paths.outputs={out}", "quality=smoke", "run.progress=false", "subject=synth_b", "run.until=fit"
+    )
     assert driver_fit.returncode == 0, driver_fit.stderr[-3000:]
     crossed = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "reenact.driver=synth_b")
     assert crossed.returncode == 0, crossed.stdout[-3000:] + crossed.stderr[-3000:]
@@ -232,8 +259,14 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
 
     # A method whose stage two reran without its evaluation has results of two different models: the
     # comparison leaves it out and names it with the fix.
-    retrained = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "method=gaussian_avatars",
-                        "run.only=dynamic", "stage.dynamic.seed=1")
+    retrained = run_cli(
+        f"paths.outputs={out}",
+        "quality=smoke",
+        "run.progress=false",
+        "method=gaussian_avatars",
+        "run.only=dynamic",
+        "stage.dynamic.seed=1",
+    )
     assert retrained.returncode == 0, retrained.stderr[-3000:]
     compared = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=compare")
     assert compared.returncode == 0, compared.stderr[-3000:]

@@ -18,8 +18,13 @@ from pipeline.cli import run_app
 from stages import REGISTRY
 from tests.conftest import compose_cfg
 
-SMALL = ["quality=smoke", "quality.capture_size=48", "fit.source=ground_truth", "run.progress=false",
-         "stage.capture.cross_reenactment=false"]
+SMALL = [
+    "quality=smoke",
+    "quality.capture_size=48",
+    "fit.source=ground_truth",
+    "run.progress=false",
+    "stage.capture.cross_reenactment=false",
+]
 
 
 def _numbers(value: object) -> list[float]:
@@ -40,10 +45,15 @@ def assert_every_metric_finite(subject: Path) -> None:
         assert all(math.isfinite(x) for x in _numbers(metrics)), (s.name, metrics)
 
 
-@pytest.mark.parametrize("extreme", [["dataset.scene=face_only"],
-                                     ["quality.num_frames_train=1", "quality.num_frames_test=1"],
-                                     ["stage.capture.num_cameras=2"]],
-                         ids=["no-hand-in-view", "single-frame", "single-train-camera"])
+@pytest.mark.parametrize(
+    "extreme",
+    [
+        ["dataset.scene=face_only"],
+        ["quality.num_frames_train=1", "quality.num_frames_test=1"],
+        ["stage.capture.num_cameras=2"],
+    ],
+    ids=["no-hand-in-view", "single-frame", "single-train-camera"],
+)
 def test_the_whole_dag_runs_and_every_number_is_finite(tmp_path: Path, extreme: list[str]) -> None:
     run_app(compose_cfg([f"paths.outputs={tmp_path}", *SMALL, *extreme]))
     subject = tmp_path / "synth_a"

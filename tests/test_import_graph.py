@@ -83,6 +83,7 @@ def test_no_module_imports_itself_through_others() -> None:
 
 def test_the_subpackages_of_avatar_form_no_cycle() -> None:
     """E.g. ``avatar.dynamic`` and ``avatar.training`` may not import each other (posing sits below both)."""
+
     def sub(module: str) -> str:
         return ".".join(module.split(".")[:2])
 
@@ -90,7 +91,8 @@ def test_the_subpackages_of_avatar_form_no_cycle() -> None:
     for module, targets in import_graph().items():
         if module.startswith("avatar."):
             graph.setdefault(sub(module), set()).update(
-                sub(t) for t in targets if t.startswith("avatar.") and sub(t) != sub(module))
+                sub(t) for t in targets if t.startswith("avatar.") and sub(t) != sub(module)
+            )
     assert cycles(graph) == []
 
 

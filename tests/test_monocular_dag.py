@@ -20,8 +20,17 @@ from tests.test_extremes_dag import assert_every_metric_finite
 
 
 def test_monocular_capture_runs_the_whole_dag(tmp_path: Path) -> None:
-    run_app(compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "run.progress=false",
-                         "stage.capture.cross_reenactment=false", "dataset.train_cameras=[cam04]"]))
+    run_app(
+        compose_cfg(
+            [
+                f"paths.outputs={tmp_path}",
+                "quality=smoke",
+                "run.progress=false",
+                "stage.capture.cross_reenactment=false",
+                "dataset.train_cameras=[cam04]",
+            ]
+        )
+    )
     subject = tmp_path / "synth_a"
     cameras = read_cameras(subject / "capture" / "cameras.parquet")
     assert [c.camera_id for c in cameras if c.split == "train"] == ["cam04"] and len(cameras) == 8
@@ -43,9 +52,22 @@ def test_monocular_capture_runs_the_whole_dag(tmp_path: Path) -> None:
 
 def test_train_cameras_naming_no_camera_is_one_clear_error(tmp_path: Path) -> None:
     for bad in ("[cam99]", "[cam00,cam01,cam02,cam03,cam04,cam05,cam06,cam07]"):
-        with pytest.raises(ConfigError, match=r"dataset.train_cameras=\[.*\]: choose some but not all of the synthetic "
-                                              r"rig's cameras"):  # refused before the capture is generated
-            run_app(compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "quality.capture_size=32",
-                                 "run.progress=false", "run.until=capture", "stage.capture.cross_reenactment=false",
-                                 f"dataset.train_cameras={bad}"]))
+        with pytest.raises(
+            ConfigError,
+            match=r"dataset.train_cameras=\[.*\]: choose some but not all of the synthetic "
+            r"rig's cameras",
+        ):  # refused before the capture is generated
+            run_app(
+                compose_cfg(
+                    [
+                        f"paths.outputs={tmp_path}",
+                        "quality=smoke",
+                        "quality.capture_size=32",
+                        "run.progress=false",
+                        "run.until=capture",
+                        "stage.capture.cross_reenactment=false",
+                        f"dataset.train_cameras={bad}",
+                    ]
+                )
+            )
         assert not (tmp_path / "synth_a" / "capture").exists()

@@ -37,8 +37,13 @@ window.addEventListener('load', () => {
 
 
 def _chromium(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(CHROMIUM), "--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                           *args], capture_output=True, text=True, timeout=180, check=False)
+    return subprocess.run(
+        [str(CHROMIUM), "--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", *args],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
+    )
 
 
 @pytest.mark.slow
@@ -50,8 +55,9 @@ def test_report_videos_play_and_the_page_is_drawn(tmp_path: Path) -> None:
     report = out / "synth_a" / "methods" / "interactavatar" / "report" / "report.html"
     probe = tmp_path / "probe.html"
     probe.write_text(report.read_text() + PROBE)
-    dom = _chromium("--autoplay-policy=no-user-gesture-required", "--virtual-time-budget=10000", "--dump-dom",
-                    probe.as_uri())
+    dom = _chromium(
+        "--autoplay-policy=no-user-gesture-required", "--virtual-time-budget=10000", "--dump-dom", probe.as_uri()
+    )
     found = re.search(r'<pre id="probe">(.*?)</pre>', dom.stdout, re.S)
     assert found, dom.stderr[-2000:]
     videos = json.loads(html.unescape(found.group(1)))

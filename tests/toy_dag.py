@@ -39,8 +39,9 @@ def _trace(ctx: StageContext, name: str, event: str) -> None:
 
 
 def _toy(name: str, inputs: tuple[str, ...]):
-    @stage(name, inputs=inputs, config_keys=(f"stage.{name}",), outputs=(f"{name}.txt", "parts"),
-           config_schema=ToyConfig)
+    @stage(
+        name, inputs=inputs, config_keys=(f"stage.{name}",), outputs=(f"{name}.txt", "parts"), config_schema=ToyConfig
+    )
     def run(ctx: StageContext) -> None:
         """Toy stage: concatenates its inputs with its own value."""
         _trace(ctx, name, "start")

@@ -53,8 +53,14 @@ def q(ctx: StageContext) -> None:
     _trace(ctx, "q", "end")
 
 
-@stage("cmp", config_keys=("stage.cmp",), outputs=("cmp.txt",), cross_method_inputs=("q",),
-       methods_key="stage.cmp.methods", seeds_key="stage.cmp.seeds")
+@stage(
+    "cmp",
+    config_keys=("stage.cmp",),
+    outputs=("cmp.txt",),
+    cross_method_inputs=("q",),
+    methods_key="stage.cmp.methods",
+    seeds_key="stage.cmp.seeds",
+)
 def cmp(ctx: StageContext) -> None:
     """Shared stage reading every listed method's q (and naming the listed ones whose q is on disk but unusable)."""
     dirs = ctx.method_dirs("q")

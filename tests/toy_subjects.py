@@ -20,8 +20,14 @@ def driver(cfg: DictConfig) -> str | None:
     return None if name == "self" else str(name)
 
 
-@stage("drive", inputs=("a",), config_keys=("stage.drive",), outputs=("drive.txt",), subject_inputs=("a",),
-       input_subject=driver)
+@stage(
+    "drive",
+    inputs=("a",),
+    config_keys=("stage.drive",),
+    outputs=("drive.txt",),
+    subject_inputs=("a",),
+    input_subject=driver,
+)
 def drive(ctx: StageContext) -> None:
     """Own ``a`` driven by the other subject's."""
     own = (ctx.input_dir("a") / "a.txt").read_text()

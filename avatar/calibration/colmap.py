@@ -45,8 +45,10 @@ def read_colmap(model_dir: Path) -> list[CalibratedImage]:
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
     except (RuntimeError, ValueError) as exc:
-        raise SchemaError(f"{model_dir}: not a readable COLMAP model ({exc}); it needs cameras, images (and "
-                          f"points3D) as .bin or .txt, as colmap mapper or model_converter write them") from exc
+        raise SchemaError(
+            f"{model_dir}: not a readable COLMAP model ({exc}); it needs cameras, images (and "
+            f"points3D) as .bin or .txt, as colmap mapper or model_converter write them"
+        ) from exc
     images = []
     for image in sorted(reconstruction.images.values(), key=lambda i: i.name):
         if not image.has_pose:
@@ -54,13 +56,23 @@ def read_colmap(model_dir: Path) -> list[CalibratedImage]:
         camera = reconstruction.cameras[image.camera_id]
         model = camera.model.name
         if model not in OPENCV_MODELS:
-            raise SchemaError(f"{model_dir}: camera {image.camera_id} (image '{image.name}') uses COLMAP's {model} "
-                              f"model, which OpenCV's pinhole-and-distortion model cannot express (supported: "
-                              f"{', '.join(OPENCV_MODELS)}); run `colmap image_undistorter` and import its "
-                              f"PINHOLE model and undistorted images instead")
+            raise SchemaError(
+                f"{model_dir}: camera {image.camera_id} (image '{image.name}') uses COLMAP's {model} "
+                f"model, which OpenCV's pinhole-and-distortion model cannot express (supported: "
+                f"{', '.join(OPENCV_MODELS)}); run `colmap image_undistorter` and import its "
+                f"PINHOLE model and undistorted images instead"
+            )
         K, dist = OPENCV_MODELS[model](np.asarray(camera.params, dtype=np.float64))
         world_to_cam = np.eye(4)
         world_to_cam[:3] = image.cam_from_world().matrix()
-        images.append(CalibratedImage(name=image.name, width=int(camera.width), height=int(camera.height), K=K,
-                                      dist=dist, world_to_cam=world_to_cam))
+        images.append(
+            CalibratedImage(
+                name=image.name,
+                width=int(camera.width),
+                height=int(camera.height),
+                K=K,
+                dist=dist,
+                world_to_cam=world_to_cam,
+            )
+        )
     return images

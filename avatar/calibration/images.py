@@ -20,7 +20,7 @@ from data_schemas.cameras import SPLITS, Camera
 from data_schemas.tables import SchemaError
 
 PIXEL_CENTRE_SHIFT = -0.5  # COLMAP / nerfstudio principal point -> OpenCV's
-POSE_TOLERANCE = 1e-6      # images of one camera: largest difference of their world-to-camera entries (units)
+POSE_TOLERANCE = 1e-6  # images of one camera: largest difference of their world-to-camera entries (units)
 
 
 @dataclass(frozen=True)
@@ -47,15 +47,18 @@ def pinhole(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx + PIXEL_CENTRE_SHIFT], [0.0, fy, cy + PIXEL_CENTRE_SHIFT], [0.0, 0.0, 1.0]])
 
 
-def rig_cameras(images: Sequence[CalibratedImage], source: str, scale_m: float,
-                test_cameras: Sequence[str] | None) -> list[Camera]:
+def rig_cameras(
+    images: Sequence[CalibratedImage], source: str, scale_m: float, test_cameras: Sequence[str] | None
+) -> list[Camera]:
     """One :class:`Camera` per camera of the rig, translations scaled to metres by ``scale_m`` (metres per
     calibration unit); ``test_cameras`` held out for novel views (None: the last id in sorted order).
     Raises :class:`SchemaError` naming ``source`` for non-finite values, disagreeing images of one camera,
     or a held-out list that names no camera or every camera."""
     if not np.isfinite(scale_m) or scale_m <= 0:
-        raise SchemaError(f"{source}: the scale must be a positive number of metres per calibration unit, "
-                          f"got {scale_m}; set dataset.calibration_scale_m")
+        raise SchemaError(
+            f"{source}: the scale must be a positive number of metres per calibration unit, "
+            f"got {scale_m}; set dataset.calibration_scale_m"
+        )
     by_camera: dict[str, CalibratedImage] = {}
     for image in images:
         for what, value in (("intrinsics", image.K), ("distortion", image.dist), ("pose", image.world_to_cam)):
@@ -64,9 +67,11 @@ def rig_cameras(images: Sequence[CalibratedImage], source: str, scale_m: float,
         cam_id = camera_id_of(image.name)
         first = by_camera.setdefault(cam_id, image)
         if not _same_view(first, image):
-            raise SchemaError(f"{source}: images '{first.name}' and '{image.name}' belong to camera '{cam_id}' but "
-                              f"differ in size, intrinsics or pose; a capture needs a static rig (one calibration "
-                              f"per camera): keep one image per camera, or name the images <camera>/<frame>")
+            raise SchemaError(
+                f"{source}: images '{first.name}' and '{image.name}' belong to camera '{cam_id}' but "
+                f"differ in size, intrinsics or pose; a capture needs a static rig (one calibration "
+                f"per camera): keep one image per camera, or name the images <camera>/<frame>"
+            )
     if not by_camera:
         raise SchemaError(f"{source}: no registered image; calibrate at least two cameras")
     ids = sorted(by_camera)
@@ -81,13 +86,26 @@ def rig_cameras(images: Sequence[CalibratedImage], source: str, scale_m: float,
         w2c = image.world_to_cam.astype(np.float64).copy()
         w2c[:3, 3] *= scale_m
         dist = np.zeros(dist_len)
-        dist[:len(image.dist)] = image.dist  # OpenCV reads missing trailing coefficients as zero
-        cameras.append(Camera(camera_id=cam_id, width=image.width, height=image.height, K=image.K.astype(np.float64),
-                              world_to_cam=w2c, dist=dist, split=SPLITS[1] if cam_id in held_out else SPLITS[0]))
+        dist[: len(image.dist)] = image.dist  # OpenCV reads missing trailing coefficients as zero
+        cameras.append(
+            Camera(
+                camera_id=cam_id,
+                width=image.width,
+                height=image.height,
+                K=image.K.astype(np.float64),
+                world_to_cam=w2c,
+                dist=dist,
+                split=SPLITS[1] if cam_id in held_out else SPLITS[0],
+            )
+        )
     return cameras
 
 
 def _same_view(a: CalibratedImage, b: CalibratedImage) -> bool:
-    return ((a.width, a.height) == (b.width, b.height) and np.allclose(a.K, b.K, rtol=0, atol=1e-6)
-            and len(a.dist) == len(b.dist) and np.allclose(a.dist, b.dist, rtol=0, atol=1e-9)
-            and np.allclose(a.world_to_cam, b.world_to_cam, rtol=0, atol=POSE_TOLERANCE))
+    return (
+        (a.width, a.height) == (b.width, b.height)
+        and np.allclose(a.K, b.K, rtol=0, atol=1e-6)
+        and len(a.dist) == len(b.dist)
+        and np.allclose(a.dist, b.dist, rtol=0, atol=1e-9)
+        and np.allclose(a.world_to_cam, b.world_to_cam, rtol=0, atol=POSE_TOLERANCE)
+    )

@@ -39,8 +39,10 @@ def read_transforms(path: Path) -> list[CalibratedImage]:
         fields = {**data, **frame}  # per-frame intrinsics override the shared ones
         model = str(fields.get("camera_model", "OPENCV"))
         if model not in PINHOLE_MODELS:
-            raise SchemaError(f"{where}: camera_model {model} is not a pinhole model OpenCV's standard distortion "
-                              f"expresses (use one of {PINHOLE_MODELS}); undistort the images first")
+            raise SchemaError(
+                f"{where}: camera_model {model} is not a pinhole model OpenCV's standard distortion "
+                f"expresses (use one of {PINHOLE_MODELS}); undistort the images first"
+            )
         missing = [k for k in INTRINSIC_KEYS if k not in fields and not (k == "fl_y" and "fl_x" in fields)]
         if missing:
             raise SchemaError(f"{where}: intrinsics {missing} missing (neither shared nor per frame)")
@@ -48,17 +50,25 @@ def read_transforms(path: Path) -> list[CalibratedImage]:
         size = (int(fields["w"]), int(fields["h"]))
         camera = camera_id_of(name)
         if sizes.setdefault(camera, size) != size:
-            raise SchemaError(f"{where}: image '{name}' is {size[0]}x{size[1]} but an earlier image of camera "
-                              f"'{camera}' is {sizes[camera][0]}x{sizes[camera][1]}; the sizes must agree")
-        K = pinhole(float(fields["fl_x"]), float(fields.get("fl_y", fields["fl_x"])), float(fields["cx"]),
-                    float(fields["cy"]))
+            raise SchemaError(
+                f"{where}: image '{name}' is {size[0]}x{size[1]} but an earlier image of camera "
+                f"'{camera}' is {sizes[camera][0]}x{sizes[camera][1]}; the sizes must agree"
+            )
+        K = pinhole(
+            float(fields["fl_x"]), float(fields.get("fl_y", fields["fl_x"])), float(fields["cx"]), float(fields["cy"])
+        )
         if float(fields.get("k4", 0.0)) != 0.0:
-            raise SchemaError(f"{where}: k4 (an r^8 radial term) is not in OpenCV's standard distortion model; "
-                              f"undistort the images first")
+            raise SchemaError(
+                f"{where}: k4 (an r^8 radial term) is not in OpenCV's standard distortion model; "
+                f"undistort the images first"
+            )
         dist = np.array([float(fields.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")])
         cam_to_world = _matrix(where, frame["transform_matrix"]) @ OPENGL_TO_OPENCV
-        images.append(CalibratedImage(name=name, width=size[0], height=size[1], K=K, dist=dist,
-                                      world_to_cam=np.linalg.inv(cam_to_world)))
+        images.append(
+            CalibratedImage(
+                name=name, width=size[0], height=size[1], K=K, dist=dist, world_to_cam=np.linalg.inv(cam_to_world)
+            )
+        )
     return images
 
 

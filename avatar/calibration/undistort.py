@@ -22,8 +22,13 @@ class Undistorter:
 
     def __init__(self, K: np.ndarray, dist: np.ndarray, width: int, height: int) -> None:
         self.map_x, self.map_y = cv2.initUndistortRectifyMap(
-            np.asarray(K, np.float64), np.asarray(dist, np.float64), None, np.asarray(K, np.float64),
-            (int(width), int(height)), cv2.CV_32FC1)
+            np.asarray(K, np.float64),
+            np.asarray(dist, np.float64),
+            None,
+            np.asarray(K, np.float64),
+            (int(width), int(height)),
+            cv2.CV_32FC1,
+        )
 
     def image(self, rgb: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8 -> the same camera without distortion."""
@@ -31,5 +36,4 @@ class Undistorter:
 
     def labels(self, mask: np.ndarray) -> np.ndarray:
         """(H, W) uint8 part labels -> the same camera without distortion (nearest label)."""
-        return cv2.remap(mask, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=0)
+        return cv2.remap(mask, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

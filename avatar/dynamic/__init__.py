@@ -3,5 +3,12 @@
 from avatar.dynamic.conditioning import FrameConditioning, SequenceConditioning, sequence_conditioning
 from avatar.dynamic.model import DynamicAvatar, DynamicFrame, DynamicModelConfig, interaction_weights
 
-__all__ = ["DynamicAvatar", "DynamicFrame", "DynamicModelConfig", "FrameConditioning", "SequenceConditioning",
-           "interaction_weights", "sequence_conditioning"]
+__all__ = [
+    "DynamicAvatar",
+    "DynamicFrame",
+    "DynamicModelConfig",
+    "FrameConditioning",
+    "SequenceConditioning",
+    "interaction_weights",
+    "sequence_conditioning",
+]

@@ -80,8 +80,9 @@ FrameConditioning: TypeAlias = Conditioning
 SequenceConditioning: TypeAlias = Conditioning
 
 
-def sequence_conditioning(params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel,
-                          face_offsets: Tensor | None = None) -> SequenceConditioning:
+def sequence_conditioning(
+    params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel, face_offsets: Tensor | None = None
+) -> SequenceConditioning:
     """The conditioning of every frame of ``params`` (the columns of ``params.parquet``).
 
     Args:
@@ -97,8 +98,9 @@ def sequence_conditioning(params: Mapping[str, np.ndarray], head: TemplateModel,
     return conditioning_from_posed(t, face.joints[:, 0], hand_out.joints[:, 0], face_offsets)
 
 
-def conditioning_from_posed(t: Mapping[str, Tensor], head_origin: Tensor, wrist: Tensor, face_offsets: Tensor
-                            ) -> SequenceConditioning:
+def conditioning_from_posed(
+    t: Mapping[str, Tensor], head_origin: Tensor, wrist: Tensor, face_offsets: Tensor
+) -> SequenceConditioning:
     """The conditioning of T posed frames.
 
     Args:

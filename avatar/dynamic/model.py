@@ -143,15 +143,16 @@ def nearest_distance(points: Tensor, targets: Tensor, reach: float) -> Tensor:
     near = ((points >= lo) & (points <= hi)).all(-1).nonzero()[:, 0]
     right = torch.cat([targets, torch.ones_like(targets[:, :1]), targets.pow(2).sum(-1, keepdim=True)], -1).mT
     for start in range(0, near.shape[0], _DISTANCE_CHUNK):
-        idx = near[start:start + _DISTANCE_CHUNK]
+        idx = near[start : start + _DISTANCE_CHUNK]
         x = points[idx]
         left = torch.cat([x.mul(-2), x.pow(2).sum(-1, keepdim=True), torch.ones_like(x[:, :1])], -1)
         out[idx] = (left @ right).amin(-1).clamp_min_(1e-30).sqrt_()
     return out
 
 
-def sample_one_per_triangle(weight: Tensor, triangle: Tensor, num_triangles: int,
-                            generator: torch.Generator | None) -> Tensor:
+def sample_one_per_triangle(
+    weight: Tensor, triangle: Tensor, num_triangles: int, generator: torch.Generator | None
+) -> Tensor:
     """Indices (P,) into ``weight`` (N,): one per triangle present in ``triangle`` (N,), drawn with
     probability proportional to ``weight`` among that triangle's entries (Gumbel-max: the argmax of
     ``log w + Gumbel noise``); with ``generator`` None the largest weight of each triangle."""
@@ -163,7 +164,8 @@ def sample_one_per_triangle(weight: Tensor, triangle: Tensor, num_triangles: int
     winners = (key == best[triangle]).nonzero()[:, 0]
     # exact ties (measure zero when sampling; equal weights at evaluation): keep the first per triangle
     first = torch.full((num_triangles,), weight.shape[0], dtype=torch.long).scatter_reduce(
-        0, triangle[winners], winners, "amin")
+        0, triangle[winners], winners, "amin"
+    )
     return first[first < weight.shape[0]]
 
 
@@ -201,8 +203,17 @@ class DynamicAvatar(nn.Module):
     interaction: DeltaHeads | None  # None: the "w/o I" ablation
     pointnet: PointNet2Encoder | None  # None when neither H nor I reads F
 
-    def __init__(self, gaussians: BoundGaussians, mu_cano: Tensor, faces: Tensor, part_names: tuple[str, ...],
-                 num_face_vertices: int, frame_dims: dict[str, int], cfg: DynamicModelConfig, seed: int = 0) -> None:
+    def __init__(
+        self,
+        gaussians: BoundGaussians,
+        mu_cano: Tensor,
+        faces: Tensor,
+        part_names: tuple[str, ...],
+        num_face_vertices: int,
+        frame_dims: dict[str, int],
+        cfg: DynamicModelConfig,
+        seed: int = 0,
+    ) -> None:
         super().__init__()
         self.cfg = cfg
         self.gaussians = gaussians
@@ -211,8 +222,11 @@ class DynamicAvatar(nn.Module):
         self.register_buffer("faces", faces.long())
         self.register_buffer("mu_cano", mu_cano.detach().clone())
         # gamma(mu_cano) is fixed in stage two: encoded once, derived again on load (not in the state dict)
-        self.register_buffer("position_code", positional_encoding(
-            _normalise_per_part(self.mu_cano, gaussians.part), cfg.position_frequencies), persistent=False)
+        self.register_buffer(
+            "position_code",
+            positional_encoding(_normalise_per_part(self.mu_cano, gaussians.part), cfg.position_frequencies),
+            persistent=False,
+        )
         self.register_buffer("hand_index", (gaussians.part == self.hand_part).nonzero()[:, 0])
         self.register_buffer("face_index", (gaussians.part == self.face_part).nonzero()[:, 0])
         gen = torch.Generator().manual_seed(seed)
@@ -221,9 +235,17 @@ class DynamicAvatar(nn.Module):
             self._build_networks(frame_dims, gen)
 
     @classmethod
-    def from_warmup(cls, gaussians: BoundGaussians, canonical_vertices: Tensor, faces: Tensor,
-                    part_names: tuple[str, ...], num_face_vertices: int, frame_dims: dict[str, int],
-                    cfg: DynamicModelConfig, seed: int = 0) -> DynamicAvatar:
+    def from_warmup(
+        cls,
+        gaussians: BoundGaussians,
+        canonical_vertices: Tensor,
+        faces: Tensor,
+        part_names: tuple[str, ...],
+        num_face_vertices: int,
+        frame_dims: dict[str, int],
+        cfg: DynamicModelConfig,
+        seed: int = 0,
+    ) -> DynamicAvatar:
         """The model at the start of stage two: ``mu_cano`` from the warm-up Gaussians placed on
         ``canonical_vertices`` (V, 3), the first training frame (paper)."""
         with torch.no_grad():
@@ -240,17 +262,37 @@ class DynamicAvatar(nn.Module):
         F = cfg.geometry_feature_dim if cfg.uses_geometry_feature else 0
         hand, expr = frame_dims["hand_pose"], frame_dims["expression"]
         self.point_features = nn.Parameter(
-            0.01 * torch.randn(self.hand_index.shape[0], cfg.point_feature_dim, generator=gen))  # DeepSDF init
+            0.01 * torch.randn(self.hand_index.shape[0], cfg.point_feature_dim, generator=gen)
+        )  # DeepSDF init
         self.hand_geo = DeltaHeads(HAND_GEO, pe, hand, cfg.hand_width, cfg.hand_depth) if cfg.hand_mlp else None
-        self.hand_app = DeltaHeads(HAND_APP, pe + cfg.point_feature_dim, F + hand + 6 + 6 + 3, cfg.hand_width,
-                                   cfg.hand_depth) if cfg.hand_mlp else None
-        self.interaction = DeltaHeads(INTERACTION, pe + encoded_dim(3, cfg.offset_frequencies),
-                                      F + hand + 12 + expr + 3 + 6, cfg.interaction_width,
-                                      cfg.interaction_depth) if cfg.interaction else None
-        self.pointnet = PointNet2Encoder(
-            feature_dim=F, centres=cfg.pointnet_centres, radii=cfg.pointnet_radii,
-            neighbours=cfg.pointnet_neighbours, scale=cfg.pointnet_unit_m,
-            width_multiplier=cfg.pointnet_width) if cfg.uses_geometry_feature else None
+        self.hand_app = (
+            DeltaHeads(HAND_APP, pe + cfg.point_feature_dim, F + hand + 6 + 6 + 3, cfg.hand_width, cfg.hand_depth)
+            if cfg.hand_mlp
+            else None
+        )
+        self.interaction = (
+            DeltaHeads(
+                INTERACTION,
+                pe + encoded_dim(3, cfg.offset_frequencies),
+                F + hand + 12 + expr + 3 + 6,
+                cfg.interaction_width,
+                cfg.interaction_depth,
+            )
+            if cfg.interaction
+            else None
+        )
+        self.pointnet = (
+            PointNet2Encoder(
+                feature_dim=F,
+                centres=cfg.pointnet_centres,
+                radii=cfg.pointnet_radii,
+                neighbours=cfg.pointnet_neighbours,
+                scale=cfg.pointnet_unit_m,
+                width_multiplier=cfg.pointnet_width,
+            )
+            if cfg.uses_geometry_feature
+            else None
+        )
 
     # -- per-frame pieces --------------------------------------------------------------------------
 
@@ -260,8 +302,15 @@ class DynamicAvatar(nn.Module):
         parent = self.faces[self.gaussians.binding[self.face_index]]  # (N_face, 3) vertex ids (< V_face)
         return cond.face_offsets[parent].mean(1)
 
-    def geometry_points(self, cond: FrameConditioning, means: Tensor, scales: Tensor, opacities: Tensor,
-                        generator: torch.Generator | None, offsets: Tensor | None = None) -> Tensor:
+    def geometry_points(
+        self,
+        cond: FrameConditioning,
+        means: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        generator: torch.Generator | None,
+        offsets: Tensor | None = None,
+    ) -> Tensor:
         """PointNet++ input (P, 3), head frame: one Gaussian per deforming face triangle and per hand triangle,
         drawn with probability proportional to ``o ||s||`` (``generator`` None: the most probable one).
         ``offsets``: :meth:`triangle_offsets` of ``cond`` when already computed."""
@@ -283,8 +332,9 @@ class DynamicAvatar(nn.Module):
 
     # -- the frame ---------------------------------------------------------------------------------
 
-    def forward(self, cond: FrameConditioning, vertices: Tensor,
-                generator: torch.Generator | None = None) -> DynamicFrame:
+    def forward(
+        self, cond: FrameConditioning, vertices: Tensor, generator: torch.Generator | None = None
+    ) -> DynamicFrame:
         """The Gaussians of one frame.
 
         Args:
@@ -297,8 +347,10 @@ class DynamicAvatar(nn.Module):
         local_means: Tensor  # the parameter, then the parameter plus its delta
         local_means, log_scales, quats = g.local_means, g.log_scales, g.quats
         logits, rgb = g.opacity_logits, 0.5 + SH_C0 * g.sh_dc
-        deltas = {name: torch.zeros_like(x) for name, x in
-                  (("mu", local_means), ("s", log_scales), ("q", quats), ("o", logits[:, None]), ("c", rgb))}
+        deltas = {
+            name: torch.zeros_like(x)
+            for name, x in (("mu", local_means), ("s", log_scales), ("q", quats), ("o", logits[:, None]), ("c", rgb))
+        }
         evaluations = 0
         feature = None
         if self.cfg.uses_geometry_feature:  # the Gaussians before any delta: PointNet++ input and w_i
@@ -312,8 +364,10 @@ class DynamicAvatar(nn.Module):
             idx = self.hand_index
             code = self.position_code[idx]
             geo = self.hand_geo(code, cond.hand_pose)
-            app = self.hand_app((code, self.point_features), torch.cat(
-                [feature, cond.hand_pose, cond.hand_rotation, cond.rel_rotation, cond.rel_translation]))
+            app = self.hand_app(
+                (code, self.point_features),
+                torch.cat([feature, cond.hand_pose, cond.hand_rotation, cond.rel_rotation, cond.rel_translation]),
+            )
             for name, value in {**geo, **app}.items():
                 deltas[name] = deltas[name].index_add(0, idx, value)
         if self.interaction is not None:
@@ -322,10 +376,16 @@ class DynamicAvatar(nn.Module):
         local_means = local_means + deltas["mu"]
         local_scales = torch.exp(log_scales + deltas["s"])
         means, scales, world_quats = place_gaussians(frames, g.binding, local_means, local_scales, quats + deltas["q"])
-        return DynamicFrame(means=means, scales=scales, quats=world_quats,
-                            opacities=torch.sigmoid(logits + deltas["o"][:, 0]),
-                            colors=self._colour(rgb, deltas["c"]), local_means=local_means,
-                            local_scales=local_scales, interaction_evaluations=evaluations)
+        return DynamicFrame(
+            means=means,
+            scales=scales,
+            quats=world_quats,
+            opacities=torch.sigmoid(logits + deltas["o"][:, 0]),
+            colors=self._colour(rgb, deltas["c"]),
+            local_means=local_means,
+            local_scales=local_scales,
+            interaction_evaluations=evaluations,
+        )
 
     def _colour(self, rgb: Tensor, delta: Tensor) -> Tensor:
         """(N, 3) linear RGB from the Gaussians' own ``rgb`` (N, 3) and the summed deltas ``delta`` (N, 3)."""
@@ -333,24 +393,36 @@ class DynamicAvatar(nn.Module):
             return torch.clamp_min(rgb, 0.0) * torch.exp(torch.clamp_max(delta, _MAX_LOG_SCALE))
         return torch.clamp_min(rgb + delta, 0.0)
 
-    def _interact(self, cond: FrameConditioning, face_means: Tensor, offsets: Tensor, vertices: Tensor,
-                  feature: Tensor, deltas: dict[str, Tensor]) -> int:
+    def _interact(
+        self,
+        cond: FrameConditioning,
+        face_means: Tensor,
+        offsets: Tensor,
+        vertices: Tensor,
+        feature: Tensor,
+        deltas: dict[str, Tensor],
+    ) -> int:
         """Add ``w_i I(...)`` of the face Gaussians near the hand to ``deltas``; returns how many ran I.
         ``face_means`` (N_face, 3): the face Gaussians' world means before any delta; ``offsets`` (N_face, 3):
         :meth:`triangle_offsets`."""
         assert self.interaction is not None  # called only when I is built
         idx = self.face_index
         with torch.no_grad():
-            hand_vertices = vertices[self.num_face_vertices:]
+            hand_vertices = vertices[self.num_face_vertices :]
             weight = interaction_weights(nearest_distance(face_means, hand_vertices, self.cfg.d_max), self.cfg.d_max)
         active = (weight > 0).nonzero()[:, 0]
         if active.numel() == 0:
             return 0
-        point = torch.cat([self.position_code[idx[active]],
-                           positional_encoding(offsets[active] / self.cfg.offset_unit_m, self.cfg.offset_frequencies)],
-                          dim=-1)
-        frame = torch.cat([feature, cond.hand_pose, cond.face_pose, cond.expression, cond.rel_translation,
-                           cond.rel_rotation])
+        point = torch.cat(
+            [
+                self.position_code[idx[active]],
+                positional_encoding(offsets[active] / self.cfg.offset_unit_m, self.cfg.offset_frequencies),
+            ],
+            dim=-1,
+        )
+        frame = torch.cat(
+            [feature, cond.hand_pose, cond.face_pose, cond.expression, cond.rel_translation, cond.rel_rotation]
+        )
         for name, value in self.interaction(point, frame).items():
             deltas[name] = deltas[name].index_add(0, idx[active], weight[active, None] * value)
         return int(active.numel())

@@ -44,8 +44,6 @@ from avatar.fitting.triangulation import projection_matrices, triangulate
 from avatar.templates import TemplateModel
 from data_schemas.cameras import Camera
 
-
-
 MM_PER_M = 1000.0
 
 
@@ -123,8 +121,9 @@ def geman_mcclure(sq_err: torch.Tensor, scale: float) -> torch.Tensor:
     return sq_err * scale**2 / (sq_err + scale**2)
 
 
-def _data_term(P: torch.Tensor, points: torch.Tensor, obs: Observations, weight: torch.Tensor,
-               scale: float) -> torch.Tensor:
+def _data_term(
+    P: torch.Tensor, points: torch.Tensor, obs: Observations, weight: torch.Tensor, scale: float
+) -> torch.Tensor:
     sq = (project(P, points) - torch.as_tensor(obs.uv)).pow(2).sum(-1)
     return (weight * geman_mcclure(sq, scale)).sum() / (points.shape[0] * P.shape[0])
 
@@ -145,34 +144,55 @@ def _regulariser(part: HandParams | FaceParams, cfg: FitConfig) -> torch.Tensor:
     if isinstance(part, HandParams):
         prior = cfg.hand_pose_prior * _mean_sq(part.hand_pose)
     else:
-        prior = (cfg.expression_prior * _mean_sq(part.expression)
-                 + cfg.face_pose_prior * (_mean_sq(part.jaw_pose) + _mean_sq(part.neck_pose))
-                 + cfg.shape_roughness * part.roughness())
+        prior = (
+            cfg.expression_prior * _mean_sq(part.expression)
+            + cfg.face_pose_prior * (_mean_sq(part.jaw_pose) + _mean_sq(part.neck_pose))
+            + cfg.shape_roughness * part.roughness()
+        )
     smooth = sum(_second_difference(x) for x in part.motion_terms())
-    return (prior + cfg.shape_prior * part.shape.pow(2).sum() + cfg.smooth_rotation * smooth
-            + cfg.smooth_transl_mm * _second_difference(part.transl * MM_PER_M))
+    return (
+        prior
+        + cfg.shape_prior * part.shape.pow(2).sum()
+        + cfg.smooth_rotation * smooth
+        + cfg.smooth_transl_mm * _second_difference(part.transl * MM_PER_M)
+    )
 
 
 class _Problem:
     """The fitting objective over both parts of one sequence."""
 
-    def __init__(self, hand: HandParams, face: FaceParams, P: torch.Tensor, obs: dict[str, Observations],
-                 weights: dict[str, torch.Tensor], cfg: FitConfig) -> None:
+    def __init__(
+        self,
+        hand: HandParams,
+        face: FaceParams,
+        P: torch.Tensor,
+        obs: dict[str, Observations],
+        weights: dict[str, torch.Tensor],
+        cfg: FitConfig,
+    ) -> None:
         self.hand, self.face, self.P, self.obs, self.weights, self.cfg = hand, face, P, obs, weights, cfg
 
     def _hand_points(self, hand_vertices: torch.Tensor) -> torch.Tensor:
         """(T, V, 3) -> the (T, N, 3) hand vertices checked for interpenetration."""
-        return hand_vertices[:, ::self.cfg.penetration_stride]
+        return hand_vertices[:, :: self.cfg.penetration_stride]
 
     def loss(self, scale: float, pairs: ContactPairs | None) -> torch.Tensor:
         """The objective; ``pairs`` (hand points near the face) switch the penetration term on."""
-        total = (_data_term(self.P, self.hand.keypoints(), self.obs["hand"], self.weights["hand"], scale)
-                 + _data_term(self.P, self.face.keypoints(), self.obs["face"], self.weights["face"], scale)
-                 + _regulariser(self.hand, self.cfg) + _regulariser(self.face, self.cfg))
+        total = (
+            _data_term(self.P, self.hand.keypoints(), self.obs["hand"], self.weights["hand"], scale)
+            + _data_term(self.P, self.face.keypoints(), self.obs["face"], self.weights["face"], scale)
+            + _regulariser(self.hand, self.cfg)
+            + _regulariser(self.face, self.cfg)
+        )
         if pairs is not None:
             frames, local = torch.unique(pairs.frame, return_inverse=True)  # pose only the frames in contact
-            depth = contact_depth(self._hand_points(self.hand.vertices(frames)), self.face.vertices(frames),
-                                  self.face.faces, pairs._replace(frame=local), self.cfg.penetration_radius_m)
+            depth = contact_depth(
+                self._hand_points(self.hand.vertices(frames)),
+                self.face.vertices(frames),
+                self.face.faces,
+                pairs._replace(frame=local),
+                self.cfg.penetration_radius_m,
+            )
             total = total + self.cfg.penetration_mm * (depth * MM_PER_M).pow(2).sum() / self.hand.num_frames
         return total
 
@@ -181,20 +201,27 @@ class _Problem:
         if not penetration or self.cfg.penetration_mm <= 0:
             return None
         with torch.no_grad():
-            pairs = find_contact_pairs(self._hand_points(self.hand.vertices()), self.face.vertices(),
-                                       self.cfg.penetration_radius_m)
+            pairs = find_contact_pairs(
+                self._hand_points(self.hand.vertices()), self.face.vertices(), self.cfg.penetration_radius_m
+            )
         return pairs if pairs.frame.numel() else None
 
-    def minimise(self, params: list[torch.nn.Parameter], iterations: int, scale: float, penetration: bool
-                 ) -> float:
+    def minimise(self, params: list[torch.nn.Parameter], iterations: int, scale: float, penetration: bool) -> float:
         """L-BFGS (strong Wolfe) on ``params``; the others stay fixed. Contact pairs
         are found once at the start and held fixed. Returns the final loss."""
         everything = list(self.hand.parameters()) + list(self.face.parameters())
         for p in everything:
             p.requires_grad_(any(p is q for q in params))
         pairs = self._contact_pairs(penetration)
-        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20,
-                                line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
+        opt = torch.optim.LBFGS(
+            params,
+            lr=1.0,
+            max_iter=iterations,
+            history_size=20,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-9,
+            tolerance_change=1e-12,
+        )
 
         def closure() -> torch.Tensor:
             opt.zero_grad()
@@ -241,7 +268,8 @@ def check_world_scale(points: np.ndarray, valid: np.ndarray, template_span_m: fl
             f"{template_span_m:.2f} m: the camera translations are not in metres, which the templates, d_max and "
             f"PBD assume. Set dataset.calibration_scale_m={estimate:.3g} (metres per calibration unit, estimated "
             f"from the face's size against the head template's; heads differ by about 10 %, a distance measured "
-            f"in the scene is better), or multiply the translations of world_to_cam by that factor and rerun")
+            f"in the scene is better), or multiply the translations of world_to_cam by that factor and rerun"
+        )
     return span
 
 
@@ -251,8 +279,7 @@ def _weak(obs: Observations, valid: np.ndarray, cfg: FitConfig) -> np.ndarray:
     return (confident.sum(-1) < min(cfg.min_views, confident.shape[1])) | (valid.sum(-1) < MIN_RIGID_POINTS)
 
 
-def _triangulate_part(obs: Observations, P: np.ndarray, cfg: FitConfig
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _triangulate_part(obs: Observations, P: np.ndarray, cfg: FitConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """points (T, K, 3), valid (T, K) and per-detection weights (T, C, K) with
     RANSAC outliers of valid points set to zero."""
     points, valid, weight = [], [], obs.conf.copy()
@@ -275,10 +302,16 @@ def _reprojection_px(P: torch.Tensor, points: torch.Tensor, obs: Observations, w
     return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
-def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Sequence[Camera],
-                 head: TemplateModel, hand: TemplateModel, cfg: FitConfig | None = None,
-                 evidence: Evidence | None = None, refine: str = "none", refine_cfg: RefineConfig | None = None
-                 ) -> FitResult:
+def fit_sequence(
+    keypoints: Mapping[str, Mapping[str, np.ndarray]],
+    cameras: Sequence[Camera],
+    head: TemplateModel,
+    hand: TemplateModel,
+    cfg: FitConfig | None = None,
+    evidence: Evidence | None = None,
+    refine: str = "none",
+    refine_cfg: RefineConfig | None = None,
+) -> FitResult:
     """Fit FLAME (``head``) and MANO (``hand``) to multi-view keypoints of a sequence.
 
     Args:
@@ -309,8 +342,14 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
     weights, weak = {}, {}
     for part, model in (("hand", hand_params), ("face", face_params)):
         if len(cameras) == 1:  # monocular: placed by the template's metric size (avatar.fitting.monocular)
-            points, valid = place_rest_points(rest[part], obs[part].uv[:, 0], obs[part].conf[:, 0], cameras[0],
-                                              cfg.min_confidence, PALM if part == "hand" else None)
+            points, valid = place_rest_points(
+                rest[part],
+                obs[part].uv[:, 0],
+                obs[part].conf[:, 0],
+                cameras[0],
+                cfg.min_confidence,
+                PALM if part == "hand" else None,
+            )
             weight = obs[part].conf.copy()
         else:
             points, valid, weight = _triangulate_part(obs[part], P_np, cfg)
@@ -332,21 +371,40 @@ def fit_sequence(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Seq
     params, reprojection, refinement = keypoint_params, keypoint_reprojection, None
     if evidence is not None and refine != "none":
         pairs = problem._contact_pairs(penetration=True)
-        refinement = refine_parameters(hand_params, face_params, lambda: problem.loss(cfg.robust_scale_px, pairs),
-                                       evidence, refine, refine_cfg or RefineConfig())
+        refinement = refine_parameters(
+            hand_params,
+            face_params,
+            lambda: problem.loss(cfg.robust_scale_px, pairs),
+            evidence,
+            refine,
+            refine_cfg or RefineConfig(),
+        )
         params, reprojection = _result(hand_params, face_params, P, obs, weights)
     return FitResult(
-        params=params, reprojection_px=reprojection, weak_frames=weak, final_loss=final_loss,
-        keypoint_params=keypoint_params, keypoint_reprojection_px=keypoint_reprojection, refinement=refinement,
-        timing={"triangulation_s": triangulated - start, "optimisation_s": done - triangulated,
-                "refinement_s": 0.0 if refinement is None else refinement.seconds,
-                "total_s": time.perf_counter() - start,
-                "per_frame_per_view_ms": (done - start) * 1000.0 / max(T * len(cameras), 1)},
+        params=params,
+        reprojection_px=reprojection,
+        weak_frames=weak,
+        final_loss=final_loss,
+        keypoint_params=keypoint_params,
+        keypoint_reprojection_px=keypoint_reprojection,
+        refinement=refinement,
+        timing={
+            "triangulation_s": triangulated - start,
+            "optimisation_s": done - triangulated,
+            "refinement_s": 0.0 if refinement is None else refinement.seconds,
+            "total_s": time.perf_counter() - start,
+            "per_frame_per_view_ms": (done - start) * 1000.0 / max(T * len(cameras), 1),
+        },
     )
 
 
-def _result(hand_params: HandParams, face_params: FaceParams, P: torch.Tensor, obs: dict[str, Observations],
-            weights: dict[str, torch.Tensor]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+def _result(
+    hand_params: HandParams,
+    face_params: FaceParams,
+    P: torch.Tensor,
+    obs: dict[str, Observations],
+    weights: dict[str, torch.Tensor],
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The parameter columns and per-part reprojection errors (T,) at the parameters' current values."""
     with torch.no_grad():
         posed = {"hand": hand_params.keypoints(), "face": face_params.keypoints()}

@@ -39,8 +39,9 @@ def bone_children(parents: list[int]) -> dict[int, int]:
     return children
 
 
-def hand_pose_ik(rest_joints: np.ndarray, rest_tips: np.ndarray, parents: list[int], targets: np.ndarray,
-                 valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def hand_pose_ik(
+    rest_joints: np.ndarray, rest_tips: np.ndarray, parents: list[int], targets: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-frame MANO rotations from 3D keypoints.
 
     Args:

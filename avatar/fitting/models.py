@@ -135,8 +135,10 @@ class FaceParams(_PartParams):
         self.transl_cm = _param(num_frames, 3)  # centimetres: steps comparable to the rotations'
         self.register_buffer("eye_pose", torch.zeros(num_frames, 6, dtype=DTYPE))
         roughness = model.shape_roughness
-        self.register_buffer("shape_roughness", None if roughness is None else torch.tensor(
-            roughness[:num_shape, :num_shape], dtype=DTYPE))
+        self.register_buffer(
+            "shape_roughness",
+            None if roughness is None else torch.tensor(roughness[:num_shape, :num_shape], dtype=DTYPE),
+        )
 
     def roughness(self) -> torch.Tensor:
         """``beta^T R beta`` of the shared identity (0 for a template without ``shape_roughness``)."""
@@ -166,8 +168,15 @@ class FaceParams(_PartParams):
 
     def _posed(self, layer: FLAMELayer, frames: torch.Tensor | slice = slice(None)) -> LayerOutput:
         expression = self.expression[frames]
-        return layer(self.shape.expand(expression.shape[0], -1), expression, self.global_orient[frames],
-                     self.neck_pose[frames], self.jaw_pose[frames], self.eye_pose[frames], self.transl[frames])
+        return layer(
+            self.shape.expand(expression.shape[0], -1),
+            expression,
+            self.global_orient[frames],
+            self.neck_pose[frames],
+            self.jaw_pose[frames],
+            self.eye_pose[frames],
+            self.transl[frames],
+        )
 
     def keypoints(self) -> torch.Tensor:
         """(T, 68, 3) world landmarks."""

@@ -20,9 +20,14 @@ PALM = (0, 1, 5, 9, 13, 17)
 MIN_PNP_POINTS = 4
 
 
-def place_rest_points(rest: np.ndarray, uv: np.ndarray, conf: np.ndarray, camera: Camera,
-                      min_confidence: float, subset: tuple[int, ...] | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def place_rest_points(
+    rest: np.ndarray,
+    uv: np.ndarray,
+    conf: np.ndarray,
+    camera: Camera,
+    min_confidence: float,
+    subset: tuple[int, ...] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The rest points rigidly placed per frame so that they project onto the detections.
 
     Args:
@@ -45,8 +50,9 @@ def place_rest_points(rest: np.ndarray, uv: np.ndarray, conf: np.ndarray, camera
         use = use_from & (conf[t] >= min_confidence) & np.isfinite(uv[t]).all(-1)
         if use.sum() < MIN_PNP_POINTS:
             continue
-        ok, rvec, tvec = cv2.solvePnP(rest[use], uv[t, use].astype(np.float64), camera.K, None,
-                                      flags=cv2.SOLVEPNP_SQPNP)
+        ok, rvec, tvec = cv2.solvePnP(
+            rest[use], uv[t, use].astype(np.float64), camera.K, None, flags=cv2.SOLVEPNP_SQPNP
+        )
         if not ok or not np.isfinite(tvec).all():
             continue
         in_camera = (cv2.Rodrigues(rvec)[0] @ rest.T).T + tvec.ravel()

@@ -25,8 +25,9 @@ class Observations:
         return int(self.uv.shape[0])
 
 
-def pack_part(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Sequence[Camera], part: str,
-              num_points: int) -> Observations:
+def pack_part(
+    keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Sequence[Camera], part: str, num_points: int
+) -> Observations:
     """Stack ``keypoints[camera_id][part]`` (T, K, 3) rows (u, v, conf) over ``cameras``.
 
     A camera without detections of the part contributes zero confidence;
@@ -43,8 +44,7 @@ def pack_part(keypoints: Mapping[str, Mapping[str, np.ndarray]], cameras: Sequen
             continue
         arr = np.asarray(arr, np.float64)
         if arr.shape != (T, num_points, 3):
-            raise ValueError(f"keypoints[{cam.camera_id!r}][{part!r}] must be ({T}, {num_points}, 3), "
-                             f"got {arr.shape}")
+            raise ValueError(f"keypoints[{cam.camera_id!r}][{part!r}] must be ({T}, {num_points}, 3), got {arr.shape}")
         uvc[:, c] = arr
     uv, conf = clean_observations(uvc)
     return Observations(uv, conf)

@@ -48,13 +48,15 @@ def find_contact_pairs(points: torch.Tensor, surface: torch.Tensor, radius: floa
         frames.append(np.full(len(near), b))
         idx.append(near)
         anchors.append(nearest[near])
-    as_long = [torch.as_tensor(np.concatenate(x).astype(np.int64), device=points.device)
-               for x in (frames, idx, anchors)]
+    as_long = [
+        torch.as_tensor(np.concatenate(x).astype(np.int64), device=points.device) for x in (frames, idx, anchors)
+    ]
     return ContactPairs(*as_long)
 
 
-def contact_depth(points: torch.Tensor, surface: torch.Tensor, faces: torch.Tensor, pairs: ContactPairs,
-                  radius: float) -> torch.Tensor:
+def contact_depth(
+    points: torch.Tensor, surface: torch.Tensor, faces: torch.Tensor, pairs: ContactPairs, radius: float
+) -> torch.Tensor:
     """How deep (P,) metres, >= 0, each paired point lies behind the surface.
 
     Only a pair whose point is still within ``radius`` of its anchor counts, so

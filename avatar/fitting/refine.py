@@ -159,13 +159,22 @@ def evidence_from_views(views: ViewSet, render_size: int) -> Evidence:
     fractions = {part: _area_average((labels == label).float(), r) for part, label in PART_LABELS.items()}
     fractions["unknown"] = _area_average((labels == UNKNOWN_LABEL).float(), r)
     unknown_any = (labels == UNKNOWN_LABEL).flatten(2).sum(-1).amax(1) >= MIN_VISIBLE_PIXELS
-    visible = {part: ((labels == label).flatten(2).sum(-1).amax(1) >= MIN_VISIBLE_PIXELS) | unknown_any
-               for part, label in PART_LABELS.items()}
+    visible = {
+        part: ((labels == label).flatten(2).sum(-1).amax(1) >= MIN_VISIBLE_PIXELS) | unknown_any
+        for part, label in PART_LABELS.items()
+    }
     colours = _area_average(views.images.float().permute(0, 1, 4, 2, 3) / 255.0, r).permute(0, 1, 3, 4, 2)
-    return Evidence(fractions=fractions, observed=_area_average((labels != UNOBSERVED_LABEL).float(), r),
-                    colours=colours.contiguous(), K=scaled_intrinsics(views.K.double(), r).float(),
-                    world_to_cam=views.world_to_cam.float(), background=views.background.float(),
-                    pixel_area=float(r * r), visible=visible, camera_ids=list(views.camera_ids))
+    return Evidence(
+        fractions=fractions,
+        observed=_area_average((labels != UNOBSERVED_LABEL).float(), r),
+        colours=colours.contiguous(),
+        K=scaled_intrinsics(views.K.double(), r).float(),
+        world_to_cam=views.world_to_cam.float(),
+        background=views.background.float(),
+        pixel_area=float(r * r),
+        visible=visible,
+        camera_ids=list(views.camera_ids),
+    )
 
 
 def silhouette_error(rendered: Tensor, fractions: dict[str, Tensor], observed: Tensor) -> Tensor:
@@ -199,15 +208,21 @@ class ProxyMeshes:
         n = faces.shape[0]
         binding = torch.arange(n)
         means, scales, quats = place_gaussians(
-            triangle_frames(vertices, faces), binding, vertices.new_zeros(n, 3),
-            self.local_scales.to(vertices.dtype).expand(n, 3), vertices.new_tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4))
+            triangle_frames(vertices, faces),
+            binding,
+            vertices.new_zeros(n, 3),
+            self.local_scales.to(vertices.dtype).expand(n, 3),
+            vertices.new_tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4),
+        )
         return means, quats, scales
 
 
 def proxy_meshes(face_faces: Tensor, hand_faces: Tensor, sigma: float) -> ProxyMeshes:
     """:class:`ProxyMeshes` of flat discs, ``sigma`` k wide and 5 % of that thick."""
-    return ProxyMeshes(faces={"face": face_faces.long(), "hand": hand_faces.long()},
-                       local_scales=torch.tensor([sigma, 0.05 * sigma, sigma]))
+    return ProxyMeshes(
+        faces={"face": face_faces.long(), "hand": hand_faces.long()},
+        local_scales=torch.tensor([sigma, 0.05 * sigma, sigma]),
+    )
 
 
 PART_COLOURS = {"face": (1.0, 0.0, 0.0), "hand": (0.0, 1.0, 0.0)}
@@ -258,9 +273,15 @@ class _Renderer:
         self.proxies = proxy_meshes(face.faces, hand.layer.faces, cfg.proxy_sigma)
         self.counts = {p: self.proxies.faces[p].shape[0] for p in PARTS}
         self.corrections: list[list[Tensor]] = []  # per frame and view: exact minus proxy coverage (R, R, 2)
-        self.cameras = [PinholeCamera(K=_mesh_raster_K(evidence.K[c]),
-                                      world_to_cam=evidence.world_to_cam[c].double().numpy(),
-                                      width=evidence.size, height=evidence.size) for c in range(evidence.num_cameras)]
+        self.cameras = [
+            PinholeCamera(
+                K=_mesh_raster_K(evidence.K[c]),
+                world_to_cam=evidence.world_to_cam[c].double().numpy(),
+                width=evidence.size,
+                height=evidence.size,
+            )
+            for c in range(evidence.num_cameras)
+        ]
         # the photometric albedo: one colour per vertex, shared by every frame, started at the mean foreground
         fg = evidence.fractions["face"] + evidence.fractions["hand"] + evidence.fractions["unknown"]
         weight = (fg * evidence.observed)[..., None]
@@ -273,7 +294,7 @@ class _Renderer:
 
     def _albedo(self, part: str) -> Tensor:
         """(V_p, 3) the part's vertex colours."""
-        return self.albedo[:self.num_vertices["face"]] if part == "face" else self.albedo[self.num_vertices["face"]:]
+        return self.albedo[: self.num_vertices["face"]] if part == "face" else self.albedo[self.num_vertices["face"] :]
 
     def _shown(self, t: int) -> list[str]:
         return [p for p in PARTS if bool(self.ev.visible[p][t])]
@@ -284,8 +305,13 @@ class _Renderer:
         parts = [self.proxies.gaussians(vertices[p][t].float(), p) for p in shown]
         colours = [torch.tensor(PART_COLOURS[p]).expand(self.counts[p], 3) for p in shown]
         opacity = torch.full((sum(self.counts[p] for p in shown),), self.cfg.proxy_opacity)
-        return (torch.cat([g[0] for g in parts]), torch.cat([g[1] for g in parts]), torch.cat([g[2] for g in parts]),
-                opacity, torch.cat(colours))
+        return (
+            torch.cat([g[0] for g in parts]),
+            torch.cat([g[1] for g in parts]),
+            torch.cat([g[2] for g in parts]),
+            opacity,
+            torch.cat(colours),
+        )
 
     def _proxy_albedo(self, t: int) -> Tensor:
         """(N, 3) each shown triangle's mean vertex albedo (detached: the albedo learns from the exact render)."""
@@ -295,12 +321,19 @@ class _Renderer:
         """The exact part coverage (R, R, 2) of view ``c`` in frame ``t`` (no gradient) and, with ``colour``,
         its colours (R, R, 3) over the background (differentiable w.r.t. the albedo)."""
         shown = self._shown(t)
-        meshes = [Mesh(vertices[p][t].detach(), self.proxies.faces[p],
-                       self._albedo(p) if colour else torch.zeros(self.num_vertices[p], 1), PART_LABELS[p])
-                  for p in shown]
+        meshes = [
+            Mesh(
+                vertices[p][t].detach(),
+                self.proxies.faces[p],
+                self._albedo(p) if colour else torch.zeros(self.num_vertices[p], 1),
+                PART_LABELS[p],
+            )
+            for p in shown
+        ]
         buffer, scene = rasterize(meshes, self.cameras[c], HARD_SUPERSAMPLE)
-        coverage = torch.stack([box_downsample((buffer.labels == PART_LABELS[p]).float(), HARD_SUPERSAMPLE)
-                                for p in PARTS], -1)
+        coverage = torch.stack(
+            [box_downsample((buffer.labels == PART_LABELS[p]).float(), HARD_SUPERSAMPLE) for p in PARTS], -1
+        )
         if not colour:
             return coverage, None
         covered = buffer.covered
@@ -329,8 +362,7 @@ class _Renderer:
             albedo = self._proxy_albedo(t) if colour else None
             for c in range(ev.num_cameras):
                 K, w2c = ev.K[c], ev.world_to_cam[c]
-                exact_coverage, exact_rgb = self._exact(vertices, t, c, colour) if refresh or colour \
-                    else (None, None)
+                exact_coverage, exact_rgb = self._exact(vertices, t, c, colour) if refresh or colour else (None, None)
                 if silhouette:
                     coverage = render_gaussians(*parts, K, w2c, R, R, black).rgb[..., :2]
                     if refresh:
@@ -365,8 +397,10 @@ class _Renderer:
                     pred, true = (coverage[..., i] > 0.5) & seen, (ev.fractions[p][t, c] > 0.5) & seen
                     inter[p][c] += float((pred & true).sum())
                     union[p][c] += float((pred | true).sum())
-        return {p: {cam: float(inter[p][c] / union[p][c]) for c, cam in enumerate(ev.camera_ids) if union[p][c] > 0}
-                for p in PARTS}
+        return {
+            p: {cam: float(inter[p][c] / union[p][c]) for c, cam in enumerate(ev.camera_ids) if union[p][c] > 0}
+            for p in PARTS
+        }
 
 
 def _mesh_raster_K(K: Tensor) -> np.ndarray:
@@ -397,8 +431,9 @@ def _freeze_unseen(hand: HandParams, face: FaceParams, visible: dict[str, Tensor
     return handles
 
 
-def refine_parameters(hand: HandParams, face: FaceParams, anchor: Callable[[], Tensor], evidence: Evidence,
-                      mode: str, cfg: RefineConfig) -> RefineResult:
+def refine_parameters(
+    hand: HandParams, face: FaceParams, anchor: Callable[[], Tensor], evidence: Evidence, mode: str, cfg: RefineConfig
+) -> RefineResult:
     """Refine ``hand`` and ``face`` (modified in place) against ``evidence``.
 
     Args:
@@ -439,14 +474,16 @@ def refine_parameters(hand: HandParams, face: FaceParams, anchor: Callable[[], T
         groups.append({"params": [renderer.albedo], "lr": cfg.lr_colour})
     opt = torch.optim.Adam(groups)
     decay = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda i: 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * i / max(cfg.iterations, 1))))
+        opt, lambda i: 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * i / max(cfg.iterations, 1)))
+    )
     handles = _freeze_unseen(hand, face, evidence.visible)
     losses = []
     try:
         for step in range(cfg.iterations):
             opt.zero_grad()
-            loss = cfg.keypoint_weight * anchor() + renderer.loss(cfg.silhouette_weight, photometric,
-                                                                  refresh=step % cfg.exact_every == 0)
+            loss = cfg.keypoint_weight * anchor() + renderer.loss(
+                cfg.silhouette_weight, photometric, refresh=step % cfg.exact_every == 0
+            )
             loss.backward()
             opt.step()
             decay.step()
@@ -461,15 +498,18 @@ def refine_parameters(hand: HandParams, face: FaceParams, anchor: Callable[[], T
         after = {"face": face.vertices(), "hand": hand.vertices()}
         orient_after = {"face": face.global_orient.numpy(), "hand": hand.global_orient.numpy()}
     return RefineResult(
-        seconds=time.perf_counter() - start, losses=np.asarray(losses),
+        seconds=time.perf_counter() - start,
+        losses=np.asarray(losses),
         silhouette_iou={"before": iou_before, "after": iou_after},
         moved_mm={p: 1e3 * (after[p] - before[p]).norm(dim=-1).mean(-1).numpy() for p in PARTS},
         rotated_deg={p: rotation_angle_deg(orient_before[p], orient_after[p]) for p in PARTS},
-        frozen={p: np.flatnonzero(~evidence.visible[p].numpy()).tolist() for p in PARTS})
+        frozen={p: np.flatnonzero(~evidence.visible[p].numpy()).tolist() for p in PARTS},
+    )
 
 
-def mesh_coverage(meshes: dict[str, Tensor], faces: dict[str, Tensor], K: Tensor, world_to_cam: Tensor,
-                  size: int) -> Tensor:
+def mesh_coverage(
+    meshes: dict[str, Tensor], faces: dict[str, Tensor], K: Tensor, world_to_cam: Tensor, size: int
+) -> Tensor:
     """(S, S) bool: the pixels (centres, renderer convention) that the posed ``meshes`` (part -> (V, 3)) cover
     in a view of intrinsics ``K`` (3, 3) and extrinsics ``world_to_cam`` (4, 4)."""
     camera = PinholeCamera(K=_mesh_raster_K(K), world_to_cam=world_to_cam.double().numpy(), width=size, height=size)
@@ -477,22 +517,31 @@ def mesh_coverage(meshes: dict[str, Tensor], faces: dict[str, Tensor], K: Tensor
     return rasterize(scene, camera, 1)[0].covered
 
 
-def tracking_outlines(image: np.ndarray, K: Tensor, world_to_cam: Tensor,
-                      param_sets: Sequence[Mapping[str, np.ndarray]], frame: int, head: TemplateModel,
-                      hand: TemplateModel, with_hand: bool = True) -> np.ndarray:
+def tracking_outlines(
+    image: np.ndarray,
+    K: Tensor,
+    world_to_cam: Tensor,
+    param_sets: Sequence[Mapping[str, np.ndarray]],
+    frame: int,
+    head: TemplateModel,
+    hand: TemplateModel,
+    with_hand: bool = True,
+) -> np.ndarray:
     """``image`` (S, S, 3) uint8 of one view (intrinsics ``K`` (3, 3), extrinsics ``world_to_cam`` (4, 4)), dimmed,
     with the outline of the face (and hand) mesh that each of ``param_sets`` (params.parquet columns, T rows) poses
     at ``frame``: the first red, the second green (e.g. before and after a refinement)."""
-    faces = {"face": torch.tensor(np.array(head.faces), dtype=torch.long),
-             "hand": torch.tensor(np.array(hand.faces), dtype=torch.long)}
+    faces = {
+        "face": torch.tensor(np.array(head.faces), dtype=torch.long),
+        "hand": torch.tensor(np.array(hand.faces), dtype=torch.long),
+    }
     masks = []
     for params in param_sets:
-        posed = posed_keypoints({k: np.asarray(v)[frame:frame + 1] for k, v in params.items()}, head, hand)
+        posed = posed_keypoints({k: np.asarray(v)[frame : frame + 1] for k, v in params.items()}, head, hand)
         meshes = {"face": torch.as_tensor(posed["face_vertices"][0])}
         if with_hand:
             meshes["hand"] = torch.as_tensor(posed["hand_vertices"][0])
         masks.append(mesh_coverage(meshes, {p: faces[p] for p in meshes}, K, world_to_cam, image.shape[0]).numpy())
-    return outline_overlay(image, masks, [(255, 64, 64), (64, 255, 64)][:len(masks)])
+    return outline_overlay(image, masks, [(255, 64, 64), (64, 255, 64)][: len(masks)])
 
 
 def outline_overlay(image: np.ndarray, masks: list[np.ndarray], colours: list[tuple[int, int, int]]) -> np.ndarray:

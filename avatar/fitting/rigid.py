@@ -8,8 +8,7 @@ from scipy.spatial.transform import Rotation
 MIN_RIGID_POINTS = 3
 
 
-def kabsch(source: np.ndarray, target: np.ndarray, weight: np.ndarray | None = None
-           ) -> tuple[np.ndarray, np.ndarray]:
+def kabsch(source: np.ndarray, target: np.ndarray, weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Rotation R (3, 3) and translation t (3,) minimising sum w |R source + t - target|^2.
 
     Args: source, target (N, 3) metres with N >= 3; weight (N,) non-negative (default ones).
@@ -37,8 +36,9 @@ def smallest_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(axis / sin * np.arctan2(sin, cos)).as_matrix()
 
 
-def rigid_init(rest: np.ndarray, root: np.ndarray, targets: np.ndarray, valid: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rigid_init(
+    rest: np.ndarray, root: np.ndarray, targets: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-frame global rotation and translation of a template rotating about ``root``.
 
     The posed template is ``R (x - root) + root + transl``, as in the MANO/FLAME layers.

@@ -121,8 +121,9 @@ def triangulate(
     uv, conf = uv.transpose(1, 0, 2), conf.T  # (K, C, 2), (K, C)
     usable = conf >= min_confidence
     if num_views < 2:
-        return Triangulation(np.zeros((num_points, 3)), np.zeros((num_views, num_points), bool),
-                             np.zeros(num_points, bool))
+        return Triangulation(
+            np.zeros((num_points, 3)), np.zeros((num_views, num_points), bool), np.zeros(num_points, bool)
+        )
 
     pairs = np.array(list(combinations(range(num_views), 2)))  # (N, 2)
     pair_weight = np.zeros((len(pairs), num_views))
@@ -131,7 +132,8 @@ def triangulate(
     err = reprojection_errors(P, hyp, uv[None])  # (N, K, C)
     agree = (err < ransac_threshold_px) & usable[None]
     score = agree.sum(axis=-1) - np.where(agree, err, ransac_threshold_px).sum(axis=-1) / (
-        ransac_threshold_px * (num_views + 1))
+        ransac_threshold_px * (num_views + 1)
+    )
     pair_ok = usable[:, pairs[:, 0]].T & usable[:, pairs[:, 1]].T  # (N, K)
     score = np.where(pair_ok, score, -np.inf)
     best = np.argmax(score, axis=0)  # (K,)

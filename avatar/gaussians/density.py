@@ -42,8 +42,9 @@ class DensityConfig:
 class DensityController:
     """Accumulates view-space gradients between densification steps and applies them."""
 
-    def __init__(self, cfg: DensityConfig, num_gaussians: int, device: torch.device | None = None,
-                 seed: int = 0) -> None:
+    def __init__(
+        self, cfg: DensityConfig, num_gaussians: int, device: torch.device | None = None, seed: int = 0
+    ) -> None:
         self.cfg = cfg
         self.grad_sum = torch.zeros(num_gaussians, device=device)
         self.count = torch.zeros(num_gaussians, device=device)
@@ -60,8 +61,14 @@ class DensityController:
         self.grad_sum += torch.where(visible, ndc, torch.zeros_like(ndc))
         self.count += visible.float()
 
-    def step(self, iteration: int, model: BoundGaussians, optimizer: torch.optim.Optimizer,
-             world_scales: Tensor, extent: float) -> dict[str, int]:
+    def step(
+        self,
+        iteration: int,
+        model: BoundGaussians,
+        optimizer: torch.optim.Optimizer,
+        world_scales: Tensor,
+        extent: float,
+    ) -> dict[str, int]:
         """Apply the schedule after optimizer step ``iteration`` (1-based). Returns counts of what changed."""
         c = self.cfg
         done = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
@@ -73,8 +80,9 @@ class DensityController:
             done["reset"] = model.num_gaussians
         return done
 
-    def _densify_and_prune(self, model: BoundGaussians, optimizer: torch.optim.Optimizer, world_scales: Tensor,
-                           extent: float) -> dict[str, int]:
+    def _densify_and_prune(
+        self, model: BoundGaussians, optimizer: torch.optim.Optimizer, world_scales: Tensor, extent: float
+    ) -> dict[str, int]:
         c = self.cfg
         grads = self.grad_sum / self.count.clamp_min(1)
         room = max(c.max_gaussians - model.num_gaussians, 0)
@@ -96,8 +104,13 @@ class DensityController:
         self.grad_sum = torch.zeros(model.num_gaussians, device=self.grad_sum.device)
         self.count = torch.zeros(model.num_gaussians, device=self.count.device)
         grown = len(clone_idx) + 2 * len(split_idx)
-        return {"cloned": len(clone_idx), "split": len(split_idx), "pruned": int(remove.sum()) - len(split_idx),
-                "total_before": n, "total_after": n + grown - int(remove.sum())}
+        return {
+            "cloned": len(clone_idx),
+            "split": len(split_idx),
+            "pruned": int(remove.sum()) - len(split_idx),
+            "total_before": n,
+            "total_after": n + grown - int(remove.sum()),
+        }
 
 
 def prunable(model: BoundGaussians, min_opacity: float) -> Tensor:
@@ -113,7 +126,8 @@ def last_of_triangle(model: BoundGaussians, remove: Tensor) -> Tensor:
     """(N,) bool marking, for each triangle whose Gaussians would all be removed, its most opaque one."""
     num_tri = int(model.binding.max()) + 1 if model.num_gaussians else 0
     survivors = torch.zeros(num_tri, dtype=torch.long, device=remove.device).index_add_(
-        0, model.binding, (~remove).long())
+        0, model.binding, (~remove).long()
+    )
     orphaned = survivors[model.binding] == 0
     score = torch.nan_to_num(model.opacity_logits.detach(), nan=-1e30)
     score = torch.where(orphaned, score, torch.full_like(score, -float("inf")))
@@ -154,8 +168,7 @@ def _rotate(q: Tensor, v: Tensor) -> Tensor:
     return v + w * t + torch.linalg.cross(xyz, t)
 
 
-def _replace(model: BoundGaussians, optimizer: torch.optim.Optimizer, name: str, value: Tensor,
-             edit_state) -> None:  # noqa: ANN001 - edit_state: Callable[[Tensor], Tensor]
+def _replace(model: BoundGaussians, optimizer: torch.optim.Optimizer, name: str, value: Tensor, edit_state) -> None:  # noqa: ANN001 - edit_state: Callable[[Tensor], Tensor]
     """Swap parameter ``name`` for ``value``, carrying its Adam moments through ``edit_state``."""
     old = getattr(model, name)
     new = nn.Parameter(value.contiguous())
@@ -165,13 +178,13 @@ def _replace(model: BoundGaussians, optimizer: torch.optim.Optimizer, name: str,
                 group["params"][i] = new
                 state = optimizer.state.pop(old, None)
                 if state:
-                    optimizer.state[new] = {k: (edit_state(v) if torch.is_tensor(v) and v.dim() > 0 else v)
-                                            for k, v in state.items()}
+                    optimizer.state[new] = {
+                        k: (edit_state(v) if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in state.items()
+                    }
     setattr(model, name, new)
 
 
-def _append(model: BoundGaussians, optimizer: torch.optim.Optimizer, src: Tensor,
-            overrides: dict[str, Tensor]) -> None:
+def _append(model: BoundGaussians, optimizer: torch.optim.Optimizer, src: Tensor, overrides: dict[str, Tensor]) -> None:
     """Append copies of Gaussians ``src`` (M,), with some parameters overridden; new moments are zero."""
     if len(src) == 0:
         return
@@ -179,8 +192,13 @@ def _append(model: BoundGaussians, optimizer: torch.optim.Optimizer, src: Tensor
     for name in PARAM_NAMES:
         p = getattr(model, name).detach()
         extra = overrides.get(name, p[src])
-        _replace(model, optimizer, name, torch.cat([p, extra]),
-                 lambda s: torch.cat([s, torch.zeros((m, *s.shape[1:]), dtype=s.dtype, device=s.device)]))
+        _replace(
+            model,
+            optimizer,
+            name,
+            torch.cat([p, extra]),
+            lambda s: torch.cat([s, torch.zeros((m, *s.shape[1:]), dtype=s.dtype, device=s.device)]),
+        )
     model.binding = torch.cat([model.binding, model.binding[src]])
     model.part = torch.cat([model.part, model.part[src]])
 

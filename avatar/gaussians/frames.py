@@ -83,24 +83,56 @@ def rotation_to_quaternion(R: Tensor) -> Tensor:
     """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) (w, x, y, z), w >= 0; NaN-free."""
     m = R
     trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    candidates = torch.stack([
-        1.0 + trace,
-        1.0 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
-        1.0 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
-        1.0 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
-    ], dim=-1)
+    candidates = torch.stack(
+        [
+            1.0 + trace,
+            1.0 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
+            1.0 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
+            1.0 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
+        ],
+        dim=-1,
+    )
     best = candidates.argmax(-1)
     s = torch.sqrt(torch.clamp(candidates.gather(-1, best[..., None]), min=_EPS))[..., 0] * 2  # 4 * |component|
-    w = torch.stack([s / 4, (m[..., 2, 1] - m[..., 1, 2]) / s, (m[..., 0, 2] - m[..., 2, 0]) / s,
-                     (m[..., 1, 0] - m[..., 0, 1]) / s], -1)
-    x = torch.stack([(m[..., 2, 1] - m[..., 1, 2]) / s, s / 4, (m[..., 0, 1] + m[..., 1, 0]) / s,
-                     (m[..., 0, 2] + m[..., 2, 0]) / s], -1)
-    y = torch.stack([(m[..., 0, 2] - m[..., 2, 0]) / s, (m[..., 0, 1] + m[..., 1, 0]) / s, s / 4,
-                     (m[..., 1, 2] + m[..., 2, 1]) / s], -1)
-    z = torch.stack([(m[..., 1, 0] - m[..., 0, 1]) / s, (m[..., 0, 2] + m[..., 2, 0]) / s,
-                     (m[..., 1, 2] + m[..., 2, 1]) / s, s / 4], -1)
-    q = torch.where((best == 0)[..., None], w, torch.where((best == 1)[..., None], x,
-                    torch.where((best == 2)[..., None], y, z)))
+    w = torch.stack(
+        [
+            s / 4,
+            (m[..., 2, 1] - m[..., 1, 2]) / s,
+            (m[..., 0, 2] - m[..., 2, 0]) / s,
+            (m[..., 1, 0] - m[..., 0, 1]) / s,
+        ],
+        -1,
+    )
+    x = torch.stack(
+        [
+            (m[..., 2, 1] - m[..., 1, 2]) / s,
+            s / 4,
+            (m[..., 0, 1] + m[..., 1, 0]) / s,
+            (m[..., 0, 2] + m[..., 2, 0]) / s,
+        ],
+        -1,
+    )
+    y = torch.stack(
+        [
+            (m[..., 0, 2] - m[..., 2, 0]) / s,
+            (m[..., 0, 1] + m[..., 1, 0]) / s,
+            s / 4,
+            (m[..., 1, 2] + m[..., 2, 1]) / s,
+        ],
+        -1,
+    )
+    z = torch.stack(
+        [
+            (m[..., 1, 0] - m[..., 0, 1]) / s,
+            (m[..., 0, 2] + m[..., 2, 0]) / s,
+            (m[..., 1, 2] + m[..., 2, 1]) / s,
+            s / 4,
+        ],
+        -1,
+    )
+    q = torch.where(
+        (best == 0)[..., None], w, torch.where((best == 1)[..., None], x, torch.where((best == 2)[..., None], y, z))
+    )
     return q * torch.where(q[..., :1] < 0, -1.0, 1.0)
 
 
@@ -108,16 +140,20 @@ def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
     """Hamilton product a * b of (..., 4) quaternions (w, x, y, z)."""
     aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], dim=-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
 
 
-def place_means(frames: TriangleFrames, binding: Tensor, local_means: Tensor,
-                local_scales: Tensor) -> tuple[Tensor, Tensor]:
+def place_means(
+    frames: TriangleFrames, binding: Tensor, local_means: Tensor, local_scales: Tensor
+) -> tuple[Tensor, Tensor]:
     """World means (..., N, 3) and scales (..., N, 3) of bound Gaussians: :func:`place_gaussians` without the
     rotations, for callers that need only where the Gaussians are and how large (the arguments as there)."""
     R = frames.rotation[..., binding, :, :]
@@ -126,8 +162,9 @@ def place_means(frames: TriangleFrames, binding: Tensor, local_means: Tensor,
     return means, k * local_scales
 
 
-def place_gaussians(frames: TriangleFrames, binding: Tensor, local_means: Tensor, local_scales: Tensor,
-                    local_quats: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def place_gaussians(
+    frames: TriangleFrames, binding: Tensor, local_means: Tensor, local_scales: Tensor, local_quats: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
     """World means (..., N, 3), scales (..., N, 3) and quaternions (..., N, 4) of bound Gaussians.
 
     Args:

@@ -49,8 +49,16 @@ class BoundGaussians(nn.Module):
     binding: Tensor
     part: Tensor
 
-    def __init__(self, local_means: Tensor, log_scales: Tensor, quats: Tensor, opacity_logits: Tensor,
-                 sh_dc: Tensor, binding: Tensor, part: Tensor) -> None:
+    def __init__(
+        self,
+        local_means: Tensor,
+        log_scales: Tensor,
+        quats: Tensor,
+        opacity_logits: Tensor,
+        sh_dc: Tensor,
+        binding: Tensor,
+        part: Tensor,
+    ) -> None:
         super().__init__()
         self.local_means = nn.Parameter(local_means)
         self.log_scales = nn.Parameter(log_scales)
@@ -61,9 +69,17 @@ class BoundGaussians(nn.Module):
         self.register_buffer("part", part.long())
 
     @classmethod
-    def on_triangles(cls, vertices: Tensor, faces: Tensor, face_part: Tensor, per_triangle: int,
-                     init_opacity: float = 0.1, init_rgb: float = 0.5, seed: int = 0,
-                     populate: Tensor | None = None) -> BoundGaussians:
+    def on_triangles(
+        cls,
+        vertices: Tensor,
+        faces: Tensor,
+        face_part: Tensor,
+        per_triangle: int,
+        init_opacity: float = 0.1,
+        init_rgb: float = 0.5,
+        seed: int = 0,
+        populate: Tensor | None = None,
+    ) -> BoundGaussians:
         """``per_triangle`` Gaussians spread over every triangle of the rest mesh (or of ``populate``).
 
         Args:
@@ -129,5 +145,6 @@ class BoundGaussians(nn.Module):
 
     def world(self, vertices: Tensor, faces: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """World means (N, 3), linear scales (N, 3) and quaternions (N, 4) on the posed mesh ``vertices`` (V, 3)."""
-        return place_gaussians(triangle_frames(vertices, faces), self.binding, self.local_means,
-                               torch.exp(self.log_scales), self.quats)
+        return place_gaussians(
+            triangle_frames(vertices, faces), self.binding, self.local_means, torch.exp(self.log_scales), self.quats
+        )

@@ -27,8 +27,9 @@ def _batch_mean(values: Tensor) -> float:
 
 
 @torch.no_grad()
-def image_metrics(pred: Tensor, gt: Tensor, mask: Tensor | None = None,
-                  lpips_model: LPIPS | None = None) -> dict[str, float]:
+def image_metrics(
+    pred: Tensor, gt: Tensor, mask: Tensor | None = None, lpips_model: LPIPS | None = None
+) -> dict[str, float]:
     """PSNR (dB), SSIM and LPIPS-alex of rendered images, optionally restricted to a region.
 
     Region (``mask``) definitions: PSNR is over the masked pixels (see

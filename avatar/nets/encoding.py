@@ -23,7 +23,7 @@ def positional_encoding(x: Tensor, num_frequencies: int, include_input: bool = T
         raise ValueError(f"num_frequencies must be >= 0, got {num_frequencies}")
     parts = [x] if include_input else []
     for k in range(num_frequencies):
-        angle = (2.0 ** k * math.pi) * x
+        angle = (2.0**k * math.pi) * x
         parts += [torch.sin(angle), torch.cos(angle)]
     return torch.cat(parts, dim=-1) if parts else x[..., :0]
 

@@ -49,7 +49,7 @@ class SplitLinear(nn.Module):
         parts = (point,) if isinstance(point, Tensor) else point
         out, start = None, 0
         for part in parts:
-            weight = self.point.weight[:, start:start + part.shape[1]]
+            weight = self.point.weight[:, start : start + part.shape[1]]
             out = torch.addmm(bias, part, weight.T) if out is None else torch.addmm(out, part, weight.T)
             start += part.shape[1]
         if out is None:
@@ -64,8 +64,15 @@ class DeltaMLP(nn.Module):
     start at zero, so the delta is exactly 0 before training and the model renders the warm-up result.
     """
 
-    def __init__(self, point_dim: int, frame_dim: int, out_dim: int, width: int = 256, depth: int = 4,
-                 negative_slope: float = 0.01) -> None:
+    def __init__(
+        self,
+        point_dim: int,
+        frame_dim: int,
+        out_dim: int,
+        width: int = 256,
+        depth: int = 4,
+        negative_slope: float = 0.01,
+    ) -> None:
         super().__init__()
         if depth < 1 or width < 1:
             raise ValueError(f"DeltaMLP needs depth >= 1 and width >= 1, got depth={depth}, width={width}")
@@ -103,8 +110,9 @@ class DeltaHeads(nn.Module):
 
     def __init__(self, outputs: dict[str, int], point_dim: int, frame_dim: int, width: int, depth: int) -> None:
         super().__init__()
-        self.heads = nn.ModuleDict({name: DeltaMLP(point_dim, frame_dim, dim, width, depth)
-                                    for name, dim in outputs.items()})
+        self.heads = nn.ModuleDict(
+            {name: DeltaMLP(point_dim, frame_dim, dim, width, depth) for name, dim in outputs.items()}
+        )
 
     def forward(self, point: PointInputs, frame: Tensor) -> dict[str, Tensor]:
         """point (N, P) or its parts, frame (Fd,) -> {name: (N, dim)}."""

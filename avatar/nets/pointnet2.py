@@ -51,7 +51,9 @@ BALL_QUERY_CHUNK_ELEMENTS = 1 << 24
 #: The classic single-scale-grouping widths (PointNet++ SSG classification); the last width is the
 #: encoder's ``feature_dim``.
 CLASSIC_WIDTHS: tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]] = (
-    (64, 64, 128), (128, 128, 256), (256, 512, 1024),
+    (64, 64, 128),
+    (128, 128, 256),
+    (256, 512, 1024),
 )
 
 
@@ -149,7 +151,10 @@ def _ball_query_block(points: torch.Tensor, centres: torch.Tensor, radius: float
 
 
 def ball_query(
-    points: torch.Tensor, centres: torch.Tensor, radius: float, max_neighbours: int,
+    points: torch.Tensor,
+    centres: torch.Tensor,
+    radius: float,
+    max_neighbours: int,
     chunk_elements: int | None = None,
 ) -> torch.Tensor:
     """Neighbours of every centre (M, 3) among points (N >= 1, 3) within ``radius`` (inclusive).
@@ -165,7 +170,7 @@ def ball_query(
     limit = BALL_QUERY_CHUNK_ELEMENTS if chunk_elements is None else chunk_elements
     chunk = max(1, limit // max(n, 1))
     p, c = points.detach(), centres.detach().to(points.dtype)
-    blocks = [_ball_query_block(p, c[s:s + chunk], radius, max_neighbours) for s in range(0, m, chunk)]
+    blocks = [_ball_query_block(p, c[s : s + chunk], radius, max_neighbours) for s in range(0, m, chunk)]
     if not blocks:
         return torch.empty(0, max_neighbours, dtype=torch.int64, device=points.device)
     return torch.cat(blocks)
@@ -185,7 +190,10 @@ class SharedMLP(nn.Sequential):
 
 
 def group(
-    xyz: torch.Tensor, features: torch.Tensor | None, centres: torch.Tensor, neighbours: torch.Tensor,
+    xyz: torch.Tensor,
+    features: torch.Tensor | None,
+    centres: torch.Tensor,
+    neighbours: torch.Tensor,
     radius: float,
 ) -> torch.Tensor:
     """Grouped inputs (M, K, 3 + C) of a set abstraction: neighbour coordinates relative to their centre
@@ -213,7 +221,12 @@ class SetAbstraction(nn.Module):
     with M = min(num_centres, N), N >= 1; FPS starts at ``fps_start(xyz)``."""
 
     def __init__(
-        self, num_centres: int, radius: float, max_neighbours: int, in_features: int, widths: Sequence[int],
+        self,
+        num_centres: int,
+        radius: float,
+        max_neighbours: int,
+        in_features: int,
+        widths: Sequence[int],
     ) -> None:
         super().__init__()
         self.num_centres = num_centres
@@ -223,7 +236,9 @@ class SetAbstraction(nn.Module):
         self.mlp = SharedMLP(3 + in_features, widths)
 
     def forward(
-        self, xyz: torch.Tensor, features: torch.Tensor | None = None,
+        self,
+        xyz: torch.Tensor,
+        features: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         centre_index = farthest_point_sample(xyz, self.num_centres, start=fps_start(xyz))
         centres = xyz[centre_index]
@@ -232,8 +247,10 @@ class SetAbstraction(nn.Module):
         return centres, self.mlp(grouped).amax(dim=1)
 
     def extra_repr(self) -> str:
-        return (f"num_centres={self.num_centres}, radius={self.radius}, max_neighbours={self.max_neighbours}, "
-                f"in_features={self.in_features}")
+        return (
+            f"num_centres={self.num_centres}, radius={self.radius}, max_neighbours={self.max_neighbours}, "
+            f"in_features={self.in_features}"
+        )
 
 
 class GlobalAbstraction(nn.Module):
@@ -256,7 +273,8 @@ class GlobalAbstraction(nn.Module):
 
 
 def classic_widths(
-    feature_dim: int = 1024, multiplier: float = 1.0,
+    feature_dim: int = 1024,
+    multiplier: float = 1.0,
 ) -> tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]]:
     """The classic SSG widths with every hidden width scaled by ``multiplier`` (at least 8) and the
     final one set to ``feature_dim``."""

@@ -11,13 +11,23 @@ attachment, collision projections), ``collision`` (closest points and inside tes
 from avatar.pbd.convention import world_to_decaf_offsets
 from avatar.pbd.evaluation import VertexErrors, moving_vertex_errors
 from avatar.pbd.problem import FaceTopology, PBDConfig
-from avatar.pbd.solver import FrameResult, detect_contacts, single_threaded, solve_frame, solve_sequence
 from avatar.pbd.sequence import SequenceDeformation, simulate_sequence
+from avatar.pbd.solver import FrameResult, detect_contacts, single_threaded, solve_frame, solve_sequence
 from avatar.pbd.stiffness import StiffnessFileError, face_relative_stiffness
 
 __all__ = [
-    "FaceTopology", "FrameResult", "PBDConfig", "SequenceDeformation", "StiffnessFileError", "VertexErrors",
-    "detect_contacts", "face_relative_stiffness", "moving_vertex_errors", "simulate_sequence", "single_threaded",
-    "solve_frame", "solve_sequence",
+    "FaceTopology",
+    "FrameResult",
+    "PBDConfig",
+    "SequenceDeformation",
+    "StiffnessFileError",
+    "VertexErrors",
+    "detect_contacts",
+    "face_relative_stiffness",
+    "moving_vertex_errors",
+    "simulate_sequence",
+    "single_threaded",
+    "solve_frame",
+    "solve_sequence",
     "world_to_decaf_offsets",
 ]

@@ -16,7 +16,6 @@ import torch
 
 from avatar.synthetic.geometry import winding_number
 
-
 #: Points this close to the hand surface (metres) always take the winding-number test.
 AMBIGUOUS_BAND_M = 0.005
 
@@ -59,15 +58,17 @@ def closest_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: t
     w = (d00 * d21 - d01 * d20) / safe
     interior = ok & (v >= 0) & (w >= 0) & (v + w <= 1)
     on_plane = a + v[..., None] * ab + w[..., None] * ac
-    edges = torch.stack([_closest_on_segments(p, a, b), _closest_on_segments(p, b, c),
-                         _closest_on_segments(p, c, a)], dim=-2)  # (..., 3 edges, 3)
+    edges = torch.stack(
+        [_closest_on_segments(p, a, b), _closest_on_segments(p, b, c), _closest_on_segments(p, c, a)], dim=-2
+    )  # (..., 3 edges, 3)
     best = ((edges - p[..., None, :]) ** 2).sum(-1).argmin(-1, keepdim=True)
     on_edge = torch.take_along_dim(edges, best[..., None], dim=-2).squeeze(-2)
     return torch.where(interior[..., None], on_plane, on_edge)
 
 
-def closest_on_mesh(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, candidates: int = 16
-                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def closest_on_mesh(
+    points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, candidates: int = 16
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Nearest surface points (N, 3), distances (N,) and the index (N,) int64 of the triangle holding
     each, for points (N, 3) and a triangle mesh."""
     if points.shape[0] == 0:
@@ -82,8 +83,7 @@ def closest_on_mesh(points: torch.Tensor, vertices: torch.Tensor, faces: torch.T
     return cand[rows, best], d2[rows, best].sqrt(), idx[rows, best]
 
 
-def query_hand(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, max_depth: float
-               ) -> HandQuery:
+def query_hand(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, max_depth: float) -> HandQuery:
     """Closest hand points and the inside test for points (N, 3).
 
     The winding number costs N x F, so only points that may be inside take it: within

@@ -35,8 +35,14 @@ class EdgeSet:
     stiffness: torch.Tensor
     lam: torch.Tensor
 
-    def project(self, x: torch.Tensor, w: torch.Tensor, rows: torch.Tensor | slice, relax: float | torch.Tensor = 1.0,
-                out: torch.Tensor | None = None) -> None:
+    def project(
+        self,
+        x: torch.Tensor,
+        w: torch.Tensor,
+        rows: torch.Tensor | slice,
+        relax: float | torch.Tensor = 1.0,
+        out: torch.Tensor | None = None,
+    ) -> None:
         i, j = self.idx[rows, 0], self.idx[rows, 1]
         d = x[i] - x[j]
         length = d.norm(dim=1)
@@ -73,8 +79,14 @@ class LinearSet:
         """(M, 3) constraint values C."""
         return (self.a[rows, :, None] * x[self.idx[rows]]).sum(1) - self.b[rows]
 
-    def project(self, x: torch.Tensor, w: torch.Tensor, rows: torch.Tensor | slice, relax: float | torch.Tensor = 1.0,
-                out: torch.Tensor | None = None) -> None:
+    def project(
+        self,
+        x: torch.Tensor,
+        w: torch.Tensor,
+        rows: torch.Tensor | slice,
+        relax: float | torch.Tensor = 1.0,
+        out: torch.Tensor | None = None,
+    ) -> None:
         idx, a, k = self.idx[rows], self.a[rows], self.stiffness[rows]
         wa = w[idx] * a  # (M, K)
         denom = k * (wa * a).sum(1) + 1.0

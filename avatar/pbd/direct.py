@@ -79,10 +79,18 @@ def solve_direct(problem: FrameProblem) -> int:
     edges = problem.edges.idx.cpu().numpy()
     length = problem.edges.rest.cpu().numpy()
     if cfg.shear_stiffness > 0:  # tissue shear: neighbours' displacements alike, k |d_i - d_j|^2 / 2 per edge
-        add(edges, np.tile([1.0, -1.0], (edges.shape[0], 1)), np.full(edges.shape[0], cfg.shear_stiffness),
-            rest[edges[:, 0]] - rest[edges[:, 1]])
-    e0, e1 = add(edges, np.tile([1.0, -1.0], (edges.shape[0], 1)), problem.edges.stiffness.cpu().numpy(),
-                 np.zeros((edges.shape[0], 3)))
+        add(
+            edges,
+            np.tile([1.0, -1.0], (edges.shape[0], 1)),
+            np.full(edges.shape[0], cfg.shear_stiffness),
+            rest[edges[:, 0]] - rest[edges[:, 1]],
+        )
+    e0, e1 = add(
+        edges,
+        np.tile([1.0, -1.0], (edges.shape[0], 1)),
+        problem.edges.stiffness.cpu().numpy(),
+        np.zeros((edges.shape[0], 3)),
+    )
     r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
     k = np.concatenate(weights)
     target = np.concatenate(targets)

@@ -36,5 +36,10 @@ def moving_vertex_errors(pred: np.ndarray, ref: np.ndarray, contact: np.ndarray)
         return None
     err = np.linalg.norm(p - r, axis=-1)[moving] * 1e3
     zero = ref_norm[moving] * 1e3
-    return VertexErrors(float(err.mean()), float(np.percentile(err, 95)), float(zero.mean()),
-                        float(np.percentile(zero, 95)), int(moving.sum()))
+    return VertexErrors(
+        float(err.mean()),
+        float(np.percentile(err, 95)),
+        float(zero.mean()),
+        float(np.percentile(zero, 95)),
+        int(moving.sum()),
+    )

@@ -61,8 +61,10 @@ class PBDConfig:
         if self.method not in METHODS:
             problems.append(f"method={self.method!r}: choose one of {METHODS}")
         if not 0.0 <= self.chebyshev_rho < 1.0 or (self.chebyshev_rho > 0 and self.method == "gauss_seidel"):
-            problems.append(f"chebyshev_rho={self.chebyshev_rho}: must lie in [0, 1), and be 0 unless method=jacobi "
-                            f"(it diverges on Gauss-Seidel)")
+            problems.append(
+                f"chebyshev_rho={self.chebyshev_rho}: must lie in [0, 1), and be 0 unless method=jacobi "
+                f"(it diverges on Gauss-Seidel)"
+            )
         if not 0.0 < self.relaxation <= 2.0:
             problems.append(f"relaxation={self.relaxation}: must lie in (0, 2] (larger steps diverge)")
         if self.iterations < 0 or self.detect_every < 1 or self.final_passes < 0:
@@ -71,8 +73,14 @@ class PBDConfig:
             problems.append(f"direct_outer={self.direct_outer}, direct_inner={self.direct_inner}: must be >= 1")
         if self.volume_stiffness > 0 and self.method != "direct":
             problems.append(f"volume_stiffness={self.volume_stiffness}: only method=direct has the volume term")
-        lengths = ("margin_m", "free_radius_m", "clearance_m", "max_depth_m", "contact_tolerance_m",
-                   "reference_thickness_m")
+        lengths = (
+            "margin_m",
+            "free_radius_m",
+            "clearance_m",
+            "max_depth_m",
+            "contact_tolerance_m",
+            "reference_thickness_m",
+        )
         stiffnesses = ("edge_stiffness", "bend_stiffness", "attach_stiffness", "volume_stiffness", "shear_stiffness")
         problems += [f"{k}={getattr(self, k)}: must be > 0" for k in lengths if not getattr(self, k) > 0]
         problems += [f"{k}={getattr(self, k)}: must be >= 0" for k in stiffnesses if not getattr(self, k) >= 0]
@@ -106,38 +114,56 @@ class FrameProblem:
         free: (V,) bool, the vertices that may move; start: (V, 3) initial positions (warm start).
     """
 
-    def __init__(self, rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, topology: FaceTopology,
-                 stiffness: torch.Tensor, free: torch.Tensor, start: torch.Tensor, cfg: PBDConfig) -> None:
+    def __init__(
+        self,
+        rest: torch.Tensor,
+        hand: torch.Tensor,
+        hand_faces: torch.Tensor,
+        topology: FaceTopology,
+        stiffness: torch.Tensor,
+        free: torch.Tensor,
+        start: torch.Tensor,
+        cfg: PBDConfig,
+    ) -> None:
         self.rest, self.hand, self.hand_faces, self.cfg = rest, hand, hand_faces, cfg
         self.topology_faces = topology.faces.cpu().numpy()
         self.stiffness_rel = stiffness
         self.x = torch.where(free[:, None], start, rest).clone()
         self.w = free.to(rest.dtype)
         self.free_idx = torch.nonzero(free).squeeze(1)
-        self.attach = attachment_set(self.free_idx, rest[self.free_idx],
-                                     cfg.attach_stiffness * stiffness[self.free_idx].to(rest.dtype))
+        self.attach = attachment_set(
+            self.free_idx, rest[self.free_idx], cfg.attach_stiffness * stiffness[self.free_idx].to(rest.dtype)
+        )
         active_e = free[topology.edges].any(dim=1)
         edges = topology.edges[active_e]
-        self.edges = EdgeSet(edges, (rest[edges[:, 0]] - rest[edges[:, 1]]).norm(dim=1),
-                             torch.full((edges.shape[0],), cfg.edge_stiffness, dtype=rest.dtype),
-                             rest.new_zeros(edges.shape[0]))
+        self.edges = EdgeSet(
+            edges,
+            (rest[edges[:, 0]] - rest[edges[:, 1]]).norm(dim=1),
+            torch.full((edges.shape[0],), cfg.edge_stiffness, dtype=rest.dtype),
+            rest.new_zeros(edges.shape[0]),
+        )
         self.edge_colours = _active(topology.edge_colours, active_e)
         active_b = free[topology.stencils].any(dim=1)
         self.bend = bending_set(topology.stencils[active_b], rest, cfg.bend_stiffness)
         self.bend_colours = _active(topology.bend_colours, active_b)
         # tissue shear: k |d_i - d_j|^2 / 2 on the displacements d = x - rest of every active edge
-        self.shear = LinearSet(edges, torch.tensor([1.0, -1.0], dtype=rest.dtype).repeat(edges.shape[0], 1),
-                               rest[edges[:, 0]] - rest[edges[:, 1]],
-                               torch.full((edges.shape[0],), cfg.shear_stiffness, dtype=rest.dtype),
-                               rest.new_zeros(edges.shape[0], 3))
+        self.shear = LinearSet(
+            edges,
+            torch.tensor([1.0, -1.0], dtype=rest.dtype).repeat(edges.shape[0], 1),
+            rest[edges[:, 0]] - rest[edges[:, 1]],
+            torch.full((edges.shape[0],), cfg.shear_stiffness, dtype=rest.dtype),
+            rest.new_zeros(edges.shape[0], 3),
+        )
         self.collisions = CollisionSet(self.free_idx[:0], rest[:0], rest[:0])
         # Jacobi: each constraint's step is divided by the most constraints one of its vertices takes part in
         count = self.w.clone()  # one attachment per free vertex
         shear_idx = [edges.reshape(-1)] if cfg.shear_stiffness > 0 else []
         for idx in [edges.reshape(-1), self.bend.idx.reshape(-1)] + shear_idx:
             count.index_add_(0, idx, torch.ones(idx.shape[0], dtype=rest.dtype))
-        self.jacobi_relax = [cfg.relaxation / count[c.idx].amax(dim=1).clamp_min(1.0)
-                             for c in (self.attach, self.edges, self.bend, self.shear)]
+        self.jacobi_relax = [
+            cfg.relaxation / count[c.idx].amax(dim=1).clamp_min(1.0)
+            for c in (self.attach, self.edges, self.bend, self.shear)
+        ]
 
     def detect(self) -> HandQuery:
         """Refresh the collision planes from the free vertices' current positions."""
@@ -172,8 +198,12 @@ class FrameProblem:
 
     def residual(self) -> float:
         """Largest XPBD residual ``|k C + lam|`` over the compliant constraints (zero at convergence)."""
-        parts = (self.attach.residual(self.x), self.edges.residual(self.x), self.bend.residual(self.x),
-                 self.shear.residual(self.x))
+        parts = (
+            self.attach.residual(self.x),
+            self.edges.residual(self.x),
+            self.bend.residual(self.x),
+            self.shear.residual(self.x),
+        )
         return float(torch.cat(parts).abs().max())
 
 

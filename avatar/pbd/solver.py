@@ -35,7 +35,6 @@ from avatar.pbd.direct import solve_direct
 from avatar.pbd.problem import FaceTopology, FrameProblem, PBDConfig
 from avatar.threads import single_threaded
 
-
 #: Plain sweeps before the Chebyshev extrapolation starts.
 CHEBYSHEV_DELAY = 10
 
@@ -77,7 +76,7 @@ def _iterate(problem: FrameProblem, cfg: PBDConfig) -> None:
         if before is None:
             continue
         if it >= CHEBYSHEV_DELAY and previous is not None:
-            rho2 = cfg.chebyshev_rho ** 2
+            rho2 = cfg.chebyshev_rho**2
             omega = 2.0 / (2.0 - rho2) if it == CHEBYSHEV_DELAY else 4.0 / (4.0 - rho2 * omega)
             for s, p in zip(problem.state(), previous):
                 s.copy_(omega * (s - p) + p)
@@ -85,8 +84,9 @@ def _iterate(problem: FrameProblem, cfg: PBDConfig) -> None:
         previous = before
 
 
-def _hand_contact(hand: torch.Tensor, face: torch.Tensor, faces: torch.Tensor, face_contact: torch.Tensor,
-                  cfg: PBDConfig) -> torch.Tensor:
+def _hand_contact(
+    hand: torch.Tensor, face: torch.Tensor, faces: torch.Tensor, face_contact: torch.Tensor, cfg: PBDConfig
+) -> torch.Tensor:
     """(Vh,) bool: hand vertices behind, or within ``contact_tolerance_m`` of, the face patch of
     triangles around the contact vertices (face (V, 3), faces (F, 3), face_contact (V,) bool)."""
     out = torch.zeros(hand.shape[0], dtype=torch.bool)
@@ -104,8 +104,9 @@ def _hand_contact(hand: torch.Tensor, face: torch.Tensor, faces: torch.Tensor, f
     return out
 
 
-def _penetrating(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, cfg: PBDConfig
-                 ) -> tuple[bool, torch.Tensor]:
+def _penetrating(
+    rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, cfg: PBDConfig
+) -> tuple[bool, torch.Tensor]:
     """Whether the hand comes within ``margin_m`` of the face (V, 3), and the (S,) face vertices inside it."""
     lo, hi = hand.amin(0) - cfg.margin_m, hand.amax(0) + cfg.margin_m
     cand = torch.nonzero(((rest >= lo) & (rest <= hi)).all(dim=1)).squeeze(1)
@@ -113,8 +114,9 @@ def _penetrating(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tenso
     return bool((q.distance < cfg.margin_m).any()), cand[q.inside]
 
 
-def detect_contacts(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, faces: torch.Tensor,
-                    cfg: PBDConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def detect_contacts(
+    rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, faces: torch.Tensor, cfg: PBDConfig
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Contact flags of the undeformed meshes, without solving: face vertices (V,) inside the hand,
     and hand vertices (Vh,) touching or inside the face around them."""
     _, seeds = _penetrating(rest, hand, hand_faces, cfg)
@@ -123,8 +125,15 @@ def detect_contacts(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Te
     return face_contact, _hand_contact(hand, rest, faces, face_contact, cfg)
 
 
-def solve_frame(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor, topology: FaceTopology,
-                stiffness: torch.Tensor, cfg: PBDConfig, warm: torch.Tensor | None = None) -> FrameResult:
+def solve_frame(
+    rest: torch.Tensor,
+    hand: torch.Tensor,
+    hand_faces: torch.Tensor,
+    topology: FaceTopology,
+    stiffness: torch.Tensor,
+    cfg: PBDConfig,
+    warm: torch.Tensor | None = None,
+) -> FrameResult:
     """Offsets of one frame (see the module docstring).
 
     Args:
@@ -137,8 +146,13 @@ def solve_frame(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor
     began = time.perf_counter()
     near, seeds = _penetrating(rest, hand, hand_faces, cfg)
     if seeds.numel() == 0:
-        return FrameResult(torch.zeros_like(rest), torch.zeros(rest.shape[0], dtype=torch.bool),
-                           torch.zeros(hand.shape[0], dtype=torch.bool), near=near, simulated=False)
+        return FrameResult(
+            torch.zeros_like(rest),
+            torch.zeros(rest.shape[0], dtype=torch.bool),
+            torch.zeros(hand.shape[0], dtype=torch.bool),
+            near=near,
+            simulated=False,
+        )
     free = torch.cdist(rest, rest[seeds]).amin(dim=1) < cfg.free_radius_m
     start = rest if warm is None else rest + warm
     problem = FrameProblem(rest, hand, hand_faces, topology, stiffness, free, start, cfg)
@@ -157,16 +171,27 @@ def solve_frame(rest: torch.Tensor, hand: torch.Tensor, hand_faces: torch.Tensor
     face_contact[problem.free_idx[q.inside | (q.distance < cfg.contact_tolerance_m)]] = True
     depth = q.depth
     return FrameResult(
-        offsets=problem.x - rest, face_contact=face_contact,
+        offsets=problem.x - rest,
+        face_contact=face_contact,
         hand_contact=_hand_contact(hand, problem.x, topology.faces, face_contact, cfg),
-        near=True, simulated=True, iterations=iterations, free_vertices=int(free.sum()),
-        penetration_max_m=float(depth.max()), penetration_mean_m=float(depth[face_contact[problem.free_idx]].mean()),
+        near=True,
+        simulated=True,
+        iterations=iterations,
+        free_vertices=int(free.sum()),
+        penetration_max_m=float(depth.max()),
+        penetration_mean_m=float(depth[face_contact[problem.free_idx]].mean()),
         seconds=time.perf_counter() - began,
     )
 
 
-def solve_sequence(face: torch.Tensor, hand: torch.Tensor, face_faces: torch.Tensor, hand_faces: torch.Tensor,
-                   stiffness: torch.Tensor, cfg: PBDConfig) -> list[FrameResult]:
+def solve_sequence(
+    face: torch.Tensor,
+    hand: torch.Tensor,
+    face_faces: torch.Tensor,
+    hand_faces: torch.Tensor,
+    stiffness: torch.Tensor,
+    cfg: PBDConfig,
+) -> list[FrameResult]:
     """Solve every frame on one thread; with ``cfg.warm_start`` each starts from the previous frame's offsets.
 
     Args: face (T, V, 3) and hand (T, Vh, 3) posed meshes (world metres), their faces, the (V,)
@@ -175,8 +200,10 @@ def solve_sequence(face: torch.Tensor, hand: torch.Tensor, face_faces: torch.Ten
     for t in range(face.shape[0]):
         for name, verts in (("face", face[t]), ("hand", hand[t])):
             if not bool(torch.isfinite(verts).all()):
-                raise ValueError(f"frame {t}: the posed {name} mesh has non-finite vertices (NaN or inf "
-                                 f"parameters in this frame); fix or drop the frame's parameters")
+                raise ValueError(
+                    f"frame {t}: the posed {name} mesh has non-finite vertices (NaN or inf "
+                    f"parameters in this frame); fix or drop the frame's parameters"
+                )
     results: list[FrameResult] = []
     with single_threaded():
         topology = FaceTopology.build(face_faces)

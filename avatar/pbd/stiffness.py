@@ -47,25 +47,34 @@ def _read_file(path: Path, num_vertices: int, reference_thickness: float, power:
             elif "thickness_m" in data:
                 values, relative = np.asarray(data["thickness_m"], dtype=np.float64), False
             else:
-                raise StiffnessFileError(f"{path}: an .npz face stiffness file needs an array 'stiffness' or "
-                                         f"'thickness_m'; it has {sorted(data.files)}")
+                raise StiffnessFileError(
+                    f"{path}: an .npz face stiffness file needs an array 'stiffness' or "
+                    f"'thickness_m'; it has {sorted(data.files)}"
+                )
     else:
         values, relative = np.asarray(data, dtype=np.float64), False
     if values.shape != (num_vertices,):
-        raise StiffnessFileError(f"{path}: {values.shape} values, but the head model has {num_vertices} vertices; "
-                                 f"give one value per vertex")
+        raise StiffnessFileError(
+            f"{path}: {values.shape} values, but the head model has {num_vertices} vertices; give one value per vertex"
+        )
     if not np.isfinite(values).all() or (values < 0).any():
         raise StiffnessFileError(f"{path}: values must be finite and non-negative")
     return values if relative else relative_stiffness(values, reference_thickness, power)
 
 
-def face_relative_stiffness(num_vertices: int, inner_distance: np.ndarray | None, path: str | Path | None,
-                            reference_thickness: float, power: float) -> tuple[np.ndarray, str]:
+def face_relative_stiffness(
+    num_vertices: int,
+    inner_distance: np.ndarray | None,
+    path: str | Path | None,
+    reference_thickness: float,
+    power: float,
+) -> tuple[np.ndarray, str]:
     """(V,) relative attachment stiffness and where it came from (``file:<name>``, ``template`` or
     ``fallback_uniform``); see the module docstring for the order."""
     if path:
         return _read_file(Path(path), num_vertices, reference_thickness, power), f"file:{Path(path).name}"
     if inner_distance is not None:
         return relative_stiffness(np.asarray(inner_distance), reference_thickness, power), "template"
-    return relative_stiffness(np.full(num_vertices, FALLBACK_THICKNESS_M), reference_thickness, power), \
-        "fallback_uniform"
+    return relative_stiffness(
+        np.full(num_vertices, FALLBACK_THICKNESS_M), reference_thickness, power
+    ), "fallback_uniform"

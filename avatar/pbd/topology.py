@@ -44,5 +44,7 @@ def colour_constraints(vertex_sets: torch.Tensor) -> list[torch.Tensor]:
         colour[m] = c
         for v in verts:
             used.setdefault(int(v), set()).add(c)
-    return [torch.as_tensor(np.flatnonzero(colour == c), device=vertex_sets.device)
-            for c in range(int(colour.max(initial=-1)) + 1)]
+    return [
+        torch.as_tensor(np.flatnonzero(colour == c), device=vertex_sets.device)
+        for c in range(int(colour.max(initial=-1)) + 1)
+    ]

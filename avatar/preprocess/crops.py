@@ -55,7 +55,7 @@ class SquareCrop:
         ys, xs = max(self.y0, 0), max(self.x0, 0)
         ye, xe = min(self.y0 + self.size, h), min(self.x0 + self.size, w)
         if ye > ys and xe > xs:
-            window[ys - self.y0: ye - self.y0, xs - self.x0: xe - self.x0] = image[ys:ye, xs:xe]
+            window[ys - self.y0 : ye - self.y0, xs - self.x0 : xe - self.x0] = image[ys:ye, xs:xe]
         if self.size == self.out:
             return window
         interp = cv2.INTER_NEAREST if labels else (cv2.INTER_AREA if self.out < self.size else cv2.INTER_LINEAR)

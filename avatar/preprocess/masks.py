@@ -9,10 +9,14 @@ import numpy as np
 
 def background_colour(frames: np.ndarray, border: int = 2) -> np.ndarray:
     """Median colour (3,) of the image borders over all frames (T, H, W, 3) uint8."""
-    edges = np.concatenate([
-        frames[:, :border].reshape(-1, 3), frames[:, -border:].reshape(-1, 3),
-        frames[:, :, :border].reshape(-1, 3), frames[:, :, -border:].reshape(-1, 3),
-    ])
+    edges = np.concatenate(
+        [
+            frames[:, :border].reshape(-1, 3),
+            frames[:, -border:].reshape(-1, 3),
+            frames[:, :, :border].reshape(-1, 3),
+            frames[:, :, -border:].reshape(-1, 3),
+        ]
+    )
     return np.median(edges, axis=0)
 
 

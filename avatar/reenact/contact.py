@@ -82,8 +82,9 @@ def _barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 def surface_twins(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> SurfaceTwins:
     """Where ``points`` (N, 3) sit relative to the face mesh ``vertices`` (V, 3), ``faces`` (F, 3)."""
-    closest_t, distance, triangle_t = closest_on_mesh(torch.from_numpy(points), torch.from_numpy(vertices),
-                                                      torch.from_numpy(np.array(faces, dtype=np.int64)))
+    closest_t, distance, triangle_t = closest_on_mesh(
+        torch.from_numpy(points), torch.from_numpy(vertices), torch.from_numpy(np.array(faces, dtype=np.int64))
+    )
     closest, triangle = closest_t.numpy(), triangle_t.numpy()
     frames = triangle_frames(vertices, faces)[triangle]
     local = np.einsum("nji,nj->ni", frames, points - closest)
@@ -114,8 +115,13 @@ class Placement:
     driver_depth_m: float
 
 
-def place_hand(driver_hand: np.ndarray, driver_face: np.ndarray, target_hand: np.ndarray, target_face: np.ndarray,
-               faces: np.ndarray) -> Placement:
+def place_hand(
+    driver_hand: np.ndarray,
+    driver_face: np.ndarray,
+    target_hand: np.ndarray,
+    target_face: np.ndarray,
+    faces: np.ndarray,
+) -> Placement:
     """The rigid correction that puts the target's hand (Vh, 3) (as the scaled transform placed it) on the target's
     face (V, 3) where the driver's hand (Vh, 3) touches the driver's face (V, 3); identity when the driver's hand
     is nowhere within :data:`NEAR_M` of its face."""
@@ -135,8 +141,10 @@ def place_hand(driver_hand: np.ndarray, driver_face: np.ndarray, target_hand: np
     # Turn the hand with the touched surface (its mean normal, driver's to target's) about the contact, as far as
     # the hand is close (the largest weight), then let the twins pull the touching points onto their places.
     normal = weight @ triangle_frames(target_face, faces)[twins.triangle, :, 2]  # the contact's, on the target
-    turn = _partial(smallest_rotation(weight @ triangle_frames(driver_face, faces)[twins.triangle, :, 2], normal),
-                    float(weight.max()))
+    turn = _partial(
+        smallest_rotation(weight @ triangle_frames(driver_face, faces)[twins.triangle, :, 2], normal),
+        float(weight.max()),
+    )
     pivot = weight @ goal / weight.sum()
     turned = (target_hand - pivot) @ turn.T + pivot
     source = np.concatenate([turned[keep], turned])
@@ -145,18 +153,25 @@ def place_hand(driver_hand: np.ndarray, driver_face: np.ndarray, target_hand: np
     rotation, translation = kabsch(source, target, weights)
     rotation, translation = rotation @ turn, rotation @ (pivot - turn @ pivot) + translation
     allowed = max(0.0, -float(twins.local[:, 2].min()))  # the driver's own press
-    translation = translation + _push_out(target_hand @ rotation.T + translation, target_face, faces, allowed,
-                                          normal / np.linalg.norm(normal))
+    translation = translation + _push_out(
+        target_hand @ rotation.T + translation, target_face, faces, allowed, normal / np.linalg.norm(normal)
+    )
     touching = twins.local[:, 2] < TOUCH_M  # within TOUCH_M above the driver's face, or below it
     moved = target_hand[keep[touching]] @ rotation.T + translation
     miss = np.linalg.norm(moved - goal[touching], axis=1)
     kept = int((surface_twins(moved, target_face, faces).local[:, 2] < TOUCH_M).sum()) if moved.size else 0
-    return Placement(rotation, translation, int(keep.size), int(touching.sum()), kept,
-                     float(miss.mean()) if miss.size else 0.0, allowed)
+    return Placement(
+        rotation,
+        translation,
+        int(keep.size),
+        int(touching.sum()),
+        kept,
+        float(miss.mean()) if miss.size else 0.0,
+        allowed,
+    )
 
 
-def _push_out(hand: np.ndarray, face: np.ndarray, faces: np.ndarray, allowed: float, normal: np.ndarray
-              ) -> np.ndarray:
+def _push_out(hand: np.ndarray, face: np.ndarray, faces: np.ndarray, allowed: float, normal: np.ndarray) -> np.ndarray:
     """(3,) translation along the unit ``normal`` (3,) that brings the hand (Vh, 3) no deeper inside the face
     (V, 3) than ``allowed`` metres (measured along each nearest triangle's normal, within :data:`NEAR_M`)."""
     shift = np.zeros(3)

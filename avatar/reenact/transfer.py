@@ -37,8 +37,15 @@ from avatar.templates.layers import hand_frame
 from avatar.templates.lbs import batch_rodrigues
 
 #: what the driver gives, per frame
-DRIVER_COLUMNS = ("flame_expression", "flame_global_orient", "flame_neck_pose", "flame_jaw_pose", "flame_eye_pose",
-                  "mano_hand_pose", "mano_global_orient")
+DRIVER_COLUMNS = (
+    "flame_expression",
+    "flame_global_orient",
+    "flame_neck_pose",
+    "flame_jaw_pose",
+    "flame_eye_pose",
+    "mano_hand_pose",
+    "mano_global_orient",
+)
 
 
 PLACEMENTS = ("contact", "scaled")
@@ -63,7 +70,7 @@ class MotionTransfer(NamedTuple):
 def head_size(face_vertices: np.ndarray) -> float:
     """RMS distance of the face vertices (V, 3) to their centroid, metres: a rotation-invariant head size."""
     centred = face_vertices - face_vertices.mean(0)
-    return float(np.sqrt((centred ** 2).sum(-1).mean()))
+    return float(np.sqrt((centred**2).sum(-1).mean()))
 
 
 def _rest_joints(shape: np.ndarray, hand: TemplateModel) -> np.ndarray:
@@ -74,8 +81,13 @@ def _rest_joints(shape: np.ndarray, hand: TemplateModel) -> np.ndarray:
         return MANOLayer(hand)(t, torch.zeros(1, 45, dtype=torch.float64), zeros, zeros).joints[0].numpy()
 
 
-def transfer_motion(target: Mapping[str, np.ndarray], driver: Mapping[str, np.ndarray], head: TemplateModel,
-                    hand: TemplateModel, placement: str = "contact") -> MotionTransfer:
+def transfer_motion(
+    target: Mapping[str, np.ndarray],
+    driver: Mapping[str, np.ndarray],
+    head: TemplateModel,
+    hand: TemplateModel,
+    placement: str = "contact",
+) -> MotionTransfer:
     """The target performing the driver's motion (module docstring).
 
     Args:
@@ -93,8 +105,10 @@ def transfer_motion(target: Mapping[str, np.ndarray], driver: Mapping[str, np.nd
     out = {k: np.array(driver[k], dtype=np.float64) for k in DRIVER_COLUMNS}
     for name in ("flame_shape", "mano_shape"):
         out[name] = np.repeat(np.asarray(target[name], np.float64).mean(0, keepdims=True), T, axis=0)
-    change = (hand_frame(_rest_joints(out["mano_shape"][:1], hand))
-              @ hand_frame(_rest_joints(np.asarray(driver["mano_shape"], np.float64)[:1], hand)).T)
+    change = (
+        hand_frame(_rest_joints(out["mano_shape"][:1], hand))
+        @ hand_frame(_rest_joints(np.asarray(driver["mano_shape"], np.float64)[:1], hand)).T
+    )
     out["mano_hand_pose"] = np.einsum("ij,tkj->tki", change, out["mano_hand_pose"].reshape(T, -1, 3)).reshape(T, -1)
     R_driver = batch_rodrigues(torch.from_numpy(out["mano_global_orient"])).numpy()
     out["mano_global_orient"] = _rotvec(R_driver @ change.T)
@@ -123,8 +137,9 @@ def _rotvec(matrices: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(matrices).as_rotvec()
 
 
-def _keep_contacts(out: dict[str, np.ndarray], driver_pose: tuple, head: TemplateModel, hand: TemplateModel,
-                   rest_wrist: np.ndarray) -> list[dict]:
+def _keep_contacts(
+    out: dict[str, np.ndarray], driver_pose: tuple, head: TemplateModel, hand: TemplateModel, rest_wrist: np.ndarray
+) -> list[dict]:
     """Correct ``out``'s hand placement in place, frame by frame (:func:`avatar.reenact.contact.place_hand`);
     the per-frame report. ``rest_wrist`` (T, 3): the target hand's root joint with zero translation."""
     _, face, _, hand_now = pose_layers(out, head, hand, torch.float64)
@@ -132,8 +147,13 @@ def _keep_contacts(out: dict[str, np.ndarray], driver_pose: tuple, head: Templat
     R_hand = batch_rodrigues(torch.from_numpy(out["mano_global_orient"])).numpy()
     report, through = [], []
     for t in range(len(R_hand)):
-        fix = place_hand(driver_pose[3].vertices[t].numpy(), driver_pose[1].vertices[t].numpy(),
-                         hand_now.vertices[t].numpy(), face.vertices[t].numpy(), faces)
+        fix = place_hand(
+            driver_pose[3].vertices[t].numpy(),
+            driver_pose[1].vertices[t].numpy(),
+            hand_now.vertices[t].numpy(),
+            face.vertices[t].numpy(),
+            faces,
+        )
         wrist = hand_now.joints[t, 0].numpy()
         if fix.matched:  # else exactly the scaled placement
             wrist = fix.rotation @ wrist + fix.translation
@@ -141,16 +161,26 @@ def _keep_contacts(out: dict[str, np.ndarray], driver_pose: tuple, head: Templat
             out["mano_transl"][t] = wrist - rest_wrist[t]
         if fix.driver_depth_m > PASS_THROUGH_M:
             through.append(t)
-        report.append({"frame": t, "matched_points": fix.matched, "touching_points": fix.touching,
-                       "kept_points": fix.kept, "residual_mm": 1e3 * fix.residual_m,
-                       "moved_mm": 1e3 * float(np.linalg.norm(wrist - hand_now.joints[t, 0].numpy())),
-                       "turned_deg": float(np.degrees(np.linalg.norm(_rotvec(fix.rotation[None])))),
-                       "driver_depth_mm": 1e3 * fix.driver_depth_m})
+        report.append(
+            {
+                "frame": t,
+                "matched_points": fix.matched,
+                "touching_points": fix.touching,
+                "kept_points": fix.kept,
+                "residual_mm": 1e3 * fix.residual_m,
+                "moved_mm": 1e3 * float(np.linalg.norm(wrist - hand_now.joints[t, 0].numpy())),
+                "turned_deg": float(np.degrees(np.linalg.norm(_rotvec(fix.rotation[None])))),
+                "driver_depth_mm": 1e3 * fix.driver_depth_m,
+            }
+        )
     if through:
-        warnings.warn(f"motion transfer: in driver frames {through[:10]} the hand lies more than "
-                      f"{PASS_THROUGH_M * 1e3:.0f} mm inside the driver's own face (up to "
-                      f"{max(report[t]['driver_depth_mm'] for t in through):.0f} mm): its fit passes through the "
-                      f"face; those touches are transferred as they are", stacklevel=3)
+        warnings.warn(
+            f"motion transfer: in driver frames {through[:10]} the hand lies more than "
+            f"{PASS_THROUGH_M * 1e3:.0f} mm inside the driver's own face (up to "
+            f"{max(report[t]['driver_depth_mm'] for t in through):.0f} mm): its fit passes through the "
+            f"face; those touches are transferred as they are",
+            stacklevel=3,
+        )
     return report
 
 
@@ -162,10 +192,14 @@ def _check(target: Mapping[str, np.ndarray], driver: Mapping[str, np.ndarray]) -
             rows = np.asarray(value, np.float64).reshape(len(value), -1)
             bad = np.flatnonzero(~np.isfinite(rows).all(1))
             if bad.size:
-                raise MotionTransferError(f"the {name}'s '{key}' is not finite in frames {bad[:5].tolist()}; fix or "
-                                          f"drop those frames' parameters")
+                raise MotionTransferError(
+                    f"the {name}'s '{key}' is not finite in frames {bad[:5].tolist()}; fix or "
+                    f"drop those frames' parameters"
+                )
     for key in ("flame_shape", "flame_expression", "mano_shape", "mano_hand_pose"):
         wd, wt = np.asarray(driver[key]).shape[1:], np.asarray(target[key]).shape[1:]
         if wd != wt:
-            raise MotionTransferError(f"'{key}' has width {wd} in the driver and {wt} in the target: they were fitted "
-                                      f"with different templates; fit both with the same model files")
+            raise MotionTransferError(
+                f"'{key}' has width {wd} in the driver and {wt} in the target: they were fitted "
+                f"with different templates; fit both with the same model files"
+            )

@@ -29,8 +29,8 @@ Conventions
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -202,9 +202,7 @@ class _TriangleSetup:
     dbdy: torch.Tensor  # (T, 3) float32 change per sample step in y
 
 
-def _setup_triangles(
-    scene: Scene, camera: PinholeCamera, s: int, near: float, cull_backfaces: bool
-) -> _TriangleSetup:
+def _setup_triangles(scene: Scene, camera: PinholeCamera, s: int, near: float, cull_backfaces: bool) -> _TriangleSetup:
     """Project, cull and compute edge equations in supersampled pixel units."""
     pc = camera.to_camera(scene.vertices)  # (V, 3) float64
     uv, z = camera.project(scene.vertices)
@@ -236,8 +234,9 @@ def _setup_triangles(
     dbdx = (pa[..., 1] - pb[..., 1]) / a2[:, None]
     dbdy = (pb[..., 0] - pa[..., 0]) / a2[:, None]
     ox, oy = x0 + 0.5, y0 + 0.5
-    bary0 = ((pb[..., 0] - pa[..., 0]) * (oy[:, None] - pa[..., 1])
-             - (pb[..., 1] - pa[..., 1]) * (ox[:, None] - pa[..., 0])) / a2[:, None]
+    bary0 = (
+        (pb[..., 0] - pa[..., 0]) * (oy[:, None] - pa[..., 1]) - (pb[..., 1] - pa[..., 1]) * (ox[:, None] - pa[..., 0])
+    ) / a2[:, None]
     return _TriangleSetup(
         index=idx,
         inv_z=(1.0 / tri_z[idx]).float(),
@@ -416,8 +415,7 @@ def render(
     Returns:
         Per-pixel colour, coverage, depth and labels (see :class:`RenderOutput`).
     """
-    buffer, scene = rasterize(meshes, camera, supersample, near, cull_backfaces,
-                              max_samples_per_chunk)
+    buffer, scene = rasterize(meshes, camera, supersample, near, cull_backfaces, max_samples_per_chunk)
     s = supersample
     mask = buffer.covered
     hs, ws = mask.shape

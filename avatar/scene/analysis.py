@@ -55,9 +55,13 @@ def scene_facts(hand_views: np.ndarray, distances: np.ndarray, min_views: int, d
     present = hand_views >= min_views
     nearest = distances.min(axis=1)
     contact = present & (nearest < d_max)
-    return SceneFacts(hand_views=hand_views, hand_present=present,
-                      distance_m=np.where(present, nearest, np.nan), contact=contact,
-                      near_vertices=(distances < d_max) & contact[:, None])
+    return SceneFacts(
+        hand_views=hand_views,
+        hand_present=present,
+        distance_m=np.where(present, nearest, np.nan),
+        contact=contact,
+        near_vertices=(distances < d_max) & contact[:, None],
+    )
 
 
 def deforming_triangles(near_vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -96,15 +100,23 @@ def decide(facts: SceneFacts, min_hand_fraction: float, overrides: dict[str, str
             reasons[name] = why
             return auto
         forced = overrides[name] == "true"
-        reasons[name] = (f"{name}={str(forced).lower()} set in the config (stage.scene.{name}); "
-                         f"the capture alone would give {str(auto).lower()}: {why}")
+        reasons[name] = (
+            f"{name}={str(forced).lower()} set in the config (stage.scene.{name}); "
+            f"the capture alone would give {str(auto).lower()}: {why}"
+        )
         return forced
 
     hand_auto = T > 0 and hand_frames >= min_hand_fraction * T
-    model_hand = settle("model_hand", hand_auto,
-                        f"hand in view in {hand_frames} of {T} frames: "
-                        + ("hand modelled (MANO Gaussians, hand MLPs)" if hand_auto else
-                           "no hand model (face-only avatar: no MANO Gaussians, no hand MLPs)"))
+    model_hand = settle(
+        "model_hand",
+        hand_auto,
+        f"hand in view in {hand_frames} of {T} frames: "
+        + (
+            "hand modelled (MANO Gaussians, hand MLPs)"
+            if hand_auto
+            else "no hand model (face-only avatar: no MANO Gaussians, no hand MLPs)"
+        ),
+    )
     touching = model_hand and contact_frames > 0
     if not model_hand:
         why = "no hand modelled: no contact to simulate or learn"
@@ -115,7 +127,9 @@ def decide(facts: SceneFacts, min_hand_fraction: float, overrides: dict[str, str
     else:
         why = f"the hand never comes within d_max of the face (closest {np.nanmin(facts.distance_m) * 1e3:.0f} mm)"
     model_pbd = settle("model_pbd", touching, why + (": PBD simulated" if touching else ": PBD skipped"))
-    model_interaction = settle("model_interaction", touching,
-                               why + (": interaction MLPs on the deforming triangles" if touching
-                                      else ": interaction module skipped"))
+    model_interaction = settle(
+        "model_interaction",
+        touching,
+        why + (": interaction MLPs on the deforming triangles" if touching else ": interaction module skipped"),
+    )
     return SceneDecision(model_hand, model_pbd, model_interaction, reasons)

@@ -72,8 +72,9 @@ class EmbeddedDensityController:
         max_radii: (N,) largest screen radius (px) seen; ``generator`` draws the split offsets.
     """
 
-    def __init__(self, cfg: EmbeddedDensityConfig, num_gaussians: int, seed: int = 0,
-                 device: torch.device | None = None) -> None:
+    def __init__(
+        self, cfg: EmbeddedDensityConfig, num_gaussians: int, seed: int = 0, device: torch.device | None = None
+    ) -> None:
         self.cfg = cfg
         self.generator = torch.Generator(device=device or "cpu").manual_seed(seed)
         self._reset_stats(num_gaussians, device)
@@ -85,8 +86,12 @@ class EmbeddedDensityController:
 
     def state(self) -> dict[str, Tensor]:
         """Everything needed to resume bit for bit."""
-        return {"grad_sum": self.grad_sum, "count": self.count, "max_radii": self.max_radii,
-                "generator": self.generator.get_state()}
+        return {
+            "grad_sum": self.grad_sum,
+            "count": self.count,
+            "max_radii": self.max_radii,
+            "generator": self.generator.get_state(),
+        }
 
     def load_state(self, state: dict[str, Tensor]) -> None:
         self.grad_sum, self.count, self.max_radii = state["grad_sum"], state["count"], state["max_radii"]
@@ -105,8 +110,9 @@ class EmbeddedDensityController:
         self.count += visible.float()
         self.max_radii = torch.maximum(self.max_radii, radii.detach().float())
 
-    def step(self, step: int, model: EmbeddedGaussians, optimizer: torch.optim.Optimizer,
-             extent: float) -> dict[str, int]:
+    def step(
+        self, step: int, model: EmbeddedGaussians, optimizer: torch.optim.Optimizer, extent: float
+    ) -> dict[str, int]:
         """Apply the schedule after optimizer step ``step``; counts of what changed."""
         c = self.cfg
         done = {"cloned": 0, "split": 0, "pruned": 0, "walked": 0, "reset": 0}
@@ -119,8 +125,9 @@ class EmbeddedDensityController:
             done["reset"] = model.num_gaussians
         return done
 
-    def _densify_and_prune(self, step: int, model: EmbeddedGaussians, optimizer: torch.optim.Optimizer,
-                           extent: float) -> dict[str, int]:
+    def _densify_and_prune(
+        self, step: int, model: EmbeddedGaussians, optimizer: torch.optim.Optimizer, extent: float
+    ) -> dict[str, int]:
         c = self.cfg
         grads = self.grad_sum / self.count.clamp_min(1)
         canonical_max = torch.exp(model.log_scales.detach()).amax(-1)
@@ -141,16 +148,21 @@ class EmbeddedDensityController:
         children = split_children(model, parents, self.generator)
         rows = torch.cat([survivors, clones, parents])
         fresh = torch.zeros(len(rows), dtype=torch.bool, device=rows.device)
-        fresh[len(survivors):] = True
+        fresh[len(survivors) :] = True
         overrides = {name: (len(survivors) + len(clones), value) for name, value in children.items()}
         before = model.num_gaussians
         _gather_rows(model, optimizer, rows, fresh, overrides)
         walked = model.walk()
         _zero_moments(optimizer, model.barycentric, walked)
         self._reset_stats(model.num_gaussians, self.grad_sum.device)
-        return {"cloned": len(clones), "split": len(parents) // SPLIT_CHILDREN,
-                "pruned": int(prune.sum()), "walked": int(walked.sum()), "total_before": before,
-                "total_after": model.num_gaussians}
+        return {
+            "cloned": len(clones),
+            "split": len(parents) // SPLIT_CHILDREN,
+            "pruned": int(prune.sum()),
+            "walked": int(walked.sum()),
+            "total_before": before,
+            "total_after": model.num_gaussians,
+        }
 
 
 def prunable(model: EmbeddedGaussians, min_opacity: float) -> Tensor:
@@ -219,8 +231,13 @@ def _swap_param(optimizer: torch.optim.Optimizer, old: nn.Parameter, new: nn.Par
         optimizer.state[new] = state
 
 
-def _gather_rows(model: EmbeddedGaussians, optimizer: torch.optim.Optimizer, rows: Tensor, fresh: Tensor,
-                 overrides: dict[str, tuple[int, Tensor]]) -> None:
+def _gather_rows(
+    model: EmbeddedGaussians,
+    optimizer: torch.optim.Optimizer,
+    rows: Tensor,
+    fresh: Tensor,
+    overrides: dict[str, tuple[int, Tensor]],
+) -> None:
     """Rebuild every per-Gaussian tensor as ``old[rows]``; ``overrides[name] = (start, values)`` replace the
     rows from ``start`` on; Adam moments follow the rows and are zero where ``fresh`` (M,) is true."""
     for name in PARAM_NAMES:
@@ -228,13 +245,15 @@ def _gather_rows(model: EmbeddedGaussians, optimizer: torch.optim.Optimizer, row
         value = old.detach()[rows]
         if name in overrides:
             start, replacement = overrides[name]
-            value[start:start + len(replacement)] = replacement.to(value.dtype)
+            value[start : start + len(replacement)] = replacement.to(value.dtype)
         new = nn.Parameter(value)
         state = _param_state(optimizer, old)
         if state is not None:
             mask = (~fresh).reshape(-1, *([1] * (value.dim() - 1)))
-            state = {key: (moment[rows] * mask if torch.is_tensor(moment) and moment.dim() > 0 else moment)
-                     for key, moment in state.items()}
+            state = {
+                key: (moment[rows] * mask if torch.is_tensor(moment) and moment.dim() > 0 else moment)
+                for key, moment in state.items()
+            }
         _swap_param(optimizer, old, new, state)
         setattr(model, name, new)
     model.triangle = model.triangle[rows]

@@ -95,11 +95,14 @@ def _smallest_rotation(a: Tensor, b: Tensor) -> Tensor:
     axis = torch.linalg.cross(a, b)
     cos = (a * b).sum(-1).clamp_min(-1.0 + 1e-6)
     zero = torch.zeros_like(cos)
-    skew = torch.stack([
-        torch.stack([zero, -axis[:, 2], axis[:, 1]], -1),
-        torch.stack([axis[:, 2], zero, -axis[:, 0]], -1),
-        torch.stack([-axis[:, 1], axis[:, 0], zero], -1),
-    ], dim=-2)
+    skew = torch.stack(
+        [
+            torch.stack([zero, -axis[:, 2], axis[:, 1]], -1),
+            torch.stack([axis[:, 2], zero, -axis[:, 0]], -1),
+            torch.stack([-axis[:, 1], axis[:, 0], zero], -1),
+        ],
+        dim=-2,
+    )
     eye = torch.eye(3, dtype=a.dtype, device=a.device).expand_as(skew)
     return eye + skew + (skew @ skew) / (1.0 + cos)[:, None, None]
 
@@ -144,10 +147,14 @@ class CanonicalMesh(nn.Module):
         for corner in range(3):
             weights = weights.index_add(0, faces[:, corner], areas)
         derived = {
-            "vertices": vertices.clone(), "faces": faces.clone(), "areas": areas,
+            "vertices": vertices.clone(),
+            "faces": faces.clone(),
+            "areas": areas,
             "area_damping": _AREA_DAMPING * areas.mean() if len(areas) else areas.new_tensor(0.0),
-            "normals": vertex_normals(vertices, faces), "frames": triangle_frames(vertices, faces).rotation,
-            "face_weights": areas, "vertex_weights": weights,
+            "normals": vertex_normals(vertices, faces),
+            "frames": triangle_frames(vertices, faces).rotation,
+            "face_weights": areas,
+            "vertex_weights": weights,
         }
         for name, value in derived.items():
             self.register_buffer(name, value, persistent=False)
@@ -156,7 +163,9 @@ class CanonicalMesh(nn.Module):
 
     @property
     def walk_table(self) -> WalkTable:
-        return WalkTable(**{name[len("walk_"):]: buf for name, buf in self.named_buffers() if name.startswith("walk_")})
+        return WalkTable(
+            **{name[len("walk_") :]: buf for name, buf in self.named_buffers() if name.startswith("walk_")}
+        )
 
     def area_scale(self, vertices: Tensor) -> Tensor:
         """(F,) ``sqrt(area_posed / area_canonical)`` (damped) of the posed ``vertices`` (V, 3)."""
@@ -198,9 +207,18 @@ class EmbeddedGaussians(nn.Module):
     opacity_logits: nn.Parameter
     sh_dc: nn.Parameter
 
-    def __init__(self, mesh: CanonicalMesh, triangle: Tensor, part: Tensor, barycentric: Tensor,
-                 displacement: Tensor, log_scales: Tensor, quats: Tensor, opacity_logits: Tensor,
-                 sh_dc: Tensor) -> None:
+    def __init__(
+        self,
+        mesh: CanonicalMesh,
+        triangle: Tensor,
+        part: Tensor,
+        barycentric: Tensor,
+        displacement: Tensor,
+        log_scales: Tensor,
+        quats: Tensor,
+        opacity_logits: Tensor,
+        sh_dc: Tensor,
+    ) -> None:
         super().__init__()
         self.mesh = mesh
         self.register_buffer("triangle", triangle.long().clone())
@@ -210,9 +228,17 @@ class EmbeddedGaussians(nn.Module):
             setattr(self, name, nn.Parameter(value.detach().clone()))
 
     @classmethod
-    def on_triangles(cls, canonical_vertices: Tensor, faces: Tensor, face_part: Tensor, per_triangle: int,
-                     init_opacity: float = 0.1, seed: int = 0, init_rgb: float = 0.5,
-                     populate: Tensor | None = None) -> EmbeddedGaussians:
+    def on_triangles(
+        cls,
+        canonical_vertices: Tensor,
+        faces: Tensor,
+        face_part: Tensor,
+        per_triangle: int,
+        init_opacity: float = 0.1,
+        seed: int = 0,
+        init_rgb: float = 0.5,
+        populate: Tensor | None = None,
+    ) -> EmbeddedGaussians:
         """``per_triangle`` Gaussians on every face of the canonical mesh.
 
         Args:
@@ -239,15 +265,23 @@ class EmbeddedGaussians(nn.Module):
         quats = torch.zeros(n, 4, dtype=dtype)
         quats[:, 0] = 1.0
         device = canonical_vertices.device
-        model = cls(mesh, triangle, face_part.long().cpu()[triangle], bary[chosen].reshape(n, 3)[:, :2],
-                    torch.zeros(n, dtype=dtype), log_scale[triangle, None].expand(n, 3).to(dtype), quats,
-                    inverse_sigmoid(torch.full((n,), init_opacity, dtype=dtype)),
-                    torch.full((n, 3), (init_rgb - 0.5) / SH_C0, dtype=dtype))
+        model = cls(
+            mesh,
+            triangle,
+            face_part.long().cpu()[triangle],
+            bary[chosen].reshape(n, 3)[:, :2],
+            torch.zeros(n, dtype=dtype),
+            log_scale[triangle, None].expand(n, 3).to(dtype),
+            quats,
+            inverse_sigmoid(torch.full((n,), init_opacity, dtype=dtype)),
+            torch.full((n, 3), (init_rgb - 0.5) / SH_C0, dtype=dtype),
+        )
         return model.to(device)
 
     @classmethod
-    def from_state_tensors(cls, state: dict[str, Tensor], canonical_vertices: Tensor,
-                           faces: Tensor) -> EmbeddedGaussians:
+    def from_state_tensors(
+        cls, state: dict[str, Tensor], canonical_vertices: Tensor, faces: Tensor
+    ) -> EmbeddedGaussians:
         """The model of :meth:`state_tensors` on the canonical mesh ``canonical_vertices`` (V, 3), ``faces`` (F, 3)."""
         missing = [name for name in STATE_NAMES if name not in state]
         if missing:

@@ -77,7 +77,7 @@ def edge_neighbours(faces: Tensor | np.ndarray) -> tuple[Tensor, Tensor]:
     a, b = order[pairs], order[pairs + 1]
     partner[a], partner[b] = b, a
     for start, size in zip(starts[sizes > 2], sizes[sizes > 2], strict=True):
-        members = order[start:start + size]
+        members = order[start : start + size]
         for pos, half in enumerate(members):
             partner[half] = members[(pos + 1) % size]
     # A partner on the same apex is a duplicate face (same three vertices); a degenerate edge has none.

@@ -63,8 +63,7 @@ def skin_variation(rest: np.ndarray, base: np.ndarray, seed: int) -> np.ndarray:
     return base * (1.0 + blotch * tint + 0.05 * mottle)
 
 
-def _region_mix(albedo: np.ndarray, ids: np.ndarray, colour: np.ndarray, weight: np.ndarray | float
-                ) -> None:
+def _region_mix(albedo: np.ndarray, ids: np.ndarray, colour: np.ndarray, weight: np.ndarray | float) -> None:
     """Blend ``colour`` into ``albedo`` rows ``ids`` with ``weight`` (in place)."""
     w = np.broadcast_to(np.asarray(weight, dtype=np.float64), ids.shape)[:, None]
     albedo[ids] = (1 - w) * albedo[ids] + w * colour
@@ -90,8 +89,9 @@ class HandAppearance:
     digit: np.ndarray
 
     @staticmethod
-    def build(model: TemplateModel, identity: Identity, frame: HandFrame, rest: np.ndarray,
-              joints: np.ndarray) -> HandAppearance:
+    def build(
+        model: TemplateModel, identity: Identity, frame: HandFrame, rest: np.ndarray, joints: np.ndarray
+    ) -> HandAppearance:
         """From the template, the identity, the hand frame and the shaped rest
         vertices (Vh, 3) and joints (16, 3)."""
         labels = model.part_labels or {}
@@ -118,8 +118,9 @@ class HandAppearance:
                 axial = (rest - joints[j]) @ bone
                 band = np.exp(-0.5 * (axial / CREASE_HALF_WIDTH_M) ** 2)
                 # A finger's first crease sits on the palm side of the web too.
-                reach = on_digit | ((digit == 0) & (j == chain[0]) & (f > 0)
-                                    & (np.linalg.norm(rest - joints[j], axis=1) < 0.02))
+                reach = on_digit | (
+                    (digit == 0) & (j == chain[0]) & (f > 0) & (np.linalg.norm(rest - joints[j], axis=1) < 0.02)
+                )
                 crease[j - 1] = band * depth * reach
         return HandAppearance(albedo=albedo, pores=pores, crease=crease, palmar=palmar, digit=digit)
 

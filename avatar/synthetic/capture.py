@@ -65,8 +65,7 @@ class SyntheticConfig:
         if self.scene not in SCENES:
             raise ValueError(f"scene must be one of {SCENES}, got {self.scene!r}")
         if self.appearance not in APPEARANCES:
-            raise ValueError(f"appearance must be one of {APPEARANCES}, got {self.appearance!r} "
-                             f"(dataset.appearance)")
+            raise ValueError(f"appearance must be one of {APPEARANCES}, got {self.appearance!r} (dataset.appearance)")
         if self.subject not in SUBJECTS:
             raise ValueError(f"subject must be one of {SUBJECTS}, got {self.subject!r}")
         if self.performer is not None and self.performer not in SUBJECTS:

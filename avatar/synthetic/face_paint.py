@@ -89,8 +89,11 @@ class FacePaint:
         yaw, pitch = direction_space(lmk)
         pts = torch.stack([yaw, pitch], dim=1)
         return FacePaint(
-            eyes=(pts[36:42], pts[42:48]), lips_outer=pts[48:60], lips_inner=pts[60:68],
-            brows=(pts[17:22], pts[22:27]), identity=identity,
+            eyes=(pts[36:42], pts[42:48]),
+            lips_outer=pts[48:60],
+            lips_inner=pts[60:68],
+            brows=(pts[17:22], pts[22:27]),
+            identity=identity,
         )
 
     def _brow_weight(self, yaw: torch.Tensor, pitch: torch.Tensor) -> torch.Tensor:
@@ -109,8 +112,9 @@ class FacePaint:
             weight = torch.maximum(weight, band * span)
         return weight
 
-    def _hair_and_brows(self, canonical: torch.Tensor, yaw: torch.Tensor, pitch: torch.Tensor,
-                        out: torch.Tensor) -> None:
+    def _hair_and_brows(
+        self, canonical: torch.Tensor, yaw: torch.Tensor, pitch: torch.Tensor, out: torch.Tensor
+    ) -> None:
         """Paint hair above the (noisy) hairline and the brows, with streak noise."""
         ident, seed = self.identity, self.identity.texture_seed
         line = torch.from_numpy(np.interp(yaw.abs().numpy(), HAIRLINE_YAW, HAIRLINE_PITCH)).float()
@@ -146,8 +150,11 @@ class FacePaint:
             y, q = yaw[idx], pitch[idx]
             centre = contour.mean(dim=0)
             r = torch.hypot(y - centre[0], q - centre[1])
-            eye = _mix(torch.as_tensor(SCLERA).expand(idx.numel(), 3),
-                       torch.as_tensor(self.identity.iris, dtype=torch.float32), (r < IRIS_RADIUS).float())
+            eye = _mix(
+                torch.as_tensor(SCLERA).expand(idx.numel(), 3),
+                torch.as_tensor(self.identity.iris, dtype=torch.float32),
+                (r < IRIS_RADIUS).float(),
+            )
             eye = _mix(eye, torch.as_tensor(PUPIL).expand(idx.numel(), 3), (r < PUPIL_RADIUS).float())
             out[idx] = _mix(out[idx], eye, _inside(y, q, contour).float())
 

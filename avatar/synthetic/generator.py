@@ -65,16 +65,24 @@ def _subject(name: str) -> _Subject:
     hand_rest, joints = rest.vertices[0].numpy(), rest.joints[0].numpy()
     albedo, pores = face_appearance(head, identity)
     return _Subject(
-        identity=identity, flame=flame, mano=mano, face_faces=np.array(head.faces),
-        hand_faces=np.array(hand.faces), face_rest=np.array(head.v_template), face_albedo=albedo,
-        face_pores=pores, face_paint=FacePaint.build(flame, identity), hand_rest=np.array(hand.v_template),
+        identity=identity,
+        flame=flame,
+        mano=mano,
+        face_faces=np.array(head.faces),
+        hand_faces=np.array(hand.faces),
+        face_rest=np.array(head.v_template),
+        face_albedo=albedo,
+        face_pores=pores,
+        face_paint=FacePaint.build(flame, identity),
+        hand_rest=np.array(hand.v_template),
         hand=HandAppearance.build(hand, identity, HandFrame.from_joints(joints), hand_rest, joints),
         inner_distance=np.array(head.inner_distance),
     )
 
 
-def _attributes(rest: np.ndarray, world: np.ndarray, faces: np.ndarray, albedo: np.ndarray,
-                occlusion: np.ndarray, pores: np.ndarray) -> np.ndarray:
+def _attributes(
+    rest: np.ndarray, world: np.ndarray, faces: np.ndarray, albedo: np.ndarray, occlusion: np.ndarray, pores: np.ndarray
+) -> np.ndarray:
     """(V, Channels.COUNT) float32 per-vertex attributes for the shader."""
     normals = vertex_normals(torch.as_tensor(world), torch.as_tensor(faces)).numpy()
     attrs = np.zeros((rest.shape[0], Channels.COUNT), dtype=np.float32)
@@ -87,8 +95,15 @@ def _attributes(rest: np.ndarray, world: np.ndarray, faces: np.ndarray, albedo: 
     return attrs
 
 
-def _scene(subject: _Subject, face: np.ndarray, hand: np.ndarray, hand_pose: np.ndarray,
-           curl: np.ndarray, dent: np.ndarray, appearance: str = "full") -> list[Mesh]:
+def _scene(
+    subject: _Subject,
+    face: np.ndarray,
+    hand: np.ndarray,
+    hand_pose: np.ndarray,
+    curl: np.ndarray,
+    dent: np.ndarray,
+    appearance: str = "full",
+) -> list[Mesh]:
     """Face (label 1) and hand (label 2) meshes of one frame with shading attributes.
 
     Args:
@@ -104,22 +119,31 @@ def _scene(subject: _Subject, face: np.ndarray, hand: np.ndarray, hand_pose: np.
         bend = np.linalg.norm(hand_pose.reshape(15, 3), axis=1)
         hand_occ = hand_occ * subject.hand.pose_occlusion(curl, bend)
     face_albedo = pressure_blanching(subject.face_albedo, dent) if appearance == "pressed" else subject.face_albedo
-    face_attrs = _attributes(subject.face_rest, face, subject.face_faces, face_albedo, face_occ,
-                             subject.face_pores)
-    hand_attrs = _attributes(subject.hand_rest + HAND_TEXTURE_SHIFT, hand, subject.hand_faces,
-                             subject.hand.albedo, hand_occ, subject.hand.pores)
-    return [Mesh(face, subject.face_faces, face_attrs, FACE_LABEL),
-            Mesh(hand, subject.hand_faces, hand_attrs, HAND_LABEL)]
+    face_attrs = _attributes(subject.face_rest, face, subject.face_faces, face_albedo, face_occ, subject.face_pores)
+    hand_attrs = _attributes(
+        subject.hand_rest + HAND_TEXTURE_SHIFT,
+        hand,
+        subject.hand_faces,
+        subject.hand.albedo,
+        hand_occ,
+        subject.hand.pores,
+    )
+    return [
+        Mesh(face, subject.face_faces, face_attrs, FACE_LABEL),
+        Mesh(hand, subject.hand_faces, hand_attrs, HAND_LABEL),
+    ]
 
 
 def _soft_tissue(subject: _Subject, perf: Performance) -> np.ndarray:
     """(T, Vf, 3) soft-tissue offsets of every frame."""
     inner = torch.as_tensor(subject.inner_distance)
     hand_faces, face_faces = torch.as_tensor(subject.hand_faces), torch.as_tensor(subject.face_faces)
-    return np.stack([
-        contact_offsets(torch.as_tensor(face), face_faces, inner, torch.as_tensor(hand), hand_faces).numpy()
-        for face, hand in zip(perf.face_vertices, perf.hand_vertices)
-    ])
+    return np.stack(
+        [
+            contact_offsets(torch.as_tensor(face), face_faces, inner, torch.as_tensor(hand), hand_faces).numpy()
+            for face, hand in zip(perf.face_vertices, perf.hand_vertices)
+        ]
+    )
 
 
 def _aim_point(subject: _Subject) -> np.ndarray:
@@ -142,8 +166,14 @@ def _generate(cfg: SyntheticConfig) -> SyntheticCapture:
     performer = cfg.performer or cfg.subject
     rng = np.random.default_rng([cfg.seed, SUBJECTS.index(performer), SEQUENCES.index(cfg.sequence)])
     script = stage_scene(jitter(SCRIPTS[cfg.sequence], rng, motion_style(performer)), cfg.scene)
-    perf = perform(script, frame_times(cfg.num_frames), subject.identity, subject.flame, subject.mano,
-                   FaceAnchors.build(subject.flame))
+    perf = perform(
+        script,
+        frame_times(cfg.num_frames),
+        subject.identity,
+        subject.flame,
+        subject.mano,
+        FaceAnchors.build(subject.flame),
+    )
     offsets = _soft_tissue(subject, perf)
     faces = perf.face_vertices + offsets
     aim = _aim_point(subject)
@@ -151,28 +181,49 @@ def _generate(cfg: SyntheticConfig) -> SyntheticCapture:
     t_count, size = cfg.num_frames, cfg.image_size
     frames = {c.camera_id: np.zeros((t_count, size, size, 3), np.uint8) for c in cameras}
     masks = {c.camera_id: np.zeros((t_count, size, size), np.uint8) for c in cameras}
-    hand_kp = subject.mano.keypoints21(torch.as_tensor(perf.hand_vertices),
-                                       torch.as_tensor(perf.hand_joints)).numpy()
+    hand_kp = subject.mano.keypoints21(torch.as_tensor(perf.hand_vertices), torch.as_tensor(perf.hand_joints)).numpy()
     face_kp = subject.flame.landmarks(torch.as_tensor(faces)).numpy()
-    keypoints = {c.camera_id: {"hand": np.zeros((t_count, hand_kp.shape[1], 3)),
-                               "face": np.zeros((t_count, face_kp.shape[1], 3))} for c in cameras}
+    keypoints = {
+        c.camera_id: {
+            "hand": np.zeros((t_count, hand_kp.shape[1], 3)),
+            "face": np.zeros((t_count, face_kp.shape[1], 3)),
+        }
+        for c in cameras
+    }
     background = (BACKGROUND_LINEAR,) * 3
     for t in range(t_count):
-        meshes = _scene(subject, faces[t], perf.hand_vertices[t], perf.params["mano_hand_pose"][t],
-                        perf.curl[t], np.linalg.norm(offsets[t], axis=1), cfg.appearance)
-        shader = make_shader(ShadowMap.build(meshes, aim), subject.identity.texture_seed,
-                             {FACE_LABEL: subject.face_paint})
+        meshes = _scene(
+            subject,
+            faces[t],
+            perf.hand_vertices[t],
+            perf.params["mano_hand_pose"][t],
+            perf.curl[t],
+            np.linalg.norm(offsets[t], axis=1),
+            cfg.appearance,
+        )
+        shader = make_shader(
+            ShadowMap.build(meshes, aim), subject.identity.texture_seed, {FACE_LABEL: subject.face_paint}
+        )
         for cam in cameras:
             out = render(meshes, mesh_raster_camera(cam), cfg.supersample, background, shader, cull_backfaces=True)
             cid = cam.camera_id
             frames[cid][t] = srgb_encode(out.rgb.numpy())
             masks[cid][t] = out.labels.numpy().astype(np.uint8)
             depth = out.depth.numpy()
-            keypoints[cid]["hand"][t] = project_keypoints(cam, hand_kp[t], depth, masks[cid][t], HAND_LABEL,
-                                                          HAND_SELF_TOLERANCE_M)
-            keypoints[cid]["face"][t] = project_keypoints(cam, face_kp[t], depth, masks[cid][t], FACE_LABEL,
-                                                          FACE_SELF_TOLERANCE_M)
+            keypoints[cid]["hand"][t] = project_keypoints(
+                cam, hand_kp[t], depth, masks[cid][t], HAND_LABEL, HAND_SELF_TOLERANCE_M
+            )
+            keypoints[cid]["face"][t] = project_keypoints(
+                cam, face_kp[t], depth, masks[cid][t], FACE_LABEL, FACE_SELF_TOLERANCE_M
+            )
     contact = np.abs(offsets).reshape(t_count, -1).max(axis=1) > 0
-    return SyntheticCapture(cameras=cameras, frames=frames, masks=masks, params=perf.params,
-                            keypoints=keypoints, face_offsets=offsets, contact=contact,
-                            frame_rate=FRAME_RATE)
+    return SyntheticCapture(
+        cameras=cameras,
+        frames=frames,
+        masks=masks,
+        params=perf.params,
+        keypoints=keypoints,
+        face_offsets=offsets,
+        contact=contact,
+        frame_rate=FRAME_RATE,
+    )

@@ -21,8 +21,7 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.normalize(normals, dim=1, eps=1e-12)
 
 
-def _closest_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor
-                          ) -> torch.Tensor:
+def _closest_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
     """Closest points on triangles (a, b, c) to points p, all broadcast to
     (N, K, 3) -- Ericson, Real-Time Collision Detection, 5.1.5, vectorised."""
     a, b, c = torch.broadcast_tensors(a, b, c)
@@ -41,8 +40,7 @@ def _closest_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: 
     out = a + ab * v[..., None] + ac * w[..., None]
     bc_den = ((d4 - d3) + (d5 - d6)).clamp(min=tiny)
     t_bc = ((d4 - d3) / bc_den)[..., None]
-    out = torch.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None],
-                      b + (c - b) * t_bc, out)
+    out = torch.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None], b + (c - b) * t_bc, out)
     t_ac = (d2 / (d2 - d6).clamp(min=tiny))[..., None]
     out = torch.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[..., None], a + ac * t_ac, out)
     t_ab = (d1 / (d1 - d3).clamp(min=tiny))[..., None]
@@ -53,8 +51,9 @@ def _closest_on_triangles(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: 
     return out
 
 
-def closest_points(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor,
-                   candidates: int = 16) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def closest_points(
+    points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, candidates: int = 16
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Nearest surface point of the mesh for each query point.
 
     Only the ``candidates`` triangles with the nearest centroids are tested
@@ -81,8 +80,7 @@ def closest_points(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Te
     return cand[rows, best], d2[rows, best].sqrt(), idx[rows, best]
 
 
-def winding_number(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor
-                   ) -> torch.Tensor:
+def winding_number(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     """Generalised winding number (N,) of the mesh at the points (Jacobson et al.
     2013): ~1 inside a closed outward-oriented mesh, ~0 outside, graceful for
     meshes with holes (such as the open wrist of a hand)."""
@@ -90,19 +88,18 @@ def winding_number(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Te
     step = max(1, _CHUNK_PAIRS // max(1, faces.shape[0]))
     out = []
     for start in range(0, points.shape[0], step):
-        p = points[start:start + step, None]
+        p = points[start : start + step, None]
         ra, rb, rc = a - p, b - p, c - p
         la, lb, lc = ra.norm(dim=-1), rb.norm(dim=-1), rc.norm(dim=-1)
         det = (ra * torch.linalg.cross(rb, rc, dim=-1)).sum(-1)
-        den = (la * lb * lc + (ra * rb).sum(-1) * lc + (rb * rc).sum(-1) * la
-               + (rc * ra).sum(-1) * lb)
+        den = la * lb * lc + (ra * rb).sum(-1) * lc + (rb * rc).sum(-1) * la + (rc * ra).sum(-1) * lb
         out.append(torch.atan2(det, den).sum(dim=1) / (2 * torch.pi))
     return torch.cat(out) if out else points.new_zeros((0,))
 
 
-def signed_distance(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor,
-                    max_inside_depth: float = 0.015
-                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def signed_distance(
+    points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, max_inside_depth: float = 0.015
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Signed distance (N,) to a closed, outward-oriented mesh (negative inside),
     the outward unit normal (N, 3) of the nearest triangle and the nearest
     surface points (N, 3).
@@ -116,7 +113,8 @@ def signed_distance(points: torch.Tensor, vertices: torch.Tensor, faces: torch.T
     closest, dist, face = closest_points(points, vertices, faces)
     tri = vertices[faces[face]]
     normal = torch.nn.functional.normalize(
-        torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), dim=1, eps=1e-12)
+        torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), dim=1, eps=1e-12
+    )
     near = torch.nonzero(dist < max_inside_depth).squeeze(1)
     inside = torch.zeros(points.shape[0], dtype=torch.bool)
     inside[near] = winding_number(points[near], vertices, faces) > 0.5

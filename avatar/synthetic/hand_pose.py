@@ -97,16 +97,26 @@ def orientation(frame: HandFrame, finger_dir: np.ndarray, palm_dir: np.ndarray) 
     return Rotation.from_matrix(target @ rest.T).as_rotvec()
 
 
-def place(layer: MANOLayer, betas: np.ndarray, hand_pose: np.ndarray, global_orient: np.ndarray,
-          contact: np.ndarray | int, target: np.ndarray) -> np.ndarray:
+def place(
+    layer: MANOLayer,
+    betas: np.ndarray,
+    hand_pose: np.ndarray,
+    global_orient: np.ndarray,
+    contact: np.ndarray | int,
+    target: np.ndarray,
+) -> np.ndarray:
     """MANO transl (3,) that puts the hand's contact point on ``target`` (3,) world.
 
     Args:
         contact: a vertex index, or a (3,) direction: the hand's extreme vertex
             along it (its first point of contact when moving that way) is used.
     """
-    out = layer(torch.as_tensor(betas[None]), torch.as_tensor(hand_pose[None]),
-                torch.as_tensor(global_orient[None]), torch.zeros(1, 3, dtype=torch.float64))
+    out = layer(
+        torch.as_tensor(betas[None]),
+        torch.as_tensor(hand_pose[None]),
+        torch.as_tensor(global_orient[None]),
+        torch.zeros(1, 3, dtype=torch.float64),
+    )
     verts = out.vertices[0].numpy()
     if isinstance(contact, np.ndarray):
         point = verts[np.argmax(verts @ contact)]

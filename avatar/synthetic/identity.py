@@ -75,21 +75,35 @@ def make_identity(subject: str, num_flame_shape: int) -> Identity:
     """The identity of ``subject`` ("synth_a", "synth_b" or the held-out "synth_c")."""
     if subject == "synth_a":
         return Identity(
-            flame_shape=_shape(11, num_flame_shape, 0.9), mano_shape=_shape(12, 10, 0.8),
-            skin=_srgb(206, 154, 128), lips=_srgb(172, 86, 84), brows=_srgb(92, 66, 48),
-            hair=_srgb(70, 48, 32), iris=_srgb(70, 95, 120), texture_seed=1001,
+            flame_shape=_shape(11, num_flame_shape, 0.9),
+            mano_shape=_shape(12, 10, 0.8),
+            skin=_srgb(206, 154, 128),
+            lips=_srgb(172, 86, 84),
+            brows=_srgb(92, 66, 48),
+            hair=_srgb(70, 48, 32),
+            iris=_srgb(70, 95, 120),
+            texture_seed=1001,
         )
     if subject == "synth_b":
         return Identity(
-            flame_shape=_shape(21, num_flame_shape, 0.9), mano_shape=_shape(22, 10, 0.8),
-            skin=_srgb(150, 102, 76), lips=_srgb(120, 62, 60), brows=_srgb(38, 30, 26),
-            hair=_srgb(30, 26, 24), iris=_srgb(60, 40, 26), texture_seed=2002,
+            flame_shape=_shape(21, num_flame_shape, 0.9),
+            mano_shape=_shape(22, 10, 0.8),
+            skin=_srgb(150, 102, 76),
+            lips=_srgb(120, 62, 60),
+            brows=_srgb(38, 30, 26),
+            hair=_srgb(30, 26, 24),
+            iris=_srgb(60, 40, 26),
+            texture_seed=2002,
         )
     if subject == "synth_c":  # held out: head and hand on the side of the shape space away from both, a darker skin
         return Identity(
             flame_shape=_opposite(_shape(11, num_flame_shape, 0.9), _shape(21, num_flame_shape, 0.9), 1.5),
             mano_shape=_opposite(_shape(12, 10, 0.8), _shape(22, 10, 0.8), 1.5),
-            skin=_srgb(78, 50, 36), lips=_srgb(70, 40, 38), brows=_srgb(22, 18, 16),
-            hair=_srgb(18, 16, 15), iris=_srgb(40, 28, 20), texture_seed=3003,
+            skin=_srgb(78, 50, 36),
+            lips=_srgb(70, 40, 38),
+            brows=_srgb(22, 18, 16),
+            hair=_srgb(18, 16, 15),
+            iris=_srgb(40, 28, 20),
+            texture_seed=3003,
         )
     raise ValueError(f"unknown synthetic subject {subject!r} (synth_a, synth_b, synth_c)")

@@ -27,8 +27,15 @@ FACE_SELF_TOLERANCE_M = 0.02
 OTHER_PART_TOLERANCE_M = 0.005
 
 
-def project_keypoints(camera: Camera, points: np.ndarray, depth: np.ndarray, labels: np.ndarray, own_label: int,
-                      self_tolerance: float, other_tolerance: float = OTHER_PART_TOLERANCE_M) -> np.ndarray:
+def project_keypoints(
+    camera: Camera,
+    points: np.ndarray,
+    depth: np.ndarray,
+    labels: np.ndarray,
+    own_label: int,
+    self_tolerance: float,
+    other_tolerance: float = OTHER_PART_TOLERANCE_M,
+) -> np.ndarray:
     """Rows (u, v, visible) for world points (K, 3) of one part seen through ``camera``.
 
     Args:

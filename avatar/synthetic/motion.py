@@ -108,18 +108,16 @@ TRAIN = Script(
     hand=(
         HandKey(0.00, "cheek", 0.05, curl=_RELAXED, shift_m=_AWAY_SHIFT),
         HandKey(0.12, "cheek", 0.02, tilt_deg=8, curl=(0.2, 0.1, 0.1, 0.15, 0.2)),
-        HandKey(0.20, "cheek", -0.008, finger_dir=(0.1, 1.0, 0.2), curl=(0.15, 0.05, 0.05, 0.1, 0.1),
-                spread=0.12),
-        HandKey(0.30, "cheek", -0.009, finger_dir=(0.15, 1.0, 0.25), curl=(0.3, 0.35, 0.3, 0.3, 0.35),
-                spread=0.02),
-        HandKey(0.42, "jaw", -0.006, finger_dir=(0.2, 1.0, 0.3), curl=(0.3, 0.2, 0.2, 0.25, 0.3),
-                spread=0.08),
+        HandKey(0.20, "cheek", -0.008, finger_dir=(0.1, 1.0, 0.2), curl=(0.15, 0.05, 0.05, 0.1, 0.1), spread=0.12),
+        HandKey(0.30, "cheek", -0.009, finger_dir=(0.15, 1.0, 0.25), curl=(0.3, 0.35, 0.3, 0.3, 0.35), spread=0.02),
+        HandKey(0.42, "jaw", -0.006, finger_dir=(0.2, 1.0, 0.3), curl=(0.3, 0.2, 0.2, 0.25, 0.3), spread=0.08),
         HandKey(0.50, "chin", 0.02, finger_dir=(1.0, 0.1, 0.4), curl=(0.5, 0.6, 0.6, 0.6, 0.6)),
         HandKey(0.56, "chin", -0.005, finger_dir=(1.0, 0.1, 0.4), curl=(0.5, 0.7, 0.75, 0.8, 0.85)),
         HandKey(0.68, "chin", -0.006, finger_dir=(1.0, 0.0, 0.3), curl=(0.6, 0.8, 0.85, 0.9, 0.95)),
         HandKey(0.76, "mouth", -0.003, tilt_deg=-35, contact="index", curl=_POINT, spread=0.0),
-        HandKey(0.84, "mouth", -0.004, finger_dir=(0.2, 1.0, 0.0), tilt_deg=-30, contact="index",
-                curl=_POINT, spread=0.0),
+        HandKey(
+            0.84, "mouth", -0.004, finger_dir=(0.2, 1.0, 0.0), tilt_deg=-30, contact="index", curl=_POINT, spread=0.0
+        ),
         HandKey(0.92, "mouth", 0.05, tilt_deg=-20, contact="index", curl=_RELAXED),
         HandKey(1.00, "cheek", 0.05, curl=_RELAXED, shift_m=_AWAY_SHIFT),
     ),
@@ -138,12 +136,9 @@ TEST = Script(
         HandKey(0.00, "temple", 0.05, curl=_RELAXED, shift_m=(0.0, -0.03, 0.10)),
         HandKey(0.12, "temple", 0.02, finger_dir=(0.3, 1.0, -0.3), curl=(0.2, 0.1, 0.1, 0.1, 0.15)),
         HandKey(0.17, "temple", -0.004, finger_dir=(0.3, 1.0, -0.3), curl=(0.2, 0.1, 0.1, 0.1, 0.15)),
-        HandKey(0.25, "temple", -0.004, finger_dir=(0.2, 1.0, -0.2), curl=(0.2, 0.1, 0.1, 0.1, 0.15),
-                spread=0.2),
-        HandKey(0.36, "cheek", -0.008, finger_dir=(0.0, 1.0, 0.1), curl=(0.1, 0.05, 0.05, 0.05, 0.1),
-                spread=0.25),
-        HandKey(0.46, "cheek", -0.007, finger_dir=(-0.2, 1.0, 0.2), curl=(0.4, 0.45, 0.4, 0.35, 0.3),
-                spread=0.05),
+        HandKey(0.25, "temple", -0.004, finger_dir=(0.2, 1.0, -0.2), curl=(0.2, 0.1, 0.1, 0.1, 0.15), spread=0.2),
+        HandKey(0.36, "cheek", -0.008, finger_dir=(0.0, 1.0, 0.1), curl=(0.1, 0.05, 0.05, 0.05, 0.1), spread=0.25),
+        HandKey(0.46, "cheek", -0.007, finger_dir=(-0.2, 1.0, 0.2), curl=(0.4, 0.45, 0.4, 0.35, 0.3), spread=0.05),
         HandKey(0.54, "mouth", 0.015, finger_dir=(1.0, 0.3, 0.0), curl=(0.3, 0.2, 0.2, 0.2, 0.2)),
         HandKey(0.62, "mouth", -0.004, finger_dir=(1.0, 0.3, 0.0), curl=(0.3, 0.25, 0.25, 0.25, 0.25)),
         HandKey(0.72, "chin", -0.004, finger_dir=(1.0, -0.2, 0.2), curl=_FIST),
@@ -184,17 +179,24 @@ def jitter(script: Script, rng: np.random.Generator, style: MotionStyle = Motion
         return c0, c1, c2, c3, c4
 
     head = tuple(
-        replace(k, time=time(k.time), yaw_deg=k.yaw_deg * style.head_gain + rng.normal(0, 2.0) * gain,
-                pitch_deg=k.pitch_deg * style.head_gain + rng.normal(0, 1.5) * gain,
-                roll_deg=k.roll_deg * style.head_gain + rng.normal(0, 1.0) * gain)
+        replace(
+            k,
+            time=time(k.time),
+            yaw_deg=k.yaw_deg * style.head_gain + rng.normal(0, 2.0) * gain,
+            pitch_deg=k.pitch_deg * style.head_gain + rng.normal(0, 1.5) * gain,
+            roll_deg=k.roll_deg * style.head_gain + rng.normal(0, 1.0) * gain,
+        )
         for k in script.head
     )
     hand = tuple(
-        replace(k, time=time(k.time),
-                standoff_m=k.standoff_m + float(rng.uniform(-0.0008, 0.0008)) * (k.standoff_m < 0),
-                tilt_deg=k.tilt_deg + rng.normal(0, 2.0) * gain,
-                curl=jitter_curl(k.curl),
-                spread=float(k.spread + rng.normal(0, 0.02) * gain))
+        replace(
+            k,
+            time=time(k.time),
+            standoff_m=k.standoff_m + float(rng.uniform(-0.0008, 0.0008)) * (k.standoff_m < 0),
+            tilt_deg=k.tilt_deg + rng.normal(0, 2.0) * gain,
+            curl=jitter_curl(k.curl),
+            spread=float(k.spread + rng.normal(0, 0.02) * gain),
+        )
         for k in script.hand
     )
     return Script(head=head, hand=hand)

@@ -54,21 +54,27 @@ def _lerp(a: npt.ArrayLike, b: npt.ArrayLike, s: float) -> np.ndarray:
     return (1 - s) * np.asarray(a, dtype=np.float64) + s * np.asarray(b, dtype=np.float64)
 
 
-def head_params(script: Script, times: np.ndarray, identity: Identity, num_expression: int
-                ) -> dict[str, np.ndarray]:
+def head_params(script: Script, times: np.ndarray, identity: Identity, num_expression: int) -> dict[str, np.ndarray]:
     """FLAME parameters (T rows) of the head track at ``times``."""
     keys = script.head
     key_times = np.array([k.time for k in keys])
     t_count = times.shape[0]
-    out = {name: np.zeros((t_count, width)) for name, width in (
-        ("flame_expression", num_expression), ("flame_global_orient", 3), ("flame_neck_pose", 3),
-        ("flame_jaw_pose", 3), ("flame_eye_pose", 6), ("flame_transl", 3))}
+    out = {
+        name: np.zeros((t_count, width))
+        for name, width in (
+            ("flame_expression", num_expression),
+            ("flame_global_orient", 3),
+            ("flame_neck_pose", 3),
+            ("flame_jaw_pose", 3),
+            ("flame_eye_pose", 6),
+            ("flame_transl", 3),
+        )
+    }
     out["flame_shape"] = np.tile(identity.flame_shape, (t_count, 1))
     for f, t in enumerate(times):
         i, j, s = bracket(key_times, t)
         a, b = keys[i], keys[j]
-        yaw, pitch, roll = (_lerp(getattr(a, n), getattr(b, n), s)
-                            for n in ("yaw_deg", "pitch_deg", "roll_deg"))
+        yaw, pitch, roll = (_lerp(getattr(a, n), getattr(b, n), s) for n in ("yaw_deg", "pitch_deg", "roll_deg"))
         # Yaw about +y (towards the subject's left), pitch about +x (looks down), roll about +z.
         rot = Rotation.from_euler("YXZ", [yaw, pitch, -roll], degrees=True).as_rotvec()
         out["flame_global_orient"][f] = GLOBAL_SHARE * rot
@@ -88,17 +94,27 @@ def _as_t(x: np.ndarray) -> torch.Tensor:
 
 def pose_face(layer: FLAMELayer, params: dict[str, np.ndarray]) -> np.ndarray:
     """(T, Vf, 3) posed FLAME vertices for the head parameters."""
-    out = layer(*(_as_t(params[k]) for k in (
-        "flame_shape", "flame_expression", "flame_global_orient", "flame_neck_pose",
-        "flame_jaw_pose", "flame_eye_pose", "flame_transl")))
+    out = layer(
+        *(
+            _as_t(params[k])
+            for k in (
+                "flame_shape",
+                "flame_expression",
+                "flame_global_orient",
+                "flame_neck_pose",
+                "flame_jaw_pose",
+                "flame_eye_pose",
+                "flame_transl",
+            )
+        )
+    )
     return out.vertices.numpy()
 
 
 class HandPlacer:
     """Turns hand keys into MANO parameters against a posed face."""
 
-    def __init__(self, layer: MANOLayer, identity: Identity, anchors: FaceAnchors,
-                 face_faces: np.ndarray) -> None:
+    def __init__(self, layer: MANOLayer, identity: Identity, anchors: FaceAnchors, face_faces: np.ndarray) -> None:
         self.layer = layer
         self.betas = identity.mano_shape
         rest = layer(_as_t(self.betas[None]), torch.zeros(1, 45, dtype=torch.float64))
@@ -109,8 +125,9 @@ class HandPlacer:
             raise ValueError("the hand template has no tip_vertex_ids")
         self.tips = layer.model.tip_vertex_ids
 
-    def _placement(self, key: HandKey, hand_pose: np.ndarray, face: np.ndarray, normals: np.ndarray,
-                   head_rot: Rotation) -> tuple[Rotation, np.ndarray]:
+    def _placement(
+        self, key: HandKey, hand_pose: np.ndarray, face: np.ndarray, normals: np.ndarray, head_rot: Rotation
+    ) -> tuple[Rotation, np.ndarray]:
         vid = self.anchors.vertex(key.anchor)
         point, normal = face[vid], normals[vid]
         finger_dir = head_rot.apply(np.asarray(key.finger_dir, dtype=np.float64))
@@ -118,13 +135,13 @@ class HandPlacer:
         lateral = rot.apply(self.frame.lateral)
         rot = Rotation.from_rotvec(-np.deg2rad(key.tilt_deg) * lateral) * rot
         target = point + key.standoff_m * normal + head_rot.apply(np.asarray(key.shift_m, dtype=np.float64))
-        contact: np.ndarray | int = (-normal if key.contact == "extreme"
-                                     else int(self.tips[FINGERS.index(key.contact)]))
+        contact: np.ndarray | int = -normal if key.contact == "extreme" else int(self.tips[FINGERS.index(key.contact)])
         transl = place(self.layer, self.betas, hand_pose, rot.as_rotvec(), contact, target)
         return rot, transl
 
-    def frame_params(self, a: HandKey, b: HandKey, s: float, face: np.ndarray, head_rot: Rotation
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def frame_params(
+        self, a: HandKey, b: HandKey, s: float, face: np.ndarray, head_rot: Rotation
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Blend keys a -> b by s at one frame: hand_pose (45,), global_orient (3,),
         transl (3,), curl (5,)."""
         curl = _lerp(a.curl, b.curl, s)
@@ -137,8 +154,9 @@ class HandPlacer:
         return hand_pose, rot.as_rotvec(), _lerp(tr_a, tr_b, s), curl
 
 
-def perform(script: Script, times: np.ndarray, identity: Identity, flame: FLAMELayer,
-            mano: MANOLayer, anchors: FaceAnchors) -> Performance:
+def perform(
+    script: Script, times: np.ndarray, identity: Identity, flame: FLAMELayer, mano: MANOLayer, anchors: FaceAnchors
+) -> Performance:
     """Evaluate the script at ``times`` (T,) into parameters and posed meshes."""
     params = head_params(script, times, identity, flame.num_expression)
     faces = pose_face(flame, params)
@@ -147,13 +165,22 @@ def perform(script: Script, times: np.ndarray, identity: Identity, flame: FLAMEL
     rows = []
     for f, t in enumerate(times):
         i, j, s = bracket(key_times, t)
-        head_rot = (Rotation.from_rotvec(params["flame_global_orient"][f])
-                    * Rotation.from_rotvec(params["flame_neck_pose"][f]))
+        head_rot = Rotation.from_rotvec(params["flame_global_orient"][f]) * Rotation.from_rotvec(
+            params["flame_neck_pose"][f]
+        )
         rows.append(placer.frame_params(script.hand[i], script.hand[j], s, faces[f], head_rot))
     hand_pose, orient, transl, curl = (np.stack(c) for c in zip(*rows))
-    params.update(mano_shape=np.tile(identity.mano_shape, (times.shape[0], 1)), mano_hand_pose=hand_pose,
-                  mano_global_orient=orient, mano_transl=transl)
-    out = mano(*(_as_t(params[k]) for k in ("mano_shape", "mano_hand_pose", "mano_global_orient",
-                                              "mano_transl")))
-    return Performance(params=params, face_vertices=faces, hand_vertices=out.vertices.numpy(),
-                       hand_joints=out.joints.numpy(), curl=curl)
+    params.update(
+        mano_shape=np.tile(identity.mano_shape, (times.shape[0], 1)),
+        mano_hand_pose=hand_pose,
+        mano_global_orient=orient,
+        mano_transl=transl,
+    )
+    out = mano(*(_as_t(params[k]) for k in ("mano_shape", "mano_hand_pose", "mano_global_orient", "mano_transl")))
+    return Performance(
+        params=params,
+        face_vertices=faces,
+        hand_vertices=out.vertices.numpy(),
+        hand_joints=out.joints.numpy(),
+        curl=curl,
+    )

@@ -71,9 +71,15 @@ def make_rig(num_cameras: int, image_size: int, target: np.ndarray) -> list[Came
         focal = image_size / 2 * dist / FIELD_HALF_WIDTH_M
         centre = image_size / 2 - 0.5
         k = np.array([[focal, 0.0, centre], [0.0, focal, centre], [0.0, 0.0, 1.0]])
-        cams.append(Camera(
-            camera_id=f"cam{i:02d}", width=image_size, height=image_size, K=k,
-            world_to_cam=look_at(eye, target, up), dist=np.zeros(5),
-            split="test" if i == test_index else "train",
-        ))
+        cams.append(
+            Camera(
+                camera_id=f"cam{i:02d}",
+                width=image_size,
+                height=image_size,
+                K=k,
+                world_to_cam=look_at(eye, target, up),
+                dist=np.zeros(5),
+                split="test" if i == test_index else "train",
+            )
+        )
     return cams

@@ -14,8 +14,8 @@ base albedo (3, linear), occlusion factor (1), pore amplitude (1).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -85,8 +85,7 @@ class ShadowMap:
         eye = target + SHADOW_DISTANCE_M * KEY_DIRECTION
         focal = size / 2 * SHADOW_DISTANCE_M / SHADOW_HALF_WIDTH_M
         k = np.array([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1.0]])
-        cam = PinholeCamera(K=k, world_to_cam=look_at(eye, target, np.array([0.0, 1.0, 0.0])),
-                            width=size, height=size)
+        cam = PinholeCamera(K=k, world_to_cam=look_at(eye, target, np.array([0.0, 1.0, 0.0])), width=size, height=size)
         buffer, _ = rasterize(meshes, cam, supersample=1)
         depth = buffer.depth.masked_fill(~buffer.covered, float("inf"))
         return ShadowMap(camera=cam, depth=depth)

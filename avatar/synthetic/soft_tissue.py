@@ -68,8 +68,9 @@ def _near_hand(face: torch.Tensor, hand: torch.Tensor, margin: float) -> torch.T
     return torch.nonzero(((face >= lo) & (face <= hi)).all(dim=1)).squeeze(1)
 
 
-def membrane_matrix(vertices: torch.Tensor, faces: torch.Tensor, region: torch.Tensor,
-                    inner_distance: torch.Tensor) -> torch.Tensor:
+def membrane_matrix(
+    vertices: torch.Tensor, faces: torch.Tensor, region: torch.Tensor, inner_distance: torch.Tensor
+) -> torch.Tensor:
     """Hessian (n, n) of the membrane-plus-foundation energy over the ``region`` vertices (n,).
 
     Vertices outside the region are held at zero: an edge to one adds its spring to the diagonal.
@@ -119,8 +120,13 @@ def signorini_magnitudes(hessian: torch.Tensor, pressed: torch.Tensor, minimum: 
     raise RuntimeError("signorini_magnitudes: the contact set did not settle (is the matrix an M-matrix?)")
 
 
-def contact_offsets(face_vertices: torch.Tensor, face_faces: torch.Tensor, inner_distance: torch.Tensor,
-                    hand_vertices: torch.Tensor, hand_faces: torch.Tensor) -> torch.Tensor:
+def contact_offsets(
+    face_vertices: torch.Tensor,
+    face_faces: torch.Tensor,
+    inner_distance: torch.Tensor,
+    hand_vertices: torch.Tensor,
+    hand_faces: torch.Tensor,
+) -> torch.Tensor:
     """Soft-tissue displacement of the face for one frame.
 
     Args:
@@ -178,13 +184,19 @@ def _nearest_outside(points: torch.Tensor, hand_vertices: torch.Tensor, hand_fac
     if points.shape[0] == 0:
         return points
     tri = hand_vertices[hand_faces]  # (F, 3, 3)
-    face_normal = torch.nn.functional.normalize(torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
-                                                dim=1, eps=1e-12)
+    face_normal = torch.nn.functional.normalize(
+        torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), dim=1, eps=1e-12
+    )
     normal = vertex_normals(hand_vertices, hand_faces)
     edges = torch.cat([hand_faces[:, [0, 1]], hand_faces[:, [1, 2]], hand_faces[:, [2, 0]]])
-    samples = torch.cat([hand_vertices + CLEARANCE_M * normal, tri.mean(dim=1) + CLEARANCE_M * face_normal,
-                         hand_vertices[edges].mean(dim=1) + CLEARANCE_M * torch.nn.functional.normalize(
-                             normal[edges].sum(dim=1), dim=1, eps=1e-12)])
+    samples = torch.cat(
+        [
+            hand_vertices + CLEARANCE_M * normal,
+            tri.mean(dim=1) + CLEARANCE_M * face_normal,
+            hand_vertices[edges].mean(dim=1)
+            + CLEARANCE_M * torch.nn.functional.normalize(normal[edges].sum(dim=1), dim=1, eps=1e-12),
+        ]
+    )
     distance = torch.cdist(points, samples)  # (n, s)
     for radius in (0.25 * REACH_M, REACH_M):
         near = (distance < radius).any(dim=0)
@@ -192,5 +204,6 @@ def _nearest_outside(points: torch.Tensor, hand_vertices: torch.Tensor, hand_fac
         if outside.any():
             candidates = torch.nonzero(near).squeeze(1)[outside]
             return samples[candidates[distance[:, candidates].argmin(dim=1)]]
-    raise RuntimeError(f"soft tissue: no point outside the hand within {REACH_M * 1e3:.0f} mm of a face vertex "
-                       f"inside it")
+    raise RuntimeError(
+        f"soft tissue: no point outside the hand within {REACH_M * 1e3:.0f} mm of a face vertex inside it"
+    )

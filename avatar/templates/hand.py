@@ -44,8 +44,8 @@ from avatar.templates.rigging import (
     joint_regressor,
     orthonormal_completion,
     segment_distance,
-    smoothstep,
     smooth_weights,
+    smoothstep,
     softmin_weights,
 )
 
@@ -102,8 +102,15 @@ def _unit(v: npt.ArrayLike) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def _finger(name: str, joints: tuple[int, int, int], z: float, mcp_x: float, splay: float,
-            lengths: tuple[float, float, float], radii: tuple[float, float]) -> _Digit:
+def _finger(
+    name: str,
+    joints: tuple[int, int, int],
+    z: float,
+    mcp_x: float,
+    splay: float,
+    lengths: tuple[float, float, float],
+    radii: tuple[float, float],
+) -> _Digit:
     direction = np.array([np.cos(splay), 0.0, np.sin(splay)])
     return _Digit(name, joints, np.array([mcp_x, 0.0, z]), direction, np.array([0.0, 1.0, 0.0]), lengths, radii)
 
@@ -236,8 +243,14 @@ def _hand_mesh() -> _HandMesh:
         builder.add_faces(quads)
     builder.close_with_dome(palm_ids[0], np.array([-1.0, 0.0, 0.0]), 0.010, PALM_PART)
     # Thumb from the hole: [ring r0 cols c0..c1, col c1 up, ring r1 cols c1..c0, col c0 down].
-    hole = np.concatenate((palm_ids[r0, c0 : c1 + 1], palm_ids[r0 + 1 : r1, c1],
-                           palm_ids[r1, c0 : c1 + 1][::-1], palm_ids[r1 - 1 : r0 : -1, c0]))
+    hole = np.concatenate(
+        (
+            palm_ids[r0, c0 : c1 + 1],
+            palm_ids[r0 + 1 : r1, c1],
+            palm_ids[r1, c0 : c1 + 1][::-1],
+            palm_ids[r1 - 1 : r0 : -1, c0],
+        )
+    )
     thumb = _thumb(builder.points[hole])
     tips = [_add_digit(builder, thumb, 1, hole, blend=0.024)]
     # Fingers from the distal palm ring, split by three web points between the columns.
@@ -245,8 +258,9 @@ def _hand_mesh() -> _HandMesh:
     n = _N_COL * 4
     top, right, bottom, left = distal[: n + 1], distal[n + 1], distal[n + 2 : 2 * n + 3][::-1], distal[-1]
     points = builder.points
-    webs = [int(builder.add_points(0.5 * (points[top[c]] + points[bottom[c]]), PALM_PART))
-            for c in range(_N_COL, n, _N_COL)]
+    webs = [
+        int(builder.add_points(0.5 * (points[top[c]] + points[bottom[c]]), PALM_PART)) for c in range(_N_COL, n, _N_COL)
+    ]
     sides = [left, *webs, right]
     for k, finger in enumerate(_FINGERS):
         cols = slice(k * _N_COL, (k + 1) * _N_COL + 1)
@@ -281,8 +295,13 @@ def _bones(digits: tuple[_Digit, ...]) -> list[tuple[int, np.ndarray, np.ndarray
     return bones
 
 
-def _skinning(vertices: np.ndarray, faces: np.ndarray, part: np.ndarray, digits: tuple[_Digit, ...],
-              bones: list[tuple[int, np.ndarray, np.ndarray, float]]) -> np.ndarray:
+def _skinning(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    part: np.ndarray,
+    digits: tuple[_Digit, ...],
+    bones: list[tuple[int, np.ndarray, np.ndarray, float]],
+) -> np.ndarray:
     """(V, 16) weights: soft-min over bone distances among the allowed joints
     (palm: wrist and each digit's first joint; digit: wrist and its own joints)."""
     dist = np.full((vertices.shape[0], NUM_JOINTS), np.inf)
@@ -385,13 +404,15 @@ def _pose_synergies(digits: tuple[_Digit, ...]) -> tuple[np.ndarray, np.ndarray]
 
     curl = {name: (0.7, 1.0, 0.6) for name in DIGIT_NAMES[1:]} | {"thumb": (0.3, 0.4, 0.5)}
     spread = {"index": (-0.25, 0, 0), "ring": (0.15, 0, 0), "pinky": (0.3, 0, 0), "thumb": (-0.3, 0, 0)}
-    leading = np.stack([
-        synergy(curl),
-        synergy(spread, axis="dorsal"),
-        synergy({"thumb": (0.6, 0.3, 0.2)}) + synergy({"thumb": (0.5, 0, 0)}, axis="dorsal"),
-        synergy({"thumb": (0.4, 0.4, 0.4), "index": (0.6, 0.7, 0.5)}),
-        synergy({name: (1.2, 1.4, 0.9) for name in ("middle", "ring", "pinky")}),
-    ])
+    leading = np.stack(
+        [
+            synergy(curl),
+            synergy(spread, axis="dorsal"),
+            synergy({"thumb": (0.6, 0.3, 0.2)}) + synergy({"thumb": (0.5, 0, 0)}, axis="dorsal"),
+            synergy({"thumb": (0.4, 0.4, 0.4), "index": (0.6, 0.7, 0.5)}),
+            synergy({name: (1.2, 1.4, 0.9) for name in ("middle", "ring", "pinky")}),
+        ]
+    )
     leading /= np.linalg.norm(leading, axis=1, keepdims=True)
     return orthonormal_completion(leading), 0.15 * synergy(curl)
 

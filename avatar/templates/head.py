@@ -305,7 +305,7 @@ def _landmark_region_roughness(landmarks: np.ndarray) -> np.ndarray:
     the landmark-region columns; zero on the designed and global ones."""
     L = landmarks.shape[0]
     distance = np.linalg.norm(landmarks[:, None] - landmarks[None], axis=-1)
-    neighbours = np.argsort(distance, axis=1)[:, 1:_REGION_NEIGHBOURS + 1]
+    neighbours = np.argsort(distance, axis=1)[:, 1 : _REGION_NEIGHBOURS + 1]
     difference = np.eye(L)
     np.put_along_axis(difference, neighbours, -1.0 / _REGION_NEIGHBOURS, axis=1)
     per_axis = np.kron(difference, np.eye(3))  # landmark-major, axis-minor like the columns
@@ -347,9 +347,11 @@ def _shapedirs(reg: _Regions, landmarks: np.ndarray) -> np.ndarray:
         field(0.10 * reg.front() * smoothstep(-0.02, 0.04, v[:, 1]) * v[:, 1], y_hat),
     ]
     expression = [  # NUM_EXPRESSION fields
-        sum(field(reg.corner(s), np.array([s * 0.006, 0.005, -0.002]))
+        sum(
+            field(reg.corner(s), np.array([s * 0.006, 0.005, -0.002]))
             + field(reg.cheek(s), np.array([0.0, 0.003, 0.002]))
-            for s in sides),
+            for s in sides
+        ),
         field(reg.lip(upper=False) + 0.6 * reg.patch(0.0, -0.85, 0.3, 0.2), -0.006 * y_hat)
         + field(reg.lip(upper=True), 0.002 * y_hat),
         field(reg.lips(), np.array([0.0, 0.0, 0.007])) + field(-0.25 * reg.lips() * v[:, 0], x_hat),
@@ -361,8 +363,14 @@ def _shapedirs(reg: _Regions, landmarks: np.ndarray) -> np.ndarray:
         -0.004 * reg.lips()[:, None] * u,
         field(sum(reg.patch(s * 0.15, -0.05, 0.08, 0.12) for s in sides) + 0.5 * reg.lip(upper=True), 0.004 * y_hat),
     ]
-    return np.concatenate((np.stack(identity + global_proportions, axis=2),
-                           _landmark_region_fields(v, landmarks), np.stack(expression, axis=2)), axis=2)
+    return np.concatenate(
+        (
+            np.stack(identity + global_proportions, axis=2),
+            _landmark_region_fields(v, landmarks),
+            np.stack(expression, axis=2),
+        ),
+        axis=2,
+    )
 
 
 def _posedirs(reg: _Regions) -> np.ndarray:
@@ -371,7 +379,8 @@ def _posedirs(reg: _Regions) -> np.ndarray:
     x_axis = np.array([1.0, 0.0, 0.0])
     neck = axis_corrective(zero, 0.010 * reg.neck_front()[:, None] * reg.u, x_axis)
     jaw_sym = reg.lip(upper=False)[:, None] * np.array([0.0, 0.0, -0.02]) + reg.under_chin()[:, None] * np.array(
-        [0.0, 0.012, 0.0])
+        [0.0, 0.012, 0.0]
+    )
     jaw = axis_corrective(jaw_sym, reg.lip(upper=True)[:, None] * np.array([0.0, -0.006, 0.0]), x_axis)
     eyes = [axis_corrective(zero, reg.eyelid(s)[:, None] * np.array([0.0, -0.008, 0.0]), x_axis) for s in (1.0, -1.0)]
     return np.concatenate([neck, jaw, *eyes], axis=2)
@@ -404,20 +413,63 @@ def _landmark_directions() -> np.ndarray:
     jaw = np.stack((1.2 * np.sin(psi), -0.05 - 0.85 * np.cos(psi)), axis=1)
     brow_right = np.stack((np.linspace(-0.64, -0.10, 5), [0.46, 0.52, 0.545, 0.54, 0.52]), axis=1)
     brow_left = brow_right[::-1] * [-1.0, 1.0]
-    nose = ([(0.0, 0.30), (0.0, 0.16), (0.0, 0.02), (0.0, -0.13)]
-            + [(y, -0.25) for y in (-0.13, -0.065, 0.0, 0.065, 0.13)])
+    nose = [(0.0, 0.30), (0.0, 0.16), (0.0, 0.02), (0.0, -0.13)] + [
+        (y, -0.25) for y in (-0.13, -0.065, 0.0, 0.065, 0.13)
+    ]
     ey, ep = _EYE
-    eye_right = [(-ey - 0.14, ep), (-ey - 0.05, ep + 0.045), (-ey + 0.05, ep + 0.045), (-ey + 0.14, ep),
-                 (-ey + 0.05, ep - 0.04), (-ey - 0.05, ep - 0.04)]
-    eye_left = [(ey - 0.14, ep), (ey - 0.05, ep + 0.045), (ey + 0.05, ep + 0.045), (ey + 0.14, ep),
-                (ey + 0.05, ep - 0.04), (ey - 0.05, ep - 0.04)]
+    eye_right = [
+        (-ey - 0.14, ep),
+        (-ey - 0.05, ep + 0.045),
+        (-ey + 0.05, ep + 0.045),
+        (-ey + 0.14, ep),
+        (-ey + 0.05, ep - 0.04),
+        (-ey - 0.05, ep - 0.04),
+    ]
+    eye_left = [
+        (ey - 0.14, ep),
+        (ey - 0.05, ep + 0.045),
+        (ey + 0.05, ep + 0.045),
+        (ey + 0.14, ep),
+        (ey + 0.05, ep - 0.04),
+        (ey - 0.05, ep - 0.04),
+    ]
     m, c = _MOUTH_PITCH, _MOUTH_HALF_YAW
-    outer = [(-c, m), (-0.16, m + 0.04), (-0.06, m + 0.06), (0.0, m + 0.055), (0.06, m + 0.06), (0.16, m + 0.04),
-             (c, m), (0.16, m - 0.045), (0.07, m - 0.07), (0.0, m - 0.075), (-0.07, m - 0.07), (-0.16, m - 0.045)]
-    inner = [(-0.22, m), (-0.08, m + 0.01), (0.0, m + 0.01), (0.08, m + 0.01), (0.22, m), (0.08, m - 0.01),
-             (0.0, m - 0.01), (-0.08, m - 0.01)]
-    yaw_pitch = np.concatenate([jaw, brow_right, brow_left, np.array(nose), np.array(eye_right), np.array(eye_left),
-                                np.array(outer), np.array(inner)])
+    outer = [
+        (-c, m),
+        (-0.16, m + 0.04),
+        (-0.06, m + 0.06),
+        (0.0, m + 0.055),
+        (0.06, m + 0.06),
+        (0.16, m + 0.04),
+        (c, m),
+        (0.16, m - 0.045),
+        (0.07, m - 0.07),
+        (0.0, m - 0.075),
+        (-0.07, m - 0.07),
+        (-0.16, m - 0.045),
+    ]
+    inner = [
+        (-0.22, m),
+        (-0.08, m + 0.01),
+        (0.0, m + 0.01),
+        (0.08, m + 0.01),
+        (0.22, m),
+        (0.08, m - 0.01),
+        (0.0, m - 0.01),
+        (-0.08, m - 0.01),
+    ]
+    yaw_pitch = np.concatenate(
+        [
+            jaw,
+            brow_right,
+            brow_left,
+            np.array(nose),
+            np.array(eye_right),
+            np.array(eye_left),
+            np.array(outer),
+            np.array(inner),
+        ]
+    )
     yaw, pitch = yaw_pitch.T
     return np.stack((np.cos(pitch) * np.sin(yaw), np.sin(pitch), np.cos(pitch) * np.cos(yaw)), axis=1)
 
@@ -427,8 +479,14 @@ def build_head() -> TemplateModel:
     u, faces = _warped_sphere(4, _WARP)
     vertices = _skin_radius(u)[:, None] * u
     reg = _Regions(u, vertices)
-    u_eye = _unit(np.array([[np.cos(_EYE[1]) * np.sin(s * _EYE[0]), np.sin(_EYE[1]), np.cos(_EYE[1]) * np.cos(_EYE[0])]
-                            for s in (1.0, -1.0)]))
+    u_eye = _unit(
+        np.array(
+            [
+                [np.cos(_EYE[1]) * np.sin(s * _EYE[0]), np.sin(_EYE[1]), np.cos(_EYE[1]) * np.cos(_EYE[0])]
+                for s in (1.0, -1.0)
+            ]
+        )
+    )
     joints = _joint_targets(u_eye, _skin_radius(u_eye))
     regressor = joint_regressor(vertices, joints, np.array([0.04, 0.05, 0.05, 0.03, 0.03]))
     weights = _skinning(reg)
@@ -451,4 +509,3 @@ def build_head() -> TemplateModel:
         shape_roughness=_landmark_region_roughness(landmarks),
         num_core_shape=NUM_DESIGNED_SHAPE,
     )
-

@@ -30,6 +30,8 @@ def hand_frame(joints: np.ndarray) -> np.ndarray:
     palm = np.cross(joints[1] - joints[7], finger)
     palm = palm / np.linalg.norm(palm, axis=-1, keepdims=True)
     return np.stack([finger, palm, np.cross(finger, palm)], axis=1)
+
+
 FLAME_NUM_JOINTS = 5
 
 
@@ -104,8 +106,9 @@ class MANOLayer(_SkinnedLayer):
         flat_hand_mean: bool = True,
     ) -> None:
         if model.name != "mano" or model.num_joints != MANO_NUM_JOINTS:
-            raise ValueError(f"MANOLayer needs a 16-joint 'mano' TemplateModel, got {model.name!r} "
-                             f"with {model.num_joints} joints")
+            raise ValueError(
+                f"MANOLayer needs a 16-joint 'mano' TemplateModel, got {model.name!r} with {model.num_joints} joints"
+            )
         if model.hands_components is None or model.hands_mean is None or model.tip_vertex_ids is None:
             raise ValueError("MANOLayer needs hands_components, hands_mean and tip_vertex_ids in the model")
         if use_pca and not 1 <= num_pca_comps <= model.hands_components.shape[0]:
@@ -163,16 +166,17 @@ class FLAMELayer(_SkinnedLayer):
 
     def __init__(self, model: TemplateModel, num_shape: int, num_expression: int) -> None:
         if model.name != "flame" or model.num_joints != FLAME_NUM_JOINTS:
-            raise ValueError(f"FLAMELayer needs a 5-joint 'flame' TemplateModel, got {model.name!r} "
-                             f"with {model.num_joints} joints")
+            raise ValueError(
+                f"FLAMELayer needs a 5-joint 'flame' TemplateModel, got {model.name!r} with {model.num_joints} joints"
+            )
         num_expr_total = model.num_shapes_total - model.num_identity_shape
         if not 0 <= num_shape <= model.num_identity_shape:
             raise ValueError(f"num_shape must lie in [0, {model.num_shape}], got {num_shape}")
         if not 0 <= num_expression <= num_expr_total:
             raise ValueError(f"num_expression must lie in [0, {num_expr_total}], got {num_expression}")
-        columns = np.concatenate(
-            (np.arange(num_shape), model.num_identity_shape + np.arange(num_expression))
-        ).astype(np.int64)
+        columns = np.concatenate((np.arange(num_shape), model.num_identity_shape + np.arange(num_expression))).astype(
+            np.int64
+        )
         super().__init__(model, columns)
         self.num_shape = num_shape
         self.num_expression = num_expression
@@ -211,8 +215,12 @@ class FLAMELayer(_SkinnedLayer):
         transl = _zeros_if_none(transl, shape, 3)
         _check("shape", shape, batch, self.num_shape)
         _check("expression", expression, batch, self.num_expression)
-        for name, value in (("global_orient", global_orient), ("neck_pose", neck_pose),
-                            ("jaw_pose", jaw_pose), ("transl", transl)):
+        for name, value in (
+            ("global_orient", global_orient),
+            ("neck_pose", neck_pose),
+            ("jaw_pose", jaw_pose),
+            ("transl", transl),
+        ):
             _check(name, value, batch, 3)
         _check("eye_pose", eye_pose, batch, 6)
         betas = torch.cat((shape, expression), dim=1)
@@ -222,8 +230,10 @@ class FLAMELayer(_SkinnedLayer):
     def landmarks(self, vertices: torch.Tensor) -> torch.Tensor:
         """vertices (B, V, 3) -> landmarks (B, L, 3) from the model's barycentric embedding."""
         if not self.has_landmarks:
-            raise ValueError("this FLAME model has no landmark embedding: pass landmark_embedding=... "
-                             "(flame_static_embedding.pkl) to load_official_model")
+            raise ValueError(
+                "this FLAME model has no landmark embedding: pass landmark_embedding=... "
+                "(flame_static_embedding.pkl) to load_official_model"
+            )
         corners = vertices[:, self.faces[self.landmark_faces]]  # (B, L, 3, 3)
         bary = self.landmark_bary.to(dtype=vertices.dtype, device=vertices.device)
         return (corners * bary[None, :, :, None]).sum(dim=2)

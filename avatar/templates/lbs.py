@@ -25,9 +25,7 @@ def _skew(v: torch.Tensor) -> torch.Tensor:
     """(..., 3) -> (..., 3, 3) cross-product matrices [v]_x."""
     x, y, z = v.unbind(-1)
     zero = torch.zeros_like(x)
-    return torch.stack(
-        (zero, -z, y, z, zero, -x, -y, x, zero), dim=-1
-    ).reshape(*v.shape[:-1], 3, 3)
+    return torch.stack((zero, -z, y, z, zero, -x, -y, x, zero), dim=-1).reshape(*v.shape[:-1], 3, 3)
 
 
 def batch_rodrigues(rotvec: torch.Tensor) -> torch.Tensor:

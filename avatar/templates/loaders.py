@@ -33,9 +33,9 @@ _REQUIRED = {"mano": _COMMON_KEYS + ("hands_components", "hands_mean"), "flame":
 _JOINTS = {"mano": 16, "flame": 5}
 _HELP = {
     "mano": "download MANO_RIGHT.pkl from the MANO website (https://mano.is.tue.mpg.de) and pass "
-            "model.mano_path=/path/to/MANO_RIGHT.pkl",
+    "model.mano_path=/path/to/MANO_RIGHT.pkl",
     "flame": "download FLAME 2020 (generic_model.pkl) from the FLAME website (https://flame.is.tue.mpg.de) and "
-             "pass model.flame_path=/path/to/generic_model.pkl",
+    "pass model.flame_path=/path/to/generic_model.pkl",
 }
 
 
@@ -94,8 +94,10 @@ def load_landmark_embedding(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """
     path = Path(path)
     if not path.is_file():
-        raise OfficialModelError(f"{path}: landmark embedding not found; pass the flame_static_embedding.pkl "
-                                 "from the FLAME website or leave it unset to use vertex landmarks")
+        raise OfficialModelError(
+            f"{path}: landmark embedding not found; pass the flame_static_embedding.pkl "
+            "from the FLAME website or leave it unset to use vertex landmarks"
+        )
     if path.suffix == ".npz":
         with np.load(path, allow_pickle=False) as data:
             content = {k: data[k] for k in data.files}
@@ -105,8 +107,9 @@ def load_landmark_embedding(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         faces = safe_pickle.to_array(content["lmk_face_idx"]).astype(np.int64).ravel()
         bary = safe_pickle.to_array(content["lmk_b_coords"]).astype(np.float64).reshape(-1, 3)
     except KeyError as exc:
-        raise OfficialModelError(f"{path}: landmark embedding lacks key {exc}; expected lmk_face_idx and "
-                                 "lmk_b_coords") from exc
+        raise OfficialModelError(
+            f"{path}: landmark embedding lacks key {exc}; expected lmk_face_idx and lmk_b_coords"
+        ) from exc
     return faces, bary
 
 
@@ -140,8 +143,11 @@ def load_official_model(
     joints = arrays["kintree_table"].shape[-1] if arrays["kintree_table"].ndim == 2 else -1
     if joints != _JOINTS[kind]:
         other = "flame" if kind == "mano" else "mano"
-        raise _fail(path, kind, f"has {joints} joints, {kind.upper()} has {_JOINTS[kind]} "
-                                f"(a {other.upper()} file given as {kind}?)")
+        raise _fail(
+            path,
+            kind,
+            f"has {joints} joints, {kind.upper()} has {_JOINTS[kind]} (a {other.upper()} file given as {kind}?)",
+        )
     vertices = np.asarray(arrays["v_template"], dtype=np.float64)
     weights = np.asarray(arrays["weights"], dtype=np.float64)
     row_sums = weights.sum(axis=1, keepdims=True) if weights.ndim == 2 else None
@@ -159,10 +165,18 @@ def load_official_model(
     try:
         if kind == "mano":
             parents = np.asarray(arrays["kintree_table"][0], dtype=np.int64)
-            tips = (np.array(MANO_TIP_VERTEX_IDS) if vertices.shape[0] == MANO_NUM_VERTICES
-                    else _fingertips(vertices, weights, parents))
-            return TemplateModel(name="mano", hands_components=arrays["hands_components"],
-                                 hands_mean=np.ravel(arrays["hands_mean"]), tip_vertex_ids=tips, **common)
+            tips = (
+                np.array(MANO_TIP_VERTEX_IDS)
+                if vertices.shape[0] == MANO_NUM_VERTICES
+                else _fingertips(vertices, weights, parents)
+            )
+            return TemplateModel(
+                name="mano",
+                hands_components=arrays["hands_components"],
+                hands_mean=np.ravel(arrays["hands_mean"]),
+                tip_vertex_ids=tips,
+                **common,
+            )
         faces = np.asarray(arrays["f"], dtype=np.int64)
         if landmark_embedding is not None:
             lmk_faces, lmk_bary = load_landmark_embedding(landmark_embedding)
@@ -171,7 +185,12 @@ def load_official_model(
         else:
             lmk_faces, lmk_bary = None, None
         identity = FLAME_NUM_SHAPE if num_shape is None else num_shape
-        return TemplateModel(name="flame", num_shape=min(identity, arrays["shapedirs"].shape[-1]),
-                             landmark_faces=lmk_faces, landmark_bary=lmk_bary, **common)
+        return TemplateModel(
+            name="flame",
+            num_shape=min(identity, arrays["shapedirs"].shape[-1]),
+            landmark_faces=lmk_faces,
+            landmark_bary=lmk_bary,
+            **common,
+        )
     except ValueError as exc:
         raise _fail(path, kind, str(exc)) from exc

@@ -192,8 +192,10 @@ class TemplateModel:
         if self.landmark_faces is not None and self.landmark_bary is not None:
             L = self.landmark_faces.shape[0]
             if self.landmark_faces.ndim != 1 or self.landmark_bary.shape != (L, 3):
-                fail(f"landmark_faces (L,) and landmark_bary (L, 3) disagree: {self.landmark_faces.shape}, "
-                     f"{self.landmark_bary.shape}")
+                fail(
+                    f"landmark_faces (L,) and landmark_bary (L, 3) disagree: {self.landmark_faces.shape}, "
+                    f"{self.landmark_bary.shape}"
+                )
             if L and (self.landmark_faces.min() < 0 or self.landmark_faces.max() >= self.faces.shape[0]):
                 fail("landmark_faces index faces out of range")
             if not np.allclose(self.landmark_bary.sum(axis=1), 1.0, atol=1e-6):
@@ -206,8 +208,10 @@ class TemplateModel:
         if self.shape_roughness is not None:
             n = self.num_identity_shape
             if self.shape_roughness.shape != (n, n) or not np.allclose(self.shape_roughness, self.shape_roughness.T):
-                fail(f"shape_roughness must be a symmetric (num_shape={n}, num_shape) matrix, got "
-                     f"{self.shape_roughness.shape}")
+                fail(
+                    f"shape_roughness must be a symmetric (num_shape={n}, num_shape) matrix, got "
+                    f"{self.shape_roughness.shape}"
+                )
         for key, ids in (self.part_labels or {}).items():
             if ids.ndim != 1 or (ids.size and (ids.min() < 0 or ids.max() >= V)):
                 fail(f"part_labels[{key!r}] must be a 1-D array of vertex indices in [0, {V})")

@@ -25,8 +25,10 @@ def _kept_vertices(model: TemplateModel) -> tuple[np.ndarray, np.ndarray]:
     if model.landmark_faces is not None:
         faces = np.asarray(model.faces)[model.landmark_faces]
         return np.unique(faces), faces
-    raise ValueError(f"TemplateModel({model.name}) has neither tip_vertex_ids nor a landmark embedding: "
-                     "it has no keypoints to reduce to")
+    raise ValueError(
+        f"TemplateModel({model.name}) has neither tip_vertex_ids nor a landmark embedding: "
+        "it has no keypoints to reduce to"
+    )
 
 
 def keypoint_template(model: TemplateModel) -> TemplateModel:

@@ -52,8 +52,14 @@ class SparseStandIn:
         return self.__dict__.get("_state", {})
 
 
-_SPARSE_FORMATS = {"csc_matrix": "csc", "csr_matrix": "csr", "coo_matrix": "coo",
-                   "csc_array": "csc", "csr_array": "csr", "coo_array": "coo"}
+_SPARSE_FORMATS = {
+    "csc_matrix": "csc",
+    "csr_matrix": "csr",
+    "coo_matrix": "coo",
+    "csc_array": "csc",
+    "csr_array": "csr",
+    "coo_array": "coo",
+}
 _NUMPY = {
     ("numpy", "ndarray"): np.ndarray,
     ("numpy", "dtype"): np.dtype,

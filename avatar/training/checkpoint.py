@@ -50,10 +50,10 @@ def _read(path: Path, required: Iterable[str]) -> dict[str, Any]:
     """The verified state in ``path``; ``ValueError`` saying what is wrong with it."""
     blob = path.read_bytes()
     head = len(MAGIC) + _DIGEST_BYTES
-    if len(blob) < head or blob[:len(MAGIC)] != MAGIC:
+    if len(blob) < head or blob[: len(MAGIC)] != MAGIC:
         raise ValueError("not a checkpoint of this tool (bad header)")
     payload = blob[head:]
-    if hashlib.sha256(payload).digest() != blob[len(MAGIC):head]:
+    if hashlib.sha256(payload).digest() != blob[len(MAGIC) : head]:
         raise ValueError("content does not match its digest (truncated or corrupted)")
     try:
         state = torch.load(io.BytesIO(payload), weights_only=True)
@@ -78,7 +78,11 @@ def load_checkpoint(path: Path, required: Iterable[str]) -> dict[str, Any] | Non
         try:
             return _read(candidate, required)
         except (OSError, ValueError) as exc:
-            log.warning("%s: checkpoint discarded, %s; %s", candidate, exc,
-                        "trying the previous one" if candidate == path else "starting over")
+            log.warning(
+                "%s: checkpoint discarded, %s; %s",
+                candidate,
+                exc,
+                "trying the previous one" if candidate == path else "starting over",
+            )
             candidate.unlink(missing_ok=True)
     return None

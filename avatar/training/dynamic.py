@@ -99,8 +99,9 @@ _MLP_GROUPS = ("hand_geo", "hand_app", "interaction", "pointnet")
 
 
 def _optimizer(model: DynamicAvatar, cfg: DynamicTrainConfig) -> torch.optim.Adam:
-    groups = gaussian_param_groups(model.gaussians, cfg.lr_position, cfg.lr_scale, cfg.lr_rotation, cfg.lr_opacity,
-                                   cfg.lr_color)
+    groups = gaussian_param_groups(
+        model.gaussians, cfg.lr_position, cfg.lr_scale, cfg.lr_rotation, cfg.lr_opacity, cfg.lr_color
+    )
     groups.append({"params": [model.point_features], "lr": cfg.lr_point_features, "name": "point_features"})
     for name in _MLP_GROUPS:
         module = getattr(model, name)
@@ -119,8 +120,15 @@ def _set_learning_rates(optimizer: torch.optim.Optimizer, cfg: DynamicTrainConfi
             group["lr"] = exponential_lr(step, cfg.lr_point_features, cfg.lr_point_features * cfg.lr_decay, cfg.steps)
 
 
-def render_dynamic(model: DynamicAvatar, cond: SequenceConditioning, meshes: MeshSequence, views: ViewSet,
-                   frame: int, camera: int, backend: str = "auto") -> tuple[object, DynamicFrame]:
+def render_dynamic(
+    model: DynamicAvatar,
+    cond: SequenceConditioning,
+    meshes: MeshSequence,
+    views: ViewSet,
+    frame: int,
+    camera: int,
+    backend: str = "auto",
+) -> tuple[object, DynamicFrame]:
     """(RenderOutput, DynamicFrame) of ``frame`` from view ``camera``, as evaluated (the most probable
     PointNet++ sample)."""
     g = model(cond.frame(frame), meshes.vertices[frame])
@@ -129,8 +137,19 @@ def render_dynamic(model: DynamicAvatar, cond: SequenceConditioning, meshes: Mes
 
 def rasterize(g: WorldGaussians, views: ViewSet, camera: int, backend: str = "auto"):  # noqa: ANN201 - RenderOutput
     """Render the Gaussians of one frame from view ``camera`` of ``views``."""
-    return render_gaussians(g.means, g.quats, g.scales, g.opacities, g.colors, views.K[camera],
-                            views.world_to_cam[camera], views.size, views.size, views.background, backend=backend)
+    return render_gaussians(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.colors,
+        views.K[camera],
+        views.world_to_cam[camera],
+        views.size,
+        views.size,
+        views.background,
+        backend=backend,
+    )
 
 
 def patch_boxes(labels: np.ndarray) -> list[np.ndarray]:
@@ -140,8 +159,9 @@ def patch_boxes(labels: np.ndarray) -> list[np.ndarray]:
     return [b for b in (hand, overlap_box(hand, face)) if b is not None]
 
 
-def contact_draw_probability(frames: np.ndarray, contact: np.ndarray, contact_fraction: float,
-                             max_frame_share: float) -> float:
+def contact_draw_probability(
+    frames: np.ndarray, contact: np.ndarray, contact_fraction: float, max_frame_share: float
+) -> float:
     """The probability with which :func:`sample_frame` draws from the contact frames first: ``contact_fraction``,
     lowered so that no contact frame takes more than ``max_frame_share`` of the steps.
 
@@ -172,10 +192,19 @@ def sample_frame(gen: torch.Generator, frames: np.ndarray, contact: np.ndarray, 
     return draw_frame(gen, frames)
 
 
-def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, cond: SequenceConditioning,
-                  contact: np.ndarray, cfg: DynamicTrainConfig, checkpoint_dir: Path | None = None,
-                  progress: Progress = iter, lpips: LPIPS | None = None,
-                  validator: Validator | None = None, params: FrameParams | None = None) -> DynamicTrainResult:
+def train_dynamic(
+    model: DynamicAvatar,
+    views: ViewSet,
+    meshes: MeshSequence,
+    cond: SequenceConditioning,
+    contact: np.ndarray,
+    cfg: DynamicTrainConfig,
+    checkpoint_dir: Path | None = None,
+    progress: Progress = iter,
+    lpips: LPIPS | None = None,
+    validator: Validator | None = None,
+    params: FrameParams | None = None,
+) -> DynamicTrainResult:
     """Optimise ``model`` in place for ``cfg.steps`` steps (fewer when ``validator`` stops it) on the frames of
     ``views``/``meshes``/``cond`` that ``validator`` leaves to training (default: no validation, every frame).
 
@@ -193,8 +222,10 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
     gen = torch.Generator().manual_seed(cfg.seed)
     validator = validator if validator is not None else Validator(ValidationConfig(), views)
     if cfg.selection.enabled and not validator.cfg.enabled:
-        raise ValueError("stage two selects what it keeps on validation frames: set stage.dynamic.validation.every "
-                         "> 0, or stage.dynamic.select.enabled=false")
+        raise ValueError(
+            "stage two selects what it keeps on validation frames: set stage.dynamic.validation.every "
+            "> 0, or stage.dynamic.select.enabled=false"
+        )
     best = BestStep() if cfg.selection.enabled else None
     if lpips is None and cfg.patch_weight > 0:  # the VGG layers cost time to build: only where L_patch counts
         lpips = LPIPS("vgg")
@@ -231,8 +262,9 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
 
     steps = validator.begin(start, cfg.steps, 0, render)
     offer_validation()
-    result.contact_probability = contact_draw_probability(validator.train_frames, contact, cfg.contact_fraction,
-                                                          cfg.max_contact_frame_share)
+    result.contact_probability = contact_draw_probability(
+        validator.train_frames, contact, cfg.contact_fraction, cfg.max_contact_frame_share
+    )
     for step in progress(steps):
         frame = sample_frame(gen, validator.train_frames, contact, result.contact_probability)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
@@ -244,8 +276,10 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         t2 = time.perf_counter()
         gt, pred = views.target_and_render(out.rgb, frame, camera)
         terms = _loss_terms(pred, gt, views.labels[frame, camera].numpy(), g, out.radii > 0, cfg, lpips)
-        loss = reconstruction_loss(terms, cfg.lambda_dssim, cfg.scale_weight, cfg.position_weight) \
+        loss = (
+            reconstruction_loss(terms, cfg.lambda_dssim, cfg.scale_weight, cfg.position_weight)
             + cfg.patch_weight * terms["patch"]
+        )
         t3 = time.perf_counter()
         loss.backward()
         optimizer.step()
@@ -260,31 +294,60 @@ def train_dynamic(model: DynamicAvatar, views: ViewSet, meshes: MeshSequence, co
         stop = validator.after_step(step, render)
         offer_validation()
         if step % cfg.log_every == 0 or step == validator.end:
-            result.log.append(DynamicLogRow(step, loss.item(), l1=terms["l1"].item(), dssim=terms["dssim"].item(),
-                                            scale_reg=terms["scale_reg"].item(),
-                                            position_reg=terms["position_reg"].item(), patch=terms["patch"].item(),
-                                            interaction_evaluations=g.interaction_evaluations))
+            result.log.append(
+                DynamicLogRow(
+                    step,
+                    loss.item(),
+                    l1=terms["l1"].item(),
+                    dssim=terms["dssim"].item(),
+                    scale_reg=terms["scale_reg"].item(),
+                    position_reg=terms["position_reg"].item(),
+                    patch=terms["patch"].item(),
+                    interaction_evaluations=g.interaction_evaluations,
+                )
+            )
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-            save_checkpoint(ckpt_path, {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                                        "rng": gen.get_state(), "log": [asdict(r) for r in result.log],
-                                        "interaction": (result.interaction_evaluations, result.interaction_steps),
-                                        "validation": validator.state(),
-                                        "best": best.state() if best is not None else None,
-                                        "params": params.state() if params is not None else None})
+            save_checkpoint(
+                ckpt_path,
+                {
+                    "step": step,
+                    "model": model.state_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "rng": gen.get_state(),
+                    "log": [asdict(r) for r in result.log],
+                    "interaction": (result.interaction_evaluations, result.interaction_steps),
+                    "validation": validator.state(),
+                    "best": best.state() if best is not None else None,
+                    "params": params.state() if params is not None else None,
+                },
+            )
         if stop:
             break
     if best is not None:
         best.restore(model, params)
-        result.selection = select(model, best, validator.end, validator.curve[-1].psnr,
-                                  lambda: validator.measure(render), cfg.selection.margin_db)
+        result.selection = select(
+            model,
+            best,
+            validator.end,
+            validator.curve[-1].psnr,
+            lambda: validator.measure(render),
+            cfg.selection.margin_db,
+        )
     return result
 
 
 _CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction", "validation", "best", "params")
 
 
-def _loss_terms(pred: Tensor, gt: Tensor, labels: np.ndarray, g: DynamicFrame, visible: Tensor,
-                cfg: DynamicTrainConfig, lpips: LPIPS | None) -> dict[str, Tensor]:
+def _loss_terms(
+    pred: Tensor,
+    gt: Tensor,
+    labels: np.ndarray,
+    g: DynamicFrame,
+    visible: Tensor,
+    cfg: DynamicTrainConfig,
+    lpips: LPIPS | None,
+) -> dict[str, Tensor]:
     """The terms of the paper's loss for one rendered crop (pred, gt: (S, S, 3); labels: (S, S))."""
     terms = reconstruction_terms(pred, gt, g.local_scales, g.local_means, visible, cfg.eps_s, cfg.eps_mu)
     if cfg.patch_weight > 0:

@@ -45,8 +45,11 @@ class ParamLearningRates:
 
     def problems(self) -> list[str]:
         """Range problems, one line each, keyed relative to the block; empty when it can run."""
-        return [f"{f.name}={getattr(self, f.name):g}: must be a finite learning rate >= 0 (0 holds the group)"
-                for f in fields(self) if not (math.isfinite(getattr(self, f.name)) and getattr(self, f.name) >= 0)]
+        return [
+            f"{f.name}={getattr(self, f.name):g}: must be a finite learning rate >= 0 (0 holds the group)"
+            for f in fields(self)
+            if not (math.isfinite(getattr(self, f.name)) and getattr(self, f.name) >= 0)
+        ]
 
 
 class FrameAdam:
@@ -57,8 +60,13 @@ class FrameAdam:
     momentum of its earlier gradients; here a frame moves only when it is rendered.
     """
 
-    def __init__(self, groups: Sequence[tuple[Tensor, float]], num_frames: int,
-                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
+    def __init__(
+        self,
+        groups: Sequence[tuple[Tensor, float]],
+        num_frames: int,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-15,
+    ) -> None:
         self.groups = list(groups)
         self.betas, self.eps = betas, eps
         self.exp_avg = [torch.zeros_like(p) for p, _ in self.groups]
@@ -77,13 +85,16 @@ class FrameAdam:
             g = p.grad[frame]
             m[frame].mul_(beta1).add_(g, alpha=1 - beta1)
             v[frame].mul_(beta2).addcmul_(g, g, value=1 - beta2)
-            denom = (v[frame] / (1 - beta2 ** n)).sqrt_().add_(self.eps)
-            p[frame] -= lr / (1 - beta1 ** n) * m[frame] / denom
+            denom = (v[frame] / (1 - beta2**n)).sqrt_().add_(self.eps)
+            p[frame] -= lr / (1 - beta1**n) * m[frame] / denom
             p.grad = None
 
     def state_dict(self) -> dict[str, Any]:
-        return {"exp_avg": [m.clone() for m in self.exp_avg], "exp_avg_sq": [v.clone() for v in self.exp_avg_sq],
-                "steps": self.steps.clone()}
+        return {
+            "exp_avg": [m.clone() for m in self.exp_avg],
+            "exp_avg_sq": [v.clone() for v in self.exp_avg_sq],
+            "steps": self.steps.clone(),
+        }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.exp_avg = [m.clone() for m in state["exp_avg"]]
@@ -105,8 +116,15 @@ class FrameParams(nn.Module):
 
     face_offsets: Tensor  # buffer (T, V_face, 3)
 
-    def __init__(self, params: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel,
-                 face_offsets: Tensor | None, lrs: ParamLearningRates, centred: bool = False) -> None:
+    def __init__(
+        self,
+        params: Mapping[str, np.ndarray],
+        head: TemplateModel,
+        hand: TemplateModel,
+        face_offsets: Tensor | None,
+        lrs: ParamLearningRates,
+        centred: bool = False,
+    ) -> None:
         super().__init__()
         self.centred = centred
         t = {k: torch.tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
@@ -123,8 +141,10 @@ class FrameParams(nn.Module):
         num_frames = next(iter(t.values())).shape[0]
         offsets = torch.zeros(num_frames, head.num_vertices, 3) if face_offsets is None else face_offsets.float()
         self.register_buffer("face_offsets", offsets)
-        self.optimizer = FrameAdam([(self.rows[c], getattr(lrs, group))
-                                    for group, columns in REFINED_COLUMNS.items() for c in columns], num_frames)
+        self.optimizer = FrameAdam(
+            [(self.rows[c], getattr(lrs, group)) for group, columns in REFINED_COLUMNS.items() for c in columns],
+            num_frames,
+        )
 
     @property
     def num_frames(self) -> int:
@@ -132,8 +152,8 @@ class FrameParams(nn.Module):
 
     def columns(self, frame: int) -> dict[str, Tensor]:
         """Every column's row ``frame`` as (1, D) (the refined ones differentiable)."""
-        out = {k: p[frame:frame + 1] for k, p in self.rows.items()}
-        return out | {k: getattr(self, k)[frame:frame + 1] for k in self.fixed}
+        out = {k: p[frame : frame + 1] for k, p in self.rows.items()}
+        return out | {k: getattr(self, k)[frame : frame + 1] for k in self.fixed}
 
     def vertices(self, frame: int) -> Tensor:
         """(V_face + V_hand, 3) posed face (with its contact offsets) and hand of ``frame``, in the order of
@@ -147,8 +167,9 @@ class FrameParams(nn.Module):
         the meshes; the networks' inputs follow it, as they follow the fit)."""
         t = self.columns(frame)
         face, hand = run_layers(self.flame, self.mano, t)
-        return conditioning_from_posed(t, face.joints[:, 0], hand.joints[:, 0],
-                                       self.face_offsets[frame:frame + 1]).frame(0)
+        return conditioning_from_posed(
+            t, face.joints[:, 0], hand.joints[:, 0], self.face_offsets[frame : frame + 1]
+        ).frame(0)
 
     def step(self, frame: int, frames: np.ndarray) -> None:
         """Move row ``frame`` by its gradient (:class:`FrameAdam`) and clear the gradients. ``centred``: then
@@ -187,17 +208,24 @@ class FrameParams(nn.Module):
         self.optimizer.load_state_dict(state["optimizer"])
 
 
-def parameter_movement(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray], head: TemplateModel,
-                       hand: TemplateModel) -> dict[str, dict[str, np.ndarray]]:
+def parameter_movement(
+    before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray], head: TemplateModel, hand: TemplateModel
+) -> dict[str, dict[str, np.ndarray]]:
     """How far each part moved from ``before`` to ``after`` (params.parquet columns, T rows each): ``moved_mm``
     part -> (T,) mean vertex displacement (mm) and ``rotated_deg`` part -> (T,) change of the global rotation
     (degrees); parts ``face`` and ``hand``."""
     posed = [posed_keypoints(p, head, hand) for p in (before, after)]
-    moved = {part: 1e3 * np.linalg.norm(posed[1][f"{part}_vertices"] - posed[0][f"{part}_vertices"], axis=-1).mean(-1)
-             for part in ("face", "hand")}
-    rotated = {part: rotation_angle_deg(np.asarray(before[f"{prefix}_global_orient"], dtype=np.float64),
-                                        np.asarray(after[f"{prefix}_global_orient"], dtype=np.float64))
-               for part, prefix in (("face", "flame"), ("hand", "mano"))}
+    moved = {
+        part: 1e3 * np.linalg.norm(posed[1][f"{part}_vertices"] - posed[0][f"{part}_vertices"], axis=-1).mean(-1)
+        for part in ("face", "hand")
+    }
+    rotated = {
+        part: rotation_angle_deg(
+            np.asarray(before[f"{prefix}_global_orient"], dtype=np.float64),
+            np.asarray(after[f"{prefix}_global_orient"], dtype=np.float64),
+        )
+        for part, prefix in (("face", "flame"), ("hand", "mano"))
+    }
     return {"moved_mm": moved, "rotated_deg": rotated}
 
 

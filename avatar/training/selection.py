@@ -74,8 +74,13 @@ class BestStep:
 
     def state(self) -> dict[str, Any]:
         """What a checkpoint keeps to resume the choice bit for bit."""
-        return {"step": self.step, "psnr": self.psnr, "offered": self.offered, "model": self._state,
-                "params": self._params}
+        return {
+            "step": self.step,
+            "psnr": self.psnr,
+            "offered": self.offered,
+            "model": self._state,
+            "params": self._params,
+        }
 
     def load_state(self, state: dict[str, Any]) -> None:
         self.step, self.psnr, self.offered = int(state["step"]), float(state["psnr"]), int(state["offered"])
@@ -106,9 +111,12 @@ class Selection:
     def metrics(self) -> dict[str, float | int | bool]:
         """Manifest metrics: ``selected_step``, ``kept_hand_mlp``, ``kept_interaction`` and the figures."""
         out: dict[str, float | int | bool] = {
-            "selected_step": self.selected_step, "selection_final_step": self.final_step,
-            "selection_selected_psnr": self.selected_psnr, "selection_final_psnr": self.final_psnr,
-            "selection_psnr": self.psnr}
+            "selected_step": self.selected_step,
+            "selection_final_step": self.final_step,
+            "selection_selected_psnr": self.selected_psnr,
+            "selection_final_psnr": self.final_psnr,
+            "selection_psnr": self.psnr,
+        }
         out |= {f"kept_{module}": kept for module, kept in self.kept.items()}
         out |= {f"selection_psnr_without_{module}": psnr for module, psnr in self.psnr_without.items()}
         return out
@@ -128,8 +136,9 @@ def switch_off(nets: list[DeltaHeads]) -> None:
                 head.output.bias.zero_()
 
 
-def select(model: nn.Module, best: BestStep, final_step: int, final_psnr: float, measure: Callable[[], float],
-           margin_db: float) -> Selection:
+def select(
+    model: nn.Module, best: BestStep, final_step: int, final_psnr: float, measure: Callable[[], float], margin_db: float
+) -> Selection:
     """Apply the rule of the module docstring to ``model`` in place.
 
     Args:
@@ -139,8 +148,9 @@ def select(model: nn.Module, best: BestStep, final_step: int, final_psnr: float,
         margin_db: switch a module off when that costs at most this much validation PSNR.
     """
     best.restore(model)
-    chosen = Selection(selected_step=best.step, final_step=final_step, selected_psnr=best.psnr,
-                       final_psnr=final_psnr, psnr=best.psnr)
+    chosen = Selection(
+        selected_step=best.step, final_step=final_step, selected_psnr=best.psnr, final_psnr=final_psnr, psnr=best.psnr
+    )
     for module in MODULES:
         nets = module_heads(model, module)
         if not nets:

@@ -93,13 +93,19 @@ class SplattingConfig:
 
     def density(self) -> EmbeddedDensityConfig:
         """The density schedule in steps (``densify_until = 0`` when disabled)."""
+
         def at(fraction: float) -> int:
             return scaled_interval(fraction, self.steps)
 
         until = scaled_interval(self.densify_until, self.steps, minimum=0) if self.densify_until > 0 else 0
-        return EmbeddedDensityConfig(at(self.densify_from), until, at(self.densify_interval),
-                                     at(self.opacity_reset_interval), grad_threshold=self.grad_threshold,
-                                     max_gaussians=self.max_gaussians)
+        return EmbeddedDensityConfig(
+            at(self.densify_from),
+            until,
+            at(self.densify_interval),
+            at(self.opacity_reset_interval),
+            grad_threshold=self.grad_threshold,
+            max_gaussians=self.max_gaussians,
+        )
 
 
 @dataclass
@@ -121,12 +127,24 @@ class LogRow:
 Progress = Callable[[Iterable[int]], Iterator[int]]
 
 
-def render_splatting(model: EmbeddedGaussians, meshes: MeshSequence, views: ViewSet, frame: int, camera: int,
-                     backend: str = "auto") -> tuple[RenderOutput, Tensor]:
+def render_splatting(
+    model: EmbeddedGaussians, meshes: MeshSequence, views: ViewSet, frame: int, camera: int, backend: str = "auto"
+) -> tuple[RenderOutput, Tensor]:
     """Render ``model`` on frame ``frame``'s meshes from camera ``camera``; also the world scales (N, 3)."""
     means, scales, quats = model.world(meshes.vertices[frame], meshes.faces)
-    out = render_gaussians(means, quats, scales, model.opacities(), model.colors(), views.K[camera],
-                           views.world_to_cam[camera], views.size, views.size, views.background, backend=backend)
+    out = render_gaussians(
+        means,
+        quats,
+        scales,
+        model.opacities(),
+        model.colors(),
+        views.K[camera],
+        views.world_to_cam[camera],
+        views.size,
+        views.size,
+        views.background,
+        backend=backend,
+    )
     return out, scales
 
 
@@ -139,13 +157,13 @@ def scale_penalty(world_scales: Tensor, max_threshold: float, ratio_threshold: f
     return largest[needles].mean() if bool(needles.any()) else world_scales.sum() * 0.0
 
 
-def splatting_terms(pred: Tensor, gt: Tensor, world_scales: Tensor, cfg: SplattingConfig,
-                    lpips: LPIPS | None) -> dict[str, Tensor]:
+def splatting_terms(
+    pred: Tensor, gt: Tensor, world_scales: Tensor, cfg: SplattingConfig, lpips: LPIPS | None
+) -> dict[str, Tensor]:
     """``l1``, ``dssim``, ``mse``, ``lpips`` (0 without a module) of a render ``pred`` against ``gt`` (S, S, 3)
     in [0, 1], and ``scale_reg`` of the (N, 3) world scales."""
     pred_chw, gt_chw = pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None]
-    perceptual = (lpips(pred_chw.float(), gt_chw.float(), unit_range=True)[0] if lpips is not None
-                  else pred.sum() * 0.0)
+    perceptual = lpips(pred_chw.float(), gt_chw.float(), unit_range=True)[0] if lpips is not None else pred.sum() * 0.0
     return {
         "l1": (pred - gt).abs().mean(),
         "dssim": dssim_loss(pred_chw, gt_chw),
@@ -157,15 +175,25 @@ def splatting_terms(pred: Tensor, gt: Tensor, world_scales: Tensor, cfg: Splatti
 
 def splatting_loss(terms: dict[str, Tensor], cfg: SplattingConfig) -> Tensor:
     """The weighted sum of :func:`splatting_terms` (module docstring)."""
-    return ((1 - cfg.lambda_dssim) * terms["l1"] + cfg.lambda_dssim * terms["dssim"] + cfg.lambda_mse * terms["mse"]
-            + cfg.lambda_lpips * terms["lpips"] + cfg.scale_weight * terms["scale_reg"])
+    return (
+        (1 - cfg.lambda_dssim) * terms["l1"]
+        + cfg.lambda_dssim * terms["dssim"]
+        + cfg.lambda_mse * terms["mse"]
+        + cfg.lambda_lpips * terms["lpips"]
+        + cfg.scale_weight * terms["scale_reg"]
+    )
 
 
 def splatting_param_groups(model: EmbeddedGaussians, cfg: SplattingConfig) -> list[dict]:
     """Adam groups, one per parameter and named after it."""
-    rates = {"barycentric": cfg.lr_position_init, "displacement": cfg.lr_position_init,
-             "log_scales": cfg.lr_scale, "quats": cfg.lr_rotation, "opacity_logits": cfg.lr_opacity,
-             "sh_dc": cfg.lr_color}
+    rates = {
+        "barycentric": cfg.lr_position_init,
+        "displacement": cfg.lr_position_init,
+        "log_scales": cfg.lr_scale,
+        "quats": cfg.lr_rotation,
+        "opacity_logits": cfg.lr_opacity,
+        "sh_dc": cfg.lr_color,
+    }
     return [{"params": [getattr(model, name)], "lr": lr, "name": name} for name, lr in rates.items()]
 
 
@@ -191,9 +219,15 @@ def _walk(model: EmbeddedGaussians, optimizer: torch.optim.Optimizer, max_hops: 
     return int(changed.sum())
 
 
-def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequence, cfg: SplattingConfig,
-                    checkpoint_dir: Path | None = None, progress: Progress = iter,
-                    validator: Validator | None = None) -> list[LogRow]:
+def train_splatting(
+    model: EmbeddedGaussians,
+    views: ViewSet,
+    meshes: MeshSequence,
+    cfg: SplattingConfig,
+    checkpoint_dir: Path | None = None,
+    progress: Progress = iter,
+    validator: Validator | None = None,
+) -> list[LogRow]:
     """Optimise ``model`` in place for ``cfg.steps`` steps (fewer when ``validator`` stops it, which looks at
     the validations after density control); returns the loss log.
 
@@ -224,8 +258,9 @@ def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequen
         validator.load_state(state["validation"])
 
     def render(frame: int) -> Tensor:
-        return torch.stack([render_splatting(model, meshes, views, frame, c, cfg.backend)[0].rgb
-                            for c in range(views.num_cameras)])
+        return torch.stack(
+            [render_splatting(model, meshes, views, frame, c, cfg.backend)[0].rgb for c in range(views.num_cameras)]
+        )
 
     for step in progress(validator.begin(start, cfg.steps, density.cfg.densify_until, render)):
         frame = validator.sample_frame(gen)
@@ -244,15 +279,34 @@ def train_splatting(model: EmbeddedGaussians, views: ViewSet, meshes: MeshSequen
             walked += _walk(model, optimizer, cfg.max_hops)
         stop = validator.after_step(step, render)
         if step % cfg.log_every == 0 or step == validator.end:
-            log.append(LogRow(step, loss.item(), l1=terms["l1"].item(), dssim=terms["dssim"].item(),
-                              mse=terms["mse"].item(), lpips=terms["lpips"].item(),
-                              scale_reg=terms["scale_reg"].item(), num_gaussians=model.num_gaussians, walked=walked))
+            log.append(
+                LogRow(
+                    step,
+                    loss.item(),
+                    l1=terms["l1"].item(),
+                    dssim=terms["dssim"].item(),
+                    mse=terms["mse"].item(),
+                    lpips=terms["lpips"].item(),
+                    scale_reg=terms["scale_reg"].item(),
+                    num_gaussians=model.num_gaussians,
+                    walked=walked,
+                )
+            )
             walked = 0
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-            save_checkpoint(ckpt_path, {
-                "step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "density": density.state(), "rng": gen.get_state(), "walked": walked,
-                "log": [asdict(r) for r in log], "validation": validator.state()})
+            save_checkpoint(
+                ckpt_path,
+                {
+                    "step": step,
+                    "model": model.state_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "density": density.state(),
+                    "rng": gen.get_state(),
+                    "walked": walked,
+                    "log": [asdict(r) for r in log],
+                    "validation": validator.state(),
+                },
+            )
         if stop:
             break
     return log

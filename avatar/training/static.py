@@ -83,8 +83,9 @@ class LogRow:
 Progress = Callable[[Iterable[int]], Iterator[int]]
 
 
-def gaussian_param_groups(model: BoundGaussians, lr_position: float, lr_scale: float, lr_rotation: float,
-                          lr_opacity: float, lr_color: float) -> list[dict]:
+def gaussian_param_groups(
+    model: BoundGaussians, lr_position: float, lr_scale: float, lr_rotation: float, lr_opacity: float, lr_color: float
+) -> list[dict]:
     """Adam parameter groups of the Gaussians, one per parameter, named after it."""
     return [
         {"params": [model.local_means], "lr": lr_position, "name": "local_means"},
@@ -96,20 +97,38 @@ def gaussian_param_groups(model: BoundGaussians, lr_position: float, lr_scale: f
 
 
 def _optimizer(model: BoundGaussians, cfg: StaticConfig) -> torch.optim.Adam:
-    groups = gaussian_param_groups(model, cfg.lr_position_init, cfg.lr_scale, cfg.lr_rotation, cfg.lr_opacity,
-                                   cfg.lr_color)
+    groups = gaussian_param_groups(
+        model, cfg.lr_position_init, cfg.lr_scale, cfg.lr_rotation, cfg.lr_opacity, cfg.lr_color
+    )
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
 
-def render_frame(model: BoundGaussians, meshes: MeshSequence, views: ViewSet, frame: int, camera: int,
-                 backend: str = "auto", vertices: Tensor | None = None):  # noqa: ANN201 - the RenderOutput
+def render_frame(
+    model: BoundGaussians,
+    meshes: MeshSequence,
+    views: ViewSet,
+    frame: int,
+    camera: int,
+    backend: str = "auto",
+    vertices: Tensor | None = None,
+):  # noqa: ANN201 - the RenderOutput
     """Render the model on frame ``frame``'s meshes from view ``camera`` of ``views`` (``vertices`` (V, 3):
     that frame's posed vertices when they differ from ``meshes``', e.g. refined by :class:`FrameParams`)."""
     vertices = meshes.vertices[frame] if vertices is None else vertices
     means, scales, quats = model.world(vertices, meshes.faces)
-    return render_gaussians(means, quats, scales, model.opacities(), model.colors(), views.K[camera],
-                            views.world_to_cam[camera], views.size, views.size, views.background,
-                            backend=backend), scales
+    return render_gaussians(
+        means,
+        quats,
+        scales,
+        model.opacities(),
+        model.colors(),
+        views.K[camera],
+        views.world_to_cam[camera],
+        views.size,
+        views.size,
+        views.background,
+        backend=backend,
+    ), scales
 
 
 @torch.no_grad()
@@ -135,9 +154,16 @@ def colors_from_views(means: Tensor, part_labels: Tensor, views: ViewSet, frame:
     return torch.where(count[:, None] > 0, total / count.clamp_min(1)[:, None], torch.full_like(total, 0.5))
 
 
-def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cfg: StaticConfig,
-                 checkpoint_dir: Path | None = None, progress: Progress = iter,
-                 validator: Validator | None = None, params: FrameParams | None = None) -> list[LogRow]:
+def train_static(
+    model: BoundGaussians,
+    views: ViewSet,
+    meshes: MeshSequence,
+    cfg: StaticConfig,
+    checkpoint_dir: Path | None = None,
+    progress: Progress = iter,
+    validator: Validator | None = None,
+    params: FrameParams | None = None,
+) -> list[LogRow]:
     """Optimise ``model`` in place for ``cfg.steps`` steps (fewer when ``validator`` stops it); returns the
     loss log. With ``params`` the meshes are posed from it and each step also refines the rendered frame's
     parameters (:mod:`avatar.training.frame_params`); the frames ``validator`` withholds are never refined.
@@ -168,8 +194,12 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
 
     def render(frame: int) -> Tensor:
         vertices = posed(frame)
-        return torch.stack([render_frame(model, meshes, views, frame, c, cfg.backend, vertices)[0].rgb
-                            for c in range(views.num_cameras)])
+        return torch.stack(
+            [
+                render_frame(model, meshes, views, frame, c, cfg.backend, vertices)[0].rgb
+                for c in range(views.num_cameras)
+            ]
+        )
 
     for step in progress(validator.begin(start, cfg.steps, density.cfg.densify_until, render)):
         frame = validator.sample_frame(gen)
@@ -180,8 +210,9 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
         out, world_scales = render_frame(model, meshes, views, frame, camera, cfg.backend, posed(frame))
         visible = out.radii > 0
         gt, pred = views.target_and_render(out.rgb, frame, camera)
-        terms = reconstruction_terms(pred, gt, torch.exp(model.log_scales), model.local_means, visible,
-                                     cfg.eps_s, cfg.eps_mu)
+        terms = reconstruction_terms(
+            pred, gt, torch.exp(model.log_scales), model.local_means, visible, cfg.eps_s, cfg.eps_mu
+        )
         loss = reconstruction_loss(terms, cfg.lambda_dssim, cfg.scale_weight, cfg.position_weight)
         loss.backward()
         density.accumulate(out.grad2d_norm(), visible, views.size)
@@ -192,9 +223,17 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
         density.step(step, model, optimizer, world_scales.detach(), extent)
         stop = validator.after_step(step, render)
         if step % cfg.log_every == 0 or step == validator.end:
-            log.append(LogRow(step, loss.item(), l1=terms["l1"].item(), dssim=terms["dssim"].item(),
-                              scale_reg=terms["scale_reg"].item(), position_reg=terms["position_reg"].item(),
-                              num_gaussians=model.num_gaussians))
+            log.append(
+                LogRow(
+                    step,
+                    loss.item(),
+                    l1=terms["l1"].item(),
+                    dssim=terms["dssim"].item(),
+                    scale_reg=terms["scale_reg"].item(),
+                    position_reg=terms["position_reg"].item(),
+                    num_gaussians=model.num_gaussians,
+                )
+            )
         if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
             _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log, validator, params)
         if stop:
@@ -202,23 +241,52 @@ def train_static(model: BoundGaussians, views: ViewSet, meshes: MeshSequence, cf
     return log
 
 
-_CHECKPOINT_KEYS = ("step", "model", "optimizer", "grad_sum", "count", "rng", "density_rng", "log", "validation",
-                    "params")
+_CHECKPOINT_KEYS = (
+    "step",
+    "model",
+    "optimizer",
+    "grad_sum",
+    "count",
+    "rng",
+    "density_rng",
+    "log",
+    "validation",
+    "params",
+)
 
 
-def _save_checkpoint(path: Path, step: int, model: BoundGaussians, optimizer: torch.optim.Optimizer,
-                     density: DensityController, gen: torch.Generator, log: list[LogRow],
-                     validator: Validator, params: FrameParams | None) -> None:
+def _save_checkpoint(
+    path: Path,
+    step: int,
+    model: BoundGaussians,
+    optimizer: torch.optim.Optimizer,
+    density: DensityController,
+    gen: torch.Generator,
+    log: list[LogRow],
+    validator: Validator,
+    params: FrameParams | None,
+) -> None:
     """Everything needed to resume bit for bit (verified on load: :mod:`avatar.training.checkpoint`)."""
-    save_checkpoint(path, {"step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                           "grad_sum": density.grad_sum, "count": density.count, "rng": gen.get_state(),
-                           "density_rng": density.generator.get_state(), "log": [asdict(r) for r in log],
-                           "validation": validator.state(),
-                           "params": params.state() if params is not None else None})
+    save_checkpoint(
+        path,
+        {
+            "step": step,
+            "model": model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "grad_sum": density.grad_sum,
+            "count": density.count,
+            "rng": gen.get_state(),
+            "density_rng": density.generator.get_state(),
+            "log": [asdict(r) for r in log],
+            "validation": validator.state(),
+            "params": params.state() if params is not None else None,
+        },
+    )
 
 
-def _restore(state: dict, model: BoundGaussians, density: DensityController,
-             gen: torch.Generator) -> tuple[int, list[LogRow]]:
+def _restore(
+    state: dict, model: BoundGaussians, density: DensityController, gen: torch.Generator
+) -> tuple[int, list[LogRow]]:
     """Load a verified checkpoint into the model, density controller and sampler; (step, log so far)."""
     model.resize_like(state["model"])
     model.load_state_dict(state["model"])

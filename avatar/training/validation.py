@@ -101,8 +101,10 @@ def withheld_frames(num_frames: int, count: int) -> np.ndarray:
     ``count < T``. ``ValueError`` when no training frame would be left.
     """
     if not 0 < count < num_frames:
-        raise ValueError(f"cannot withhold {count} of {num_frames} training frames for validation: at least one "
-                         f"must stay for training (lower validation.frames)")
+        raise ValueError(
+            f"cannot withhold {count} of {num_frames} training frames for validation: at least one "
+            f"must stay for training (lower validation.frames)"
+        )
     return np.floor((np.arange(1, count + 1) * num_frames / (count + 1)) + 0.5).astype(np.int64)
 
 
@@ -150,8 +152,7 @@ class Validator:
     def __init__(self, cfg: ValidationConfig, views: ViewSet) -> None:
         self.cfg, self.views = cfg, views
         self.planned_steps, self.stop_from = 0, 0
-        self.frames = (withheld_frames(views.num_frames, cfg.frames) if cfg.enabled
-                       else np.zeros(0, dtype=np.int64))
+        self.frames = withheld_frames(views.num_frames, cfg.frames) if cfg.enabled else np.zeros(0, dtype=np.int64)
         self.train_frames = np.setdiff1d(np.arange(views.num_frames), self.frames)
         self.curve: list[CurvePoint] = []
         self.stopped_at: int | None = None
@@ -215,13 +216,16 @@ class Validator:
     def _measure(self, render: Render) -> tuple[float, float]:
         """Mean full-image PSNR (dB, over the observed pixels) and LPIPS-alex (NaN unless ``cfg.lpips``) over
         the withheld frames and the training cameras; crop padding is left out as in training."""
-        pairs = [self.views.target_and_render(image, int(t), c)
-                 for t in self.frames for c, image in enumerate(render(int(t)).clamp(0, 1))]
+        pairs = [
+            self.views.target_and_render(image, int(t), c)
+            for t in self.frames
+            for c, image in enumerate(render(int(t)).clamp(0, 1))
+        ]
         gt, pred = (torch.stack(images).permute(0, 3, 1, 2) for images in zip(*pairs))  # (F C, 3, S, S)
-        observed = torch.stack([self.views.observed(int(t), c)
-                                for t in self.frames for c in range(self.views.num_cameras)])  # (F C, S, S)
-        lpips = (float(default_lpips()(pred.float(), gt.float(), unit_range=True).mean()) if self.cfg.lpips
-                 else math.nan)
+        observed = torch.stack(
+            [self.views.observed(int(t), c) for t in self.frames for c in range(self.views.num_cameras)]
+        )  # (F C, S, S)
+        lpips = float(default_lpips()(pred.float(), gt.float(), unit_range=True).mean()) if self.cfg.lpips else math.nan
         return float(psnr(pred, gt, observed).mean()), lpips
 
     def _flat(self) -> bool:
@@ -231,8 +235,12 @@ class Validator:
     def state(self) -> dict[str, Any]:
         """What a checkpoint keeps (plain numbers and lists) to resume the curve and the stop decision."""
         self._lap()
-        return {"curve": [asdict(p) for p in self.curve], "stopped_at": self.stopped_at, "train_s": self.train_s,
-                "validation_s": self.validation_s}
+        return {
+            "curve": [asdict(p) for p in self.curve],
+            "stopped_at": self.stopped_at,
+            "train_s": self.train_s,
+            "validation_s": self.validation_s,
+        }
 
     def load_state(self, state: dict[str, Any]) -> None:
         """Resume from :meth:`state`."""
@@ -242,19 +250,25 @@ class Validator:
 
     def table(self) -> dict[str, np.ndarray]:
         """The curve as the columns of ``curve.parquet`` (``data_schemas.curve.CURVE``)."""
-        return {"step": np.array([p.step for p in self.curve], dtype=np.int64),
-                "wall_s": np.array([p.wall_s for p in self.curve], dtype=np.float64),
-                "psnr": np.array([p.psnr for p in self.curve], dtype=np.float64),
-                "lpips": np.array([p.lpips for p in self.curve], dtype=np.float64)}
+        return {
+            "step": np.array([p.step for p in self.curve], dtype=np.int64),
+            "wall_s": np.array([p.wall_s for p in self.curve], dtype=np.float64),
+            "psnr": np.array([p.psnr for p in self.curve], dtype=np.float64),
+            "lpips": np.array([p.lpips for p in self.curve], dtype=np.float64),
+        }
 
     def metrics(self) -> dict[str, float | int | bool]:
         """Manifest metrics: ``stopped_at_step`` (steps run), ``planned_steps``, ``early_stopped``,
         ``validation_s``, ``resumed_from_step`` (the checkpoint's step a killed run was resumed from, else 0);
         with a curve ``validation_psnr`` (its last point) and with LPIPS ``validation_lpips``; when stopped early
         ``time_saved_s``, the steps not run times the mean training step time."""
-        out: dict[str, float | int | bool] = {"stopped_at_step": self.end, "planned_steps": self.planned_steps,
-                                             "early_stopped": self.stopped_at is not None,
-                                             "validation_s": self.validation_s, "resumed_from_step": self.resumed_from}
+        out: dict[str, float | int | bool] = {
+            "stopped_at_step": self.end,
+            "planned_steps": self.planned_steps,
+            "early_stopped": self.stopped_at is not None,
+            "validation_s": self.validation_s,
+            "resumed_from_step": self.resumed_from,
+        }
         if self.curve:
             out["validation_psnr"] = self.curve[-1].psnr
             if self.cfg.lpips:

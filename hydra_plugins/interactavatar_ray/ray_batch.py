@@ -24,6 +24,7 @@ from omegaconf import open_dict
 
 try:
     import ray
+
     from hydra_plugins.hydra_ray_launcher._launcher_util import launch_job_on_ray, start_ray
     from hydra_plugins.hydra_ray_launcher.ray_launcher import RayLauncher
 except ImportError:  # the `ray` extra is not installed in this environment
@@ -59,9 +60,19 @@ if RayLauncher is not None:
                     # the scheduler's job id is not known in the driver: a stand-in, as hydra-ray-launcher does
                     sweep_config.hydra.job.id = f"job_id_for_{idx}"
                     sweep_config.hydra.job.num = idx
-                runs.append((idx, described, launch_job_on_ray(self.hydra_context, self.ray_cfg.remote,
-                                                               sweep_config, self.task_function,
-                                                               Singleton.get_state())))
+                runs.append(
+                    (
+                        idx,
+                        described,
+                        launch_job_on_ray(
+                            self.hydra_context,
+                            self.ray_cfg.remote,
+                            sweep_config,
+                            self.task_function,
+                            Singleton.get_state(),
+                        ),
+                    )
+                )
             returns, lost = [], []
             for idx, described, run in runs:  # every job, also after one was lost
                 try:
@@ -70,7 +81,9 @@ if RayLauncher is not None:
                     first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
                     lost.append(f"#{idx} ({described}): {type(exc).__name__}: {first_line}")
             if lost:
-                raise LostJobs(f"{len(lost)} of {len(runs)} jobs lost their Ray worker; the others ran to their "
-                               f"end. Submit the batch again: finished stages are cached and the training "
-                               f"stages resume from their checkpoints.\n  " + "\n  ".join(lost))
+                raise LostJobs(
+                    f"{len(lost)} of {len(runs)} jobs lost their Ray worker; the others ran to their "
+                    f"end. Submit the batch again: finished stages are cached and the training "
+                    f"stages resume from their checkpoints.\n  " + "\n  ".join(lost)
+                )
             return returns

@@ -105,14 +105,30 @@ class Representation(ABC):
         return []
 
     @abstractmethod
-    def populate(self, canonical: torch.Tensor, meshes: MeshSequence, per_triangle: int, *, init_opacity: float,
-                 seed: int, populate: torch.Tensor | None) -> CanonicalGaussians:
+    def populate(
+        self,
+        canonical: torch.Tensor,
+        meshes: MeshSequence,
+        per_triangle: int,
+        *,
+        init_opacity: float,
+        seed: int,
+        populate: torch.Tensor | None,
+    ) -> CanonicalGaussians:
         """The warm-up's initial Gaussians: ``per_triangle`` on each triangle of the canonical mesh (``canonical``
         (V, 3) with ``meshes.faces``), only on the triangles ``populate`` (F,) bool marks (None: all)."""
 
     @abstractmethod
-    def warm_up(self, ctx: StageContext, model: CanonicalGaussians, views: ViewSet, meshes: MeshSequence,
-                params: FrameParams | None, validator: Validator, progress: Progress) -> float:
+    def warm_up(
+        self,
+        ctx: StageContext,
+        model: CanonicalGaussians,
+        views: ViewSet,
+        meshes: MeshSequence,
+        params: FrameParams | None,
+        validator: Validator,
+        progress: Progress,
+    ) -> float:
         """Stage one: train ``model`` in place on ``views`` of the posed ``meshes`` for ``quality.warmup_steps``
         (refining ``params``, the train motion's parameters, where not None); write ``gaussians.parquet`` and
         ``train_log.parquet`` to ``ctx.out_dir``. Returns the final loss."""
@@ -143,8 +159,9 @@ def representation_class(name: str) -> type[Representation]:
     except (ImportError, AttributeError) as exc:
         raise ValueError(f"method.representation={name}: cannot import {target} ({exc}); {choices}") from exc
     if not (isinstance(cls, type) and issubclass(cls, Representation)):
-        raise ValueError(f"method.representation={name}: {target} is not a subclass of "
-                         f"stages.representations.Representation")
+        raise ValueError(
+            f"method.representation={name}: {target} is not a subclass of stages.representations.Representation"
+        )
     return cls
 
 
@@ -177,11 +194,13 @@ def load_trained(dynamic_dir: Path) -> TrainedAvatar:
     return representation_class(str(info.get("representation", "bound"))).load(dynamic_dir, info)
 
 
-def write_train_plys(ctx: StageContext, avatar: TrainedAvatar, cond: SequenceConditioning, meshes: MeshSequence,
-                     num_frames: int) -> None:
+def write_train_plys(
+    ctx: StageContext, avatar: TrainedAvatar, cond: SequenceConditioning, meshes: MeshSequence, num_frames: int
+) -> None:
     """World-space 3DGS PLYs of the train frames ``stage.dynamic.ply_frames`` asks for (``ply/train_<frame>.ply``)."""
     (ctx.out_dir / "ply").mkdir()
     with torch.no_grad():
         for frame in sorted({min(max(int(f), 0), num_frames - 1) for f in ctx.cfg.stage.dynamic.ply_frames}):
-            write_frame_ply(ctx.out_dir / "ply" / f"train_{frame}.ply",
-                            avatar.pose(cond, meshes.vertices[frame], frame))
+            write_frame_ply(
+                ctx.out_dir / "ply" / f"train_{frame}.ply", avatar.pose(cond, meshes.vertices[frame], frame)
+            )

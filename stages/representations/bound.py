@@ -51,8 +51,11 @@ def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussi
         raise SchemaError(f"{path}: Gaussians bound to unknown mesh part(s) {unknown}; expected {part_names}")
     as_tensor = lambda name: torch.tensor(np.asarray(t[name]), dtype=torch.float32)  # noqa: E731
     return BoundGaussians(
-        local_means=as_tensor("local_means"), log_scales=as_tensor("log_scales"), quats=as_tensor("quats"),
-        opacity_logits=as_tensor("opacity_logits"), sh_dc=as_tensor("sh_dc"),
+        local_means=as_tensor("local_means"),
+        log_scales=as_tensor("log_scales"),
+        quats=as_tensor("quats"),
+        opacity_logits=as_tensor("opacity_logits"),
+        sh_dc=as_tensor("sh_dc"),
         binding=torch.tensor(np.array(t["binding"])),
         part=torch.tensor([part_names.index(p) for p in t["part"]]),
     )
@@ -61,15 +64,19 @@ def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussi
 def write_bound_gaussians(path: Path, model: BoundGaussians, part_names: tuple[str, ...]) -> None:
     """``gaussians.parquet`` of ``model`` (the inverse of :func:`load_gaussians`)."""
     with torch.no_grad():
-        write_table(path, BOUND_GAUSSIANS, {
-            "binding": model.binding.numpy(),
-            "part": [part_names[i] for i in model.part.tolist()],
-            "local_means": model.local_means.numpy(),
-            "log_scales": model.log_scales.numpy(),
-            "quats": model.quats.numpy(),
-            "opacity_logits": model.opacity_logits.numpy(),
-            "sh_dc": model.sh_dc.numpy(),
-        })
+        write_table(
+            path,
+            BOUND_GAUSSIANS,
+            {
+                "binding": model.binding.numpy(),
+                "part": [part_names[i] for i in model.part.tolist()],
+                "local_means": model.local_means.numpy(),
+                "log_scales": model.log_scales.numpy(),
+                "quats": model.quats.numpy(),
+                "opacity_logits": model.opacity_logits.numpy(),
+                "sh_dc": model.sh_dc.numpy(),
+            },
+        )
 
 
 def load_dynamic(dynamic_dir: Path) -> DynamicAvatar:
@@ -81,13 +88,16 @@ def load_dynamic(dynamic_dir: Path) -> DynamicAvatar:
     settings: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in arch.items()}
     cfg = DynamicModelConfig(**settings)
     state = torch.load(dynamic_dir / "networks.pt", weights_only=True)
-    model = DynamicAvatar(gaussians, state["mu_cano"], state["faces"], part_names, int(info["num_face_vertices"]),
-                          info["frame_dims"], cfg)
+    model = DynamicAvatar(
+        gaussians, state["mu_cano"], state["faces"], part_names, int(info["num_face_vertices"]), info["frame_dims"], cfg
+    )
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.startswith("gaussians.")]
     if missing or unexpected:
-        raise SchemaError(f"{dynamic_dir / 'networks.pt'}: does not match model.json (missing {missing[:3]}, "
-                          f"unexpected {unexpected[:3]}); rerun the dynamic stage")
+        raise SchemaError(
+            f"{dynamic_dir / 'networks.pt'}: does not match model.json (missing {missing[:3]}, "
+            f"unexpected {unexpected[:3]}); rerun the dynamic stage"
+        )
     return model
 
 
@@ -106,13 +116,21 @@ def check_withheld_by_warmup(cfg: DictConfig) -> None:
             f"(stage.warmup.validation.every={warm.every}, frames={warm.frames}; stage.dynamic.validation.frames="
             f"{dyn.frames}), so step 0 would be judged on frames it saw; set stage.warmup.validation.every > 0 and "
             f"stage.warmup.validation.frames={dyn.frames} (quality=draft and standard do), or "
-            f"stage.dynamic.select.enabled=false")
+            f"stage.dynamic.select.enabled=false"
+        )
 
 
 #: DynamicModelConfig's fields that the quality preset sets (``quality.dynamic_*``, ``quality.pointnet_*``,
 #: ``quality.geometry_feature_dim``), not ``stage.dynamic``.
-PRESET_ARCHITECTURE = ("hand_width", "hand_depth", "interaction_width", "interaction_depth", "geometry_feature_dim",
-                       "pointnet_centres", "pointnet_width")
+PRESET_ARCHITECTURE = (
+    "hand_width",
+    "hand_depth",
+    "interaction_width",
+    "interaction_depth",
+    "geometry_feature_dim",
+    "pointnet_centres",
+    "pointnet_width",
+)
 
 
 def model_config(cfg: DictConfig, scene: SceneDecision) -> DynamicModelConfig:
@@ -120,11 +138,18 @@ def model_config(cfg: DictConfig, scene: SceneDecision) -> DynamicModelConfig:
     the scene analysis models the hand and the contact."""
     q, conf = cfg.quality, cfg.stage.dynamic
     return core_config(
-        DynamicModelConfig, conf, hand_mlp=bool(conf.hand_mlp) and scene.model_hand,
-        interaction=bool(conf.interaction) and scene.model_interaction, hand_width=int(q.dynamic_width),
-        hand_depth=int(q.dynamic_hand_depth), interaction_width=int(q.dynamic_width),
-        interaction_depth=int(q.dynamic_interaction_depth), geometry_feature_dim=int(q.geometry_feature_dim),
-        pointnet_centres=tuple(int(c) for c in q.pointnet_centres), pointnet_width=float(q.pointnet_width))
+        DynamicModelConfig,
+        conf,
+        hand_mlp=bool(conf.hand_mlp) and scene.model_hand,
+        interaction=bool(conf.interaction) and scene.model_interaction,
+        hand_width=int(q.dynamic_width),
+        hand_depth=int(q.dynamic_hand_depth),
+        interaction_width=int(q.dynamic_width),
+        interaction_depth=int(q.dynamic_interaction_depth),
+        geometry_feature_dim=int(q.geometry_feature_dim),
+        pointnet_centres=tuple(int(c) for c in q.pointnet_centres),
+        pointnet_width=float(q.pointnet_width),
+    )
 
 
 def static_config(cfg: DictConfig) -> StaticConfig:
@@ -134,8 +159,12 @@ def static_config(cfg: DictConfig) -> StaticConfig:
 
 def dynamic_train_config(cfg: DictConfig) -> DynamicTrainConfig:
     """Stage two's :class:`DynamicTrainConfig` of ``stage.dynamic`` and ``quality.dynamic_steps``."""
-    return core_config(DynamicTrainConfig, cfg.stage.dynamic, steps=int(cfg.quality.dynamic_steps),
-                       selection=selection_config(cfg.stage.dynamic))
+    return core_config(
+        DynamicTrainConfig,
+        cfg.stage.dynamic,
+        steps=int(cfg.quality.dynamic_steps),
+        selection=selection_config(cfg.stage.dynamic),
+    )
 
 
 @dataclass
@@ -162,16 +191,47 @@ class BoundRepresentation(Representation):
         "dynamic": (DYNAMIC_TRAIN_LOG, ("loss", "l1", "dssim", "patch")),
     }
 
-    def populate(self, canonical: torch.Tensor, meshes: MeshSequence, per_triangle: int, *, init_opacity: float,
-                 seed: int, populate: torch.Tensor | None) -> BoundGaussians:
-        return BoundGaussians.on_triangles(canonical, meshes.faces, meshes.face_part, per_triangle,
-                                           init_opacity=init_opacity, seed=seed, populate=populate)
+    def populate(
+        self,
+        canonical: torch.Tensor,
+        meshes: MeshSequence,
+        per_triangle: int,
+        *,
+        init_opacity: float,
+        seed: int,
+        populate: torch.Tensor | None,
+    ) -> BoundGaussians:
+        return BoundGaussians.on_triangles(
+            canonical,
+            meshes.faces,
+            meshes.face_part,
+            per_triangle,
+            init_opacity=init_opacity,
+            seed=seed,
+            populate=populate,
+        )
 
-    def warm_up(self, ctx: StageContext, model: CanonicalGaussians, views: ViewSet, meshes: MeshSequence,
-                params: FrameParams | None, validator: Validator, progress: Progress) -> float:
+    def warm_up(
+        self,
+        ctx: StageContext,
+        model: CanonicalGaussians,
+        views: ViewSet,
+        meshes: MeshSequence,
+        params: FrameParams | None,
+        validator: Validator,
+        progress: Progress,
+    ) -> float:
         assert isinstance(model, BoundGaussians)
-        log = train_static(model, views, meshes, static_config(self.cfg), checkpoint_dir=ctx.scratch_dir,
-                           progress=progress, validator=validator, params=params)
+        log = train_static(
+            model,
+            views,
+            meshes,
+            static_config(self.cfg),
+            checkpoint_dir=ctx.scratch_dir,
+            progress=progress,
+            validator=validator,
+            params=params,
+        )
         write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
         write_records(ctx.out_dir / "train_log.parquet", TRAIN_LOG, log)
         return log[-1].loss
@@ -185,46 +245,78 @@ class BoundRepresentation(Representation):
         gaussians = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
         arch = model_config(self.cfg, load_scene(ctx.input_dir("scene")))
         frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
-        model = DynamicAvatar.from_warmup(gaussians, meshes.vertices[0], meshes.faces, meshes.part_names,
-                                          head.num_vertices, frame_dims, arch, seed=conf.seed)
+        model = DynamicAvatar.from_warmup(
+            gaussians,
+            meshes.vertices[0],
+            meshes.faces,
+            meshes.part_names,
+            head.num_vertices,
+            frame_dims,
+            arch,
+            seed=conf.seed,
+        )
         contact = contact_flags(ctx.input_dir("pbd"), TRAIN_SEQUENCE, views.num_frames)
         validator = Validator(validation_config(conf.validation), views)
-        result = train_dynamic(model, views, meshes, cond, contact, dynamic_train_config(self.cfg),
-                               checkpoint_dir=ctx.scratch_dir,
-                               progress=lambda steps: ctx.progress(steps, desc="dynamic"),
-                               validator=validator, params=params)
+        result = train_dynamic(
+            model,
+            views,
+            meshes,
+            cond,
+            contact,
+            dynamic_train_config(self.cfg),
+            checkpoint_dir=ctx.scratch_dir,
+            progress=lambda steps: ctx.progress(steps, desc="dynamic"),
+            validator=validator,
+            params=params,
+        )
         fit_dir = ctx.input_dir("fit")
         record_refinement(ctx, load_params(fit_dir, TRAIN_SEQUENCE), posed.params, params)
         if params is not None:  # the PLYs pose the train motion as refined
-            meshes, cond = load_sequence(fit_dir, TRAIN_SEQUENCE, self.cfg,
-                                         pbd_dir=applied_deformation(self.cfg, ctx.input_dir("pbd")),
-                                         params=params.arrays())
+            meshes, cond = load_sequence(
+                fit_dir,
+                TRAIN_SEQUENCE,
+                self.cfg,
+                pbd_dir=applied_deformation(self.cfg, ctx.input_dir("pbd")),
+                params=params.arrays(),
+            )
         write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model.gaussians, meshes.part_names)
         buffer = io.BytesIO()
         torch.save(model.network_state(), buffer)
         write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "the dynamic model's networks")
         selection = result.selection.metrics() if result.selection is not None else {}
-        write_model_info(ctx.out_dir, self, {
-            "architecture": asdict(model.cfg), "part_names": list(meshes.part_names),
-            "num_face_vertices": head.num_vertices, "frame_dims": frame_dims,
-            "num_gaussians": model.gaussians.num_gaussians, "selection": selection}, "the dynamic model")
+        write_model_info(
+            ctx.out_dir,
+            self,
+            {
+                "architecture": asdict(model.cfg),
+                "part_names": list(meshes.part_names),
+                "num_face_vertices": head.num_vertices,
+                "frame_dims": frame_dims,
+                "num_gaussians": model.gaussians.num_gaussians,
+                "selection": selection,
+            },
+            "the dynamic model",
+        )
         write_train_plys(ctx, BoundAvatar(model), cond, meshes, views.num_frames)
         log = result.log
         write_records(ctx.out_dir / "train_log.parquet", DYNAMIC_TRAIN_LOG, log)
         record_validation(ctx, validator)
         steps = max(validator.end, 1)
-        ctx.metrics.update({
-            "steps": validator.end, "gaussians": model.gaussians.num_gaussians,
-            "final_loss": log[-1].loss if log else float("nan"),
-            "ms_per_step": 1000 * sum(result.seconds.values()) / steps,
-            **{f"{k}_ms_per_step": 1000 * v / steps for k, v in result.seconds.items()},
-            "interaction_mlp_evaluations": result.interaction_evaluations,
-            "interaction_steps": result.interaction_steps,
-            "contact_frames": int(contact.sum()),
-            "contact_draw_probability": result.contact_probability,
-            "rasterizer": resolve_backend(conf.backend, model.mu_cano),
-            **selection,
-        })
+        ctx.metrics.update(
+            {
+                "steps": validator.end,
+                "gaussians": model.gaussians.num_gaussians,
+                "final_loss": log[-1].loss if log else float("nan"),
+                "ms_per_step": 1000 * sum(result.seconds.values()) / steps,
+                **{f"{k}_ms_per_step": 1000 * v / steps for k, v in result.seconds.items()},
+                "interaction_mlp_evaluations": result.interaction_evaluations,
+                "interaction_steps": result.interaction_steps,
+                "contact_frames": int(contact.sum()),
+                "contact_draw_probability": result.contact_probability,
+                "rasterizer": resolve_backend(conf.backend, model.mu_cano),
+                **selection,
+            }
+        )
 
     @classmethod
     def load(cls, dynamic_dir: Path, info: dict) -> BoundAvatar:

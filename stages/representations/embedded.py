@@ -39,10 +39,17 @@ from stages.representations import (
 )
 from stages.training_settings import record_refinement, record_validation, validation_config
 
-
 #: SplattingConfig's fields that ``splatting`` does not hold: the schedule every method shares.
-SHARED_SCHEDULE = ("steps", "densify_until", "opacity_reset_interval", "max_gaussians", "checkpoint_every",
-                   "log_every", "seed", "backend")
+SHARED_SCHEDULE = (
+    "steps",
+    "densify_until",
+    "opacity_reset_interval",
+    "max_gaussians",
+    "checkpoint_every",
+    "log_every",
+    "seed",
+    "backend",
+)
 #: Types of ``splatting``, SplattingAvatar's recipe (values in conf/config.yaml).
 SplattingSchema = section_schema("SplattingSchema", SplattingConfig, exclude=SHARED_SCHEDULE)
 
@@ -51,11 +58,18 @@ def splatting_config(cfg: DictConfig, steps: int, schedule: DictConfig, *, densi
     """SplattingAvatar's training settings: its recipe (``splatting.*``), the stage's schedule, seed and
     rasterizer (``schedule``: ``stage.warmup`` or ``stage.dynamic``); ``densify=False`` for stage two."""
     warm = cfg.stage.warmup
-    return core_config(SplattingConfig, cfg.splatting, steps=steps,
-                       densify_until=float(warm.densify_until) if densify else 0.0,
-                       opacity_reset_interval=float(warm.opacity_reset_interval),
-                       max_gaussians=int(warm.max_gaussians), checkpoint_every=int(schedule.checkpoint_every),
-                       log_every=int(schedule.log_every), seed=int(schedule.seed), backend=str(schedule.backend))
+    return core_config(
+        SplattingConfig,
+        cfg.splatting,
+        steps=steps,
+        densify_until=float(warm.densify_until) if densify else 0.0,
+        opacity_reset_interval=float(warm.opacity_reset_interval),
+        max_gaussians=int(warm.max_gaussians),
+        checkpoint_every=int(schedule.checkpoint_every),
+        log_every=int(schedule.log_every),
+        seed=int(schedule.seed),
+        backend=str(schedule.backend),
+    )
 
 
 @dataclass
@@ -72,15 +86,22 @@ class PosedGaussians:
 def write_embedded_gaussians(path: Path, model: EmbeddedGaussians, part_names: tuple[str, ...]) -> None:
     """``gaussians.parquet`` of SplattingAvatar's embedded Gaussians (:data:`EMBEDDED_GAUSSIANS`)."""
     state = model.state_tensors()
-    write_table(path, EMBEDDED_GAUSSIANS, {
-        **{k: state[k].numpy() for k in ("triangle", "barycentric", "displacement", "log_scales", "quats",
-                                         "opacity_logits", "sh_dc")},
-        "part": [part_names[i] for i in state["part"].tolist()],
-    })
+    write_table(
+        path,
+        EMBEDDED_GAUSSIANS,
+        {
+            **{
+                k: state[k].numpy()
+                for k in ("triangle", "barycentric", "displacement", "log_scales", "quats", "opacity_logits", "sh_dc")
+            },
+            "part": [part_names[i] for i in state["part"].tolist()],
+        },
+    )
 
 
-def load_embedded_gaussians(stage_dir: Path, part_names: tuple[str, ...], canonical_vertices: torch.Tensor,
-                            faces: torch.Tensor) -> EmbeddedGaussians:
+def load_embedded_gaussians(
+    stage_dir: Path, part_names: tuple[str, ...], canonical_vertices: torch.Tensor, faces: torch.Tensor
+) -> EmbeddedGaussians:
     """The embedded Gaussians of ``gaussians.parquet`` on the canonical mesh (``canonical_vertices`` (V, 3),
     ``faces`` (F, 3))."""
     path = stage_dir / "gaussians.parquet"
@@ -88,8 +109,10 @@ def load_embedded_gaussians(stage_dir: Path, part_names: tuple[str, ...], canoni
     unknown = sorted(set(t["part"]) - set(part_names))
     if unknown:
         raise SchemaError(f"{path}: Gaussians on unknown mesh part(s) {unknown}; expected {part_names}")
-    state = {k: torch.tensor(np.asarray(t[k]), dtype=torch.float32) for k in
-             ("barycentric", "displacement", "log_scales", "quats", "opacity_logits", "sh_dc")}
+    state = {
+        k: torch.tensor(np.asarray(t[k]), dtype=torch.float32)
+        for k in ("barycentric", "displacement", "log_scales", "quats", "opacity_logits", "sh_dc")
+    }
     state["triangle"] = torch.tensor(np.asarray(t["triangle"]))
     state["part"] = torch.tensor([part_names.index(p) for p in t["part"]])
     try:
@@ -130,27 +153,68 @@ class EmbeddedRepresentation(Representation):
         if recipe:
             return recipe
         conf = self.cfg.stage.dynamic
-        keys = [f"stage.dynamic.{key}" for key, on in (("hand_mlp", conf.hand_mlp), ("interaction", conf.interaction),
-                                                         ("select.enabled", conf.select.enabled)) if bool(on)]
-        problems = [f"{key}=true: method.representation={self.key} (SplattingAvatar) has no hand or interaction MLPs "
-                    f"and no selection; set {key}=false (method=splatting_avatar does)" for key in keys]
-        return problems + [f"stage.{section}.refine_params=true: SplattingAvatar (method.representation={self.key}) "
-                           f"does not refine the tracking; set it to auto or false"
-                           for section in ("warmup", "dynamic")
-                           if str(self.cfg.stage[section].refine_params).lower() == "true"]
+        keys = [
+            f"stage.dynamic.{key}"
+            for key, on in (
+                ("hand_mlp", conf.hand_mlp),
+                ("interaction", conf.interaction),
+                ("select.enabled", conf.select.enabled),
+            )
+            if bool(on)
+        ]
+        problems = [
+            f"{key}=true: method.representation={self.key} (SplattingAvatar) has no hand or interaction MLPs "
+            f"and no selection; set {key}=false (method=splatting_avatar does)"
+            for key in keys
+        ]
+        return problems + [
+            f"stage.{section}.refine_params=true: SplattingAvatar (method.representation={self.key}) "
+            f"does not refine the tracking; set it to auto or false"
+            for section in ("warmup", "dynamic")
+            if str(self.cfg.stage[section].refine_params).lower() == "true"
+        ]
 
-    def populate(self, canonical: torch.Tensor, meshes: MeshSequence, per_triangle: int, *, init_opacity: float,
-                 seed: int, populate: torch.Tensor | None) -> EmbeddedGaussians:
-        return EmbeddedGaussians.on_triangles(canonical, meshes.faces, meshes.face_part, per_triangle,
-                                              init_opacity=init_opacity, seed=seed, populate=populate)
+    def populate(
+        self,
+        canonical: torch.Tensor,
+        meshes: MeshSequence,
+        per_triangle: int,
+        *,
+        init_opacity: float,
+        seed: int,
+        populate: torch.Tensor | None,
+    ) -> EmbeddedGaussians:
+        return EmbeddedGaussians.on_triangles(
+            canonical,
+            meshes.faces,
+            meshes.face_part,
+            per_triangle,
+            init_opacity=init_opacity,
+            seed=seed,
+            populate=populate,
+        )
 
-    def warm_up(self, ctx: StageContext, model: CanonicalGaussians, views: ViewSet, meshes: MeshSequence,
-                params: FrameParams | None, validator: Validator, progress: Progress) -> float:
+    def warm_up(
+        self,
+        ctx: StageContext,
+        model: CanonicalGaussians,
+        views: ViewSet,
+        meshes: MeshSequence,
+        params: FrameParams | None,
+        validator: Validator,
+        progress: Progress,
+    ) -> float:
         assert isinstance(model, EmbeddedGaussians) and params is None
         conf = self.cfg.stage.warmup
-        log = train_splatting(model, views, meshes,
-                              splatting_config(self.cfg, int(self.cfg.quality.warmup_steps), conf, densify=True),
-                              checkpoint_dir=ctx.scratch_dir, progress=progress, validator=validator)
+        log = train_splatting(
+            model,
+            views,
+            meshes,
+            splatting_config(self.cfg, int(self.cfg.quality.warmup_steps), conf, densify=True),
+            checkpoint_dir=ctx.scratch_dir,
+            progress=progress,
+            validator=validator,
+        )
         write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
         write_records(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
         return log[-1].loss
@@ -166,30 +230,45 @@ class EmbeddedRepresentation(Representation):
         model = load_embedded_gaussians(ctx.input_dir("warmup"), meshes.part_names, canonical, meshes.faces)
         validator = Validator(validation_config(conf.validation), views)
         start = time.perf_counter()
-        log = train_splatting(model, views, meshes,
-                              splatting_config(self.cfg, int(self.cfg.quality.dynamic_steps), conf, densify=False),
-                              checkpoint_dir=ctx.scratch_dir,
-                              progress=lambda s: ctx.progress(s, desc="dynamic"), validator=validator)
+        log = train_splatting(
+            model,
+            views,
+            meshes,
+            splatting_config(self.cfg, int(self.cfg.quality.dynamic_steps), conf, densify=False),
+            checkpoint_dir=ctx.scratch_dir,
+            progress=lambda s: ctx.progress(s, desc="dynamic"),
+            validator=validator,
+        )
         steps = validator.end  # steps run
         write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
         buffer = io.BytesIO()
         torch.save({"canonical_vertices": canonical.float(), "faces": meshes.faces}, buffer)
         write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "SplattingAvatar's canonical mesh")
-        write_model_info(ctx.out_dir, self, {"part_names": list(meshes.part_names),
-                                             "num_gaussians": model.num_gaussians}, "the embedded model")
+        write_model_info(
+            ctx.out_dir,
+            self,
+            {"part_names": list(meshes.part_names), "num_gaussians": model.num_gaussians},
+            "the embedded model",
+        )
         write_train_plys(ctx, EmbeddedAvatar(model), posed.conditioning(self.cfg), meshes, views.num_frames)
         write_records(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
         record_validation(ctx, validator)
         record_refinement(ctx, load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE), posed.params, None)
         seconds = time.perf_counter() - start - validator.validation_s
-        ctx.metrics.update({"steps": steps, "gaussians": model.num_gaussians,
-                            "ms_per_step": 1000 * seconds / max(steps, 1),
-                            "final_loss": log[-1].loss if log else float("nan"),
-                            "walked": sum(r.walked for r in log),
-                            "rasterizer": resolve_backend(conf.backend, canonical)})
+        ctx.metrics.update(
+            {
+                "steps": steps,
+                "gaussians": model.num_gaussians,
+                "ms_per_step": 1000 * seconds / max(steps, 1),
+                "final_loss": log[-1].loss if log else float("nan"),
+                "walked": sum(r.walked for r in log),
+                "rasterizer": resolve_backend(conf.backend, canonical),
+            }
+        )
 
     @classmethod
     def load(cls, dynamic_dir: Path, info: dict) -> EmbeddedAvatar:
         state = torch.load(dynamic_dir / "networks.pt", weights_only=True)
-        return EmbeddedAvatar(load_embedded_gaussians(dynamic_dir, tuple(info["part_names"]),
-                                                      state["canonical_vertices"], state["faces"]))
+        return EmbeddedAvatar(
+            load_embedded_gaussians(dynamic_dir, tuple(info["part_names"]), state["canonical_vertices"], state["faces"])
+        )

@@ -79,8 +79,9 @@ def test_colmap_cameras_project_as_pycolmap_does(tmp_path, text):
 
 
 def test_rig_cameras_scale_translations_and_hold_out_the_last_camera(tmp_path):
-    write_colmap(tmp_path, {k: MODELS[k] for k in ("PINHOLE", "OPENCV", "FULL_OPENCV")},
-                 ["cam00.png", "cam01.png", "cam02.png"])
+    write_colmap(
+        tmp_path, {k: MODELS[k] for k in ("PINHOLE", "OPENCV", "FULL_OPENCV")}, ["cam00.png", "cam01.png", "cam02.png"]
+    )
     images = read_colmap(tmp_path)
     cameras = rig_cameras(images, "model", scale_m=0.25, test_cameras=None)
     assert [c.split for c in cameras] == ["train", "train", "test"]
@@ -100,8 +101,11 @@ def _pinhole(image: CalibratedImage, points: np.ndarray) -> np.ndarray:
 
 
 def test_colmap_model_opencv_cannot_express_is_one_clear_error(tmp_path):
-    write_colmap(tmp_path, {"PINHOLE": MODELS["PINHOLE"], "OPENCV_FISHEYE": [70.0, 70.0, 32.0, 24.0, 0.1, 0, 0, 0]},
-                 ["cam00.png", "cam01.png"])
+    write_colmap(
+        tmp_path,
+        {"PINHOLE": MODELS["PINHOLE"], "OPENCV_FISHEYE": [70.0, 70.0, 32.0, 24.0, 0.1, 0, 0, 0]},
+        ["cam00.png", "cam01.png"],
+    )
     with pytest.raises(SchemaError, match=r"OPENCV_FISHEYE model.*colmap image_undistorter"):
         read_colmap(tmp_path)
     assert set(OPENCV_MODELS) == set(MODELS)
@@ -117,10 +121,25 @@ def test_unreadable_colmap_model_names_the_folder(tmp_path):
 
 def _transforms(K: np.ndarray, world_to_cam: list[np.ndarray], names: list[str], **extra: object) -> dict:
     """A nerfstudio transforms.json for OpenCV cameras: pixel centres at +0.5, camera-to-world in OpenGL axes."""
-    frames = [{"file_path": f"images/{n}", "transform_matrix": (np.linalg.inv(T) @ OPENGL_TO_OPENCV).tolist()}
-              for n, T in zip(names, world_to_cam, strict=True)]
-    return {"camera_model": "OPENCV", "fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2] + 0.5, "cy": K[1, 2] + 0.5,
-            "w": W, "h": H, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames, **extra}
+    frames = [
+        {"file_path": f"images/{n}", "transform_matrix": (np.linalg.inv(T) @ OPENGL_TO_OPENCV).tolist()}
+        for n, T in zip(names, world_to_cam, strict=True)
+    ]
+    return {
+        "camera_model": "OPENCV",
+        "fl_x": K[0, 0],
+        "fl_y": K[1, 1],
+        "cx": K[0, 2] + 0.5,
+        "cy": K[1, 2] + 0.5,
+        "w": W,
+        "h": H,
+        "k1": 0.0,
+        "k2": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
+        "frames": frames,
+        **extra,
+    }
 
 
 def _world_to_cam(i: int) -> np.ndarray:
@@ -155,15 +174,19 @@ def test_nerfstudio_per_frame_intrinsics_override_the_shared_ones(tmp_path):
     np.testing.assert_array_equal(b.dist, [0.03, 0, 0, 0, 0])
 
 
-@pytest.mark.parametrize(("damage", "fragment"), [
-    (lambda d: d["frames"][1].update({"w": W + 2}), "the sizes must agree"),
-    (lambda d: d["frames"][0].update({"transform_matrix": [[float("nan")] * 4] * 4}), "finite 4x4"),
-    (lambda d: d["frames"][0].update({"transform_matrix": (2 * np.eye(4)).tolist()}), "not a rigid transform"),
-    (lambda d: d.update({"camera_model": "OPENCV_FISHEYE"}), "not a pinhole model"),
-    (lambda d: d.update({"k4": 0.01}), "k4 (an r^8 radial term)"),
-    (lambda d: d.pop("fl_x"), "intrinsics ['fl_x']"),
-    (lambda d: d.update({"frames": []}), "non-empty 'frames'"),
-], ids=["sizes", "nan-pose", "scaled-pose", "fisheye", "k4", "no-focal", "no-frames"])
+@pytest.mark.parametrize(
+    ("damage", "fragment"),
+    [
+        (lambda d: d["frames"][1].update({"w": W + 2}), "the sizes must agree"),
+        (lambda d: d["frames"][0].update({"transform_matrix": [[float("nan")] * 4] * 4}), "finite 4x4"),
+        (lambda d: d["frames"][0].update({"transform_matrix": (2 * np.eye(4)).tolist()}), "not a rigid transform"),
+        (lambda d: d.update({"camera_model": "OPENCV_FISHEYE"}), "not a pinhole model"),
+        (lambda d: d.update({"k4": 0.01}), "k4 (an r^8 radial term)"),
+        (lambda d: d.pop("fl_x"), "intrinsics ['fl_x']"),
+        (lambda d: d.update({"frames": []}), "non-empty 'frames'"),
+    ],
+    ids=["sizes", "nan-pose", "scaled-pose", "fisheye", "k4", "no-focal", "no-frames"],
+)
 def test_bad_transforms_json_is_one_clear_error(tmp_path, damage, fragment):
     K = np.array([[70.0, 0.0, 31.5], [0.0, 70.0, 23.5], [0.0, 0.0, 1.0]])
     data = _transforms(K, [_world_to_cam(0), _world_to_cam(0)], ["cam00/0.png", "cam00/1.png"])
@@ -176,8 +199,10 @@ def test_bad_transforms_json_is_one_clear_error(tmp_path, damage, fragment):
 
 def test_rig_checks_name_the_calibration():
     K = np.array([[70.0, 0.0, 31.5], [0.0, 70.0, 23.5], [0.0, 0.0, 1.0]])
-    still = [CalibratedImage("cam00/0.png", W, H, K, np.zeros(4), _world_to_cam(0)),
-             CalibratedImage("cam01/0.png", W, H, K, np.zeros(4), _world_to_cam(1))]
+    still = [
+        CalibratedImage("cam00/0.png", W, H, K, np.zeros(4), _world_to_cam(0)),
+        CalibratedImage("cam01/0.png", W, H, K, np.zeros(4), _world_to_cam(1)),
+    ]
     moved = CalibratedImage("cam00/1.png", W, H, K, np.zeros(4), _world_to_cam(2))
     with pytest.raises(SchemaError, match="'cam00/0.png' and 'cam00/1.png' belong to camera 'cam00'"):
         rig_cameras([*still, moved], "model", 1.0, None)
@@ -200,7 +225,7 @@ def test_undistortion_moves_a_point_to_its_pinhole_projection():
     pinhole = (K @ point[0])[:2]
     assert np.linalg.norm(distorted - pinhole) > 3.0  # the test means something
     yy, xx = np.mgrid[0:60, 0:80]
-    blob = np.exp(-((xx - distorted[0]) ** 2 + (yy - distorted[1]) ** 2) / (2 * 1.2 ** 2))
+    blob = np.exp(-((xx - distorted[0]) ** 2 + (yy - distorted[1]) ** 2) / (2 * 1.2**2))
     image = np.repeat((blob * 255).round().astype(np.uint8)[..., None], 3, axis=-1)
     out = Undistorter(K, dist, 80, 60).image(image)[..., 0].astype(np.float64)
     centroid = np.array([(out * xx).sum(), (out * yy).sum()]) / out.sum()

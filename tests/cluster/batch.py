@@ -29,8 +29,10 @@ SMOKE = ("quality=smoke", "run.progress=false")
 EARLY_CHECKPOINT = "stage.warmup.checkpoint_every=10"
 SUBJECTS = ("synth_a", "synth_b")
 # One decision line of the runner: "[synth_a] capture    run       <reason>" (per-method: "[synth_a/<method>]").
-DECISION = re.compile(r"\[(?P<subject>[\w-]+)(?:/(?P<method>[\w-]+))?\] "
-                      r"(?P<stage>\w+)\s+(?P<action>run|cached|shared)\b")
+DECISION = re.compile(
+    r"\[(?P<subject>[\w-]+)(?:/(?P<method>[\w-]+))?\] "
+    r"(?P<stage>\w+)\s+(?P<action>run|cached|shared)\b"
+)
 
 
 class Cluster(Protocol):
@@ -55,7 +57,7 @@ class Submission:
 
     returncode: int
     driver_output: str  # the driver's stdout and stderr
-    job_output: str     # what its jobs printed
+    job_output: str  # what its jobs printed
     wall_s: float
 
     def decisions(self) -> Counter[tuple[str, str | None, str, str]]:
@@ -66,12 +68,19 @@ class Submission:
 def start(cluster: Cluster, out: Path, sweep: Sequence[str], *extra: str) -> subprocess.Popen[str]:
     """Start ``interactavatar -m <sweep>`` on ``cluster``, writing under ``out`` (returns at once)."""
     args = ["-m", *sweep, *cluster.launcher_overrides(), *SMOKE, f"paths.outputs={out}", *extra]
-    return subprocess.Popen(cli_command(*args), cwd=REPO, env={**cli_env(), **cluster.env()}, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    return subprocess.Popen(
+        cli_command(*args),
+        cwd=REPO,
+        env={**cli_env(), **cluster.env()},
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
 
 
-def finish(cluster: Cluster, out: Path, proc: subprocess.Popen[str], started: float,
-           timeout_s: float = 1800) -> Submission:
+def finish(
+    cluster: Cluster, out: Path, proc: subprocess.Popen[str], started: float, timeout_s: float = 1800
+) -> Submission:
     """Wait for the submission ``proc`` and collect what its jobs printed."""
     driver_output, _ = proc.communicate(timeout=timeout_s)
     wall = time.monotonic() - started
@@ -124,8 +133,9 @@ def stop_mid_warmup(cluster: Cluster, out: Path, subject: str, timeout_s: float 
         if any((out / subject / ".scratch").glob("warmup*/warmup.pt")):
             pid = pid or holder_of_lock(_warmup_lock(out, subject))
             os.kill(pid, signal.SIGSTOP)
-            assert not (out / subject / "methods" / "interactavatar" / "warmup" / "_manifest.json").exists(), \
+            assert not (out / subject / "methods" / "interactavatar" / "warmup" / "_manifest.json").exists(), (
                 "the warm-up finished before its job was frozen: lower stage.warmup.checkpoint_every"
+            )
             return cluster.stop_job(pid)
         time.sleep(0.1)
     raise TimeoutError(f"no warm-up checkpoint of {subject} under {out} after {timeout_s} s")
@@ -154,8 +164,12 @@ def warmup_metrics(out: Path, subject: str) -> dict[str, object]:
 def every_stage(action: str, submission: Submission, subjects: Sequence[str]) -> list[str]:
     """The (subject, stage) pairs whose decision in ``submission`` was not ``action``; [] when all were."""
     seen = submission.decisions()
-    return [f"{subject}/{stage.name}" for subject in subjects for stage in REGISTRY
-            if not any(k[0] == subject and k[2] == stage.name and k[3] == action for k in seen)]
+    return [
+        f"{subject}/{stage.name}"
+        for subject in subjects
+        for stage in REGISTRY
+        if not any(k[0] == subject and k[2] == stage.name and k[3] == action for k in seen)
+    ]
 
 
 def computed_once(submission: Submission, subject: str, stages: Sequence[str]) -> dict[str, Counter[str]]:
@@ -173,7 +187,6 @@ def table(rows: Sequence[tuple[str, ...]], header: tuple[str, ...]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
     lines += ["| " + " | ".join(row) + " |" for row in rows]
     return "\n".join(lines)
-
 
 
 @dataclass

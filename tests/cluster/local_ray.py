@@ -23,8 +23,12 @@ from tests.cluster.local_slurm import ClusterError, free_port
 #: Ray starts its task workers at nice 15; on a machine that other work keeps busy (CI, a loaded 2-core box:
 #: three busy processes left them 3 % of a core, the story had not passed keypoints after 15 minutes) they
 #: starve, so this one-machine cluster runs them at the priority of everything else.
-LOCAL_ONLY = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_USAGE_STATS_ENABLED": "0",
-              "RAY_DEDUP_LOGS": "0", "RAY_worker_niceness": "0"}
+LOCAL_ONLY = {
+    "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0",
+    "RAY_USAGE_STATS_ENABLED": "0",
+    "RAY_DEDUP_LOGS": "0",
+    "RAY_worker_niceness": "0",
+}
 
 
 class LocalRay:
@@ -42,10 +46,25 @@ class LocalRay:
 
     def start(self) -> LocalRay:
         self.root.mkdir(parents=True, exist_ok=True)
-        done = subprocess.run([self.ray, "start", "--head", "--node-ip-address=127.0.0.1", f"--port={self.port}",
-                               f"--num-cpus={os.cpu_count()}", "--num-gpus=0", "--include-dashboard=false",
-                               "--disable-usage-stats", f"--temp-dir={self.root}"],
-                              env=self.env(), capture_output=True, text=True, check=False, timeout=180)
+        done = subprocess.run(
+            [
+                self.ray,
+                "start",
+                "--head",
+                "--node-ip-address=127.0.0.1",
+                f"--port={self.port}",
+                f"--num-cpus={os.cpu_count()}",
+                "--num-gpus=0",
+                "--include-dashboard=false",
+                "--disable-usage-stats",
+                f"--temp-dir={self.root}",
+            ],
+            env=self.env(),
+            capture_output=True,
+            text=True,
+            check=False,
+            timeout=180,
+        )
         if done.returncode:
             self.stop()
             raise ClusterError(f"ray start failed:\n{done.stdout[-2000:]}{done.stderr[-2000:]}")
@@ -63,8 +82,11 @@ class LocalRay:
             cmdline = " ".join(proc.info["cmdline"] or [])
             if str(self.root) in cmdline or f"{self.port}" in cmdline:
                 ours.add(proc.info["pid"])
-        return [f"{c.laddr.ip}:{c.laddr.port}" for c in psutil.net_connections(kind="inet")
-                if c.status == psutil.CONN_LISTEN and c.pid in ours]
+        return [
+            f"{c.laddr.ip}:{c.laddr.port}"
+            for c in psutil.net_connections(kind="inet")
+            if c.status == psutil.CONN_LISTEN and c.pid in ours
+        ]
 
     def __enter__(self) -> LocalRay:
         return self.start()

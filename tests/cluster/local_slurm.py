@@ -25,9 +25,18 @@ from pathlib import Path
 CLUSTER = "interactavatar-test"
 PARTITION = "debug"
 # The commands the cluster needs, and the Debian package of each.
-COMMANDS = {"slurmctld": "slurm-wlm", "slurmd": "slurm-wlm", "sbatch": "slurm-wlm", "sacct": "slurm-wlm",
-            "slurmdbd": "slurmdbd", "munged": "munge", "munge": "munge", "mariadbd": "mariadb-server",
-            "mariadb-install-db": "mariadb-server", "mariadb": "mariadb-client"}
+COMMANDS = {
+    "slurmctld": "slurm-wlm",
+    "slurmd": "slurm-wlm",
+    "sbatch": "slurm-wlm",
+    "sacct": "slurm-wlm",
+    "slurmdbd": "slurmdbd",
+    "munged": "munge",
+    "munge": "munge",
+    "mariadbd": "mariadb-server",
+    "mariadb-install-db": "mariadb-server",
+    "mariadb": "mariadb-client",
+}
 _SBIN = os.pathsep.join(["/usr/local/sbin", "/usr/sbin", "/sbin"])
 
 
@@ -50,8 +59,11 @@ def ensure_installed() -> None:
     if os.geteuid() != 0 or shutil.which("apt-get") is None:
         raise ClusterError(f"the SLURM test needs the packages {', '.join(missing)}: install them with `{how}`")
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-    for attempt in (["apt-get", "install", "-y", *missing], ["apt-get", "update"],
-                    ["apt-get", "install", "-y", *missing]):
+    for attempt in (
+        ["apt-get", "install", "-y", *missing],
+        ["apt-get", "update"],
+        ["apt-get", "install", "-y", *missing],
+    ):
         done = subprocess.run(attempt, env=env, capture_output=True, text=True, check=False)
         if done.returncode == 0 and attempt[1] == "install":
             return
@@ -112,19 +124,19 @@ class LocalSlurm:
         slurm_conf = f"""\
 ClusterName={CLUSTER}
 SlurmctldHost={self.node}(127.0.0.1)
-SlurmctldPort={self.ports['slurmctld']}
-SlurmdPort={self.ports['slurmd']}
+SlurmctldPort={self.ports["slurmctld"]}
+SlurmdPort={self.ports["slurmd"]}
 AuthType=auth/munge
 CredType=cred/munge
 AuthInfo=socket={self.munge_socket}
 SlurmUser={self.user}
 SlurmdUser={self.user}
-StateSaveLocation={self.root / 'state'}
-SlurmdSpoolDir={self.root / 'spool'}
-SlurmctldPidFile={self.root / 'slurmctld.pid'}
-SlurmdPidFile={self.root / 'slurmd.pid'}
-SlurmctldLogFile={self.logs / 'slurmctld.log'}
-SlurmdLogFile={self.logs / 'slurmd.log'}
+StateSaveLocation={self.root / "state"}
+SlurmdSpoolDir={self.root / "spool"}
+SlurmctldPidFile={self.root / "slurmctld.pid"}
+SlurmdPidFile={self.root / "slurmd.pid"}
+SlurmctldLogFile={self.logs / "slurmctld.log"}
+SlurmdLogFile={self.logs / "slurmd.log"}
 ProctrackType=proctrack/linuxproc
 TaskPlugin=task/none
 SelectType=select/cons_tres
@@ -136,7 +148,7 @@ KillWait=1
 JobAcctGatherType=jobacct_gather/none
 AccountingStorageType=accounting_storage/slurmdbd
 AccountingStorageHost=127.0.0.1
-AccountingStoragePort={self.ports['slurmdbd']}
+AccountingStoragePort={self.ports["slurmdbd"]}
 AccountingStoragePass={self.munge_socket}
 NodeName={self.node} NodeAddr=127.0.0.1 CPUs={os.cpu_count()} RealMemory={mem_mb} State=UNKNOWN
 PartitionName={PARTITION} Nodes={self.node} Default=YES MaxTime=INFINITE State=UP
@@ -146,16 +158,16 @@ AuthType=auth/munge
 AuthInfo=socket={self.munge_socket}
 DbdHost=localhost
 DbdAddr=127.0.0.1
-DbdPort={self.ports['slurmdbd']}
+DbdPort={self.ports["slurmdbd"]}
 SlurmUser={self.user}
 StorageType=accounting_storage/mysql
 StorageHost=127.0.0.1
-StoragePort={self.ports['mariadb']}
+StoragePort={self.ports["mariadb"]}
 StorageUser=slurm
 StoragePass=test-only
 StorageLoc=slurm_acct_db
-PidFile={self.root / 'slurmdbd.pid'}
-LogFile={self.logs / 'slurmdbd.log'}
+PidFile={self.root / "slurmdbd.pid"}
+LogFile={self.logs / "slurmdbd.log"}
 """
         (self.root / "slurm.conf").write_text(slurm_conf)
         (self.root / "slurmdbd.conf").write_text(dbd_conf)
@@ -165,8 +177,9 @@ LogFile={self.logs / 'slurmdbd.log'}
     def _spawn(self, name: str, *cmd: str) -> None:
         """Start ``cmd`` in the foreground of its own session (pytest's signals never reach it)."""
         out = open(self.logs / f"{name}.out", "wb")  # noqa: SIM115 -- kept open for the daemon's life
-        self.procs[name] = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=self.env(),
-                                            start_new_session=True)
+        self.procs[name] = subprocess.Popen(
+            cmd, stdout=out, stderr=subprocess.STDOUT, env=self.env(), start_new_session=True
+        )
 
     def _check_alive(self, name: str) -> Callable[[], bool]:
         def alive() -> bool:
@@ -174,6 +187,7 @@ LogFile={self.logs / 'slurmdbd.log'}
                 out = (self.logs / f"{name}.out").read_text(errors="replace")[-2000:]
                 raise ClusterError(f"{name} exited with {self.procs[name].returncode}: {out}")
             return True
+
         return alive
 
     def start(self) -> LocalSlurm:
@@ -198,30 +212,60 @@ LogFile={self.logs / 'slurmdbd.log'}
 
     def _start_munge(self) -> None:
         munge = self.root / "munge"
-        self._spawn("munged", which("munged") or "munged", "--foreground", "--force",
-                    f"--socket={self.munge_socket}", f"--key-file={munge / 'munge.key'}",
-                    f"--log-file={self.logs / 'munged.log'}", f"--pid-file={munge / 'munged.pid'}",
-                    f"--seed-file={munge / 'munged.seed'}")
+        self._spawn(
+            "munged",
+            which("munged") or "munged",
+            "--foreground",
+            "--force",
+            f"--socket={self.munge_socket}",
+            f"--key-file={munge / 'munge.key'}",
+            f"--log-file={self.logs / 'munged.log'}",
+            f"--pid-file={munge / 'munged.pid'}",
+            f"--seed-file={munge / 'munged.seed'}",
+        )
         alive = self._check_alive("munged")
-        wait_until(lambda: alive() and _succeeds("munge", "-S", str(self.munge_socket), "-n"),
-                   "munged", self.logs / "munged.log")
+        wait_until(
+            lambda: alive() and _succeeds("munge", "-S", str(self.munge_socket), "-n"),
+            "munged",
+            self.logs / "munged.log",
+        )
 
     def _start_database(self) -> None:
-        done = subprocess.run([which("mariadb-install-db") or "mariadb-install-db", "--no-defaults",
-                               f"--datadir={self.root / 'db'}", f"--user={self.user}", "--skip-test-db",
-                               "--auth-root-authentication-method=normal"],
-                              capture_output=True, text=True, check=False)
+        done = subprocess.run(
+            [
+                which("mariadb-install-db") or "mariadb-install-db",
+                "--no-defaults",
+                f"--datadir={self.root / 'db'}",
+                f"--user={self.user}",
+                "--skip-test-db",
+                "--auth-root-authentication-method=normal",
+            ],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
         if done.returncode:
             raise ClusterError(f"mariadb-install-db failed: {done.stderr[-2000:]}")
-        self._spawn("mariadbd", which("mariadbd") or "mariadbd", "--no-defaults", f"--datadir={self.root / 'db'}",
-                    f"--user={self.user}", f"--socket={self.db_socket}", f"--port={self.ports['mariadb']}",
-                    "--bind-address=127.0.0.1", f"--pid-file={self.root / 'mariadb.pid'}",
-                    f"--log-error={self.logs / 'mariadb.log'}", "--innodb-buffer-pool-size=64M")
+        self._spawn(
+            "mariadbd",
+            which("mariadbd") or "mariadbd",
+            "--no-defaults",
+            f"--datadir={self.root / 'db'}",
+            f"--user={self.user}",
+            f"--socket={self.db_socket}",
+            f"--port={self.ports['mariadb']}",
+            "--bind-address=127.0.0.1",
+            f"--pid-file={self.root / 'mariadb.pid'}",
+            f"--log-error={self.logs / 'mariadb.log'}",
+            "--innodb-buffer-pool-size=64M",
+        )
         alive = self._check_alive("mariadbd")
         sql = ["mariadb", "--no-defaults", "-S", str(self.db_socket), "-u", "root"]
         wait_until(lambda: alive() and _succeeds(*sql, "-e", "SELECT 1"), "MariaDB", self.logs / "mariadb.log")
-        grant = "; ".join(f"CREATE USER 'slurm'@'{h}' IDENTIFIED BY 'test-only'; "
-                          f"GRANT ALL ON slurm_acct_db.* TO 'slurm'@'{h}'" for h in ("localhost", "127.0.0.1"))
+        grant = "; ".join(
+            f"CREATE USER 'slurm'@'{h}' IDENTIFIED BY 'test-only'; GRANT ALL ON slurm_acct_db.* TO 'slurm'@'{h}'"
+            for h in ("localhost", "127.0.0.1")
+        )
         done = subprocess.run([*sql, "-e", grant], capture_output=True, text=True, check=False)
         if done.returncode:
             raise ClusterError(f"creating the accounting database user failed: {done.stderr}")
@@ -234,14 +278,34 @@ LogFile={self.logs / 'slurmdbd.log'}
         self._spawn("slurmctld", which("slurmctld") or "slurmctld", "-D", "-i")
         alive = self._check_alive("slurmctld")
         # slurmctld registers the cluster with slurmdbd on start; without that sacct knows no job.
-        wait_until(lambda: alive() and CLUSTER in subprocess.run(
-            ["sacctmgr", "-n", "-P", "show", "cluster", "format=cluster"], env=env, capture_output=True,
-            text=True, check=False).stdout, "slurmctld (cluster registration)", self.logs / "slurmctld.log")
+        wait_until(
+            lambda: (
+                alive()
+                and CLUSTER
+                in subprocess.run(
+                    ["sacctmgr", "-n", "-P", "show", "cluster", "format=cluster"],
+                    env=env,
+                    capture_output=True,
+                    text=True,
+                    check=False,
+                ).stdout
+            ),
+            "slurmctld (cluster registration)",
+            self.logs / "slurmctld.log",
+        )
         self._spawn("slurmd", which("slurmd") or "slurmd", "-D", "-N", self.node)
         alive = self._check_alive("slurmd")
-        wait_until(lambda: alive() and subprocess.run(
-            ["sinfo", "-h", "-n", self.node, "-o", "%T"], env=env, capture_output=True, text=True,
-            check=False).stdout.strip() == "idle", "slurmd (node idle)", self.logs / "slurmd.log")
+        wait_until(
+            lambda: (
+                alive()
+                and subprocess.run(
+                    ["sinfo", "-h", "-n", self.node, "-o", "%T"], env=env, capture_output=True, text=True, check=False
+                ).stdout.strip()
+                == "idle"
+            ),
+            "slurmd (node idle)",
+            self.logs / "slurmd.log",
+        )
 
     def stop(self) -> None:
         """Cancel every job, stop the daemons this object started (newest first: SIGTERM, then SIGKILL
@@ -265,14 +329,16 @@ LogFile={self.logs / 'slurmdbd.log'}
     # -- clients ---------------------------------------------------------------------------------------
     def jobs(self) -> dict[str, str]:
         """Job id -> state (squeue's) of the jobs the cluster still knows as pending or running."""
-        out = subprocess.run(["squeue", "-h", "-o", "%i %T"], env=self.env(), capture_output=True, text=True,
-                             check=False).stdout
+        out = subprocess.run(
+            ["squeue", "-h", "-o", "%i %T"], env=self.env(), capture_output=True, text=True, check=False
+        ).stdout
         return dict(line.split() for line in out.splitlines() if line.strip())
 
     def stdout_path(self, job_id: str) -> Path | None:
         """Where job ``job_id`` writes its standard output (``scontrol show job``), while it is known."""
-        out = subprocess.run(["scontrol", "show", "job", job_id], env=self.env(), capture_output=True,
-                             text=True, check=False).stdout
+        out = subprocess.run(
+            ["scontrol", "show", "job", job_id], env=self.env(), capture_output=True, text=True, check=False
+        ).stdout
         for field in out.split():
             if field.startswith("StdOut="):
                 return Path(field.removeprefix("StdOut="))
@@ -282,8 +348,13 @@ LogFile={self.logs / 'slurmdbd.log'}
         """sacct's rows of every job of this cluster (allocations only): JobID, JobName, State, Start, End,
         Elapsed."""
         keys = ("JobID", "JobName", "State", "Start", "End", "Elapsed")
-        out = subprocess.run(["sacct", "-a", "-X", "-P", "-n", "-o", ",".join(keys)],
-                             env=self.env(), capture_output=True, text=True, check=True).stdout
+        out = subprocess.run(
+            ["sacct", "-a", "-X", "-P", "-n", "-o", ",".join(keys)],
+            env=self.env(),
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
         return [dict(zip(keys, line.split("|"), strict=True)) for line in out.splitlines() if line]
 
     def __enter__(self) -> LocalSlurm:

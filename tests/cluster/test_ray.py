@@ -29,8 +29,12 @@ class RayLauncher:
         self.cluster = cluster
 
     def launcher_overrides(self) -> list[str]:
-        return ["hydra/launcher=ray_cluster", "hydra.launcher.ray.remote.num_cpus=1",
-                "hydra.launcher.ray.remote.num_gpus=0", "+hydra.launcher.ray.remote.max_retries=0"]
+        return [
+            "hydra/launcher=ray_cluster",
+            "hydra.launcher.ray.remote.num_cpus=1",
+            "hydra.launcher.ray.remote.num_gpus=0",
+            "+hydra.launcher.ray.remote.max_retries=0",
+        ]
 
     def env(self) -> dict[str, str]:
         return self.cluster.env()
@@ -54,8 +58,7 @@ def ray_cluster():
 def _wait_idle(timeout_s: float = 300) -> None:
     """Until no Ray worker runs a job (a driver that gives up takes its tasks with it, Ray kills them)."""
     deadline = time.monotonic() + timeout_s
-    while any("ray::_run_job" in " ".join(p.info["cmdline"] or [])
-              for p in psutil.process_iter(["cmdline"])):
+    while any("ray::_run_job" in " ".join(p.info["cmdline"] or []) for p in psutil.process_iter(["cmdline"])):
         assert time.monotonic() < deadline, "a Ray worker still runs a job"
         time.sleep(1)
 
@@ -68,9 +71,12 @@ def test_ray_listens_on_loopback_only(ray_cluster: LocalRay):
 
 def test_subjects_complete_resume_after_a_killed_worker_then_are_cached(ray_cluster: LocalRay, tmp_path: Path):
     story = batch.subjects_stopped_resumed_cached(RayLauncher(ray_cluster), tmp_path / "out", _wait_idle)
-    print(batch.summary(f"Ray: subjects; {story.stopped} ({story.victim}) mid warm-up",
-                        {"first (one worker killed)": story.first, "resubmitted": story.second,
-                         "submitted again": story.third}))
+    print(
+        batch.summary(
+            f"Ray: subjects; {story.stopped} ({story.victim}) mid warm-up",
+            {"first (one worker killed)": story.first, "resubmitted": story.second, "submitted again": story.third},
+        )
+    )
 
 
 def test_methods_fan_out_computes_the_shared_stages_once(ray_cluster: LocalRay, tmp_path: Path):

@@ -23,8 +23,14 @@ class SlurmLauncher:
         self.slurm = slurm
 
     def launcher_overrides(self) -> list[str]:
-        return ["hydra/launcher=slurm", f"hydra.launcher.partition={PARTITION}", "hydra.launcher.cpus_per_task=1",
-                "hydra.launcher.gpus_per_node=0", "hydra.launcher.mem_gb=6", "hydra.launcher.timeout_min=60"]
+        return [
+            "hydra/launcher=slurm",
+            f"hydra.launcher.partition={PARTITION}",
+            "hydra.launcher.cpus_per_task=1",
+            "hydra.launcher.gpus_per_node=0",
+            "hydra.launcher.mem_gb=6",
+            "hydra.launcher.timeout_min=60",
+        ]
 
     def env(self) -> dict[str, str]:
         return self.slurm.env()
@@ -34,11 +40,15 @@ class SlurmLauncher:
         return "\n".join(p.read_text(errors="replace") for p in sorted((sweep_dir / ".submitit").glob("*/*_log.*")))
 
     def stop_job(self, pid: int) -> str:
-        environ = dict(v.decode().split("=", 1) for v in Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
-                       if b"=" in v)
+        environ = dict(
+            v.decode().split("=", 1) for v in Path(f"/proc/{pid}/environ").read_bytes().split(b"\0") if b"=" in v
+        )
         # submitit submits a job array: the task's id as squeue, sacct and scancel write it is <array>_<index>
-        job_id = (f"{environ['SLURM_ARRAY_JOB_ID']}_{environ['SLURM_ARRAY_TASK_ID']}"
-                  if "SLURM_ARRAY_JOB_ID" in environ else environ["SLURM_JOB_ID"])
+        job_id = (
+            f"{environ['SLURM_ARRAY_JOB_ID']}_{environ['SLURM_ARRAY_TASK_ID']}"
+            if "SLURM_ARRAY_JOB_ID" in environ
+            else environ["SLURM_JOB_ID"]
+        )
         subprocess.run(["scancel", job_id], env=self.env(), check=True)
         return job_id
 
@@ -73,8 +83,10 @@ def _job_ids(out: Path) -> set[str]:
 
 
 def _jobs_table(rows: list[dict[str, str]]) -> str:
-    return batch.table([(r["JobID"], r["State"], r["Start"], r["End"], r["Elapsed"]) for r in rows],
-                       ("job", "state", "start", "end", "elapsed"))
+    return batch.table(
+        [(r["JobID"], r["State"], r["Start"], r["End"], r["Elapsed"]) for r in rows],
+        ("job", "state", "start", "end", "elapsed"),
+    )
 
 
 def test_subjects_complete_resume_after_scancel_mid_warmup_then_are_cached(slurm: LocalSlurm, tmp_path: Path):
@@ -84,9 +96,12 @@ def test_subjects_complete_resume_after_scancel_mid_warmup_then_are_cached(slurm
     assert states[story.stopped].startswith("CANCELLED"), states
     (other,) = set(batch.SUBJECTS) - {story.victim}
     assert batch.every_stage("cached", story.second, [other]) == []  # scancel of one job left the other whole
-    print(batch.summary(f"SLURM: subjects; scancel {story.stopped} ({story.victim}) mid warm-up",
-                        {"first (one job cancelled)": story.first, "resubmitted": story.second,
-                         "submitted again": story.third}))
+    print(
+        batch.summary(
+            f"SLURM: subjects; scancel {story.stopped} ({story.victim}) mid warm-up",
+            {"first (one job cancelled)": story.first, "resubmitted": story.second, "submitted again": story.third},
+        )
+    )
     print(_jobs_table(rows))
 
 

@@ -35,8 +35,9 @@ def full_disk(tmp_path: Path) -> Iterator[Path]:
     mount = tmp_path / "disk"
     mount.mkdir()
     try:
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={DISK_KIB}k", "tmpfs", str(mount)],
-                              capture_output=True, check=False)
+        done = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={DISK_KIB}k", "tmpfs", str(mount)], capture_output=True, check=False
+        )
     except OSError:
         done = None
     if done is None or done.returncode != 0:
@@ -54,14 +55,23 @@ def _noise(*shape: int) -> np.ndarray:
 
 
 def _keypoint_rows(n: int) -> dict:
-    return {"frame": np.arange(n), "camera_id": ["cam00"] * n, "part": ["face"] * n,
-            "uvc": [RNG.random(3 * 70).astype(np.float32) for _ in range(n)]}
+    return {
+        "frame": np.arange(n),
+        "camera_id": ["cam00"] * n,
+        "part": ["face"] * n,
+        "uvc": [RNG.random(3 * 70).astype(np.float32) for _ in range(n)],
+    }
 
 
 def _cloud(n: int) -> GaussianCloud:
-    return GaussianCloud(means=RNG.normal(size=(n, 3)), sh_dc=RNG.normal(size=(n, 3)),
-                         sh_rest=np.zeros((n, 0, 3)), opacity_logits=RNG.normal(size=n),
-                         log_scales=RNG.normal(size=(n, 3)), quats=np.tile([1.0, 0, 0, 0], (n, 1)))
+    return GaussianCloud(
+        means=RNG.normal(size=(n, 3)),
+        sh_dc=RNG.normal(size=(n, 3)),
+        sh_rest=np.zeros((n, 0, 3)),
+        opacity_logits=RNG.normal(size=n),
+        log_scales=RNG.normal(size=(n, 3)),
+        quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+    )
 
 
 WRITERS: dict[str, tuple[str, Callable[[Path], object]]] = {

@@ -30,9 +30,19 @@ def _camera(cid: str = "cam00", **kw) -> Camera:
 
 
 def _params(n: int = 3) -> dict:
-    widths = {"flame_shape": 10, "flame_expression": 10, "flame_global_orient": 3, "flame_neck_pose": 3,
-              "flame_jaw_pose": 3, "flame_eye_pose": 6, "flame_transl": 3, "mano_shape": 10,
-              "mano_hand_pose": 45, "mano_global_orient": 3, "mano_transl": 3}
+    widths = {
+        "flame_shape": 10,
+        "flame_expression": 10,
+        "flame_global_orient": 3,
+        "flame_neck_pose": 3,
+        "flame_jaw_pose": 3,
+        "flame_eye_pose": 6,
+        "flame_transl": 3,
+        "mano_shape": 10,
+        "mano_hand_pose": 45,
+        "mano_global_orient": 3,
+        "mano_transl": 3,
+    }
     data = {k: RNG.normal(size=(n, w)).astype(np.float32) for k, w in widths.items()}
     data["frame"] = np.arange(n)
     return data
@@ -56,8 +66,10 @@ def test_params_round_trip_with_metadata(tmp_path):
     ("mutate", "message"),
     [
         (lambda d: d.pop("mano_transl"), "missing ['mano_transl']"),
-        (lambda d: d.__setitem__("mano_hand_pose", np.zeros((3, 44))),
-         "column 'mano_hand_pose': expected vectors of length 45"),
+        (
+            lambda d: d.__setitem__("mano_hand_pose", np.zeros((3, 44))),
+            "column 'mano_hand_pose': expected vectors of length 45",
+        ),
         (lambda d: d["flame_transl"].__setitem__((1, 2), np.nan), "column 'flame_transl': contains NaN or Inf"),
         (lambda d: d.__setitem__("mano_transl", np.zeros((4, 3))), "column 'mano_transl': expected 3 rows"),
     ],
@@ -74,8 +86,9 @@ def test_bad_table_data_names_file_and_column(tmp_path, mutate, message):
 
 def test_reading_the_wrong_or_an_old_table_is_refused(tmp_path):
     path = tmp_path / "kp.parquet"
-    write_table(path, KEYPOINTS, {"frame": np.array([0]), "camera_id": ["c"], "part": ["hand"],
-                                  "uvc": [np.ones((21, 3))]})
+    write_table(
+        path, KEYPOINTS, {"frame": np.array([0]), "camera_id": ["c"], "part": ["hand"], "uvc": [np.ones((21, 3))]}
+    )
     with pytest.raises(SchemaError, match="expected a 'params' table, found 'keypoints'"):
         read_table(path, PARAMS)
     table = pq.read_table(path)
@@ -157,8 +170,14 @@ def test_png_round_trip_keeps_rgb_order(tmp_path):
 def test_gaussian_ply_round_trip_and_independent_reader(tmp_path, sh_degree):
     n = 50
     rgb = RNG.random((n, 3))
-    cloud = GaussianCloud.from_rgb(RNG.normal(size=(n, 3)), RNG.normal(size=(n, 3)) - 4, RNG.normal(size=(n, 4)),
-                                   RNG.normal(size=n), rgb, sh_degree=sh_degree)
+    cloud = GaussianCloud.from_rgb(
+        RNG.normal(size=(n, 3)),
+        RNG.normal(size=(n, 3)) - 4,
+        RNG.normal(size=(n, 4)),
+        RNG.normal(size=n),
+        rgb,
+        sh_degree=sh_degree,
+    )
     cloud.sh_rest[:] = RNG.normal(size=cloud.sh_rest.shape)
     path = tmp_path / "g.ply"
     write_gaussians_ply(path, cloud)
@@ -175,8 +194,9 @@ def test_gaussian_ply_round_trip_and_independent_reader(tmp_path, sh_degree):
 
 
 def test_gaussian_ply_refuses_nan_and_truncation(tmp_path):
-    cloud = GaussianCloud.from_rgb(np.zeros((2, 3)), np.zeros((2, 3)), np.array([[1.0, 0, 0, 0]] * 2),
-                                   np.zeros(2), np.full((2, 3), 0.5))
+    cloud = GaussianCloud.from_rgb(
+        np.zeros((2, 3)), np.zeros((2, 3)), np.array([[1.0, 0, 0, 0]] * 2), np.zeros(2), np.full((2, 3), 0.5)
+    )
     cloud.means[0, 0] = np.nan
     with pytest.raises(SchemaError, match="NaN"):
         write_gaussians_ply(tmp_path / "g.ply", cloud)

@@ -17,7 +17,7 @@ def _frames(count: int, height: int, width: int) -> np.ndarray:
     out = []
     for t in range(count):
         image = np.stack([(x + 4 * t) % 256, y % 256, np.full_like(x, 128)], axis=-1).astype(np.uint8)
-        image[10 + t:30 + t, 20:40] = 255
+        image[10 + t : 30 + t, 20:40] = 255
         out.append(image)
     return np.stack(out)
 
@@ -30,7 +30,7 @@ def test_h264_mp4_round_trip_keeps_frames_rate_and_size(tmp_path):
     assert codec == "h264" and fps == pytest.approx(24.0)
     assert decoded.shape == frames.shape
     mse = np.mean((decoded.astype(np.float64) - frames) ** 2)
-    assert 10 * np.log10(255 ** 2 / mse) > 35.0  # crf 18: visually lossless
+    assert 10 * np.log10(255**2 / mse) > 35.0  # crf 18: visually lossless
     with open(path, "rb") as f:  # +faststart: the index (moov) precedes the media data (mdat)
         head = f.read()
     assert head.index(b"moov") < head.index(b"mdat")

@@ -27,10 +27,19 @@ def scene_params(hand_x: list[float]) -> dict[str, np.ndarray]:
     transl = zeros(3)
     transl[:, 0] = hand_x
     finger_curl = np.tile(np.linspace(-0.2, 0.3, 45, dtype=np.float32), (T, 1))
-    return {"flame_shape": zeros(10), "flame_expression": zeros(10), "flame_global_orient": zeros(3),
-            "flame_neck_pose": zeros(3), "flame_jaw_pose": zeros(3), "flame_eye_pose": zeros(6),
-            "flame_transl": zeros(3), "mano_shape": zeros(10), "mano_hand_pose": finger_curl,
-            "mano_global_orient": zeros(3), "mano_transl": transl}
+    return {
+        "flame_shape": zeros(10),
+        "flame_expression": zeros(10),
+        "flame_global_orient": zeros(3),
+        "flame_neck_pose": zeros(3),
+        "flame_jaw_pose": zeros(3),
+        "flame_eye_pose": zeros(6),
+        "flame_transl": zeros(3),
+        "mano_shape": zeros(10),
+        "mano_hand_pose": finger_curl,
+        "mano_global_orient": zeros(3),
+        "mano_transl": transl,
+    }
 
 
 def front_view(num_frames: int, seed: int = 0) -> ViewSet:
@@ -42,14 +51,28 @@ def front_view(num_frames: int, seed: int = 0) -> ViewSet:
     labels = torch.ones(num_frames, 1, SIZE, SIZE, dtype=torch.uint8)
     labels[..., :, :4] = 0
     labels[..., 8:20, 20:30] = 2
-    return ViewSet(images=torch.randint(0, 256, (num_frames, 1, SIZE, SIZE, 3), generator=gen, dtype=torch.uint8),
-                   labels=labels, K=torch.tensor([[[40.0, 0, 15.5], [0, 40.0, 15.5], [0, 0, 1]]]),
-                   world_to_cam=w2c[None], camera_ids=["front"], background=torch.zeros(3))
+    return ViewSet(
+        images=torch.randint(0, 256, (num_frames, 1, SIZE, SIZE, 3), generator=gen, dtype=torch.uint8),
+        labels=labels,
+        K=torch.tensor([[[40.0, 0, 15.5], [0, 40.0, 15.5], [0, 0, 1]]]),
+        world_to_cam=w2c[None],
+        camera_ids=["front"],
+        background=torch.zeros(3),
+    )
 
 
-TINY = DynamicModelConfig(hand_width=16, hand_depth=2, interaction_width=16, interaction_depth=3,
-                          position_frequencies=2, offset_frequencies=2, point_feature_dim=8,
-                          geometry_feature_dim=16, pointnet_centres=(16, 8), pointnet_width=0.125)
+TINY = DynamicModelConfig(
+    hand_width=16,
+    hand_depth=2,
+    interaction_width=16,
+    interaction_depth=3,
+    position_frequencies=2,
+    offset_frequencies=2,
+    point_feature_dim=8,
+    geometry_feature_dim=16,
+    pointnet_centres=(16, 8),
+    pointnet_width=0.125,
+)
 
 
 @dataclass
@@ -63,13 +86,15 @@ class Scene:
         m = self.meshes
         full = BoundGaussians.on_triangles(m.vertices[0], m.faces, m.face_part, 1, init_opacity=0.5, seed=seed)
         keep = torch.arange(full.num_gaussians) % GAUSSIAN_STRIDE == 0  # a sixth of the triangles: fast tests
-        g = BoundGaussians(*(getattr(full, n).detach()[keep] for n in PARAM_NAMES), binding=full.binding[keep],
-                           part=full.part[keep])
+        g = BoundGaussians(
+            *(getattr(full, n).detach()[keep] for n in PARAM_NAMES), binding=full.binding[keep], part=full.part[keep]
+        )
         with torch.no_grad():
             g.sh_dc.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(seed))
         dims = {"hand_pose": self.cond.hand_pose.shape[1], "expression": self.cond.expression.shape[1]}
-        return DynamicAvatar.from_warmup(g, m.vertices[0], m.faces, m.part_names, self.num_face_vertices, dims,
-                                         cfg, seed=seed)
+        return DynamicAvatar.from_warmup(
+            g, m.vertices[0], m.faces, m.part_names, self.num_face_vertices, dims, cfg, seed=seed
+        )
 
 
 def make_scene(hand_x: list[float], dent_m: float = 0.004) -> Scene:

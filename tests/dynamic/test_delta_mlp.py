@@ -46,8 +46,7 @@ def _close(actual: Tensor, expected: Tensor) -> None:
 
 
 @pytest.mark.parametrize(("depth", "frame_dim", "parts"), [(1, 7, 1), (2, 0, 1), (4, 7, 2), (6, 9, 2)])
-def test_delta_heads_equal_the_per_head_reference_values_and_gradients(depth: int, frame_dim: int,
-                                                                       parts: int) -> None:
+def test_delta_heads_equal_the_per_head_reference_values_and_gradients(depth: int, frame_dim: int, parts: int) -> None:
     torch.manual_seed(0)
     heads = DeltaHeads({"mu": 3, "s": 3, "o": 1}, point_dim=11, frame_dim=frame_dim, width=16, depth=depth)
     gen = torch.Generator().manual_seed(1)
@@ -65,7 +64,7 @@ def test_delta_heads_equal_the_per_head_reference_values_and_gradients(depth: in
         heads.zero_grad(set_to_none=True)
         learned.grad = frame.grad = None
         out = forward()
-        sum((v * weights[:, :v.shape[1]]).sum() for v in out.values()).backward()
+        sum((v * weights[:, : v.shape[1]]).sum() for v in out.values()).backward()
         grads = {name: p.grad.clone() for name, p in heads.named_parameters()}
         grads |= {name: x.grad.clone() for name, x in (("point", learned), ("frame", frame)) if x.grad is not None}
         return out, grads
@@ -100,7 +99,7 @@ def reference_nearest_distance(points: Tensor, targets: Tensor, reach: float) ->
     lo, hi = targets.min(0).values - reach, targets.max(0).values + reach
     near = ((points >= lo) & (points <= hi)).all(-1).nonzero()[:, 0]
     for start in range(0, near.shape[0], 4096):
-        idx = near[start:start + 4096]
+        idx = near[start : start + 4096]
         out[idx] = torch.cdist(points[idx], targets).min(-1).values
     return out
 
@@ -115,8 +114,7 @@ def test_nearest_distance_is_cdist_bit_for_bit() -> None:
 def test_a_short_stage_two_gives_the_reference_loss_curve(scene: Scene, monkeypatch) -> None:
     """Eight steps (contact and not) with everything issue 33 changed against the same steps with the references
     (per-head MLP forward, unfused Adam, cdist distances): the same losses to rounding."""
-    cfg = DynamicTrainConfig(steps=8, log_every=1, patch_weight=0.0, contact_fraction=0.5,
-                             max_contact_frame_share=1.0)
+    cfg = DynamicTrainConfig(steps=8, log_every=1, patch_weight=0.0, contact_fraction=0.5, max_contact_frame_share=1.0)
     contact = np.array([True, False])
     fast = train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, contact, cfg).log
     adam = torch.optim.Adam

@@ -93,10 +93,10 @@ def test_deltas_weighted_by_w_and_only_on_the_right_parts(scene: Scene) -> None:
     assert 0 < face_changed.sum() == moved.interaction_evaluations
     # the delta is w * 0.05 per axis: recover w and compare with the closed form
     face = model.face_index
-    w = ((moved.local_means - base.local_means)[face, 0] / 0.05)
+    w = (moved.local_means - base.local_means)[face, 0] / 0.05
     with torch.no_grad():
         means, _, _ = model.gaussians.world(scene.meshes.vertices[NEAR], model.faces)
-        d = nearest_distance(means[face], scene.meshes.vertices[NEAR, scene.num_face_vertices:], 0.05)
+        d = nearest_distance(means[face], scene.meshes.vertices[NEAR, scene.num_face_vertices :], 0.05)
     torch.testing.assert_close(w, interaction_weights(d, 0.05), atol=1e-5, rtol=1e-4)
 
 
@@ -104,8 +104,10 @@ def test_positional_encoding_closed_form() -> None:
     x = torch.tensor([[0.25, -0.5, 1.0]])
     out = positional_encoding(x, 2)
     assert out.shape == (1, encoded_dim(3, 2)) == (1, 15)
-    expected = torch.cat([x, torch.sin(math.pi * x), torch.cos(math.pi * x), torch.sin(2 * math.pi * x),
-                          torch.cos(2 * math.pi * x)], dim=-1)
+    expected = torch.cat(
+        [x, torch.sin(math.pi * x), torch.cos(math.pi * x), torch.sin(2 * math.pi * x), torch.cos(2 * math.pi * x)],
+        dim=-1,
+    )
     torch.testing.assert_close(out, expected)
 
 
@@ -154,8 +156,9 @@ def test_relative_transform_is_invariant_to_moving_the_whole_scene() -> None:
     b = sequence_conditioning(moved, head, hand, torch.from_numpy(R.apply(offsets[0].numpy()))[None])
     for name in ("rel_rotation", "rel_translation", "face_offsets"):
         torch.testing.assert_close(getattr(a, name), getattr(b, name), atol=2e-5, rtol=1e-4)
-    torch.testing.assert_close(b.head_origin[0], torch.from_numpy(R.apply(a.head_origin[0].numpy()) + c).float(),
-                               atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        b.head_origin[0], torch.from_numpy(R.apply(a.head_origin[0].numpy()) + c).float(), atol=1e-5, rtol=1e-5
+    )
 
 
 def test_geometry_sample_is_one_per_deforming_face_triangle_and_per_hand_triangle(scene: Scene) -> None:
@@ -222,12 +225,15 @@ def _only(scene: Scene, model, keep: torch.Tensor, cfg: DynamicModelConfig):  # 
     from avatar.gaussians.model import BoundGaussians
 
     g = model.gaussians
-    sub = BoundGaussians(*(getattr(g, n).detach()[keep] for n in
-                           ("local_means", "log_scales", "quats", "opacity_logits", "sh_dc")),
-                         binding=g.binding[keep], part=g.part[keep])
+    sub = BoundGaussians(
+        *(getattr(g, n).detach()[keep] for n in ("local_means", "log_scales", "quats", "opacity_logits", "sh_dc")),
+        binding=g.binding[keep],
+        part=g.part[keep],
+    )
     dims = {"hand_pose": scene.cond.hand_pose.shape[1], "expression": scene.cond.expression.shape[1]}
-    return DynamicAvatar(sub, model.mu_cano[keep], model.faces, scene.meshes.part_names, scene.num_face_vertices,
-                         dims, cfg)
+    return DynamicAvatar(
+        sub, model.mu_cano[keep], model.faces, scene.meshes.part_names, scene.num_face_vertices, dims, cfg
+    )
 
 
 @pytest.mark.parametrize("colour_delta", ["add", "scale"])

@@ -8,8 +8,14 @@ import torch
 
 from avatar.losses import patch_perceptual_loss
 from avatar.metrics.lpips import LPIPS
-from avatar.training.dynamic import (DynamicTrainConfig, contact_draw_probability, patch_boxes, rasterize,
-                                     sample_frame, train_dynamic)
+from avatar.training.dynamic import (
+    DynamicTrainConfig,
+    contact_draw_probability,
+    patch_boxes,
+    rasterize,
+    sample_frame,
+    train_dynamic,
+)
 from avatar.training.selection import SelectionConfig
 from avatar.training.validation import ValidationConfig, Validator
 from tests.dynamic.conftest import NEAR, Scene
@@ -33,8 +39,15 @@ def lpips() -> LPIPS:
 def test_every_network_the_point_features_and_the_gaussians_receive_gradients(scene: Scene, lpips: LPIPS) -> None:
     model = scene.model()
     # two steps move the zero output layers off zero; then every layer upstream of them gets a gradient
-    train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT,
-                  _cfg(2, contact_fraction=1.0, max_contact_frame_share=1.0), lpips=lpips)
+    train_dynamic(
+        model,
+        scene.views,
+        scene.meshes,
+        scene.cond,
+        CONTACT,
+        _cfg(2, contact_fraction=1.0, max_contact_frame_share=1.0),
+        lpips=lpips,
+    )
     g = model(scene.cond.frame(NEAR), scene.meshes.vertices[NEAR], torch.Generator().manual_seed(0))
     out = rasterize(g, scene.views, 0)
     (out.rgb - scene.views.image(NEAR, 0)).square().mean().backward()
@@ -57,8 +70,9 @@ def test_a_killed_run_resumes_to_the_same_result(scene: Scene, tmp_path, lpips: 
 
     resumed = scene.model()
     with pytest.raises(_Kill):
-        train_dynamic(resumed, scene.views, scene.meshes, scene.cond, CONTACT, cfg, tmp_path, killed_after_two,
-                      lpips=lpips)
+        train_dynamic(
+            resumed, scene.views, scene.meshes, scene.cond, CONTACT, cfg, tmp_path, killed_after_two, lpips=lpips
+        )
     resumed = scene.model()  # a fresh process: the model starts from the warm-up again
     result = train_dynamic(resumed, scene.views, scene.meshes, scene.cond, CONTACT, cfg, tmp_path, lpips=lpips)
     for (name, a), (_, b) in zip(straight.state_dict().items(), resumed.state_dict().items(), strict=True):
@@ -89,15 +103,17 @@ def test_patch_boxes_and_loss(lpips: LPIPS) -> None:
     pred, gt = torch.rand(40, 40, 3, generator=gen), torch.rand(40, 40, 3, generator=gen)
     loss = patch_perceptual_loss(pred, gt, boxes, lpips, min_size=16)
     # each box grows about its centre to 16 px a side, inside the image
-    expected = (lpips(pred[15:31, 22:38].permute(2, 0, 1), gt[15:31, 22:38].permute(2, 0, 1), unit_range=True)
-                + lpips(pred[15:31, 19:35].permute(2, 0, 1), gt[15:31, 19:35].permute(2, 0, 1), unit_range=True))
+    expected = lpips(pred[15:31, 22:38].permute(2, 0, 1), gt[15:31, 22:38].permute(2, 0, 1), unit_range=True) + lpips(
+        pred[15:31, 19:35].permute(2, 0, 1), gt[15:31, 19:35].permute(2, 0, 1), unit_range=True
+    )
     torch.testing.assert_close(loss, expected)
     assert patch_perceptual_loss(pred, gt, [], lpips) == 0
     assert patch_boxes(np.ones((8, 8), np.uint8)) == []  # no hand: no patch
 
 
-def test_the_selection_keeps_the_best_validated_step_and_resumes_to_the_same_choice(scene: Scene, tmp_path,
-                                                                                    lpips: LPIPS) -> None:
+def test_the_selection_keeps_the_best_validated_step_and_resumes_to_the_same_choice(
+    scene: Scene, tmp_path, lpips: LPIPS
+) -> None:
     """With selection on, the model left is the best validation point's (step 0, the warm-up, included), less
     the modules that did not pay for themselves; its validation PSNR re-measured is the one recorded, and a
     killed run resumes to the same choice, bit for bit."""
@@ -105,8 +121,7 @@ def test_the_selection_keeps_the_best_validated_step_and_resumes_to_the_same_cho
     validation = ValidationConfig(every=2, frames=1)
     validator = Validator(validation, scene.views)
     model = scene.model()
-    result = train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips,
-                           validator=validator)
+    result = train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips, validator=validator)
     chosen = result.selection
     curve = [(p.step, p.psnr) for p in validator.curve]
     assert [s for s, _ in curve] == [0, 2, 4]
@@ -128,11 +143,30 @@ def test_the_selection_keeps_the_best_validated_step_and_resumes_to_the_same_cho
             yield step
 
     with pytest.raises(_Kill):
-        train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, CONTACT, cfg, tmp_path, killed_after_three,
-                      lpips=lpips, validator=Validator(validation, scene.views))
+        train_dynamic(
+            scene.model(),
+            scene.views,
+            scene.meshes,
+            scene.cond,
+            CONTACT,
+            cfg,
+            tmp_path,
+            killed_after_three,
+            lpips=lpips,
+            validator=Validator(validation, scene.views),
+        )
     resumed = scene.model()
-    again = train_dynamic(resumed, scene.views, scene.meshes, scene.cond, CONTACT, cfg, tmp_path, lpips=lpips,
-                          validator=Validator(validation, scene.views)).selection
+    again = train_dynamic(
+        resumed,
+        scene.views,
+        scene.meshes,
+        scene.cond,
+        CONTACT,
+        cfg,
+        tmp_path,
+        lpips=lpips,
+        validator=Validator(validation, scene.views),
+    ).selection
     assert again == chosen
     for (name, a), (_, b) in zip(model.state_dict().items(), resumed.state_dict().items(), strict=True):
         assert torch.equal(a, b), name
@@ -144,13 +178,17 @@ def test_the_selection_needs_validation_frames(scene: Scene, lpips: LPIPS) -> No
         train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips)
 
 
-@pytest.mark.parametrize(("contact_ids", "frames", "expected"), [
-    ([2, 7], 10, 0.0),  # uniform already gives each frame 1/10: nothing left to oversample under the cap
-    (list(range(15)), 20, 0.5),  # the synthetic draft captures: many contact frames, the cap does not bite
-    ([0], 6, 0.0),  # one contact frame of six (8 frames, 2 withheld): uniform
-    ([0, 1, 2], 20, (0.1 - 0.05) / (1 / 3 - 0.05)),  # the cap bites: each contact frame gets exactly 0.1
-    ([], 20, 0.5), (list(range(20)), 20, 0.5),  # nothing to oversample: contact_fraction as given (no effect)
-])
+@pytest.mark.parametrize(
+    ("contact_ids", "frames", "expected"),
+    [
+        ([2, 7], 10, 0.0),  # uniform already gives each frame 1/10: nothing left to oversample under the cap
+        (list(range(15)), 20, 0.5),  # the synthetic draft captures: many contact frames, the cap does not bite
+        ([0], 6, 0.0),  # one contact frame of six (8 frames, 2 withheld): uniform
+        ([0, 1, 2], 20, (0.1 - 0.05) / (1 / 3 - 0.05)),  # the cap bites: each contact frame gets exactly 0.1
+        ([], 20, 0.5),
+        (list(range(20)), 20, 0.5),  # nothing to oversample: contact_fraction as given (no effect)
+    ],
+)
 def test_contact_draw_probability_caps_each_contact_frames_share(contact_ids, frames, expected) -> None:
     contact = np.isin(np.arange(frames), contact_ids)
     p = contact_draw_probability(np.arange(frames), contact, 0.5, 0.1)
@@ -169,8 +207,9 @@ def test_a_fully_capped_oversampling_trains_exactly_as_uniform_drawing(scene: Sc
     runs = []
     for fraction in (0.0, 0.5):
         model = scene.model()
-        log = train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT, _cfg(3, contact_fraction=fraction),
-                            lpips=lpips).log
+        log = train_dynamic(
+            model, scene.views, scene.meshes, scene.cond, CONTACT, _cfg(3, contact_fraction=fraction), lpips=lpips
+        ).log
         runs.append(([r.loss for r in log], model.state_dict()))
     assert runs[0][0] == runs[1][0]
     for (name, a), (_, b) in zip(runs[0][1].items(), runs[1][1].items(), strict=True):

@@ -14,5 +14,4 @@ def _single_thread(one_torch_thread: None) -> None:
 
 @pytest.fixture(scope="session")
 def capture() -> SyntheticCapture:
-    return generate(SyntheticConfig(subject="synth_a", sequence="train", image_size=96, num_frames=6,
-                                    supersample=1))
+    return generate(SyntheticConfig(subject="synth_a", sequence="train", image_size=96, num_frames=6, supersample=1))

@@ -15,8 +15,15 @@ from avatar.synthetic.hand_pose import HandFrame
 from avatar.templates import FLAMELayer, MANOLayer, procedural_hand, procedural_head
 
 HAND_KEYS = ("mano_shape", "mano_hand_pose", "mano_global_orient", "mano_transl")
-FACE_KEYS = ("flame_shape", "flame_expression", "flame_global_orient", "flame_neck_pose", "flame_jaw_pose",
-             "flame_eye_pose", "flame_transl")
+FACE_KEYS = (
+    "flame_shape",
+    "flame_expression",
+    "flame_global_orient",
+    "flame_neck_pose",
+    "flame_jaw_pose",
+    "flame_eye_pose",
+    "flame_transl",
+)
 HEAD, HAND = procedural_head(), procedural_hand()
 MANO = MANOLayer(HAND)
 
@@ -68,8 +75,12 @@ def test_corrupted_keypoints_fit_goes_on(capture: SyntheticCapture) -> None:
     """NaNs, a view without detections, the hand leaving the image and 10% outliers at once."""
     train = _train(capture)
     rng = np.random.default_rng(3)
-    kp = {c.camera_id: {p: corrupt_keypoints(a, 0.0, 0.0, 0.1, 96, rng)
-                        for p, a in capture.keypoints[c.camera_id].items()} for c in train}
+    kp = {
+        c.camera_id: {
+            p: corrupt_keypoints(a, 0.0, 0.0, 0.1, 96, rng) for p, a in capture.keypoints[c.camera_id].items()
+        }
+        for c in train
+    }
     kp[train[0].camera_id]["face"][1, :10] = np.nan
     kp[train[1].camera_id]["hand"][2, :, :2] = np.nan
     del kp[train[2].camera_id]  # a view with no detections at all
@@ -87,8 +98,7 @@ def test_corrupted_keypoints_fit_goes_on(capture: SyntheticCapture) -> None:
 
 def test_all_views_weak_still_finite(capture: SyntheticCapture) -> None:
     train = _train(capture)[:3]
-    kp = {c.camera_id: {p: np.full_like(a, np.nan) for p, a in capture.keypoints[c.camera_id].items()}
-          for c in train}
+    kp = {c.camera_id: {p: np.full_like(a, np.nan) for p, a in capture.keypoints[c.camera_id].items()} for c in train}
     quick = FitConfig(rigid_iterations=2, coarse_iterations=2, fine_iterations=2)
     res = fit_sequence(kp, train, HEAD, HAND, quick)
     _check_layout(res.params, capture)
@@ -106,7 +116,7 @@ def test_bent_fingers_pressed_on_face(capture: SyntheticCapture) -> None:
     face_lmk, _ = _face(params)
     hand_kp, _ = _hand(params)
     cheek = face_lmk[:, 2]  # a jaw-line landmark
-    params["mano_transl"] += (cheek - hand_kp[:, 9])  # middle knuckle onto the cheek
+    params["mano_transl"] += cheek - hand_kp[:, 9]  # middle knuckle onto the cheek
     hand_kp, hand_v = _hand(params)
     _, face_v = _face(params)
     demanded = min(_deepest(hand_v[t], face_v[t]) for t in range(len(hand_v)))  # ~ -15 mm
@@ -130,8 +140,9 @@ def test_bent_fingers_pressed_on_face(capture: SyntheticCapture) -> None:
 
 def _deepest(hand_vertices: np.ndarray, face_vertices: np.ndarray) -> float:
     """The most negative signed distance (metres) of a hand vertex to the face surface."""
-    sd, _, _ = signed_distance(torch.as_tensor(hand_vertices), torch.as_tensor(face_vertices),
-                               torch.as_tensor(HEAD.faces))
+    sd, _, _ = signed_distance(
+        torch.as_tensor(hand_vertices), torch.as_tensor(face_vertices), torch.as_tensor(HEAD.faces)
+    )
     return float(sd.min())
 
 
@@ -170,8 +181,9 @@ def test_monocular_fit_with_missing_detections_goes_on(capture: SyntheticCapture
     kp["face"][2] = np.nan
     kp["hand"][3, :, 2] = 0.0
     kp["face"][4, :60, 2] = 0.0
-    res = fit_sequence({camera.camera_id: kp}, [camera], HEAD, HAND,
-                       FitConfig(coarse_iterations=30, fine_iterations=30))
+    res = fit_sequence(
+        {camera.camera_id: kp}, [camera], HEAD, HAND, FitConfig(coarse_iterations=30, fine_iterations=30)
+    )
     _check_layout(res.params, capture)
     assert res.weak_frames["face"][2] and res.weak_frames["hand"][3]
     assert not res.weak_frames["face"][[0, 1, 3, 5]].any() and not res.weak_frames["hand"][[0, 1, 2, 5]].any()

@@ -16,8 +16,9 @@ MANO = MANOLayer(HAND)
 def _keypoints(pose: np.ndarray, orient: np.ndarray, transl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Posed keypoints (T, 21, 3) and joints (T, 16, 3) of the mean shape."""
     T = pose.shape[0]
-    out = MANO(torch.zeros(T, 10, dtype=torch.float64), torch.as_tensor(pose), torch.as_tensor(orient),
-               torch.as_tensor(transl))
+    out = MANO(
+        torch.zeros(T, 10, dtype=torch.float64), torch.as_tensor(pose), torch.as_tensor(orient), torch.as_tensor(transl)
+    )
     return MANO.keypoints21(out.vertices, out.joints).numpy(), out.joints.numpy()
 
 
@@ -57,7 +58,7 @@ def test_missing_keypoints_leave_bones_at_rest_and_frames_without_a_palm_not_ok(
     o, t, p, ok = hand_pose_ik(*_rest(), MANO.parents, target, valid)
     assert ok.tolist() == [True, False]
     index_last = 3  # MANO joint 3 = index distal; its rotation is hand_pose[:, 6:9]
-    np.testing.assert_array_equal(p[0, 3 * (index_last - 1):3 * index_last], 0.0)
+    np.testing.assert_array_equal(p[0, 3 * (index_last - 1) : 3 * index_last], 0.0)
     assert np.isfinite(p).all() and np.isfinite(o).all() and np.isfinite(t).all()
 
 

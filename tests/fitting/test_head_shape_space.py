@@ -21,16 +21,22 @@ from avatar.synthetic import SyntheticCapture, SyntheticConfig, generate
 from avatar.templates import FLAMELayer, TemplateModel, procedural_hand, procedural_head
 from avatar.templates.head import NUM_DESIGNED_SHAPE
 
-FACE_KEYS = ("flame_shape", "flame_expression", "flame_global_orient", "flame_neck_pose", "flame_jaw_pose",
-             "flame_eye_pose", "flame_transl")
+FACE_KEYS = (
+    "flame_shape",
+    "flame_expression",
+    "flame_global_orient",
+    "flame_neck_pose",
+    "flame_jaw_pose",
+    "flame_eye_pose",
+    "flame_transl",
+)
 GOAL_PX = 1.5 * 0.5
 
 
 @pytest.fixture(scope="module")
 def capture() -> SyntheticCapture:
     """256 px like the measurement in the README (pixels at the subject scale with the image)."""
-    return generate(SyntheticConfig(subject="synth_a", sequence="train", image_size=256, num_frames=3,
-                                    supersample=1))
+    return generate(SyntheticConfig(subject="synth_a", sequence="train", image_size=256, num_frames=3, supersample=1))
 
 
 def _smooth_field(vertices: np.ndarray, seed: int, amplitude_m: float = 0.008) -> np.ndarray:
@@ -46,8 +52,9 @@ def _smooth_field(vertices: np.ndarray, seed: int, amplitude_m: float = 0.008) -
 def _designed_only(head: TemplateModel) -> TemplateModel:
     """The head with only its designed identity columns (what the template had before widening)."""
     columns = np.r_[np.arange(NUM_DESIGNED_SHAPE), np.arange(head.num_shape, head.num_shapes_total)]
-    return dataclasses.replace(head, shapedirs=head.shapedirs[:, :, columns], num_shape=NUM_DESIGNED_SHAPE,
-                               shape_roughness=None)
+    return dataclasses.replace(
+        head, shapedirs=head.shapedirs[:, :, columns], num_shape=NUM_DESIGNED_SHAPE, shape_roughness=None
+    )
 
 
 def _landmarks(model: TemplateModel, params: dict[str, np.ndarray]) -> np.ndarray:
@@ -65,8 +72,10 @@ def test_fit_reaches_a_head_outside_the_designed_space(capture: SyntheticCapture
     keypoints = {}
     for camera in train:
         uv, _ = camera.project(truth)
-        keypoints[camera.camera_id] = {"face": np.concatenate([uv, np.ones(uv.shape[:2] + (1,))], -1),
-                                       "hand": capture.keypoints[camera.camera_id]["hand"]}
+        keypoints[camera.camera_id] = {
+            "face": np.concatenate([uv, np.ones(uv.shape[:2] + (1,))], -1),
+            "hand": capture.keypoints[camera.camera_id]["hand"],
+        }
     residual, error = {}, {}
     for name, model in (("widened", head), ("designed", _designed_only(head))):
         fit = fit_sequence(keypoints, train, model, hand, FitConfig())
@@ -90,6 +99,7 @@ def test_identity_space_follows_the_detector() -> None:
     assert face_shape_columns(head, "full", "mediapipe") is None
     assert face_shape_columns(dataclasses.replace(head, num_core_shape=None), "core", "mediapipe") is None
     from data_schemas.tables import SchemaError
+
     with pytest.raises(SchemaError, match="identity_space='wide'"):
         face_shape_columns(head, "wide", "mediapipe")
 
@@ -98,8 +108,13 @@ def test_a_fit_keeps_to_the_columns_it_is_given(capture: SyntheticCapture) -> No
     """face_shape_columns=10 fits a 10-wide flame_shape (the synthetic subject's own space) and recovers it."""
     train = [c for c in capture.cameras if c.split == "train"][:4]
     keypoints = {c.camera_id: capture.keypoints[c.camera_id] for c in train}
-    fit = fit_sequence(keypoints, train, procedural_head(), procedural_hand(),
-                       FitConfig(face_shape_columns=NUM_DESIGNED_SHAPE, coarse_iterations=40, fine_iterations=80))
+    fit = fit_sequence(
+        keypoints,
+        train,
+        procedural_head(),
+        procedural_hand(),
+        FitConfig(face_shape_columns=NUM_DESIGNED_SHAPE, coarse_iterations=40, fine_iterations=80),
+    )
     assert fit.params["flame_shape"].shape == (capture.params["flame_shape"].shape[0], NUM_DESIGNED_SHAPE)
     truth = _landmarks(procedural_head(), capture.params)
     assert landmark_error(_landmarks(procedural_head(), fit.params), truth) < 1.0

@@ -52,8 +52,10 @@ def test_gradient_matches_finite_differences() -> None:
     points = torch.as_tensor([[[0.0, 0.0, 0.9], [0.5, 0.5, 0.55], [0.1, -0.95, 0.0]]], dtype=torch.float64)
     pairs = find_contact_pairs(points, verts, RADIUS)
     assert pairs.frame.numel() == 3
-    torch.autograd.gradcheck(lambda p, v: contact_depth(p, v, faces, pairs, RADIUS),
-                             (points.clone().requires_grad_(), (verts * 1.01).requires_grad_()))
+    torch.autograd.gradcheck(
+        lambda p, v: contact_depth(p, v, faces, pairs, RADIUS),
+        (points.clone().requires_grad_(), (verts * 1.01).requires_grad_()),
+    )
 
 
 def test_no_pairs_and_frames_are_independent() -> None:
@@ -66,6 +68,9 @@ def test_no_pairs_and_frames_are_independent() -> None:
     surfaces = torch.cat((verts, verts * 0.1))  # ... of a sphere of 10 cm radius
     pairs = find_contact_pairs(two, surfaces, RADIUS)
     assert set(pairs.frame.tolist()) == {1}
-    torch.testing.assert_close(contact_depth(two, surfaces, faces, pairs, RADIUS),
-                               torch.full((4,), 0.1, dtype=torch.float64), rtol=0,
-                               atol=1e-3)  # icosphere: 0.1 within 1 mm
+    torch.testing.assert_close(
+        contact_depth(two, surfaces, faces, pairs, RADIUS),
+        torch.full((4,), 0.1, dtype=torch.float64),
+        rtol=0,
+        atol=1e-3,
+    )  # icosphere: 0.1 within 1 mm

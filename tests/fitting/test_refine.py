@@ -9,7 +9,12 @@ import torch
 
 from avatar.fitting.models import CM_PER_M, FaceParams, HandParams
 from avatar.fitting.refine import (
-    RefineConfig, downsample_factor, evidence_from_views, refine_parameters, scaled_intrinsics, silhouette_error,
+    RefineConfig,
+    downsample_factor,
+    evidence_from_views,
+    refine_parameters,
+    scaled_intrinsics,
+    silhouette_error,
 )
 from avatar.synthetic import SyntheticCapture
 from avatar.templates import procedural_hand, procedural_head
@@ -17,8 +22,16 @@ from avatar.training.data import ViewSet
 
 HEAD, HAND = procedural_head(), procedural_hand()
 FRAMES = [1, 4]  # a frame without and one with contact (synth_a, 6 frames)
-SETTINGS = RefineConfig(iterations=60, render_size=48, keypoint_weight=1.0, lr_rotation=6e-3,
-                        lr_translation_cm=0.06, lr_pose=6e-3, lr_expression=0.03, colour_steps=20)
+SETTINGS = RefineConfig(
+    iterations=60,
+    render_size=48,
+    keypoint_weight=1.0,
+    lr_rotation=6e-3,
+    lr_translation_cm=0.06,
+    lr_pose=6e-3,
+    lr_expression=0.03,
+    colour_steps=20,
+)
 
 
 def _views(capture: SyntheticCapture, cameras: list[str]) -> ViewSet:
@@ -27,10 +40,14 @@ def _views(capture: SyntheticCapture, cameras: list[str]) -> ViewSet:
     images = np.stack([capture.frames[c][FRAMES] for c in cameras], 1)
     labels = np.stack([capture.masks[c][FRAMES] for c in cameras], 1)
     background = torch.tensor(images[labels == 0].mean(0) / 255.0, dtype=torch.float32)  # as load_views
-    return ViewSet(images=torch.from_numpy(images), labels=torch.from_numpy(labels),
-                   K=torch.tensor(np.stack([cams[c].K for c in cameras]), dtype=torch.float32),
-                   world_to_cam=torch.tensor(np.stack([cams[c].world_to_cam for c in cameras]), dtype=torch.float32),
-                   camera_ids=cameras, background=background)
+    return ViewSet(
+        images=torch.from_numpy(images),
+        labels=torch.from_numpy(labels),
+        K=torch.tensor(np.stack([cams[c].K for c in cameras]), dtype=torch.float32),
+        world_to_cam=torch.tensor(np.stack([cams[c].world_to_cam for c in cameras]), dtype=torch.float32),
+        camera_ids=cameras,
+        background=background,
+    )
 
 
 def _models(capture: SyntheticCapture) -> tuple[HandParams, FaceParams]:
@@ -62,8 +79,10 @@ def _perturb(hand: HandParams, face: FaceParams) -> None:
 
 def _vertex_errors_mm(hand: HandParams, face: FaceParams, truth: tuple[HandParams, FaceParams]) -> dict[str, float]:
     with torch.no_grad():
-        return {"hand": 1e3 * float((hand.vertices() - truth[0].vertices()).norm(dim=-1).mean()),
-                "face": 1e3 * float((face.vertices() - truth[1].vertices()).norm(dim=-1).mean())}
+        return {
+            "hand": 1e3 * float((hand.vertices() - truth[0].vertices()).norm(dim=-1).mean()),
+            "face": 1e3 * float((face.vertices() - truth[1].vertices()).norm(dim=-1).mean()),
+        }
 
 
 def _head_rotation_tether(face: FaceParams):
@@ -75,6 +94,7 @@ def _head_rotation_tether(face: FaceParams):
     def anchor() -> torch.Tensor:
         now = (face.global_orient, face.neck_pose, face.jaw_pose, face.expression)
         return 1e4 * sum((p - s).pow(2).sum() for p, s in zip(now, start))
+
     return anchor
 
 
@@ -124,8 +144,14 @@ def test_a_part_no_view_shows_is_left_as_fitted(capture: SyntheticCapture) -> No
     _perturb(hand, face)
     fitted = {k: v.detach().clone() for k, v in hand.named_parameters()}
     settings = RefineConfig(iterations=5, render_size=32)
-    result = refine_parameters(hand, face, lambda: torch.zeros((), dtype=torch.float64),
-                               evidence_from_views(views, settings.render_size), "silhouette", settings)
+    result = refine_parameters(
+        hand,
+        face,
+        lambda: torch.zeros((), dtype=torch.float64),
+        evidence_from_views(views, settings.render_size),
+        "silhouette",
+        settings,
+    )
     assert result.frozen["hand"] == [0] and result.frozen["face"] == []
     for name in ("global_orient", "transl_cm", "hand_pose"):
         value = getattr(hand, name).detach()

@@ -10,8 +10,9 @@ from avatar.splatting import EmbeddedGaussians
 
 
 def _mesh() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    vertices = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [2, 0, 0.1], [2, 1, 0.2]],
-                            dtype=torch.float64)
+    vertices = torch.tensor(
+        [[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [2, 0, 0.1], [2, 1, 0.2]], dtype=torch.float64
+    )
     faces = torch.tensor([[0, 1, 2], [1, 3, 2], [1, 4, 3], [4, 5, 3]])
     return vertices, faces, torch.tensor([0, 0, 1, 1])
 

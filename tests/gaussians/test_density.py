@@ -126,8 +126,9 @@ def test_opacity_reset_caps_and_zeroes_moments():
 
 
 def test_schedule_window_and_cap():
-    cfg = DensityConfig(densify_from=10, densify_until=20, densify_interval=5, opacity_reset_interval=15,
-                        max_gaussians=7)
+    cfg = DensityConfig(
+        densify_from=10, densify_until=20, densify_interval=5, opacity_reset_interval=15, max_gaussians=7
+    )
     model, verts, faces = _model()
     opt = _adam(model)
     ctrl = DensityController(cfg, model.num_gaussians)

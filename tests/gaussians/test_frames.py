@@ -58,8 +58,9 @@ def test_bound_gaussians_follow_rigid_motion_and_scaling():
 
 
 def test_rotation_to_quaternion_matches_scipy_including_near_180_degrees():
-    rots = Rotation.concatenate([Rotation.random(200, random_state=2),
-                                 Rotation.from_rotvec([[np.pi, 0, 0], [0, np.pi - 1e-9, 0], [0, 0, 0]])])
+    rots = Rotation.concatenate(
+        [Rotation.random(200, random_state=2), Rotation.from_rotvec([[np.pi, 0, 0], [0, np.pi - 1e-9, 0], [0, 0, 0]])]
+    )
     q = rotation_to_quaternion(torch.tensor(rots.as_matrix())).numpy()
     ref = rots.as_quat()[:, [3, 0, 1, 2]]
     ref *= np.where(ref[:, :1] < 0, -1, 1)
@@ -74,19 +75,27 @@ def test_quaternion_multiply_composes_rotations():
     np.testing.assert_allclose(Rotation.from_quat(ab[[1, 2, 3, 0]]).as_matrix(), (a * b).as_matrix(), atol=1e-12)
 
 
-@pytest.mark.parametrize("tri", [
-    [[0, 0, 0], [0, 0, 0], [0, 0, 0]],          # all vertices coincide
-    [[0, 0, 0], [1, 0, 0], [2, 0, 0]],          # collinear, zero area
-    [[0, 0, 0], [0, 0, 0], [0, 1, 0]],          # first edge has zero length
-    [[0, 0, 0], [1e-9, 0, 0], [0, 1e-9, 0]],    # tiny
-    [[0, 0, 0], [1e6, 0, 0], [0, 1e6, 0]],      # huge
-], ids=["point", "collinear", "zero-edge", "tiny", "huge"])
+@pytest.mark.parametrize(
+    "tri",
+    [
+        [[0, 0, 0], [0, 0, 0], [0, 0, 0]],  # all vertices coincide
+        [[0, 0, 0], [1, 0, 0], [2, 0, 0]],  # collinear, zero area
+        [[0, 0, 0], [0, 0, 0], [0, 1, 0]],  # first edge has zero length
+        [[0, 0, 0], [1e-9, 0, 0], [0, 1e-9, 0]],  # tiny
+        [[0, 0, 0], [1e6, 0, 0], [0, 1e6, 0]],  # huge
+    ],
+    ids=["point", "collinear", "zero-edge", "tiny", "huge"],
+)
 def test_degenerate_triangles_give_finite_frames_and_gradients(tri):
     verts = torch.tensor(tri, dtype=torch.float64, requires_grad=True)
     fr = triangle_frames(verts, torch.tensor([[0, 1, 2]]))
-    means, scales, quats = place_gaussians(fr, torch.tensor([0]), torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64),
-                                           torch.ones(1, 3, dtype=torch.float64),
-                                           torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64))
+    means, scales, quats = place_gaussians(
+        fr,
+        torch.tensor([0]),
+        torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64),
+        torch.ones(1, 3, dtype=torch.float64),
+        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+    )
     for t in (fr.rotation, fr.scale, means, scales, quats):
         assert torch.isfinite(t).all()
     R = fr.rotation[0]
@@ -102,8 +111,12 @@ def test_gradcheck_placement():
     mu = torch.tensor(RNG.normal(size=(3, 3)), requires_grad=True)
 
     def fn(v: torch.Tensor, m: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return place_gaussians(triangle_frames(v, faces), torch.tensor([0, 1, 1]), m,
-                               torch.ones(3, 3, dtype=torch.float64), torch.tensor([[1.0, 0, 0, 0]] * 3,
-                                                                                  dtype=torch.float64))
+        return place_gaussians(
+            triangle_frames(v, faces),
+            torch.tensor([0, 1, 1]),
+            m,
+            torch.ones(3, 3, dtype=torch.float64),
+            torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=torch.float64),
+        )
 
     assert torch.autograd.gradcheck(fn, (verts, mu))

@@ -43,6 +43,7 @@ def _reference_image(name: str) -> torch.Tensor:
 
 # --- independent numpy forward (Flax NHWC layout, kernels used as stored: (kh, kw, in, out)) ---
 
+
 def _np_conv(x: np.ndarray, kernel: np.ndarray, bias: np.ndarray, stride: int, pad: int) -> np.ndarray:
     """ReLU(conv) of x (H, W, C_in) with kernel (kh, kw, C_in, C_out), cross-correlation."""
     x = np.pad(x, ((pad, pad), (pad, pad), (0, 0)))
@@ -92,6 +93,7 @@ def _np_lpips(tree: dict, net: str, x0: np.ndarray, x1: np.ndarray) -> float:
 
 
 # --- tests ---
+
 
 @needs_weights
 @pytest.mark.skipif(not REFERENCE_DIR.is_dir(), reason=f"LPIPS reference images not found at {REFERENCE_DIR}")

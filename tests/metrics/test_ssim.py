@@ -16,8 +16,9 @@ from avatar.metrics.ssim import C1, C2, _blur, gaussian_window
 SKIMAGE = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=-1)
 
 
-def _pair(shape: tuple[int, ...], seed: int = 0,
-          dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+def _pair(
+    shape: tuple[int, ...], seed: int = 0, dtype: torch.dtype = torch.float64
+) -> tuple[torch.Tensor, torch.Tensor]:
     """A smooth-ish ground truth and a noisy prediction, both in [0, 1]."""
     g = torch.Generator().manual_seed(seed)
     gt = torch.rand(shape, generator=g, dtype=torch.float64)
@@ -27,8 +28,9 @@ def _pair(shape: tuple[int, ...], seed: int = 0,
 
 def _skimage(pred: torch.Tensor, gt: torch.Tensor) -> tuple[float, np.ndarray]:
     """skimage's mean SSIM and full map (H, W, C) of one (C, H, W) pair."""
-    mean, smap = structural_similarity(pred.permute(1, 2, 0).double().numpy(), gt.permute(1, 2, 0).double().numpy(),
-                                       full=True, **SKIMAGE)
+    mean, smap = structural_similarity(
+        pred.permute(1, 2, 0).double().numpy(), gt.permute(1, 2, 0).double().numpy(), full=True, **SKIMAGE
+    )
     return float(mean), smap
 
 
@@ -146,7 +148,7 @@ def test_blur_matches_a_brute_force_2d_window(padding):
     window = g[:, None] * g[None, :]
     padded = torch.nn.functional.pad(x, (5, 5, 5, 5)) if padding == "zero" else x
     h, w = padded.shape[-2] - 10, padded.shape[-1] - 10
-    reference = sum(window[i, j] * padded[..., i:i + h, j:j + w] for i in range(11) for j in range(11))
+    reference = sum(window[i, j] * padded[..., i : i + h, j : j + w] for i in range(11) for j in range(11))
     blurred = _blur(x, padding)
     assert blurred.shape == reference.shape
     torch.testing.assert_close(blurred, reference, rtol=0, atol=1e-14)

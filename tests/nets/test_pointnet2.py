@@ -8,15 +8,21 @@ import pytest
 import torch
 
 from avatar.nets.pointnet2 import (
-    PointNet2Encoder, SetAbstraction, ball_query, canonical_order, classic_widths, farthest_point_sample,
+    PointNet2Encoder,
+    SetAbstraction,
+    ball_query,
+    canonical_order,
+    classic_widths,
+    farthest_point_sample,
     fps_start,
 )
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 #: A narrow encoder for the tests that do not need the classic widths.
-SMALL = dict(feature_dim=32, centres=(64, 16), radii=(0.2, 0.4), neighbours=(16, 32),
-             widths=((16, 16), (16, 32), (32, 32)))
+SMALL = dict(
+    feature_dim=32, centres=(64, 16), radii=(0.2, 0.4), neighbours=(16, 32), widths=((16, 16), (16, 32), (32, 32))
+)
 
 
 def fps_reference(points: np.ndarray, num_samples: int, start: int) -> list[int]:
@@ -47,6 +53,7 @@ def ball_query_reference(points: np.ndarray, centres: np.ndarray, radius: float,
 
 
 # --- farthest point sampling ---------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("seed, n, m, start", [(0, 40, 12, 0), (1, 57, 20, 13), (2, 8, 8, 7), (3, 25, 1, 4)])
 def test_fps_matches_brute_force(seed: int, n: int, m: int, start: int) -> None:
@@ -85,6 +92,7 @@ def test_fps_start_and_canonical_order_ignore_input_order() -> None:
 
 # --- ball query ----------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("chunk_elements", [None, 7, 1])
 def test_ball_query_matches_brute_force(chunk_elements: int | None) -> None:
     rng = np.random.default_rng(6)
@@ -111,6 +119,7 @@ def test_ball_query_more_slots_than_points() -> None:
 
 
 # --- set abstraction -----------------------------------------------------------------------------------------
+
 
 def test_set_abstraction_matches_slow_reference() -> None:
     torch.manual_seed(7)
@@ -139,6 +148,7 @@ def test_set_abstraction_without_features_and_few_points() -> None:
 
 # --- encoder -------------------------------------------------------------------------------------------------
 
+
 def test_encoder_ignores_point_order() -> None:
     torch.manual_seed(8)
     encoder = PointNet2Encoder(**SMALL)
@@ -166,12 +176,15 @@ def test_encoder_empty_input() -> None:
     assert encoder.empty.grad is not None and encoder.empty.grad.abs().sum() > 0
 
 
-@pytest.mark.parametrize("points, scale", [
-    (torch.tensor([[0.1, -0.2, 0.3]]), 1.0),
-    (torch.full((50, 3), 0.25), 1.0),
-    (torch.rand(200, 3, generator=torch.Generator().manual_seed(9)) * 1e6, 1e6),
-    (torch.rand(200, 3, generator=torch.Generator().manual_seed(9)) * 1e-6, 1e-6),
-])
+@pytest.mark.parametrize(
+    "points, scale",
+    [
+        (torch.tensor([[0.1, -0.2, 0.3]]), 1.0),
+        (torch.full((50, 3), 0.25), 1.0),
+        (torch.rand(200, 3, generator=torch.Generator().manual_seed(9)) * 1e6, 1e6),
+        (torch.rand(200, 3, generator=torch.Generator().manual_seed(9)) * 1e-6, 1e-6),
+    ],
+)
 def test_encoder_degenerate_inputs_stay_finite(points: torch.Tensor, scale: float) -> None:
     encoder = PointNet2Encoder(**{**SMALL, "scale": scale})
     out = encoder(points)

@@ -48,8 +48,9 @@ def head() -> Head:
     cfg = PBDConfig()
     stiffness = torch.tensor(relative_stiffness(model.inner_distance, cfg.reference_thickness_m, cfg.stiffness_power))
     regions = {k: np.array(v) for k, v in model.part_labels.items()}
-    return Head(verts, faces, stiffness, torch.tensor(np.array(mesh.vertex_normals)), regions,
-                FaceTopology.build(faces))
+    return Head(
+        verts, faces, stiffness, torch.tensor(np.array(mesh.vertex_normals)), regions, FaceTopology.build(faces)
+    )
 
 
 def sphere(centre: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:

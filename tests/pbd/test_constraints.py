@@ -18,8 +18,12 @@ ALL = slice(None)
 def test_edge_projection_matches_its_closed_form(k: float) -> None:
     # two unit-mass particles 1.5 apart, rest length 1: dlam = -k C / (2k + 1), each moves |dlam|
     x = torch.tensor([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0]], dtype=torch.float64)
-    edges = EdgeSet(torch.tensor([[0, 1]]), torch.tensor([1.0], dtype=torch.float64),
-                    torch.tensor([k], dtype=torch.float64), torch.zeros(1, dtype=torch.float64))
+    edges = EdgeSet(
+        torch.tensor([[0, 1]]),
+        torch.tensor([1.0], dtype=torch.float64),
+        torch.tensor([k], dtype=torch.float64),
+        torch.zeros(1, dtype=torch.float64),
+    )
     edges.project(x, torch.ones(2, dtype=torch.float64), torch.tensor([0]))
     assert float(x[1, 0] - x[0, 0]) == pytest.approx(1.0 + 0.5 / (2 * k + 1), rel=1e-12)
     assert float(edges.lam[0]) == pytest.approx(-k * 0.5 / (2 * k + 1), rel=1e-12, abs=1e-15)
@@ -65,8 +69,11 @@ def test_degenerate_stencil_gives_finite_weights() -> None:
 
 def test_collision_planes_push_out_and_never_pull_in() -> None:
     x = torch.tensor([[0.0, 0.0, -0.5], [0.0, 0.0, 0.5]], dtype=torch.float64)
-    planes = CollisionSet(torch.tensor([0, 1]), torch.zeros(2, 3, dtype=torch.float64),
-                          torch.tensor([[0.0, 0, 1], [0.0, 0, 1]], dtype=torch.float64))
+    planes = CollisionSet(
+        torch.tensor([0, 1]),
+        torch.zeros(2, 3, dtype=torch.float64),
+        torch.tensor([[0.0, 0, 1], [0.0, 0, 1]], dtype=torch.float64),
+    )
     planes.project(x)
     np.testing.assert_allclose(x, [[0, 0, 0], [0, 0, 0.5]])
 
@@ -87,8 +94,16 @@ def test_residual_decreases_over_the_iterations(head: Head, method: str) -> None
     cheek = head.centre_of("cheek_left")
     hand, hand_faces = press(head, cheek, 0.004)
     free = (head.vertices - head.vertices[cheek]).norm(dim=1) < 0.03
-    problem = FrameProblem(head.vertices, hand, hand_faces, head.topology, head.stiffness, free, head.vertices,
-                           PBDConfig(method=method, chebyshev_rho=0.0))
+    problem = FrameProblem(
+        head.vertices,
+        hand,
+        hand_faces,
+        head.topology,
+        head.stiffness,
+        free,
+        head.vertices,
+        PBDConfig(method=method, chebyshev_rho=0.0),
+    )
     problem.detect()
     residuals = []
     for _ in range(4):

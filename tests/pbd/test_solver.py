@@ -14,14 +14,30 @@ from tests.pbd.conftest import Head, press, sphere
 CFG = PBDConfig()
 
 
-def _solve(head: Head, hand: torch.Tensor, hand_faces: torch.Tensor, stiffness: torch.Tensor | None = None,
-           rest: torch.Tensor | None = None):  # noqa: ANN202 - FrameResult
-    return solve_frame(head.vertices if rest is None else rest, hand, hand_faces, head.topology,
-                       head.stiffness if stiffness is None else stiffness, CFG)
+def _solve(
+    head: Head,
+    hand: torch.Tensor,
+    hand_faces: torch.Tensor,
+    stiffness: torch.Tensor | None = None,
+    rest: torch.Tensor | None = None,
+):  # noqa: ANN202 - FrameResult
+    return solve_frame(
+        head.vertices if rest is None else rest,
+        hand,
+        hand_faces,
+        head.topology,
+        head.stiffness if stiffness is None else stiffness,
+        CFG,
+    )
 
 
-def _check_bounded(head: Head, result, hand: torch.Tensor, hand_faces: torch.Tensor,  # noqa: ANN001
-                   bound_m: float = 0.06) -> None:
+def _check_bounded(
+    head: Head,
+    result,
+    hand: torch.Tensor,
+    hand_faces: torch.Tensor,  # noqa: ANN001
+    bound_m: float = 0.06,
+) -> None:
     assert torch.isfinite(result.offsets).all()
     assert result.max_offset_m < bound_m
     assert result.penetration_max_m < 3e-4
@@ -111,9 +127,17 @@ def test_sequences_single_frame_and_nan(head: Head) -> None:
         solve_sequence(face, hands, head.faces, faces, head.stiffness, CFG)
 
 
-@pytest.mark.parametrize("bad", [{"method": "newton"}, {"relaxation": 6.0}, {"detect_every": 0},
-                                 {"chebyshev_rho": 0.5, "method": "gauss_seidel"},
-                                 {"margin_m": 0.0}, {"attach_stiffness": -1.0}])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"method": "newton"},
+        {"relaxation": 6.0},
+        {"detect_every": 0},
+        {"chebyshev_rho": 0.5, "method": "gauss_seidel"},
+        {"margin_m": 0.0},
+        {"attach_stiffness": -1.0},
+    ],
+)
 def test_bad_settings_are_refused_by_name(bad: dict) -> None:
     with pytest.raises(ValueError, match=next(iter(bad))):
         PBDConfig(**bad)
@@ -124,11 +148,18 @@ def test_chebyshev_reaches_the_plain_jacobi_solution_sooner(head: Head) -> None:
     cheek = head.centre_of("cheek_left")
     hand, faces = press(head, cheek, 0.005)
     soft = {"method": "jacobi", "shear_stiffness": 0.0, "attach_stiffness": 60.0}
-    plain = solve_frame(head.vertices, hand, faces, head.topology, head.stiffness,
-                        PBDConfig(**soft, chebyshev_rho=0.0, iterations=3000))
+    plain = solve_frame(
+        head.vertices, hand, faces, head.topology, head.stiffness, PBDConfig(**soft, chebyshev_rho=0.0, iterations=3000)
+    )
     fast = solve_frame(head.vertices, hand, faces, head.topology, head.stiffness, PBDConfig(**soft))
-    short = solve_frame(head.vertices, hand, faces, head.topology, head.stiffness,
-                        PBDConfig(**soft, chebyshev_rho=0.0, iterations=CFG.iterations))
+    short = solve_frame(
+        head.vertices,
+        hand,
+        faces,
+        head.topology,
+        head.stiffness,
+        PBDConfig(**soft, chebyshev_rho=0.0, iterations=CFG.iterations),
+    )
     gap = lambda r: float((r.offsets - plain.offsets).norm(dim=1).max())  # noqa: E731
     assert gap(fast) < 0.5 * gap(short)
 
@@ -142,8 +173,14 @@ def test_direct_solve_lands_on_the_converged_sweeps(head: Head) -> None:
     cheek = head.centre_of("cheek_left")
     hand, faces = press(head, cheek, 0.005)
     direct = solve_frame(head.vertices, hand, faces, head.topology, head.stiffness, DIRECT)
-    converged = solve_frame(head.vertices, hand, faces, head.topology, head.stiffness,
-                            PBDConfig(method="gauss_seidel", chebyshev_rho=0.0, iterations=3000, detect_every=50))
+    converged = solve_frame(
+        head.vertices,
+        hand,
+        faces,
+        head.topology,
+        head.stiffness,
+        PBDConfig(method="gauss_seidel", chebyshev_rho=0.0, iterations=3000, detect_every=50),
+    )
     default = solve_frame(head.vertices, hand, faces, head.topology, head.stiffness, PBDConfig(method="jacobi"))
     gap = lambda r: (r.offsets - converged.offsets).norm(dim=1)  # noqa: E731
     assert direct.simulated and direct.penetration_max_m < 3e-4
@@ -164,8 +201,9 @@ def test_direct_volume_term_stays_bounded_and_is_refused_elsewhere(head: Head) -
     hand, faces = press(head, cheek, 0.03, radius=0.02)  # 3 cm deep
     stiffness = head.stiffness.clone()
     stiffness[cheek] = 0.0
-    r = solve_frame(head.vertices, hand, faces, head.topology, stiffness,
-                    PBDConfig(method="direct", volume_stiffness=10.0))
+    r = solve_frame(
+        head.vertices, hand, faces, head.topology, stiffness, PBDConfig(method="direct", volume_stiffness=10.0)
+    )
     _check_bounded(head, r, hand, faces)
     with pytest.raises(ValueError, match="volume_stiffness"):
         PBDConfig(method="jacobi", volume_stiffness=1.0)

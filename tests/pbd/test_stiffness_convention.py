@@ -36,8 +36,10 @@ def test_stiffness_files(tmp_path: Path) -> None:
     np.savez(tmp_path / "k.npz", stiffness=np.array([0.0, 1.0, 2.0]))
     rel, _ = face_relative_stiffness(3, np.ones(3), tmp_path / "k.npz", 0.01, 1.0)  # the file wins
     np.testing.assert_allclose(rel, [0.0, 1.0, 2.0])
-    for name, body, message in (("short.npy", np.ones(2), "head model has 3 vertices"),
-                                ("neg.npy", -np.ones(3), "non-negative")):
+    for name, body, message in (
+        ("short.npy", np.ones(2), "head model has 3 vertices"),
+        ("neg.npy", -np.ones(3), "non-negative"),
+    ):
         np.save(tmp_path / name, body)
         with pytest.raises(StiffnessFileError, match=message):
             face_relative_stiffness(3, None, tmp_path / name, 0.01, 1.0)
@@ -63,9 +65,9 @@ def test_world_and_decaf_canonical_offsets_round_trip() -> None:
 def test_moving_vertex_errors_counts_vertices_moving_in_either() -> None:
     ref = np.zeros((2, 3, 3))
     pred = np.zeros((2, 3, 3))
-    ref[0, 0, 0] = 0.002   # moves in the reference only
+    ref[0, 0, 0] = 0.002  # moves in the reference only
     pred[0, 1, 1] = 0.001  # moves in the prediction only
-    ref[1, 2, 2] = 0.005   # not a contact frame: ignored
+    ref[1, 2, 2] = 0.005  # not a contact frame: ignored
     e = moving_vertex_errors(pred, ref, np.array([True, False]))
     assert e is not None and e.vertices == 2
     assert e.mean_mm == pytest.approx(1.5) and e.zero_mean_mm == pytest.approx(1.0)

@@ -28,9 +28,17 @@ def test_a_slurm_batch_without_accounting_is_refused_before_submitting(tmp_path)
     _fake_command(bin_dir, "sacct", f'echo "{DISABLED}" >&2; exit 1')
     _fake_command(bin_dir, "sbatch", f'touch {tmp_path / "submitted"}; echo "Submitted batch job 1"')
     env = {**cli_env(), "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
-    done = subprocess.run(cli_command("-m", "subject=synth_a", "hydra/launcher=slurm", "quality=smoke",
-                                      f"paths.outputs={tmp_path / 'out'}"),
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300, check=False)
+    done = subprocess.run(
+        cli_command(
+            "-m", "subject=synth_a", "hydra/launcher=slurm", "quality=smoke", f"paths.outputs={tmp_path / 'out'}"
+        ),
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert done.returncode == 2, done.stdout[-2000:] + done.stderr[-2000:]
     assert "keeps no job accounting" in done.stderr and "slurmdbd" in done.stderr, done.stderr
     assert not (tmp_path / "submitted").exists(), "a job was submitted"
@@ -56,6 +64,7 @@ def test_accounting_is_asked_of_sacct_only_for_slurm_batches():
     assert slurm_accounting_problem(_cfg(), run=sacct) is None
     assert asked == []  # the basic launcher: no SLURM, nothing asked
 
+
 def test_a_slurm_batch_asks_sacct(tmp_path, monkeypatch):
     asked: list[list[str]] = []
 
@@ -79,9 +88,14 @@ def test_other_sacct_failures_are_named(tmp_path, monkeypatch):
     bin_dir.mkdir()
     _fake_command(bin_dir, "sacct", "exit 1")
     monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
-    failed = slurm_accounting_problem(_slurm_cfg(), run=lambda args, **kw: subprocess.CompletedProcess(
-        args, 1, stdout="", stderr="sacct: error: Problem talking to the database: Connection refused"))
+    failed = slurm_accounting_problem(
+        _slurm_cfg(),
+        run=lambda args, **kw: subprocess.CompletedProcess(
+            args, 1, stdout="", stderr="sacct: error: Problem talking to the database: Connection refused"
+        ),
+    )
     assert failed is not None and "Connection refused" in failed and "keeps no job accounting" not in failed
-    disabled = slurm_accounting_problem(_slurm_cfg(), run=lambda args, **kw: subprocess.CompletedProcess(
-        args, 1, stdout="", stderr=DISABLED))
+    disabled = slurm_accounting_problem(
+        _slurm_cfg(), run=lambda args, **kw: subprocess.CompletedProcess(args, 1, stdout="", stderr=DISABLED)
+    )
     assert disabled is not None and "keeps no job accounting" in disabled

@@ -16,31 +16,41 @@ def changed_stages(base: list[str], change: list[str]) -> set[str]:
     return {s.name for s in REGISTRY if key_config(before, s) != key_config(after, s)}
 
 
-@pytest.mark.parametrize(("method", "change"), [
-    # SplattingAvatar's recipe is not read by the bound representation
-    ("interactavatar", ["splatting.lambda_mse=3.0"]),
-    ("gaussian_avatars", ["splatting.walk_every=7"]),
-    # the default solver (direct) reads none of the sweeps' settings
-    ("interactavatar", ["stage.pbd.solver.iterations=17"]),
-    ("interactavatar", ["stage.pbd.solver.relaxation=0.5"]),
-    ("interactavatar", ["stage.pbd.solver.chebyshev_rho=0.5"]),
-    ("interactavatar", ["stage.pbd.solver.detect_every=7"]),
-])
+@pytest.mark.parametrize(
+    ("method", "change"),
+    [
+        # SplattingAvatar's recipe is not read by the bound representation
+        ("interactavatar", ["splatting.lambda_mse=3.0"]),
+        ("gaussian_avatars", ["splatting.walk_every=7"]),
+        # the default solver (direct) reads none of the sweeps' settings
+        ("interactavatar", ["stage.pbd.solver.iterations=17"]),
+        ("interactavatar", ["stage.pbd.solver.relaxation=0.5"]),
+        ("interactavatar", ["stage.pbd.solver.chebyshev_rho=0.5"]),
+        ("interactavatar", ["stage.pbd.solver.detect_every=7"]),
+    ],
+)
 def test_a_setting_the_configuration_never_reads_reruns_nothing(method: str, change: list[str]) -> None:
     assert changed_stages([f"method={method}"], change) == set()
 
 
-@pytest.mark.parametrize(("base", "change", "expected"), [
-    (["method=splatting_avatar"], ["splatting.lambda_mse=3.0"], {"warmup", "dynamic"}),
-    (["method=interactavatar"], ["stage.pbd.solver.direct_outer=3"], {"pbd", "evaluate", "reenact"}),
-    # a method without PBD drives its avatar without the solver: only the shared pbd stage reruns
-    (["method=gaussian_avatars"], ["stage.pbd.solver.direct_outer=3"], {"pbd"}),
-    (["method=interactavatar", "stage.pbd.solver.method=jacobi"], ["stage.pbd.solver.iterations=17"],
-     {"pbd", "evaluate", "reenact"}),
-    (["method=interactavatar", "stage.pbd.solver.method=jacobi"], ["stage.pbd.solver.direct_outer=3"], set()),
-])
-def test_a_setting_the_configuration_reads_reruns_the_stages_that_read_it(base: list[str], change: list[str],
-                                                                           expected: set[str]) -> None:
+@pytest.mark.parametrize(
+    ("base", "change", "expected"),
+    [
+        (["method=splatting_avatar"], ["splatting.lambda_mse=3.0"], {"warmup", "dynamic"}),
+        (["method=interactavatar"], ["stage.pbd.solver.direct_outer=3"], {"pbd", "evaluate", "reenact"}),
+        # a method without PBD drives its avatar without the solver: only the shared pbd stage reruns
+        (["method=gaussian_avatars"], ["stage.pbd.solver.direct_outer=3"], {"pbd"}),
+        (
+            ["method=interactavatar", "stage.pbd.solver.method=jacobi"],
+            ["stage.pbd.solver.iterations=17"],
+            {"pbd", "evaluate", "reenact"},
+        ),
+        (["method=interactavatar", "stage.pbd.solver.method=jacobi"], ["stage.pbd.solver.direct_outer=3"], set()),
+    ],
+)
+def test_a_setting_the_configuration_reads_reruns_the_stages_that_read_it(
+    base: list[str], change: list[str], expected: set[str]
+) -> None:
     assert changed_stages(base, change) == expected
 
 

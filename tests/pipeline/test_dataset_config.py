@@ -14,8 +14,10 @@ BAD = [
     (["dataset.train_cameras=[]"], "dataset.train_cameras=[]: a non-empty list of camera ids"),
     (["dataset.train_cameras=[cam99]"], "dataset.train_cameras=['cam99']: choose some but not all"),
     (["dataset.train_cameras=[cam00,cam01,cam02,cam03,cam04,cam05,cam06,cam07]"], "choose some but not all"),
-    (["dataset=folder", "dataset.root=/nowhere", "dataset.start_frame=abc"],
-     "dataset.start_frame='abc': must be a whole"),
+    (
+        ["dataset=folder", "dataset.root=/nowhere", "dataset.start_frame=abc"],
+        "dataset.start_frame='abc': must be a whole",
+    ),
     (["dataset=folder", "dataset.root=/nowhere", "dataset.frame_step=2.5"], "dataset.frame_step=2.5: must be a whole"),
     (["dataset=folder", "dataset.root=/nowhere", "dataset.frame_step=0"], "dataset.frame_step=0: must be >= 1"),
     (["dataset=folder", "dataset.root=/nowhere", "dataset.max_frames=0"], "dataset.max_frames=0: must be >= 1"),
@@ -23,8 +25,9 @@ BAD = [
 
 
 @pytest.mark.parametrize(("overrides", "message"), BAD)
-def test_bad_dataset_values_fail_in_the_dry_run_naming_the_key(tmp_path: Path, overrides: list[str],
-                                                               message: str) -> None:
+def test_bad_dataset_values_fail_in_the_dry_run_naming_the_key(
+    tmp_path: Path, overrides: list[str], message: str
+) -> None:
     cfg = compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", *overrides])
     with pytest.raises(ConfigError) as info:
         run_app(cfg)
@@ -33,21 +36,32 @@ def test_bad_dataset_values_fail_in_the_dry_run_naming_the_key(tmp_path: Path, o
 
 
 def test_good_dataset_values_pass(tmp_path: Path) -> None:
-    for overrides in (["dataset.train_cameras=[cam04]"], ["dataset=folder", "dataset.root=/nowhere",
-                                                           "dataset.max_frames=5", "dataset.frame_step=2"]):
+    for overrides in (
+        ["dataset.train_cameras=[cam04]"],
+        ["dataset=folder", "dataset.root=/nowhere", "dataset.max_frames=5", "dataset.frame_step=2"],
+    ):
         run_app(compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", *overrides]))
 
 
-@pytest.mark.parametrize(("driver", "message"), [
-    ("synth_a", "names this run's own subject 'synth_a'"),
-    ("/nonexistent/file.parquet", "reenact.driver=/nonexistent/file.parquet: no such file"),
-])
-def test_a_bad_reenactment_driver_is_one_config_error_in_the_dry_run(tmp_path: Path, driver: str,
-                                                                      message: str) -> None:
+@pytest.mark.parametrize(
+    ("driver", "message"),
+    [
+        ("synth_a", "names this run's own subject 'synth_a'"),
+        ("/nonexistent/file.parquet", "reenact.driver=/nonexistent/file.parquet: no such file"),
+    ],
+)
+def test_a_bad_reenactment_driver_is_one_config_error_in_the_dry_run(tmp_path: Path, driver: str, message: str) -> None:
     """Issue 36, item 7: the subject itself as its own driver (use reenact.driver=self) and a missing parameter
     file are config errors (one line, no traceback from the command line), found before any work."""
-    cfg = compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", "subject=synth_a",
-                       f"reenact.driver={driver}"])
+    cfg = compose_cfg(
+        [
+            f"paths.outputs={tmp_path / 'out'}",
+            "run.progress=false",
+            "run.dry=true",
+            "subject=synth_a",
+            f"reenact.driver={driver}",
+        ]
+    )
     with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
         run_app(cfg)
     assert not (tmp_path / "out" / "synth_a" / "capture").exists()

@@ -55,8 +55,9 @@ def _queued(lock: Path) -> bool:
 
 
 def _start(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen(cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(
+        cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
 
 
 def _events(trace: Path) -> list[list[str]]:
@@ -80,27 +81,38 @@ def test_a_forced_shared_stage_is_written_before_later_readers_of_it(tmp_path):
     outputs = [p.communicate(timeout=180)[0] for p in (reader_b, writer, reader_d)]
     assert [p.returncode for p in (reader_b, writer, reader_d)] == [0, 0, 0], outputs
     order = [(e[0], e[1]) for e in _events(trace)]
-    assert order == [("b", "start"), ("b", "end"), ("a", "start"), ("a", "end"), ("d", "start"), ("d", "end")], \
-        order
+    assert order == [("b", "start"), ("b", "end"), ("a", "start"), ("a", "end"), ("d", "start"), ("d", "end")], order
 
 
 def test_two_methods_started_together_share_a_stage_once_and_train_side_by_side(tmp_path):
     """Two methods whose p has the same cache key, started at once: one computes p while the other waits for it
     and shares it (both used to compute it when they arrived together), then their own q run side by side."""
     out, trace = tmp_path / "out", tmp_path / "trace.log"
-    base = ["pipeline.stages_module=tests.toy_methods", "stage=[]", "+stage.a.value=1", "+stage.cmp.methods=[m1,m2]",
-            "+stage.cmp.seeds=[0]", "+method.p_value=1", "+method.sleep_s=3", f"+method.trace={trace}",
-            f"paths.outputs={out}", "run.progress=false", "run.until=q"]
+    base = [
+        "pipeline.stages_module=tests.toy_methods",
+        "stage=[]",
+        "+stage.a.value=1",
+        "+stage.cmp.methods=[m1,m2]",
+        "+stage.cmp.seeds=[0]",
+        "+method.p_value=1",
+        "+method.sleep_s=3",
+        f"+method.trace={trace}",
+        f"paths.outputs={out}",
+        "run.progress=false",
+        "run.until=q",
+    ]
     runs = [_start(*base, f"method.name={m}") for m in ("m1", "m2")]
     outputs = [p.communicate(timeout=180)[0] for p in runs]
     assert [p.returncode for p in runs] == [0, 0], outputs
     events = _events(trace)
-    assert [e[:3] for e in events if e[0] == "p"] in (
-        [["p", m, "start"], ["p", m, "end"]] for m in ("m1", "m2")), events  # p computed by one run only
+    assert [e[:3] for e in events if e[0] == "p"] in ([["p", m, "start"], ["p", m, "end"]] for m in ("m1", "m2")), (
+        events
+    )  # p computed by one run only
     both = "\n".join(outputs)
     assert both.count("p          run") == 1 and both.count("p          shared") == 1, both
     assert "waits     for another method's run computing the same artifact" in both, both
     q = {(e[1], e[2]): float(e[3]) for e in events if e[0] == "q"}
     assert max(q["m1", "start"], q["m2", "start"]) < min(q["m1", "end"], q["m2", "end"]), q  # side by side
-    assert os.path.samefile(out / "synth_a" / "methods" / "m1" / "p" / "p.txt",
-                            out / "synth_a" / "methods" / "m2" / "p" / "p.txt")
+    assert os.path.samefile(
+        out / "synth_a" / "methods" / "m1" / "p" / "p.txt", out / "synth_a" / "methods" / "m2" / "p" / "p.txt"
+    )

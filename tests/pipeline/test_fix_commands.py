@@ -19,14 +19,27 @@ def _cfg_with(overrides: list[str]):
 
 
 def test_the_runs_overrides_are_repeated_except_what_selects_the_run():
-    cfg = _cfg_with(["paths.outputs=/data/out x", "fit.source=ground_truth", "quality=draft", "method=gaussian_avatars",
-                     "method.label=GA", "seed=2", "run.only=compare", "+run.force=true", "stage.warmup.seed=3"])
+    cfg = _cfg_with(
+        [
+            "paths.outputs=/data/out x",
+            "fit.source=ground_truth",
+            "quality=draft",
+            "method=gaussian_avatars",
+            "method.label=GA",
+            "seed=2",
+            "run.only=compare",
+            "+run.force=true",
+            "stage.warmup.seed=3",
+        ]
+    )
     assert fix_command(cfg, "method=interactavatar", "run.until=evaluate") == (
         "interactavatar 'paths.outputs=/data/out x' fit.source=ground_truth quality=draft stage.warmup.seed=3 "
-        "method=interactavatar run.until=evaluate")
+        "method=interactavatar run.until=evaluate"
+    )
     # an argument wins over the run's override of the same key
-    assert fix_command(cfg, "quality=standard") == ("interactavatar 'paths.outputs=/data/out x' "
-                                                    "fit.source=ground_truth stage.warmup.seed=3 quality=standard")
+    assert fix_command(cfg, "quality=standard") == (
+        "interactavatar 'paths.outputs=/data/out x' fit.source=ground_truth stage.warmup.seed=3 quality=standard"
+    )
     assert fix_command(compose_cfg([]), "run.until=fit") == "interactavatar run.until=fit"  # run_app, no CLI
 
 
@@ -55,5 +68,6 @@ def test_runs_the_comparison_left_out_are_printed_with_the_command_that_recomput
     assert comparison_fixes(cfg, reports) == [
         "comparison: no_pbd-seed2 left out (stale); recompute it with `interactavatar paths.outputs=/o "
         "fit.source=ground_truth method=no_pbd seed=2 run.until=evaluate`, then "
-        "`interactavatar paths.outputs=/o fit.source=ground_truth run.only=compare`"]
+        "`interactavatar paths.outputs=/o fit.source=ground_truth run.only=compare`"
+    ]
     assert comparison_fixes(cfg, [StageReport("compare", "cached", "", metrics={"methods_stale": "-"})]) == []

@@ -24,8 +24,14 @@ def test_a_stage_reads_exactly_the_inputs_its_manifest_names_while_another_run_r
     assert run_cli(*base).returncode == 0
     subject = out / "synth_a"
     old_b = read_manifest(subject / "b").output_digest
-    reader = subprocess.Popen(cli_command(*base, "run.only=c", "run.force=true", "++stage.c.sleep_s=3"),
-                              cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    reader = subprocess.Popen(
+        cli_command(*base, "run.only=c", "run.force=true", "++stage.c.sleep_s=3"),
+        cwd=REPO,
+        env=cli_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         wait_for(lambda: any((subject / ".tmp").glob("c-*/parts/half.txt")))  # c has read b once
         writer = run_cli(*base, "run.only=b", "run.force=true", "stage.b.value=7")
@@ -62,13 +68,19 @@ def test_an_input_replaced_without_the_lock_fails_the_stage_and_publishes_nothin
     assert (subject / "c" / "_manifest.json").read_text() == before
 
 
-@pytest.mark.parametrize("override, message", [
-    ("quality.warmup_steps=abc", "quality.warmup_steps: Value 'abc' of type 'str' could not be converted to Integer"),
-    ("quality.warmup_steps=-5", "quality.warmup_steps=-5: must be at least 1"),
-    ("quality.warmup_steps=0", "quality.warmup_steps=0: must be at least 1"),
-    ("quality.gaussians_per_triangle=0", "quality.gaussians_per_triangle=0: must be between 1 and 1000"),
-    ("quality.image_size=4", "quality.image_size=4: must be between 16 and 8192"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        (
+            "quality.warmup_steps=abc",
+            "quality.warmup_steps: Value 'abc' of type 'str' could not be converted to Integer",
+        ),
+        ("quality.warmup_steps=-5", "quality.warmup_steps=-5: must be at least 1"),
+        ("quality.warmup_steps=0", "quality.warmup_steps=0: must be at least 1"),
+        ("quality.gaussians_per_triangle=0", "quality.gaussians_per_triangle=0: must be between 1 and 1000"),
+        ("quality.image_size=4", "quality.image_size=4: must be between 16 and 8192"),
+    ],
+)
 def test_quality_block_is_typed_and_range_checked_before_any_stage_runs(toy_cfg, override, message):
     """Case 4: a bad preset value fails before anything is written, naming the key."""
     from pipeline.config import ConfigError
@@ -108,8 +120,12 @@ def test_outputs_on_a_read_only_file_system_is_one_clear_error(tmp_path):
     """Case 6: `paths.outputs` on a read-only mount (a real one: tmpfs mounted read-only)."""
     mount = tmp_path / "ro"
     mount.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k,ro", "tmpfs", str(mount)],
-                      capture_output=True, check=False).returncode != 0:
+    if (
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=64k,ro", "tmpfs", str(mount)], capture_output=True, check=False
+        ).returncode
+        != 0
+    ):
         pytest.skip("needs root to mount a read-only tmpfs")
     try:
         result = run_cli(*TOY, f"paths.outputs={mount / 'out'}")
@@ -126,8 +142,13 @@ def test_leftovers_of_a_killed_run_are_cleaned_when_the_stage_is_found_cached(tm
     base = [*TOY, f"paths.outputs={out}", "++stage.a.sleep_s=1"]
     assert run_cli(*base).returncode == 0
     subject = out / "synth_a"
-    killed = subprocess.Popen(cli_command(*base, "run.force=true", "run.only=a", "++stage.a.sleep_s=1"),
-                              cwd=REPO, env=cli_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    killed = subprocess.Popen(
+        cli_command(*base, "run.force=true", "run.only=a", "++stage.a.sleep_s=1"),
+        cwd=REPO,
+        env=cli_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         wait_for(lambda: any((subject / ".tmp").glob("a-*/parts/half.txt")))
         killed.kill()

@@ -17,10 +17,21 @@ from tests.conftest import compose_cfg
 @pytest.fixture
 def method_cfg(tmp_path: Path):
     def make(method: str, p_value: int = 1, *extra: str):
-        return compose_cfg(["pipeline.stages_module=tests.toy_methods", "stage=[]", "+stage.a.value=1",
-                            "+stage.cmp.methods=[m1,m2,m3]", "+stage.cmp.seeds=[0]", f"method.name={method}",
-                            f"+method.p_value={p_value}",
-                            f"paths.outputs={tmp_path / 'out'}", "run.progress=false", *extra])
+        return compose_cfg(
+            [
+                "pipeline.stages_module=tests.toy_methods",
+                "stage=[]",
+                "+stage.a.value=1",
+                "+stage.cmp.methods=[m1,m2,m3]",
+                "+stage.cmp.seeds=[0]",
+                f"method.name={method}",
+                f"+method.p_value={p_value}",
+                f"paths.outputs={tmp_path / 'out'}",
+                "run.progress=false",
+                *extra,
+            ]
+        )
+
     return make
 
 

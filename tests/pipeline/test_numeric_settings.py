@@ -29,8 +29,9 @@ def test_every_numeric_setting_refuses_nan_and_negative(tmp_path) -> None:
     base = compose_cfg([f"paths.outputs={tmp_path}", "dataset=folder", "dataset.root=/nowhere", "quality=draft"])
     registry = load_registry(base.pipeline.stages_module)
     validate_config(base, registry)  # the shipped values pass
-    plain = OmegaConf.to_container(OmegaConf.create({k: v for k, v in base.items() if k not in NOT_SETTINGS}),
-                                   resolve=False)
+    plain = OmegaConf.to_container(
+        OmegaConf.create({k: v for k, v in base.items() if k not in NOT_SETTINGS}), resolve=False
+    )
     keys = _numeric_keys(plain)
     assert len(keys) > 100, len(keys)
     missed = []

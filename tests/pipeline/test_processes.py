@@ -15,8 +15,9 @@ TOY = [*TOY_OVERRIDES, "run.progress=false"]
 def test_sigkill_mid_stage_leaves_nothing_that_looks_complete(tmp_path):
     out = tmp_path / "out"
     args = [*TOY, f"paths.outputs={out}", "++stage.a.sleep_s=60"]
-    proc = subprocess.Popen(cli_command(*args), cwd=REPO, env=cli_env(),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     try:
         # Wait until stage a has written half of its output into its temporary dir.
         wait_for(lambda: any((out / "synth_a" / ".tmp").glob("a-*/parts/half.txt")))
@@ -35,8 +36,12 @@ def test_sigkill_mid_stage_leaves_nothing_that_looks_complete(tmp_path):
 def test_two_concurrent_runs_do_not_interleave(tmp_path):
     out, trace = tmp_path / "out", tmp_path / "trace.log"
     args = [*TOY, f"paths.outputs={out}", "++stage.a.sleep_s=1.5"] + [f"++stage.{s}.trace={trace}" for s in "abcd"]
-    procs = [subprocess.Popen(cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    procs = [
+        subprocess.Popen(
+            cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        for _ in range(2)
+    ]
     outs = [p.communicate(timeout=120) for p in procs]
     assert all(p.returncode == 0 for p in procs), [o[1] for o in outs]
     events = [line.split() for line in trace.read_text().splitlines()]

@@ -15,9 +15,19 @@ from tests.conftest import compose_cfg
 @pytest.fixture
 def subject_cfg(tmp_path: Path):
     def make(subject: str, driver: str = "self", value: int = 1, *extra: str):
-        return compose_cfg(["pipeline.stages_module=tests.toy_subjects", "stage=[]", f"+stage.a.value={value}",
-                            f"+stage.drive.driver={driver}", f"subject={subject}",
-                            f"paths.outputs={tmp_path / 'out'}", "run.progress=false", *extra])
+        return compose_cfg(
+            [
+                "pipeline.stages_module=tests.toy_subjects",
+                "stage=[]",
+                f"+stage.a.value={value}",
+                f"+stage.drive.driver={driver}",
+                f"subject={subject}",
+                f"paths.outputs={tmp_path / 'out'}",
+                "run.progress=false",
+                *extra,
+            ]
+        )
+
     return make
 
 

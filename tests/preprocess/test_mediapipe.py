@@ -17,8 +17,15 @@ from skimage import data
 from skimage.feature import Cascade
 
 from avatar.preprocess.mediapipe_detect import (
-    FACE68_FROM_MESH468, MEDIAPIPE_PIN, LandmarkDetector, MediaPipeMissing, SelfieSegmenter, face68, part_labels,
-    pick_hand, to_pixels,
+    FACE68_FROM_MESH468,
+    MEDIAPIPE_PIN,
+    LandmarkDetector,
+    MediaPipeMissing,
+    SelfieSegmenter,
+    face68,
+    part_labels,
+    pick_hand,
+    to_pixels,
 )
 from data_schemas.cameras import Camera, write_cameras
 from data_schemas.capture import video_path
@@ -32,8 +39,10 @@ from tests.conftest import compose_cfg
 
 HAVE_MEDIAPIPE = importlib.util.find_spec("mediapipe") is not None
 needs_mediapipe = pytest.mark.skipif(
-    not HAVE_MEDIAPIPE, reason=f"needs the optional `mediapipe` extra: make mediapipe (or pip install -e "
-                               f"'.[mediapipe]' && pip install --no-deps {MEDIAPIPE_PIN})")
+    not HAVE_MEDIAPIPE,
+    reason=f"needs the optional `mediapipe` extra: make mediapipe (or pip install -e "
+    f"'.[mediapipe]' && pip install --no-deps {MEDIAPIPE_PIN})",
+)
 
 FACE, HAND = 1, 2
 # Hand-checked on the 512x512 astronaut: centres of her right eye (image left) and left eye, OpenCV px.
@@ -72,8 +81,9 @@ def no_mediapipe(monkeypatch):
 def _face_box(image: np.ndarray) -> np.ndarray:
     """(x0, y0, x1, y1) of scikit-image's LBP frontal-face cascade: a detector independent of MediaPipe."""
     cascade = Cascade(data.lbp_frontal_face_cascade_filename())
-    (hit,) = cascade.detect_multi_scale(img=image, scale_factor=1.2, step_ratio=1, min_size=(60, 60),
-                                        max_size=(123, 123))
+    (hit,) = cascade.detect_multi_scale(
+        img=image, scale_factor=1.2, step_ratio=1, min_size=(60, 60), max_size=(123, 123)
+    )
     return np.array([hit["c"], hit["r"], hit["c"] + hit["width"], hit["r"] + hit["height"]], dtype=np.float64)
 
 
@@ -173,6 +183,7 @@ def test_pixel_convention_and_face_map():
 
 # --- the stages on a two-view folder capture of the photograph -----------------------------------
 
+
 def _astronaut_capture(root: Path, image: np.ndarray, frames: int = 2) -> None:
     h, w = image.shape[:2]
     K = np.array([[600.0, 0, w / 2], [0, 600.0, h / 2], [0, 0, 1]])
@@ -188,8 +199,17 @@ def _astronaut_capture(root: Path, image: np.ndarray, frames: int = 2) -> None:
 
 
 def _folder_cfg(tmp_path: Path, *extra: str):
-    return compose_cfg(["dataset=folder", f"dataset.root={tmp_path / 'data'}", "subject=alice", "quality=smoke",
-                        f"paths.outputs={tmp_path / 'out'}", "run.progress=false", *extra])
+    return compose_cfg(
+        [
+            "dataset=folder",
+            f"dataset.root={tmp_path / 'data'}",
+            "subject=alice",
+            "quality=smoke",
+            f"paths.outputs={tmp_path / 'out'}",
+            "run.progress=false",
+            *extra,
+        ]
+    )
 
 
 @needs_mediapipe

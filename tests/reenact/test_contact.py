@@ -46,8 +46,9 @@ def test_twins_on_a_larger_face_keep_their_offset_from_the_surface() -> None:
     twins = surface_twins(points, FACE, FACES)
     moved = twin_points(twins, 1.2 * FACE, FACES)
     # the surface point scales with the face, the offset along the normal does not
-    np.testing.assert_allclose(np.linalg.norm(moved, axis=1) - 1.2 * 0.08,
-                               np.linalg.norm(points, axis=1) - 0.08, atol=5e-4)
+    np.testing.assert_allclose(
+        np.linalg.norm(moved, axis=1) - 1.2 * 0.08, np.linalg.norm(points, axis=1) - 0.08, atol=5e-4
+    )
 
 
 def _hand(centre: np.ndarray) -> np.ndarray:

@@ -15,8 +15,11 @@ def test_a_missing_sequence_lists_the_fitted_ones(tmp_path: Path) -> None:
         (tmp_path / sequence).mkdir()
         (tmp_path / sequence / "params.parquet").write_bytes(b"")
     _check_fitted(tmp_path, "test", "this subject")  # present: nothing to say
-    with pytest.raises(SchemaError, match=r"reenact.sequence=nosuch: this subject has no fitted sequence 'nosuch' "
-                                          r".*choose one of \['test', 'train'\]"):
+    with pytest.raises(
+        SchemaError,
+        match=r"reenact.sequence=nosuch: this subject has no fitted sequence 'nosuch' "
+        r".*choose one of \['test', 'train'\]",
+    ):
         _check_fitted(tmp_path, "nosuch", "this subject")
 
 

@@ -23,11 +23,17 @@ def _params(seed: int, frames: int = 4, shape_scale: float = 1.0) -> dict[str, n
     rng = np.random.default_rng(seed)
     n = lambda *shape, s=0.1: rng.normal(0, s, shape)  # noqa: E731
     return {
-        "flame_shape": np.repeat(n(1, 10, s=shape_scale), frames, 0), "flame_expression": n(frames, 10, s=0.5),
-        "flame_global_orient": n(frames, 3), "flame_neck_pose": n(frames, 3), "flame_jaw_pose": n(frames, 3, s=0.05),
-        "flame_eye_pose": n(frames, 6, s=0.05), "flame_transl": n(frames, 3, s=0.02) + [0.0, 0.0, 0.5],
-        "mano_shape": np.repeat(n(1, 10, s=shape_scale), frames, 0), "mano_hand_pose": n(frames, 45, s=0.2),
-        "mano_global_orient": n(frames, 3, s=0.5), "mano_transl": n(frames, 3, s=0.02) + [0.05, -0.02, 0.45],
+        "flame_shape": np.repeat(n(1, 10, s=shape_scale), frames, 0),
+        "flame_expression": n(frames, 10, s=0.5),
+        "flame_global_orient": n(frames, 3),
+        "flame_neck_pose": n(frames, 3),
+        "flame_jaw_pose": n(frames, 3, s=0.05),
+        "flame_eye_pose": n(frames, 6, s=0.05),
+        "flame_transl": n(frames, 3, s=0.02) + [0.0, 0.0, 0.5],
+        "mano_shape": np.repeat(n(1, 10, s=shape_scale), frames, 0),
+        "mano_hand_pose": n(frames, 45, s=0.2),
+        "mano_global_orient": n(frames, 3, s=0.5),
+        "mano_transl": n(frames, 3, s=0.02) + [0.05, -0.02, 0.45],
     }
 
 
@@ -42,8 +48,12 @@ def _relative(params: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np
 
 def _rest_frame(params: dict[str, np.ndarray]) -> np.ndarray:
     """(3, 3) anatomical frame of the hand shape of ``params`` in its rest pose."""
-    rest = {**{k: v[:1] for k, v in params.items()}, "mano_hand_pose": np.zeros((1, 45)),
-            "mano_global_orient": np.zeros((1, 3)), "mano_transl": np.zeros((1, 3))}
+    rest = {
+        **{k: v[:1] for k, v in params.items()},
+        "mano_hand_pose": np.zeros((1, 45)),
+        "mano_global_orient": np.zeros((1, 3)),
+        "mano_transl": np.zeros((1, 3)),
+    }
     return hand_frame(pose_layers(rest, HEAD, HAND, torch.float64)[3].joints[0].numpy())
 
 
@@ -79,13 +89,16 @@ def test_another_actor_keeps_its_shape_and_place_and_the_driver_s_hand_to_head_t
     change = _rest_frame(out) @ _rest_frame(driver).T
     assert not np.allclose(change, np.eye(3), atol=1e-3)  # the two hand shapes' frames differ
     np.testing.assert_allclose(R_out @ _rest_frame(out), R_drv @ _rest_frame(driver), atol=1e-9)
-    np.testing.assert_allclose(out["mano_hand_pose"].reshape(5, 15, 3),
-                               driver["mano_hand_pose"].reshape(5, 15, 3) @ change.T, atol=1e-12)
+    np.testing.assert_allclose(
+        out["mano_hand_pose"].reshape(5, 15, 3), driver["mano_hand_pose"].reshape(5, 15, 3) @ change.T, atol=1e-12
+    )
     np.testing.assert_allclose(t_out, scale * t_drv, atol=1e-9)  # its offset, scaled by the head sizes
     np.testing.assert_allclose(root_out[0], _relative(target)[2][0], atol=1e-9)  # the target stays in place
     np.testing.assert_allclose(root_out - root_out[0], root_drv - root_drv[0], atol=1e-9)  # moving as the driver
-    sizes = [head_size(pose_layers({k: v[:1] for k, v in p.items()}, HEAD, HAND, torch.float64)[1].vertices[0].numpy())
-             for p in (target, driver)]
+    sizes = [
+        head_size(pose_layers({k: v[:1] for k, v in p.items()}, HEAD, HAND, torch.float64)[1].vertices[0].numpy())
+        for p in (target, driver)
+    ]
     assert scale == pytest.approx(sizes[0] / sizes[1]) and abs(scale - 1.0) > 1e-3
 
 

@@ -25,16 +25,19 @@ def _unproject(uv: np.ndarray, z: np.ndarray | float, width: int = W, height: in
     return np.stack([x, y, z], axis=1)
 
 
-def _triangle(pixels: np.ndarray, z: float | np.ndarray = 1.0, colour=(1.0, 1.0, 1.0),
-              label: int = 1) -> Mesh:
+def _triangle(pixels: np.ndarray, z: float | np.ndarray = 1.0, colour=(1.0, 1.0, 1.0), label: int = 1) -> Mesh:
     verts = _unproject(pixels, z)
-    return Mesh(vertices=verts, faces=np.array([[0, 1, 2]]),
-                attributes=np.tile(np.asarray(colour, dtype=np.float32), (3, 1)), label=label)
+    return Mesh(
+        vertices=verts,
+        faces=np.array([[0, 1, 2]]),
+        attributes=np.tile(np.asarray(colour, dtype=np.float32), (3, 1)),
+        label=label,
+    )
 
 
-def _clip(poly: list[tuple[float, float]], axis: int, bound: float, keep_below: bool
-          ) -> list[tuple[float, float]]:
+def _clip(poly: list[tuple[float, float]], axis: int, bound: float, keep_below: bool) -> list[tuple[float, float]]:
     """One Sutherland-Hodgman pass against the half-plane p[axis] <= / >= bound."""
+
     def inside(p):
         return p[axis] <= bound if keep_below else p[axis] >= bound
 
@@ -89,14 +92,12 @@ def test_coverage_matches_polygon_clipping(s: int) -> None:
     total = 0.5 * abs(ax * by - ay * bx)
     assert abs(out.alpha.sum().item() - total) < 0.05 * total
     # Colour is the coverage-weighted average over a black background.
-    np.testing.assert_allclose(out.rgb.numpy(), np.repeat(out.alpha.numpy()[..., None], 3, -1),
-                               atol=1e-6)
+    np.testing.assert_allclose(out.rgb.numpy(), np.repeat(out.alpha.numpy()[..., None], 3, -1), atol=1e-6)
 
 
 def test_coverage_error_shrinks_with_supersampling() -> None:
     exact = exact_coverage(TRI, W, H)
-    errs = [np.abs(render([_triangle(TRI)], _camera(), supersample=s).alpha.numpy() - exact).mean()
-            for s in (2, 8, 16)]
+    errs = [np.abs(render([_triangle(TRI)], _camera(), supersample=s).alpha.numpy() - exact).mean() for s in (2, 8, 16)]
     assert errs[2] < errs[1] < errs[0]
     assert errs[2] < 0.01
 
@@ -133,12 +134,10 @@ def test_perspective_correct_interpolation_on_a_plane() -> None:
     np.testing.assert_allclose(out.rgb.numpy()[..., 1], ry * z_true, atol=1e-4)
 
 
-@pytest.mark.parametrize("zs", [(-1.0, -1.0, -1.0), (1.0, -0.5, 2.0), (0.0, 1.0, 1.0),
-                                (1e-12, 1.0, 1.0)])
+@pytest.mark.parametrize("zs", [(-1.0, -1.0, -1.0), (1.0, -0.5, 2.0), (0.0, 1.0, 1.0), (1e-12, 1.0, 1.0)])
 def test_triangles_behind_or_crossing_camera_give_no_nan(zs) -> None:
     verts = np.array([[0.1, 0.0, zs[0]], [-0.2, 0.3, zs[1]], [0.2, 0.2, zs[2]]])
-    mesh = Mesh(vertices=verts, faces=np.array([[0, 1, 2]]),
-                attributes=np.ones((3, 3), np.float32), label=1)
+    mesh = Mesh(vertices=verts, faces=np.array([[0, 1, 2]]), attributes=np.ones((3, 3), np.float32), label=1)
     out = render([mesh], _camera(), supersample=3)
     for t in (out.rgb, out.alpha, out.depth):
         assert torch.isfinite(t).all()
@@ -169,8 +168,7 @@ def test_labels_majority_and_shader_receive_labels() -> None:
         seen.append(labels)
         return labels[:, None].float().expand(-1, 3) / 10
 
-    out = render([_triangle(left, label=1), _triangle(right, label=2)], _camera(),
-                 supersample=3, shader=shader)
+    out = render([_triangle(left, label=1), _triangle(right, label=2)], _camera(), supersample=3, shader=shader)
     labels = out.labels.numpy()
     assert set(np.unique(labels)) == {0, 1, 2}
     assert (labels[out.alpha.numpy() < 0.5] == 0).all()

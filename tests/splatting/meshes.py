@@ -42,8 +42,9 @@ def deform(verts: Tensor) -> Tensor:
     p = verts - centre
     angle = 3.0 * p[:, 1]
     c, s = torch.cos(angle), torch.sin(angle)
-    twisted = torch.stack([c * p[:, 0] - s * p[:, 2], 1.3 * p[:, 1] + 0.5 * p[:, 0] ** 2,
-                           s * p[:, 0] + c * p[:, 2]], -1)
+    twisted = torch.stack(
+        [c * p[:, 0] - s * p[:, 2], 1.3 * p[:, 1] + 0.5 * p[:, 0] ** 2, s * p[:, 0] + c * p[:, 2]], -1
+    )
     return twisted @ rotation_z(0.7).to(verts.dtype).T + verts.new_tensor([0.1, -0.2, 0.3])
 
 

@@ -27,8 +27,9 @@ def _setup(seed: int = 0) -> tuple[EmbeddedGaussians, torch.optim.Adam, torch.Te
 
 
 def _controller(n: int, **overrides) -> EmbeddedDensityController:
-    cfg = EmbeddedDensityConfig(densify_from=1, densify_until=10, densify_interval=1, opacity_reset_interval=100,
-                                **overrides)
+    cfg = EmbeddedDensityConfig(
+        densify_from=1, densify_until=10, densify_interval=1, opacity_reset_interval=100, **overrides
+    )
     return EmbeddedDensityController(cfg, n, seed=3)
 
 
@@ -80,7 +81,7 @@ def test_clone_split_and_prune_keep_every_gaussian_on_a_valid_triangle():
     assert float((children - parent_means).norm(dim=-1).max()) < 6 * 0.05
     for name in PARAM_NAMES:  # new rows start with zero moments, kept rows keep theirs
         state = optimizer.state[getattr(model, name)]
-        assert float(state["exp_avg_sq"][len(survivors):].abs().max()) == 0.0, name
+        assert float(state["exp_avg_sq"][len(survivors) :].abs().max()) == 0.0, name
         assert float(state["exp_avg_sq"][: len(survivors)].abs().max()) > 0.0, name
     assert density.grad_sum.shape == (model.num_gaussians,)
 
@@ -101,8 +102,7 @@ def test_densify_until_zero_disables_density_control():
     density = EmbeddedDensityController(cfg, n)
     before = model.state_tensors()
     density.accumulate(1, torch.ones(n), torch.full((n,), 3, dtype=torch.int32), image_size=32)
-    assert density.step(1, model, optimizer, EXTENT) == {"cloned": 0, "split": 0, "pruned": 0, "walked": 0,
-                                                         "reset": 0}
+    assert density.step(1, model, optimizer, EXTENT) == {"cloned": 0, "split": 0, "pruned": 0, "walked": 0, "reset": 0}
     for name, value in before.items():
         assert torch.equal(model.state_tensors()[name], value)
     assert float(density.grad_sum.sum()) == 0.0

@@ -15,18 +15,22 @@ from tests.splatting.meshes import bumpy, deform, grid, rotation_z, template
 
 
 def _model(verts: torch.Tensor, faces: torch.Tensor, per_triangle: int = 3, seed: int = 0) -> EmbeddedGaussians:
-    return EmbeddedGaussians.on_triangles(verts, faces, torch.zeros(faces.shape[0], dtype=torch.long),
-                                          per_triangle, init_opacity=0.2, seed=seed)
+    return EmbeddedGaussians.on_triangles(
+        verts, faces, torch.zeros(faces.shape[0], dtype=torch.long), per_triangle, init_opacity=0.2, seed=seed
+    )
 
 
 def _quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     q = q / q.norm(dim=-1, keepdim=True)
     w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
+    return torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
 
 
 def test_flat_triangle_point_and_normal_displacement():
@@ -41,8 +45,9 @@ def test_flat_triangle_point_and_normal_displacement():
     torch.testing.assert_close(means, torch.tensor([[0.3, 0.5, 0.1]], dtype=torch.float64))
 
 
-def _brute_force_means(verts: np.ndarray, faces: np.ndarray, tri: np.ndarray, uv: np.ndarray,
-                       d: np.ndarray) -> np.ndarray:
+def _brute_force_means(
+    verts: np.ndarray, faces: np.ndarray, tri: np.ndarray, uv: np.ndarray, d: np.ndarray
+) -> np.ndarray:
     """Loop-by-loop reference: area-weighted vertex normals, barycentric point, normal lift."""
     normals = np.zeros_like(verts)
     for f in faces:
@@ -67,8 +72,13 @@ def test_world_positions_match_a_brute_force_reference_on_a_deformed_hand():
         model.displacement.copy_(0.003 * torch.randn(model.num_gaussians, generator=gen, dtype=torch.float64))
     posed = deform(verts)
     means, _, _ = model.world(posed, faces)
-    ref = _brute_force_means(posed.numpy(), faces.numpy(), model.triangle[pick].numpy(),
-                             model.barycentric.detach()[pick].numpy(), model.displacement.detach()[pick].numpy())
+    ref = _brute_force_means(
+        posed.numpy(),
+        faces.numpy(),
+        model.triangle[pick].numpy(),
+        model.barycentric.detach()[pick].numpy(),
+        model.displacement.detach()[pick].numpy(),
+    )
     np.testing.assert_allclose(means.detach()[pick].numpy(), ref, atol=1e-12)
 
 
@@ -83,7 +93,7 @@ def test_scales_follow_the_triangle_area_change():
     stretched = verts * verts.new_tensor([3.0, 1.0, 1.0])
     _, s3, _ = model.world(stretched, faces)
     ratio = s3[:, 0] / base[:, 0]
-    assert bool(((ratio > 1.0 - 1e-9) & (ratio < 3 ** 0.5 + 1e-9)).all())
+    assert bool(((ratio > 1.0 - 1e-9) & (ratio < 3**0.5 + 1e-9)).all())
 
 
 def test_rotation_is_identity_on_the_canonical_mesh_and_follows_a_rigid_motion():
@@ -91,8 +101,9 @@ def test_rotation_is_identity_on_the_canonical_mesh_and_follows_a_rigid_motion()
     model = _model(verts, faces, per_triangle=2)
     gen = torch.Generator().manual_seed(2)
     with torch.no_grad():
-        model.quats.copy_(torch.nn.functional.normalize(torch.randn(model.quats.shape, generator=gen,
-                                                                    dtype=torch.float64), dim=-1))
+        model.quats.copy_(
+            torch.nn.functional.normalize(torch.randn(model.quats.shape, generator=gen, dtype=torch.float64), dim=-1)
+        )
         model.displacement.copy_(0.002 * torch.randn(model.num_gaussians, generator=gen, dtype=torch.float64))
     means0, scales0, quats0 = model.world(verts, faces)
     torch.testing.assert_close(_quat_to_matrix(quats0), _quat_to_matrix(model.quats.detach()), atol=1e-9, rtol=0)
@@ -136,13 +147,21 @@ def test_state_tensors_round_trip_is_exact_and_fits_the_schema(tmp_path):
         assert torch.equal(a, b)
     part_names = ("face",)
     path = tmp_path / "embedded_gaussians.parquet"
-    write_table(path, EMBEDDED_GAUSSIANS, {
-        "triangle": state["triangle"].numpy(), "part": [part_names[i] for i in state["part"].tolist()],
-        **{name: state[name].numpy() for name in STATE_NAMES[2:]}})
+    write_table(
+        path,
+        EMBEDDED_GAUSSIANS,
+        {
+            "triangle": state["triangle"].numpy(),
+            "part": [part_names[i] for i in state["part"].tolist()],
+            **{name: state[name].numpy() for name in STATE_NAMES[2:]},
+        },
+    )
     table = read_table(path, EMBEDDED_GAUSSIANS)
-    back = {"triangle": torch.from_numpy(np.array(table["triangle"])),
-            "part": torch.tensor([part_names.index(p) for p in table["part"]]),
-            **{name: torch.from_numpy(np.array(table[name])) for name in STATE_NAMES[2:]}}
+    back = {
+        "triangle": torch.from_numpy(np.array(table["triangle"])),
+        "part": torch.tensor([part_names.index(p) for p in table["part"]]),
+        **{name: torch.from_numpy(np.array(table[name])) for name in STATE_NAMES[2:]},
+    }
     again = EmbeddedGaussians.from_state_tensors(back, verts, faces)
     for name, value in state.items():
         assert torch.equal(again.state_tensors()[name], value), name

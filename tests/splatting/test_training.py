@@ -44,8 +44,9 @@ def _scene() -> tuple[ViewSet, MeshSequence]:
     stripes = (torch.sin(means[:, 0].detach() * 40) > 0).float()
     truth.set_colors(torch.stack([0.9 * stripes + 0.05, 0.3 * torch.ones_like(stripes), 0.9 - 0.8 * stripes], -1))
     images = torch.zeros(2, 2, SIZE, SIZE, 3, dtype=torch.uint8)
-    views = ViewSet(images, torch.zeros(2, 2, SIZE, SIZE, dtype=torch.uint8), K.repeat(2, 1, 1), w2c, ["a", "b"],
-                    background)
+    views = ViewSet(
+        images, torch.zeros(2, 2, SIZE, SIZE, dtype=torch.uint8), K.repeat(2, 1, 1), w2c, ["a", "b"], background
+    )
     with torch.no_grad():
         for f in range(2):
             for c in range(2):
@@ -56,14 +57,27 @@ def _scene() -> tuple[ViewSet, MeshSequence]:
 
 
 def _model(meshes: MeshSequence) -> EmbeddedGaussians:
-    return EmbeddedGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, 4,
-                                          init_opacity=0.3, seed=0)
+    return EmbeddedGaussians.on_triangles(
+        meshes.vertices[0], meshes.faces, meshes.face_part, 4, init_opacity=0.3, seed=0
+    )
 
 
 # Larger position learning rates than the recipe's so that Gaussians walk within 30 steps.
-CFG = SplattingConfig(steps=30, lambda_lpips=LPIPS_WEIGHT, lr_position_init=0.02, lr_position_final=0.005,
-                      lr_color=0.03, densify_from=0.2, densify_until=0.8, densify_interval=0.2,
-                      opacity_reset_interval=1.0, walk_every=3, log_every=5, checkpoint_every=10, backend="torch")
+CFG = SplattingConfig(
+    steps=30,
+    lambda_lpips=LPIPS_WEIGHT,
+    lr_position_init=0.02,
+    lr_position_final=0.005,
+    lr_color=0.03,
+    densify_from=0.2,
+    densify_until=0.8,
+    densify_interval=0.2,
+    opacity_reset_interval=1.0,
+    walk_every=3,
+    log_every=5,
+    checkpoint_every=10,
+    backend="torch",
+)
 
 
 @pytest.fixture(scope="module")
@@ -117,17 +131,29 @@ def test_a_second_run_without_density_control_keeps_the_count_and_walks(scene):
     model = _model(meshes)
     train_splatting(model, views, meshes, dataclasses.replace(CFG, steps=10))
     count = model.num_gaussians
-    stage_two = dataclasses.replace(CFG, steps=12, densify_until=0.0, seed=1, lr_position_init=0.05,
-                                    lr_position_final=0.05, walk_every=1, log_every=4)
+    stage_two = dataclasses.replace(
+        CFG,
+        steps=12,
+        densify_until=0.0,
+        seed=1,
+        lr_position_init=0.05,
+        lr_position_final=0.05,
+        walk_every=1,
+        log_every=4,
+    )
     log = train_splatting(model, views, meshes, stage_two)
     assert [r.num_gaussians for r in log] == [count] * 3
     assert sum(r.walked for r in log) > 0
 
 
 def test_scale_penalty_takes_only_needle_like_gaussians():
-    scales = torch.tensor([[0.02, 0.001, 0.001],  # needle: 0.02 > 0.008 and ratio 20 > 10
-                           [0.02, 0.01, 0.01],  # large but round
-                           [0.005, 0.0001, 0.0001],  # thin but small
-                           [0.04, 0.002, 0.003]])  # needle
+    scales = torch.tensor(
+        [
+            [0.02, 0.001, 0.001],  # needle: 0.02 > 0.008 and ratio 20 > 10
+            [0.02, 0.01, 0.01],  # large but round
+            [0.005, 0.0001, 0.0001],  # thin but small
+            [0.04, 0.002, 0.003],
+        ]
+    )  # needle
     torch.testing.assert_close(scale_penalty(scales, 0.008, 10.0), torch.tensor(0.03))
     assert float(scale_penalty(scales[1:3], 0.008, 10.0)) == 0.0

@@ -11,8 +11,13 @@ from avatar.splatting.walking import build_walk_table, edge_neighbours, full_bar
 from tests.splatting.meshes import bumpy, deform, grid, hand_and_head, template
 
 
-def _model(verts: torch.Tensor, faces: torch.Tensor, per_triangle: int = 2, seed: int = 0,
-           face_part: torch.Tensor | None = None) -> EmbeddedGaussians:
+def _model(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    per_triangle: int = 2,
+    seed: int = 0,
+    face_part: torch.Tensor | None = None,
+) -> EmbeddedGaussians:
     face_part = torch.zeros(faces.shape[0], dtype=torch.long) if face_part is None else face_part
     return EmbeddedGaussians.on_triangles(verts, faces, face_part, per_triangle, init_opacity=0.2, seed=seed)
 
@@ -161,6 +166,6 @@ def test_walk_function_leaves_inside_points_bit_identical():
     uv = bary[:, :2].clone()
     uv[::2] += 0.5 * torch.randn(250, 2, generator=gen, dtype=torch.float64)
     new_tri, new_uv = walk(table, tri, uv)
-    stayed = (full_barycentric(uv).min(-1).values >= 0)
+    stayed = full_barycentric(uv).min(-1).values >= 0
     assert torch.equal(new_uv[stayed], uv[stayed]) and torch.equal(new_tri[stayed], tri[stayed])
     assert bool((full_barycentric(new_uv) >= 0).all())

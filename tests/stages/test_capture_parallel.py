@@ -18,8 +18,15 @@ from tests.conftest import REPO, cli_command, cli_env, compose_cfg, wait_for
 
 CAPTURE = importlib.import_module("stages.capture")  # the module (the package exports the stage under its name)
 
-TINY = ["quality=smoke", "quality.capture_size=32", "quality.num_frames_train=2", "quality.num_frames_test=2",
-        "stage.capture.num_cameras=2", "run.progress=false", "run.only=capture"]
+TINY = [
+    "quality=smoke",
+    "quality.capture_size=32",
+    "quality.num_frames_train=2",
+    "quality.num_frames_test=2",
+    "stage.capture.num_cameras=2",
+    "run.progress=false",
+    "run.only=capture",
+]
 
 
 def _capture(out: Path, threads: int) -> dict[str, bytes]:
@@ -31,8 +38,11 @@ def _capture(out: Path, threads: int) -> dict[str, bytes]:
     finally:
         torch.set_num_threads(before)
     root = out / "synth_a" / "capture"
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
-            if p.is_file() and p.name != "_manifest.json"}
+    return {
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != "_manifest.json"
+    }
 
 
 def test_parallel_sequences_write_the_serial_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -54,8 +64,10 @@ def test_parallel_sequences_write_the_serial_files(tmp_path: Path, monkeypatch: 
     assert any(name.startswith("cross_synth_b/") for name in serial)
     assert serial.keys() == parallel.keys()
     assert [name for name in serial if serial[name] != parallel[name]] == []
-    metrics = [json.loads((tmp_path / run / "synth_a" / "capture" / "_manifest.json").read_text())["metrics"]
-               for run in ("serial", "parallel")]
+    metrics = [
+        json.loads((tmp_path / run / "synth_a" / "capture" / "_manifest.json").read_text())["metrics"]
+        for run in ("serial", "parallel")
+    ]
     assert metrics[0] == metrics[1]
 
 
@@ -63,9 +75,20 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
     """SIGKILL the CLI while its workers render: the kernel takes the workers down with it, so nothing goes on
     writing into the stage's scratch folder."""
     env = {**cli_env(), "OMP_NUM_THREADS": "2"}  # two workers on any machine
-    proc = subprocess.Popen(cli_command(f"paths.outputs={tmp_path}", "quality=smoke", "quality.num_frames_train=40",
-                                        "quality.capture_size=256", "run.progress=false", "run.only=capture"),
-                            cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        cli_command(
+            f"paths.outputs={tmp_path}",
+            "quality=smoke",
+            "quality.num_frames_train=40",
+            "quality.capture_size=256",
+            "run.progress=false",
+            "run.only=capture",
+        ),
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         parent = psutil.Process(proc.pid)
         # the workers have started once two children import the generator (the spawn helper is a third)
@@ -79,4 +102,3 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
     assert not (tmp_path / "synth_a" / "capture" / "_manifest.json").exists()
-

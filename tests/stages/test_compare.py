@@ -6,13 +6,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from data_schemas.metrics import CONTACT_GROUPS
 from omegaconf import OmegaConf
 from scipy.stats import ttest_ind
 
+from data_schemas.metrics import CONTACT_GROUPS
 from stages.compare import (
-    SHARED_STAGES, MethodRun, _comparison_rows, _cost, _crop, _lookup, _tables, stale_reason, welch_p,
+    SHARED_STAGES,
+    MethodRun,
+    _comparison_rows,
+    _cost,
+    _crop,
+    _lookup,
+    _tables,
+    stale_reason,
+    welch_p,
 )
 from stages.evaluate import showcase_pairs
 from tests.conftest import CONF_DIR
@@ -29,19 +36,35 @@ def _run(name: str, warmup_key: str = "k0", seed: int = 0, train_seed: int = 0, 
     regions x 2 cameras x 5 frames, frames 1 and 3 with contact, the hand region absent (NaN) in frame 0 and one
     infinite PSNR (a perfect image)."""
     rng = np.random.default_rng(seed)
-    rows = [(split, region, cam, frame) for split in ("novel_view", "self_reenact")
-            for region in ("full", "hand", "face", "interaction") for cam in ("c0", "c1") for frame in range(5)]
+    rows = [
+        (split, region, cam, frame)
+        for split in ("novel_view", "self_reenact")
+        for region in ("full", "hand", "face", "interaction")
+        for cam in ("c0", "c1")
+        for frame in range(5)
+    ]
     split, region, cam, frame = (np.array(col) for col in zip(*rows))
     psnr, ssim, lpips = rng.uniform(20, 30, len(rows)), rng.uniform(0.8, 0.9, len(rows)), rng.uniform(0, 0.1, len(rows))
     psnr += shift
     absent = (region == "hand") & (frame == 0)
     psnr[absent] = ssim[absent] = lpips[absent] = np.nan
     psnr[(region == "face") & (frame == 2) & (cam == "c1")] = np.inf
-    metrics = {"method": np.full(len(rows), name), "split": split, "region": region, "camera_id": cam,
-               "frame": frame, "contact": np.isin(frame, [1, 3]), "psnr": psnr, "ssim": ssim, "lpips": lpips}
-    manifests = {"warmup": {"key": warmup_key, "metrics": {"steps": 20}, "timings": {"wall_s": 10.0}},
-                 "dynamic": {"metrics": {"steps": 10, "gaussians": 123}, "timings": {"wall_s": 5.0}},
-                 "evaluate": {"timings": {"wall_s": 2.0}, "config": {"method": _method_config(name)}}}
+    metrics = {
+        "method": np.full(len(rows), name),
+        "split": split,
+        "region": region,
+        "camera_id": cam,
+        "frame": frame,
+        "contact": np.isin(frame, [1, 3]),
+        "psnr": psnr,
+        "ssim": ssim,
+        "lpips": lpips,
+    }
+    manifests = {
+        "warmup": {"key": warmup_key, "metrics": {"steps": 20}, "timings": {"wall_s": 10.0}},
+        "dynamic": {"metrics": {"steps": 10, "gaussians": 123}, "timings": {"wall_s": 5.0}},
+        "evaluate": {"timings": {"wall_s": 2.0}, "config": {"method": _method_config(name)}},
+    }
     return MethodRun(name, train_seed, name.upper(), Path("/nonexistent"), metrics, manifests)
 
 
@@ -61,8 +84,14 @@ def test_rows_are_the_means_of_their_group_ignoring_absent_regions_and_perfect_i
                     got = _lookup(rows, run.name, split, region, group)
                     assert got["psnr"] == pytest.approx(expected, rel=1e-12)
                     assert got["lpips"] == pytest.approx(np.nanmean(t["lpips"][sel]), rel=1e-12)
-    hand_all = [i for i in range(len(rows["method"])) if rows["method"][i] == "interactavatar"
-                and rows["split"][i] == "novel_view" and rows["region"][i] == "hand" and rows["contact"][i] == "all"]
+    hand_all = [
+        i
+        for i in range(len(rows["method"]))
+        if rows["method"][i] == "interactavatar"
+        and rows["split"][i] == "novel_view"
+        and rows["region"][i] == "hand"
+        and rows["contact"][i] == "all"
+    ]
     assert [rows["images"][i] for i in hand_all] == [8]  # 10 images, frame 0 has no hand in either camera
     assert set(rows["train_steps"]) == {30} and set(rows["gaussians"]) == {123}
 
@@ -89,17 +118,21 @@ def test_a_resumed_run_counts_the_killed_runs_work_and_is_marked():
     run.manifests["dynamic"]["timings"]["resumed_s"] = 7.0
     assert run.train_wall_s == pytest.approx(15.0 + 7.0) and run.resumed and not _run("no_pbd").resumed
     runs = [run, _run("gaussian_avatars")]
-    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
-                                                        "unshared_wall_s": 2.0})
+    tables = _tables(
+        runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    )
     budget = next(t for t in tables["tables"] if t["title"] == "Training budget")
     assert [row[3] for row in budget["rows"]] == ["22 (resumed)", "15"]
     assert any("(resumed)" in n for n in tables["notes"])
 
 
 def test_tables_say_whether_the_budget_was_the_same_and_what_is_missing():
-    same = _tables([_run("interactavatar"), _run("gaussian_avatars")],
-                   _comparison_rows([_run("interactavatar"), _run("gaussian_avatars")]), [("no_pbd", 0)],
-                   {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0})
+    same = _tables(
+        [_run("interactavatar"), _run("gaussian_avatars")],
+        _comparison_rows([_run("interactavatar"), _run("gaussian_avatars")]),
+        [("no_pbd", 0)],
+        {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0},
+    )
     assert any("same number of optimisation steps" in n for n in same["notes"])
     assert any("method=no_pbd" in n for n in same["notes"])
     table1 = same["tables"][0]
@@ -107,8 +140,12 @@ def test_tables_say_whether_the_budget_was_the_same_and_what_is_missing():
     assert table1["rows"][1][5] == "29.85"  # the paper's novel-view PSNR beside ours
     other = _run("no_patch")
     other.manifests["dynamic"]["metrics"]["steps"] = 11
-    unfair = _tables([_run("interactavatar"), other], _comparison_rows([_run("interactavatar"), other]), [],
-                     {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0})
+    unfair = _tables(
+        [_run("interactavatar"), other],
+        _comparison_rows([_run("interactavatar"), other]),
+        [],
+        {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0},
+    )
     assert any("not fair" in n for n in unfair["notes"])
 
 
@@ -117,12 +154,16 @@ def test_a_method_stands_where_its_own_config_puts_it():
     evaluation recorded it), not from a list in the stage: an eighth method needs no edit here."""
     eighth = _run("eighth")
     eighth.manifests["evaluate"]["config"]["method"] = {
-        "label": "Eighth", "tables": {"baselines": 0, "ablations": 9}, "full_model": False,
-        "paper": {"novel_view": [30.5, 0.95, 0.02]}}
+        "label": "Eighth",
+        "tables": {"baselines": 0, "ablations": 9},
+        "full_model": False,
+        "paper": {"novel_view": [30.5, 0.95, 0.02]},
+    }
     silent = _run("no_role")  # declares nothing: in the comparison, in no table
     runs = [_run("interactavatar"), _run("gaussian_avatars"), eighth, silent]
-    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
-                                                        "unshared_wall_s": 2.0})
+    tables = _tables(
+        runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    )
     table1, table2 = tables["tables"][0], tables["tables"][1]
     novel1 = [row for row in table1["rows"] if row[0] == "novel_view"]
     assert [row[1] for row in novel1] == ["EIGHTH", "GAUSSIAN_AVATARS", "INTERACTAVATAR"]
@@ -134,12 +175,14 @@ def test_a_method_stands_where_its_own_config_puts_it():
 
 def test_without_a_full_model_there_is_no_seeds_table():
     runs = [_run(name, seed=seed, train_seed=seed) for name in ("gaussian_avatars", "no_pbd") for seed in (0, 1)]
-    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
-                                                        "unshared_wall_s": 2.0})
+    tables = _tables(
+        runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    )
     assert not any(t["title"].startswith("Seeds") for t in tables["tables"])
     with_full = runs + [_run("interactavatar", seed=s, train_seed=s) for s in (0, 1)]
-    tables = _tables(with_full, _comparison_rows(with_full), [], {"total_wall_s": 1.0, "warmups_trained": 1,
-                                                                  "unshared_wall_s": 2.0})
+    tables = _tables(
+        with_full, _comparison_rows(with_full), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    )
     assert any(t["title"].startswith("Seeds: INTERACTAVATAR's PSNR") for t in tables["tables"])
 
 
@@ -163,9 +206,11 @@ def _chain() -> tuple[dict[str, dict], dict[str, dict]]:
     """A method's warmup/dynamic/evaluate manifests that read each other and the shared stages' outputs."""
     shared = {name: {"output_digest": f"{name}-1"} for name in SHARED_STAGES}
     up = {name: f"{name}-1" for name in SHARED_STAGES}
-    manifests = {"warmup": {"output_digest": "w-1", "upstream": dict(up)},
-                 "dynamic": {"output_digest": "d-1", "upstream": {**up, "warmup": "w-1"}},
-                 "evaluate": {"output_digest": "e-1", "upstream": {**up, "dynamic": "d-1"}}}
+    manifests = {
+        "warmup": {"output_digest": "w-1", "upstream": dict(up)},
+        "dynamic": {"output_digest": "d-1", "upstream": {**up, "warmup": "w-1"}},
+        "evaluate": {"output_digest": "e-1", "upstream": {**up, "dynamic": "d-1"}},
+    }
     return manifests, shared
 
 
@@ -184,12 +229,22 @@ def test_a_method_is_stale_when_its_inputs_reran_after_it():
 
 def test_stale_methods_are_named_with_the_fix_and_not_tabled():
     runs = [_run("interactavatar")]
-    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
-                                                        "unshared_wall_s": 2.0},
-                     {"gaussian_avatars-seed2": ("its evaluate read another capture than the one on disk now",
-                                                 "method=gaussian_avatars seed=2")})
-    assert any("Left out, stale: gaussian_avatars-seed2" in n and "method=gaussian_avatars seed=2" in n
-               for n in tables["notes"])
+    tables = _tables(
+        runs,
+        _comparison_rows(runs),
+        [],
+        {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0},
+        {
+            "gaussian_avatars-seed2": (
+                "its evaluate read another capture than the one on disk now",
+                "method=gaussian_avatars seed=2",
+            )
+        },
+    )
+    assert any(
+        "Left out, stale: gaussian_avatars-seed2" in n and "method=gaussian_avatars seed=2" in n
+        for n in tables["notes"]
+    )
     assert all(row[1] != "GAUSSIAN_AVATARS" for table in tables["tables"] for row in table["rows"])
 
 
@@ -210,8 +265,9 @@ def test_seeds_are_tabled_as_mean_and_spread_and_tested_with_welch():
     assert sorted(set(rows["seed"])) == [0, 1, 2]
     per_seed = np.array([_lookup(_comparison_rows([r]), "interactavatar", "novel_view", "full")["psnr"] for r in full])
     assert _lookup(rows, "interactavatar", "novel_view", "full")["psnr"] == pytest.approx(per_seed.mean(), rel=1e-12)
-    tables = _tables(full + base, rows, [("no_pbd", 1)], {"total_wall_s": 1.0, "warmups_trained": 1,
-                                                          "unshared_wall_s": 2.0})
+    tables = _tables(
+        full + base, rows, [("no_pbd", 1)], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    )
     table1 = tables["tables"][0]
     cell = next(row[2] for row in table1["rows"] if row[0] == "novel_view" and row[1] == "INTERACTAVATAR")
     assert cell == f"{per_seed.mean():.2f} ± {per_seed.std(ddof=1):.2f}"
@@ -223,8 +279,9 @@ def test_seeds_are_tabled_as_mean_and_spread_and_tested_with_welch():
     # Welch by hand: t = (m1 - m2) / sqrt(v1/n1 + v2/n2), Welch-Satterthwaite degrees of freedom
     v1, v2 = per_seed.var(ddof=1) / 3, other.var(ddof=1) / 3
     t = (per_seed.mean() - other.mean()) / np.sqrt(v1 + v2)
-    dof = (v1 + v2) ** 2 / (v1 ** 2 / 2 + v2 ** 2 / 2)
+    dof = (v1 + v2) ** 2 / (v1**2 / 2 + v2**2 / 2)
     from scipy.stats import t as student
+
     assert welch_p(per_seed, other) == pytest.approx(2 * student.sf(abs(t), dof), rel=1e-9)
     assert welch_p(per_seed, other) == pytest.approx(ttest_ind(per_seed, other, equal_var=False).pvalue, rel=1e-12)
     assert row[6] == ("supported" if welch_p(per_seed, other) < 0.05 else "within the spread")
@@ -234,8 +291,9 @@ def test_seeds_are_tabled_as_mean_and_spread_and_tested_with_welch():
 
 def test_one_seed_has_no_spread_and_no_seeds_table():
     runs = [_run("interactavatar"), _run("gaussian_avatars", seed=1)]
-    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
-                                                         "unshared_wall_s": 2.0})
+    tables = _tables(
+        runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    )
     assert not any(t["title"].startswith("Seeds") for t in tables["tables"])
     assert all("±" not in cell for t in tables["tables"] for row in t["rows"] for cell in row)
     assert np.isnan(welch_p(np.array([1.0]), np.array([2.0, 3.0])))
@@ -267,9 +325,14 @@ def test_a_corrupt_method_is_named_with_the_fix_and_an_empty_comparison_is_never
         (shared[name] / "_manifest.json").write_text('{"output_digest": "x"}')
     out = tmp_path / "out"
     out.mkdir()
-    ctx = StageContext(cfg=compose_cfg(["stage.compare.methods=[interactavatar]"]), subject="synth_a", out_dir=out,
-                       inputs=shared, method_inputs={"warmup": {}, "dynamic": {}, "evaluate": {}},
-                       method_problems={"interactavatar": "dynamic: gaussians.parquet does not match its manifest"})
+    ctx = StageContext(
+        cfg=compose_cfg(["stage.compare.methods=[interactavatar]"]),
+        subject="synth_a",
+        out_dir=out,
+        inputs=shared,
+        method_inputs={"warmup": {}, "dynamic": {}, "evaluate": {}},
+        method_problems={"interactavatar": "dynamic: gaussians.parquet does not match its manifest"},
+    )
     with pytest.raises(RuntimeError, match="last comparison is kept") as err:
         REGISTRY["compare"].fn(ctx)
     assert "interactavatar is corrupted (dynamic: gaussians.parquet" in str(err.value)
@@ -277,13 +340,20 @@ def test_a_corrupt_method_is_named_with_the_fix_and_an_empty_comparison_is_never
     assert not list(out.iterdir())  # nothing written: the runner keeps the published comparison
 
     runs = [_run("gaussian_avatars")]
-    tables = _tables(runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1,
-                                                        "unshared_wall_s": 2.0},
-                     corrupt={"interactavatar": ("dynamic: gaussians.parquet does not match its manifest",
-                                                 "method=interactavatar")})
-    assert any(n.startswith("Left out, corrupted: interactavatar: dynamic:") and "method=interactavatar" in n
-               for n in tables["notes"])
-    empty = _tables([], _comparison_rows([]), [("no_pbd", 0)], {"total_wall_s": 0.0, "warmups_trained": 0,
-                                                                 "unshared_wall_s": 0.0})
-    assert any(n == "No method to compare yet." for n in empty["notes"]) and not any("not fair" in n
-                                                                                   for n in empty["notes"])
+    tables = _tables(
+        runs,
+        _comparison_rows(runs),
+        [],
+        {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0},
+        corrupt={"interactavatar": ("dynamic: gaussians.parquet does not match its manifest", "method=interactavatar")},
+    )
+    assert any(
+        n.startswith("Left out, corrupted: interactavatar: dynamic:") and "method=interactavatar" in n
+        for n in tables["notes"]
+    )
+    empty = _tables(
+        [], _comparison_rows([]), [("no_pbd", 0)], {"total_wall_s": 0.0, "warmups_trained": 0, "unshared_wall_s": 0.0}
+    )
+    assert any(n == "No method to compare yet." for n in empty["notes"]) and not any(
+        "not fair" in n for n in empty["notes"]
+    )

@@ -53,13 +53,21 @@ def _intrinsic(i: int) -> np.ndarray:
 
 def _params(n: int, rng: np.random.Generator) -> dict:
     def head() -> dict:
-        return {"shape_params": rng.normal(0, 0.5, 100), "expression_params": rng.normal(0, 0.5, 50),
-                "pose_params": np.concatenate([rng.normal(0, 0.1, 3), [0.1, 0.0, 0.0]]),
-                "global_orient": rng.normal(0, 0.3, 3), "transl": rng.normal(0, 0.05, 3)}
+        return {
+            "shape_params": rng.normal(0, 0.5, 100),
+            "expression_params": rng.normal(0, 0.5, 50),
+            "pose_params": np.concatenate([rng.normal(0, 0.1, 3), [0.1, 0.0, 0.0]]),
+            "global_orient": rng.normal(0, 0.3, 3),
+            "transl": rng.normal(0, 0.05, 3),
+        }
 
     def hand() -> dict:
-        return {"betas": rng.normal(0, 0.5, (1, 10)), "hand_pose": rng.normal(0, 0.2, 45),
-                "global_orient": rng.normal(0, 0.5, 3), "transl": [0.05, -0.02, 0.1]}
+        return {
+            "betas": rng.normal(0, 0.5, (1, 10)),
+            "hand_pose": rng.normal(0, 0.2, 45),
+            "global_orient": rng.normal(0, 0.5, 3),
+            "transl": [0.05, -0.02, 0.1],
+        }
 
     return {t: {"head": head(), "right_hand": hand()} for t in range(n)}
 
@@ -80,8 +88,10 @@ def make_decaf(root: Path, subject: str = "S1", head_vertices: int = 2562, keypo
     rng = np.random.default_rng(0)
     for mode, n in FRAMES.items():
         base = root / mode
-        _dump(base / "cameras" / subject / "cameras.pkl",
-              {cam: {"intrinsic": _intrinsic(i), "extrinsic": _extrinsic(i)} for i, cam in enumerate(CAMERAS)})
+        _dump(
+            base / "cameras" / subject / "cameras.pkl",
+            {cam: {"intrinsic": _intrinsic(i), "extrinsic": _extrinsic(i)} for i, cam in enumerate(CAMERAS)},
+        )
         for i, cam in enumerate(CAMERAS):
             video = np.full((n, H, W, 3), 40 + 20 * i, np.uint8)
             video[:, FG[0], FG[1]] = (200, 150, 120)
@@ -112,21 +122,45 @@ def _official_pickles(tmp: Path) -> tuple[Path, Path]:
     ns = int(head.num_shape)
     shapedirs = np.zeros((head.num_vertices, 3, 400))
     shapedirs[:, :, :ns] = head.shapedirs[:, :, :ns]
-    shapedirs[:, :, 300:300 + head.num_shapes_total - ns] = head.shapedirs[:, :, ns:]
+    shapedirs[:, :, 300 : 300 + head.num_shapes_total - ns] = head.shapedirs[:, :, ns:]
     paths = tmp / "models" / "generic_model.pkl", tmp / "models" / "MANO_RIGHT.pkl"
-    for model, path, extra in ((head, paths[0], {"shapedirs": shapedirs}),
-                               (hand, paths[1], {"hands_components": np.array(hand.hands_components),
-                                                 "hands_mean": np.array(hand.hands_mean)})):
-        _dump(path, {"v_template": np.array(model.v_template), "shapedirs": np.array(model.shapedirs),
-                     "posedirs": np.array(model.posedirs), "J_regressor": np.array(model.J_regressor),
-                     "weights": np.array(model.weights), "kintree_table": np.array(model.kintree_table),
-                     "f": np.array(model.faces), **extra}, protocol=2)  # as the official files
+    for model, path, extra in (
+        (head, paths[0], {"shapedirs": shapedirs}),
+        (
+            hand,
+            paths[1],
+            {"hands_components": np.array(hand.hands_components), "hands_mean": np.array(hand.hands_mean)},
+        ),
+    ):
+        _dump(
+            path,
+            {
+                "v_template": np.array(model.v_template),
+                "shapedirs": np.array(model.shapedirs),
+                "posedirs": np.array(model.posedirs),
+                "J_regressor": np.array(model.J_regressor),
+                "weights": np.array(model.weights),
+                "kintree_table": np.array(model.kintree_table),
+                "f": np.array(model.faces),
+                **extra,
+            },
+            protocol=2,
+        )  # as the official files
     return paths
 
 
 def _cfg(tmp_path: Path, *extra: str, until: str = "capture"):
-    return compose_cfg(["dataset=decaf", f"dataset.root={tmp_path / 'decaf'}", "subject=S1",
-                        f"paths.outputs={tmp_path / 'out'}", "run.progress=false", f"run.until={until}", *extra])
+    return compose_cfg(
+        [
+            "dataset=decaf",
+            f"dataset.root={tmp_path / 'decaf'}",
+            "subject=S1",
+            f"paths.outputs={tmp_path / 'out'}",
+            "run.progress=false",
+            f"run.until={until}",
+            *extra,
+        ]
+    )
 
 
 def _models(tmp_path: Path) -> list[str]:
@@ -183,12 +217,15 @@ def test_decaf_capture_round_trips(tmp_path):
         # params: MANO as shipped; FLAME reposed about the root joint gives DECAF's centroid-pivot mesh
         shipped = _load(src / seq / "params" / "S1" / "params_smoothed.pkl")
         params = read_table(provided_path(cap, seq, "params"), PARAMS)
-        np.testing.assert_allclose(params["mano_hand_pose"], [shipped[t]["right_hand"]["hand_pose"] for t in range(n)],
-                                   atol=1e-6)
-        np.testing.assert_allclose(params["mano_shape"], [shipped[t]["right_hand"]["betas"][0] for t in range(n)],
-                                   atol=1e-6)
-        np.testing.assert_allclose(params["flame_jaw_pose"], [shipped[t]["head"]["pose_params"][3:] for t in range(n)],
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            params["mano_hand_pose"], [shipped[t]["right_hand"]["hand_pose"] for t in range(n)], atol=1e-6
+        )
+        np.testing.assert_allclose(
+            params["mano_shape"], [shipped[t]["right_hand"]["betas"][0] for t in range(n)], atol=1e-6
+        )
+        np.testing.assert_allclose(
+            params["flame_jaw_pose"], [shipped[t]["head"]["pose_params"][3:] for t in range(n)], atol=1e-6
+        )
         _assert_same_head(params, shipped, load_official_model(tmp_path / "models" / "generic_model.pkl", "flame"))
         # deformations: world offsets = -R_global d; contacts as flags
         deform = read_table(provided_path(cap, seq, "deform"), DEFORM)
@@ -211,11 +248,23 @@ def _assert_same_head(params: dict, shipped: dict, head: TemplateModel) -> None:
     layer = FLAMELayer(head, num_shape=100, num_expression=50)
     with torch.no_grad():
         pose = get("pose_params")
-        v_f = layer(get("shape_params"), get("expression_params"), global_orient=pose[:, :3],
-                    jaw_pose=pose[:, 3:]).vertices.numpy()
-        ours = layer(*(torch.tensor(np.asarray(params[k], np.float64)) for k in
-                       ("flame_shape", "flame_expression", "flame_global_orient", "flame_neck_pose",
-                        "flame_jaw_pose", "flame_eye_pose", "flame_transl"))).vertices.numpy()
+        v_f = layer(
+            get("shape_params"), get("expression_params"), global_orient=pose[:, :3], jaw_pose=pose[:, 3:]
+        ).vertices.numpy()
+        ours = layer(
+            *(
+                torch.tensor(np.asarray(params[k], np.float64))
+                for k in (
+                    "flame_shape",
+                    "flame_expression",
+                    "flame_global_orient",
+                    "flame_neck_pose",
+                    "flame_jaw_pose",
+                    "flame_eye_pose",
+                    "flame_transl",
+                )
+            )
+        ).vertices.numpy()
     R = Rotation.from_rotvec(get("global_orient").numpy()).as_matrix()
     centre = v_f.mean(axis=1, keepdims=True)
     decaf = np.einsum("tij,tvj->tvi", R, v_f - centre) + centre + get("transl").numpy()[:, None]
@@ -251,8 +300,7 @@ def test_deformations_that_do_not_fit_the_head_model_are_skipped_with_a_note(tmp
 # ---------------------------------------------------------------------------- keypoints and fit
 def test_provided_keypoints_and_params_flow_through_keypoints_and_fit(tmp_path):
     make_decaf(tmp_path / "decaf")
-    run_app(_cfg(tmp_path, *_models(tmp_path), "stage.keypoints.detector=provided", "fit.source=provided",
-                 until="fit"))
+    run_app(_cfg(tmp_path, *_models(tmp_path), "stage.keypoints.detector=provided", "fit.source=provided", until="fit"))
     out = tmp_path / "out" / "S1"
     for seq in FRAMES:
         kp = read_table(out / "keypoints" / seq / "keypoints.parquet", KEYPOINTS)
@@ -270,8 +318,10 @@ def test_provided_keypoints_missing_names_the_dataset(tmp_path):
     make_decaf(tmp_path / "decaf", keypoints=False)
     with pytest.raises(StageFailed) as info:
         run_app(_cfg(tmp_path, "stage.keypoints.detector=provided", until="keypoints"))
-    assert "detector=provided needs keypoints shipped with the dataset (dataset=decaf), but the 'decaf' capture " \
-           "of 'S1' has none" in str(info.value)
+    assert (
+        "detector=provided needs keypoints shipped with the dataset (dataset=decaf), but the 'decaf' capture "
+        "of 'S1' has none" in str(info.value)
+    )
 
 
 def test_provided_params_without_official_models_say_what_to_set(tmp_path):
@@ -333,11 +383,15 @@ def test_params_for_other_frames(tmp_path):
     _expect_capture_error(tmp_path, "params_smoothed.pkl: 5 frames, but the videos of train/S1 have 4")
 
 
-@pytest.mark.parametrize("damage, fragment", [
-    (lambda p: p[2]["right_hand"].pop("hand_pose"), "frame 2 lacks right_hand.hand_pose"),
-    (lambda p: p[1]["head"].update(pose_params=np.zeros(3)), "frame 1 head.pose_params has shape (3,), expected 6"),
-    (lambda p: p[0]["head"].update(transl=[0.0, np.nan, 0.0]), "frame 0 head.transl contains NaN"),
-], ids=["missing-key", "wrong-width", "nan"])
+@pytest.mark.parametrize(
+    "damage, fragment",
+    [
+        (lambda p: p[2]["right_hand"].pop("hand_pose"), "frame 2 lacks right_hand.hand_pose"),
+        (lambda p: p[1]["head"].update(pose_params=np.zeros(3)), "frame 1 head.pose_params has shape (3,), expected 6"),
+        (lambda p: p[0]["head"].update(transl=[0.0, np.nan, 0.0]), "frame 0 head.transl contains NaN"),
+    ],
+    ids=["missing-key", "wrong-width", "nan"],
+)
 def test_malformed_params(tmp_path, damage, fragment):
     root = make_decaf(tmp_path / "decaf")
     path = root / "train" / "params" / "S1" / "params_smoothed.pkl"
@@ -355,5 +409,7 @@ def test_keypoints_of_the_wrong_shape(tmp_path):
 
 def test_missing_subject_lists_those_on_disk(tmp_path):
     make_decaf(tmp_path / "decaf", subject="S3")
-    _expect_capture_error(tmp_path, "train/videos/S1: missing; set dataset.root to the unpacked DecafDataset folder "
-                                    "and subject to one of ['S3']")
+    _expect_capture_error(
+        tmp_path,
+        "train/videos/S1: missing; set dataset.root to the unpacked DecafDataset folder and subject to one of ['S3']",
+    )

@@ -12,11 +12,24 @@ import pytest
 from pipeline.cli import run_app
 from tests.conftest import compose_cfg
 
-SMALL = ["quality=smoke", "quality.capture_size=48", "stage.capture.num_cameras=3", "fit.source=ground_truth",
-         "run.progress=false", "stage.capture.cross_reenactment=false", "quality.warmup_steps=40",
-         "quality.dynamic_steps=20", "quality.num_frames_train=8"]
-SELECT = ["stage.warmup.validation.every=20", "stage.warmup.validation.frames=2", "stage.dynamic.validation.every=10",
-          "stage.dynamic.validation.frames=2", "stage.dynamic.select.enabled=true"]
+SMALL = [
+    "quality=smoke",
+    "quality.capture_size=48",
+    "stage.capture.num_cameras=3",
+    "fit.source=ground_truth",
+    "run.progress=false",
+    "stage.capture.cross_reenactment=false",
+    "quality.warmup_steps=40",
+    "quality.dynamic_steps=20",
+    "quality.num_frames_train=8",
+]
+SELECT = [
+    "stage.warmup.validation.every=20",
+    "stage.warmup.validation.frames=2",
+    "stage.dynamic.validation.every=10",
+    "stage.dynamic.validation.frames=2",
+    "stage.dynamic.select.enabled=true",
+]
 
 
 def _dynamic(out: Path) -> dict:
@@ -50,8 +63,9 @@ def test_the_manifest_and_the_model_say_what_the_selection_kept(tmp_path: Path) 
 
 
 def test_selection_refuses_a_warmup_that_trained_on_the_validation_frames(tmp_path: Path) -> None:
-    cfg = compose_cfg([f"paths.outputs={tmp_path}", *SMALL, *SELECT, "stage.warmup.validation.every=0",
-                       "run.until=dynamic"])
+    cfg = compose_cfg(
+        [f"paths.outputs={tmp_path}", *SMALL, *SELECT, "stage.warmup.validation.every=0", "run.until=dynamic"]
+    )
     with pytest.raises(Exception, match="stage.warmup.validation.every > 0"):
         run_app(cfg)
 

@@ -35,7 +35,7 @@ def _camera(i: int) -> Camera:
 def _frames(shift: int, n: int = FRAMES) -> np.ndarray:
     video = np.full((n, SIZE, SIZE, 3), 90, np.uint8)
     for t in range(n):
-        video[t, 12 + t: 30 + t, 10 + shift: 34 + shift] = (210, 160, 130)
+        video[t, 12 + t : 30 + t, 10 + shift : 34 + shift] = (210, 160, 130)
     return video
 
 
@@ -48,14 +48,23 @@ def make_capture(root: Path, masks: bool = False) -> Path:
         if masks:
             for t in range(FRAMES):
                 lab = np.zeros((SIZE, SIZE), np.uint8)
-                lab[12 + t: 30 + t, 10 + i: 34 + i] = 1
+                lab[12 + t : 30 + t, 10 + i : 34 + i] = 1
                 write_png(mask_path(subject, "train", cam.camera_id, t), lab)
     return subject
 
 
 def _cfg(tmp_path: Path, *extra: str):
-    return compose_cfg(["dataset=folder", f"dataset.root={tmp_path / 'data'}", "subject=alice",
-                        f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.until=frames", *extra])
+    return compose_cfg(
+        [
+            "dataset=folder",
+            f"dataset.root={tmp_path / 'data'}",
+            "subject=alice",
+            f"paths.outputs={tmp_path / 'out'}",
+            "run.progress=false",
+            "run.until=frames",
+            *extra,
+        ]
+    )
 
 
 @pytest.mark.parametrize("masks", [False, True], ids=["keyed", "capture-masks"])
@@ -135,7 +144,7 @@ def _zero_middle_of_mdat(path: Path) -> None:
     """Overwrite the middle half of an mp4's media data (its index, the moov box, stays intact)."""
     data = bytearray(path.read_bytes())
     box = data.find(b"mdat") - 4
-    size = int.from_bytes(data[box: box + 4], "big")
+    size = int.from_bytes(data[box : box + 4], "big")
     start, end = box + 8 + (size - 8) // 4, box + 8 + 3 * (size - 8) // 4
     data[start:end] = bytes(end - start)
     path.write_bytes(bytes(data))
@@ -149,8 +158,9 @@ def test_video_with_a_corrupt_middle_is_called_damaged(tmp_path):
     with pytest.raises(StageFailed) as info:
         run_app(_cfg(tmp_path))
     message = str(info.value)
-    assert re.search(r"cam01\.mp4: the file is damaged: only \d of the 9 frames its container announces decode",
-                     message), message
+    assert re.search(
+        r"cam01\.mp4: the file is damaged: only \d of the 9 frames its container announces decode", message
+    ), message
     assert "re-export or re-encode it" in message and "views disagree" not in message
     assert not (tmp_path / "out" / "alice" / "capture").exists()
 
@@ -212,10 +222,12 @@ def _colmap_capture(root: Path, distorted: str = "cam01") -> Path:
         k1 = -0.8 if cam.camera_id == distorted else 0.0
         camera.params = [60.0, 60.0, SIZE / 2 + 0.5, SIZE / 2 + 0.5, k1, 0.0, 0.0, 0.0]
         rec.add_camera_with_trivial_rig(camera)
-        pose = pycolmap.Rigid3d(rotation=pycolmap.Rotation3d(np.array([0.0, 0.0, 0.0, 1.0])),
-                                translation=cam.world_to_cam[:3, 3] / 0.5)
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{cam.camera_id}.png", camera_id=i + 1, image_id=i + 1),
-                                         pose)
+        pose = pycolmap.Rigid3d(
+            rotation=pycolmap.Rotation3d(np.array([0.0, 0.0, 0.0, 1.0])), translation=cam.world_to_cam[:3, 3] / 0.5
+        )
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=f"{cam.camera_id}.png", camera_id=i + 1, image_id=i + 1), pose
+        )
     (subject / "sparse" / "0").mkdir(parents=True)
     rec.write(str(subject / "sparse" / "0"))
     return subject
@@ -290,10 +302,13 @@ def test_evaluate_skips_a_split_the_capture_cannot_measure(tmp_path):
     run_app(_cfg(tmp_path, "run.until=capture"))
     splits = {"novel_view": ("test", "test"), "self_reenact": ("test", "train"), "seen": ("train", "train")}
     why = _unmeasurable(capture, splits)
-    assert why == {"novel_view": "the capture has no 'test' sequence",
-                   "self_reenact": "the capture has no 'test' sequence"}
+    assert why == {
+        "novel_view": "the capture has no 'test' sequence",
+        "self_reenact": "the capture has no 'test' sequence",
+    }
     assert _unmeasurable(capture, {"x": ("train", "held_out")}) == {
-        "x": "the capture has no 'held_out' camera (a held-out view)"}
+        "x": "the capture has no 'held_out' camera (a held-out view)"
+    }
 
 
 def _square_top(frame: np.ndarray) -> int:
@@ -310,8 +325,9 @@ def test_frame_selection_imports_every_step_th_frame_from_the_start(tmp_path):
         write_video(video_path(subject, "train", cam.camera_id), _frames(i, n=7), 24.0)
         for t in range(7):
             write_png(mask_path(subject, "train", cam.camera_id, t), np.full((SIZE, SIZE), t, np.uint8))
-    run_app(_cfg(tmp_path, "run.until=capture", "dataset.start_frame=1", "dataset.frame_step=2",
-                 "dataset.max_frames=2"))
+    run_app(
+        _cfg(tmp_path, "run.until=capture", "dataset.start_frame=1", "dataset.frame_step=2", "dataset.max_frames=2")
+    )
     capture = tmp_path / "out" / "alice" / "capture"
     video = read_video(video_path(capture, "train", "cam01"))
     assert [_square_top(f) for f in video] == [12 + 1, 12 + 3]
@@ -323,14 +339,19 @@ def test_frame_selection_imports_every_step_th_frame_from_the_start(tmp_path):
 
 def test_a_video_shorter_than_the_frames_requested_is_one_clear_error(tmp_path):
     make_capture(tmp_path / "data")
-    with pytest.raises(StageFailed, match=r"train/videos: 3 frames, shorter than the frames requested "
-                                          r"\(dataset.start_frame=3\); lower dataset.start_frame"):
+    with pytest.raises(
+        StageFailed,
+        match=r"train/videos: 3 frames, shorter than the frames requested "
+        r"\(dataset.start_frame=3\); lower dataset.start_frame",
+    ):
         run_app(_cfg(tmp_path, "dataset.start_frame=3"))
     assert not (tmp_path / "out" / "alice" / "capture").exists()
     from pipeline.config import ConfigError
 
-    for bad, message in (("dataset.frame_step=0", "frame_step=0: must be >= 1"),
-                         ("dataset.max_frames=0", "max_frames=0: must be >= 1")):
+    for bad, message in (
+        ("dataset.frame_step=0", "frame_step=0: must be >= 1"),
+        ("dataset.max_frames=0", "max_frames=0: must be >= 1"),
+    ):
         with pytest.raises(ConfigError, match=message):  # refused before any stage runs
             run_app(_cfg(tmp_path, bad))
 
@@ -351,8 +372,9 @@ def test_crop_padding_past_the_image_is_labelled_unobserved(tmp_path):
     run_app(_cfg(tmp_path))
     frames_dir = tmp_path / "out" / "alice" / "frames"
     index = read_table(frames_dir / "index.parquet", FRAMES_INDEX)
-    for seq, cam, t, (x0, _y0, size), fraction in zip(index["sequence"], index["camera_id"], index["frame"],
-                                                     index["crop"], index["foreground_fraction"]):
+    for seq, cam, t, (x0, _y0, size), fraction in zip(
+        index["sequence"], index["camera_id"], index["frame"], index["crop"], index["foreground_fraction"]
+    ):
         labels = read_png(crop_mask_path(frames_dir, seq, cam, int(t)), 1)
         rgb = read_png(rgb_path(frames_dir, seq, cam, int(t)), 3)
         out = labels.shape[0]

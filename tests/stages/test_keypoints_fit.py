@@ -10,20 +10,29 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import stages.artifacts
 from data_schemas.images import read_png
 from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import read_table
 from pipeline.cli import run_app
 from pipeline.runner import StageFailed
-import stages.artifacts
 from stages.fit import refine_mode
 from tests.conftest import compose_cfg, record_crop_reads
 
 
 def test_ground_truth_source_reproduces_the_capture_and_noise_is_applied(tmp_path):
-    cfg = compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "run.until=fit", "run.progress=false",
-                       "fit.source=ground_truth", "stage.keypoints.pixel_noise=2.0", "stage.keypoints.drop_rate=0.2"])
+    cfg = compose_cfg(
+        [
+            f"paths.outputs={tmp_path}",
+            "quality=smoke",
+            "run.until=fit",
+            "run.progress=false",
+            "fit.source=ground_truth",
+            "stage.keypoints.pixel_noise=2.0",
+            "stage.keypoints.drop_rate=0.2",
+        ]
+    )
     run_app(cfg)
     root = tmp_path / "synth_a"
     report = json.loads((root / "fit" / "fit_report.json").read_text())
@@ -45,9 +54,18 @@ def test_ground_truth_source_reproduces_the_capture_and_noise_is_applied(tmp_pat
 
 
 def _refine_cfg(tmp_path, *extra: str):
-    return compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "run.progress=false", "fit.source=fitted",
-                        "stage.fit.refine=silhouette", "stage.fit.refinement.iterations=3",
-                        "stage.fit.refinement.render_size=32", *extra])
+    return compose_cfg(
+        [
+            f"paths.outputs={tmp_path}",
+            "quality=smoke",
+            "run.progress=false",
+            "fit.source=fitted",
+            "stage.fit.refine=silhouette",
+            "stage.fit.refinement.iterations=3",
+            "stage.fit.refinement.render_size=32",
+            *extra,
+        ]
+    )
 
 
 def _upstream_of_fit(tmp_path) -> None:
@@ -76,7 +94,7 @@ def test_refined_fit_reads_only_the_train_views_and_reports_both_fits(tmp_path, 
     assert max(refinement["moved_mm"]["face"]) > 0
     overlay = read_png(root / "fit" / "train" / "refinement.png", 3)  # keypoint fit red, refined green
     assert overlay.shape == (64, 64, 3)
-    assert ((overlay == (255, 64, 64)).all(-1).any() and (overlay == (64, 255, 64)).all(-1).any())
+    assert (overlay == (255, 64, 64)).all(-1).any() and (overlay == (64, 255, 64)).all(-1).any()
 
 
 def test_empty_masks_are_one_clear_error(tmp_path, monkeypatch):

@@ -17,8 +17,13 @@ from pipeline.cli import run_app
 from stages.posing import posed_sequence, templates
 from tests.conftest import compose_cfg
 
-SMALL = ["quality=smoke", "quality.capture_size=48", "stage.capture.num_cameras=3", "fit.source=ground_truth",
-         "run.progress=false"]
+SMALL = [
+    "quality=smoke",
+    "quality.capture_size=48",
+    "stage.capture.num_cameras=3",
+    "fit.source=ground_truth",
+    "run.progress=false",
+]
 
 
 def _run(out: Path, *extra: str) -> dict:
@@ -65,8 +70,9 @@ def test_shared_loader_adds_the_offsets_to_the_face_only(simulated: tuple[Path, 
     dented = posed_sequence(root / "fit", "train", cfg, root / "pbd").meshes
     num_face = templates(cfg.model)[0].num_vertices
     offsets = np.asarray(read_table(root / "pbd" / "train" / "deform.parquet", DEFORM)["offsets"])
-    np.testing.assert_allclose((dented.vertices - plain.vertices)[:, :num_face].numpy(),
-                               offsets.reshape(len(offsets), num_face, 3), atol=1e-6)
+    np.testing.assert_allclose(
+        (dented.vertices - plain.vertices)[:, :num_face].numpy(), offsets.reshape(len(offsets), num_face, 3), atol=1e-6
+    )
     assert np.array_equal(dented.vertices[:, num_face:].numpy(), plain.vertices[:, num_face:].numpy())
 
 

@@ -10,8 +10,10 @@ from stages.report import pareto_front
 def _brute(cost: np.ndarray, quality: np.ndarray) -> np.ndarray:
     keep = []
     for i in range(len(cost)):
-        beaten = any(cost[j] <= cost[i] and quality[j] >= quality[i] and (cost[j] < cost[i] or quality[j] > quality[i])
-                     for j in range(len(cost)))
+        beaten = any(
+            cost[j] <= cost[i] and quality[j] >= quality[i] and (cost[j] < cost[i] or quality[j] > quality[i])
+            for j in range(len(cost))
+        )
         keep.append(not beaten)
     return np.array(keep)
 

@@ -15,10 +15,16 @@ from stages.report import _validation_section
 def _curve(folder: Path, lpips: list[float] | None) -> Path:
     folder.mkdir(parents=True)
     n = 3 if lpips is None else len(lpips)
-    write_table(folder / "curve.parquet", CURVE, {
-        "step": np.arange(n, dtype=np.int64) * 10, "wall_s": np.arange(n, dtype=np.float64),
-        "psnr": 25.0 + np.arange(n, dtype=np.float64),
-        "lpips": np.array(lpips if lpips is not None else [math.nan] * n, dtype=np.float64)})
+    write_table(
+        folder / "curve.parquet",
+        CURVE,
+        {
+            "step": np.arange(n, dtype=np.int64) * 10,
+            "wall_s": np.arange(n, dtype=np.float64),
+            "psnr": 25.0 + np.arange(n, dtype=np.float64),
+            "lpips": np.array(lpips if lpips is not None else [math.nan] * n, dtype=np.float64),
+        },
+    )
     return folder
 
 

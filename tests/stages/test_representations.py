@@ -33,8 +33,14 @@ from stages.dependencies import unused_training_settings
 from stages.export_ply import export_frame
 from stages.posing import PosedSequence
 from stages.representations import (
-    CanonicalGaussians, Progress, Representation, load_trained, representation, representation_class,
-    write_model_info, write_train_plys,
+    CanonicalGaussians,
+    Progress,
+    Representation,
+    load_trained,
+    representation,
+    representation_class,
+    write_model_info,
+    write_train_plys,
 )
 from stages.representations.bound import BoundRepresentation, load_gaussians, write_bound_gaussians
 from stages.representations.embedded import EmbeddedRepresentation
@@ -76,15 +82,33 @@ class WarmupOnly(Representation):
     own_settings: ClassVar[tuple[str, ...]] = ()
     refines_tracking: ClassVar[bool] = False
     train_logs: ClassVar[dict[str, tuple[TableSchema, tuple[str, ...]]]] = {
-        "warmup": (TRAIN_LOG, ("loss", "l1", "dssim"))}
+        "warmup": (TRAIN_LOG, ("loss", "l1", "dssim"))
+    }
 
-    def populate(self, canonical: torch.Tensor, meshes: MeshSequence, per_triangle: int, *, init_opacity: float,
-                 seed: int, populate: torch.Tensor | None) -> BoundGaussians:
-        return BoundRepresentation(self.cfg).populate(canonical, meshes, per_triangle, init_opacity=init_opacity,
-                                                      seed=seed, populate=populate)
+    def populate(
+        self,
+        canonical: torch.Tensor,
+        meshes: MeshSequence,
+        per_triangle: int,
+        *,
+        init_opacity: float,
+        seed: int,
+        populate: torch.Tensor | None,
+    ) -> BoundGaussians:
+        return BoundRepresentation(self.cfg).populate(
+            canonical, meshes, per_triangle, init_opacity=init_opacity, seed=seed, populate=populate
+        )
 
-    def warm_up(self, ctx: StageContext, model: CanonicalGaussians, views: ViewSet, meshes: MeshSequence,
-                params: FrameParams | None, validator: Validator, progress: Progress) -> float:
+    def warm_up(
+        self,
+        ctx: StageContext,
+        model: CanonicalGaussians,
+        views: ViewSet,
+        meshes: MeshSequence,
+        params: FrameParams | None,
+        validator: Validator,
+        progress: Progress,
+    ) -> float:
         return BoundRepresentation(self.cfg).warm_up(ctx, model, views, meshes, params, validator, progress)
 
     def train(self, ctx: StageContext, views: ViewSet, posed: PosedSequence) -> None:
@@ -95,8 +119,9 @@ class WarmupOnly(Representation):
         torch.save({"faces": meshes.faces}, buffer)
         write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "the mesh's triangles")
         write_model_info(ctx.out_dir, self, {"part_names": list(meshes.part_names)}, "the warm-up-only model")
-        write_train_plys(ctx, WarmupOnlyAvatar(gaussians, meshes.faces), posed.conditioning(self.cfg), meshes,
-                         views.num_frames)
+        write_train_plys(
+            ctx, WarmupOnlyAvatar(gaussians, meshes.faces), posed.conditioning(self.cfg), meshes, views.num_frames
+        )
         write_records(ctx.out_dir / "train_log.parquet", TRAIN_LOG, [])
         record_validation(ctx, Validator(validation_config(self.cfg.stage.dynamic.validation), views))
         record_refinement(ctx, load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE), posed.params, None)
@@ -116,10 +141,12 @@ def test_the_registry_resolves_built_in_names_and_module_paths() -> None:
     assert representation_class("bound") is BoundRepresentation
     assert representation_class("embedded") is EmbeddedRepresentation
     assert representation_class(PLUGIN) is WarmupOnly
-    for name, expected in (("nosuch", "unknown representation; use one of bound, embedded"),
-                           ("no.such.module:Thing", "cannot import no.such.module:Thing"),
-                           (f"{__name__}:Missing", f"cannot import {__name__}:Missing"),
-                           (f"{__name__}:NotARepresentation", "is not a subclass of")):
+    for name, expected in (
+        ("nosuch", "unknown representation; use one of bound, embedded"),
+        ("no.such.module:Thing", "cannot import no.such.module:Thing"),
+        (f"{__name__}:Missing", f"cannot import {__name__}:Missing"),
+        (f"{__name__}:NotARepresentation", "is not a subclass of"),
+    ):
         with pytest.raises(ValueError, match=f"method.representation={name}: .*{expected}"):
             representation_class(name)
 
@@ -131,15 +158,22 @@ def test_the_training_keys_hold_only_the_chosen_representations_settings() -> No
     assert unused_training_settings(compose_cfg([*base, f"method.representation={PLUGIN}"])) == ("splatting",)
 
 
-@pytest.mark.parametrize(("overrides", "expected"), [
-    (["method.representation=nosuch"], "method.representation=nosuch: unknown representation"),
-    # on the previous code these failed only in stage two, after the warm-up had trained
-    (["method=splatting_avatar", "stage.dynamic.hand_mlp=true"],
-     "stage.dynamic.hand_mlp=true: method.representation=embedded (SplattingAvatar) has no hand or interaction"),
-    (["method=splatting_avatar", "stage.dynamic.select.enabled=true"], "stage.dynamic.select.enabled=true"),
-    (["method=splatting_avatar", "stage.warmup.refine_params=true"],
-     "stage.warmup.refine_params=true: SplattingAvatar (method.representation=embedded) does not refine"),
-])
+@pytest.mark.parametrize(
+    ("overrides", "expected"),
+    [
+        (["method.representation=nosuch"], "method.representation=nosuch: unknown representation"),
+        # on the previous code these failed only in stage two, after the warm-up had trained
+        (
+            ["method=splatting_avatar", "stage.dynamic.hand_mlp=true"],
+            "stage.dynamic.hand_mlp=true: method.representation=embedded (SplattingAvatar) has no hand or interaction",
+        ),
+        (["method=splatting_avatar", "stage.dynamic.select.enabled=true"], "stage.dynamic.select.enabled=true"),
+        (
+            ["method=splatting_avatar", "stage.warmup.refine_params=true"],
+            "stage.warmup.refine_params=true: SplattingAvatar (method.representation=embedded) does not refine",
+        ),
+    ],
+)
 def test_what_a_representation_cannot_train_with_is_refused_before_any_stage_runs(overrides, expected) -> None:
     with pytest.raises(ConfigError) as info:
         validate_config(compose_cfg(["quality=smoke", *overrides]), REGISTRY)
@@ -147,8 +181,15 @@ def test_what_a_representation_cannot_train_with_is_refused_before_any_stage_run
 
 
 def test_the_built_in_representations_accept_their_methods() -> None:
-    for method in ("interactavatar", "gaussian_avatars", "splatting_avatar", "no_hand_mlp", "no_interaction",
-                   "no_pbd", "no_patch"):
+    for method in (
+        "interactavatar",
+        "gaussian_avatars",
+        "splatting_avatar",
+        "no_hand_mlp",
+        "no_interaction",
+        "no_pbd",
+        "no_patch",
+    ):
         cfg = compose_cfg(["quality=smoke", f"method={method}"])
         validate_config(cfg, REGISTRY)
         assert representation(cfg).problems() == []
@@ -157,15 +198,27 @@ def test_the_built_in_representations_accept_their_methods() -> None:
 def test_a_representation_defined_in_a_test_trains_is_evaluated_and_exported(tmp_path: Path) -> None:
     """Named by its module path in ``method.representation``: the warm-up trains it, stage two calls its ``train``,
     evaluate and the PLY export load it by what its ``model.json`` records and pose it through its avatar."""
-    run_app(compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "run.progress=false",
-                         "fit.source=ground_truth", "method=gaussian_avatars", "method.name=warmup_only",
-                         f"method.representation={PLUGIN}", "run.until=evaluate"]))
+    run_app(
+        compose_cfg(
+            [
+                f"paths.outputs={tmp_path}",
+                "quality=smoke",
+                "run.progress=false",
+                "fit.source=ground_truth",
+                "method=gaussian_avatars",
+                "method.name=warmup_only",
+                f"method.representation={PLUGIN}",
+                "run.until=evaluate",
+            ]
+        )
+    )
     method = tmp_path / "synth_a" / "methods" / "warmup_only"
     assert json.loads((method / "dynamic" / "model.json").read_text())["representation"] == PLUGIN
     assert isinstance(load_trained(method / "dynamic"), WarmupOnlyAvatar)
     # stage two changed nothing: its train frame 0 is the warm-up's own PLY of frame 0
-    warm, second = (read_gaussians_ply(p) for p in (method / "warmup" / "gaussians.ply",
-                                                     method / "dynamic" / "ply" / "train_0.ply"))
+    warm, second = (
+        read_gaussians_ply(p) for p in (method / "warmup" / "gaussians.ply", method / "dynamic" / "ply" / "train_0.ply")
+    )
     np.testing.assert_allclose(second.means, warm.means, atol=1e-6)
     metrics = read_table(method / "evaluate" / "metrics.parquet", METRICS)
     full = np.asarray(metrics["region"]) == "full"

@@ -16,8 +16,14 @@ from data_schemas.tables import read_table
 from pipeline.cli import run_app
 from tests.conftest import compose_cfg
 
-SMALL = ["quality=smoke", "quality.capture_size=48", "stage.capture.num_cameras=3", "fit.source=ground_truth",
-         "run.progress=false", "stage.capture.cross_reenactment=false"]
+SMALL = [
+    "quality=smoke",
+    "quality.capture_size=48",
+    "stage.capture.num_cameras=3",
+    "fit.source=ground_truth",
+    "run.progress=false",
+    "stage.capture.cross_reenactment=false",
+]
 
 
 def _run(out: Path, *extra: str, until: str = "pbd") -> dict:

@@ -13,16 +13,17 @@ from omegaconf import OmegaConf
 
 from data_schemas.gaussians_ply import read_gaussians_ply
 from pipeline.cli import run_app
+from stages.artifacts import load_params, read_params
 from stages.export_ply import export_frame
 from stages.report import _trained_tracking_section
-from stages.artifacts import load_params, read_params
 from stages.training_settings import refines_params
 from tests.conftest import compose_cfg, record_crop_reads
 
 
 def _cfg(tmp_path: Path, *extra: str):
-    return compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "run.progress=false",
-                        "fit.source=ground_truth", *extra])
+    return compose_cfg(
+        [f"paths.outputs={tmp_path}", "quality=smoke", "run.progress=false", "fit.source=ground_truth", *extra]
+    )
 
 
 def _metrics(stage_dir: Path) -> dict:
@@ -47,16 +48,20 @@ def test_auto_leaves_the_truth_and_a_forced_refinement_reads_only_train_views_an
     assert not [p for p in read if set(p.parts) & set(held_out)], "training read the held-out camera's crops"
     # the report shows the correction per frame and both meshes over a training view
     cfg = _cfg(tmp_path, *on)
-    ctx = SimpleNamespace(cfg=cfg,
-                          input_dir=lambda name: method / name if name in ("warmup", "dynamic") else root / name)
-    page = _trained_tracking_section(ctx, {name: json.loads((method / name / "_manifest.json").read_text())
-                                           for name in ("warmup", "dynamic")})
+    ctx = SimpleNamespace(
+        cfg=cfg, input_dir=lambda name: method / name if name in ("warmup", "dynamic") else root / name
+    )
+    page = _trained_tracking_section(
+        ctx, {name: json.loads((method / name / "_manifest.json").read_text()) for name in ("warmup", "dynamic")}
+    )
     assert "Training refined the train motion's parameters with the avatar (warmup and dynamic" in page
     assert page.count("<tr>") == 1 + 6 and "data:image/png;base64" in page  # a row per frame, the outline figure
     # what consumes the train motion poses it as refined: the export of a train frame is stage two's own PLY
     export_frame(root, "train", 0, tmp_path / "train_0.ply")
-    np.testing.assert_array_equal(read_gaussians_ply(tmp_path / "train_0.ply").means,
-                                  read_gaussians_ply(method / "dynamic" / "ply" / "train_0.ply").means)
+    np.testing.assert_array_equal(
+        read_gaussians_ply(tmp_path / "train_0.ply").means,
+        read_gaussians_ply(method / "dynamic" / "ply" / "train_0.ply").means,
+    )
     for stage in ("warmup", "dynamic"):
         metrics = _metrics(method / stage)
         assert metrics["params_refined"] is True
@@ -74,16 +79,27 @@ def test_auto_leaves_the_truth_and_a_forced_refinement_reads_only_train_views_an
 
 
 def _rule_cfg(source: str, detector: str = "mediapipe", representation: str = "bound"):
-    return OmegaConf.create({"fit": {"source": source}, "stage": {"keypoints": {"detector": detector}},
-                             "method": {"representation": representation}})
+    return OmegaConf.create(
+        {
+            "fit": {"source": source},
+            "stage": {"keypoints": {"detector": detector}},
+            "method": {"representation": representation},
+        }
+    )
 
 
-@pytest.mark.parametrize(("cfg", "setting", "expected"), [
-    (_rule_cfg("fitted"), "auto", True), (_rule_cfg("provided", "ground_truth"), "auto", True),
-    (_rule_cfg("fitted", "ground_truth"), "auto", False), (_rule_cfg("ground_truth"), "auto", False),
-    (_rule_cfg("ground_truth"), True, True), (_rule_cfg("fitted"), False, False),
-    (_rule_cfg("fitted", representation="embedded"), "auto", False),
-])
+@pytest.mark.parametrize(
+    ("cfg", "setting", "expected"),
+    [
+        (_rule_cfg("fitted"), "auto", True),
+        (_rule_cfg("provided", "ground_truth"), "auto", True),
+        (_rule_cfg("fitted", "ground_truth"), "auto", False),
+        (_rule_cfg("ground_truth"), "auto", False),
+        (_rule_cfg("ground_truth"), True, True),
+        (_rule_cfg("fitted"), False, False),
+        (_rule_cfg("fitted", representation="embedded"), "auto", False),
+    ],
+)
 def test_auto_refines_detected_or_provided_tracking_of_bound_gaussians(cfg, setting, expected):
     assert refines_params(cfg, OmegaConf.create({"refine_params": setting})) is expected
 

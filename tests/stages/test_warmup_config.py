@@ -20,8 +20,14 @@ BAD_OPACITIES = ["0", "1", "1.5", "nan"]
 @pytest.mark.parametrize("value", BAD_OPACITIES)
 def test_init_opacity_outside_the_open_unit_interval_fails_before_any_stage(tmp_path: Path, value: str):
     # 0 and 1 give infinite opacity logits, which training used to reset silently.
-    cfg = compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true",
-                       f"stage.warmup.init_opacity={value}"])
+    cfg = compose_cfg(
+        [
+            f"paths.outputs={tmp_path / 'out'}",
+            "run.progress=false",
+            "run.dry=true",
+            f"stage.warmup.init_opacity={value}",
+        ]
+    )
     with pytest.raises(ConfigError) as info:
         run_app(cfg)
     lines = [line for line in str(info.value).splitlines() if "init_opacity" in line]

@@ -15,8 +15,7 @@ from avatar.synthetic.identity import make_identity, motion_style
 from avatar.synthetic.shading import srgb_encode
 from avatar.templates.head import NUM_DESIGNED_SHAPE
 
-SMALL = SyntheticConfig(subject="synth_a", sequence="train", image_size=48, num_frames=5, supersample=1,
-                        num_cameras=3)
+SMALL = SyntheticConfig(subject="synth_a", sequence="train", image_size=48, num_frames=5, supersample=1, num_cameras=3)
 
 
 @pytest.fixture(scope="module")
@@ -58,8 +57,11 @@ def test_pressed_blanches_the_dented_skin_and_leaves_every_other_frame_alone(cap
     for cid in full.frames:
         for t in np.flatnonzero(~full.contact):
             np.testing.assert_array_equal(pressed.frames[cid][t], full.frames[cid][t])
-    lighter = [(pressed.frames[cid][t].astype(int) - full.frames[cid][t].astype(int))[full.masks[cid][t] == 1].sum()
-               for cid in full.frames for t in np.flatnonzero(full.contact)]
+    lighter = [
+        (pressed.frames[cid][t].astype(int) - full.frames[cid][t].astype(int))[full.masks[cid][t] == 1].sum()
+        for cid in full.frames
+        for t in np.flatnonzero(full.contact)
+    ]
     assert max(lighter) > 0 and min(lighter) >= 0
 
 
@@ -89,8 +91,10 @@ def test_the_third_identity_differs_more_than_the_first_two_differ() -> None:
         assert np.linalg.norm(seen(getattr(c, field)) - seen(getattr(a, field))) > ab, field
         assert np.linalg.norm(seen(getattr(c, field)) - seen(getattr(b, field))) > ab, field
     assert motion_style("synth_a") == motion_style("synth_b") != motion_style("synth_c")
-    head = {s: generate(replace(SMALL, subject=s, image_size=16, num_cameras=2)).params["flame_global_orient"]
-            for s in SUBJECTS}
+    head = {
+        s: generate(replace(SMALL, subject=s, image_size=16, num_cameras=2)).params["flame_global_orient"]
+        for s in SUBJECTS
+    }
     ab = np.abs(head["synth_a"] - head["synth_b"]).mean()
     assert np.abs(head["synth_c"] - head["synth_a"]).mean() > ab
     assert np.abs(head["synth_c"] - head["synth_b"]).mean() > ab

@@ -21,8 +21,15 @@ from stages.fit import ABSENT_HAND_DROP_M
 from tests.conftest import compose_cfg
 
 SMALL = dict(subject="synth_a", sequence="train", image_size=32, num_frames=6, num_cameras=4)
-FLAME_KEYS = ("flame_shape", "flame_expression", "flame_global_orient", "flame_neck_pose",
-              "flame_jaw_pose", "flame_eye_pose", "flame_transl")
+FLAME_KEYS = (
+    "flame_shape",
+    "flame_expression",
+    "flame_global_orient",
+    "flame_neck_pose",
+    "flame_jaw_pose",
+    "flame_eye_pose",
+    "flame_transl",
+)
 MANO_KEYS = ("mano_shape", "mano_hand_pose", "mano_global_orient", "mano_transl")
 HAND_LABEL, FACE_LABEL = 2, 1
 #: The paper's interaction radius d_max is 0.05 m; no_contact keeps the hand beyond this.
@@ -46,8 +53,11 @@ def _mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) 
     nearest, _ = tree.query(points)
     reach = nearest.min() + edge
     near = np.flatnonzero(nearest <= reach)
-    pairs = [(i, f) for i, verts in zip(near, tree.query_ball_point(points[near], reach))
-             for f in np.flatnonzero(np.isin(faces, verts).any(axis=1))]
+    pairs = [
+        (i, f)
+        for i, verts in zip(near, tree.query_ball_point(points[near], reach))
+        for f in np.flatnonzero(np.isin(faces, verts).any(axis=1))
+    ]
     point_ids, face_ids = np.array(pairs).T
     closest = closest_point(vertices[faces[face_ids]], points[point_ids])
     return float(np.linalg.norm(closest - points[point_ids], axis=1).min())
@@ -122,10 +132,23 @@ def test_unknown_scene_names_the_allowed_ones() -> None:
 
 
 def test_fit_of_a_face_only_capture_writes_a_placeholder_hand(tmp_path: Path) -> None:
-    cfg = compose_cfg([f"paths.outputs={tmp_path}", "quality=smoke", "run.until=fit", "run.progress=false",
-                       "fit.source=fitted", "dataset.scene=face_only", "stage.capture.cross_reenactment=false",
-                       "stage.capture.num_cameras=4", "quality.capture_size=48", "quality.num_frames_train=3",
-                       "quality.num_frames_test=2", "stage.fit.coarse_iterations=5", "stage.fit.fine_iterations=5"])
+    cfg = compose_cfg(
+        [
+            f"paths.outputs={tmp_path}",
+            "quality=smoke",
+            "run.until=fit",
+            "run.progress=false",
+            "fit.source=fitted",
+            "dataset.scene=face_only",
+            "stage.capture.cross_reenactment=false",
+            "stage.capture.num_cameras=4",
+            "quality.capture_size=48",
+            "quality.num_frames_train=3",
+            "quality.num_frames_test=2",
+            "stage.fit.coarse_iterations=5",
+            "stage.fit.fine_iterations=5",
+        ]
+    )
     run_app(cfg)
     fit_dir = tmp_path / "synth_a" / "fit"
     report = json.loads((fit_dir / "fit_report.json").read_text())
@@ -137,5 +160,6 @@ def test_fit_of_a_face_only_capture_writes_a_placeholder_hand(tmp_path: Path) ->
         params = read_table(fit_dir / seq / "params.parquet", PARAMS)
         for key in MANO_KEYS[:3]:
             assert not np.asarray(params[key]).any(), key
-        np.testing.assert_allclose(np.asarray(params["mano_transl"]),
-                                   np.asarray(params["flame_transl"]) - [0.0, ABSENT_HAND_DROP_M, 0.0])
+        np.testing.assert_allclose(
+            np.asarray(params["mano_transl"]), np.asarray(params["flame_transl"]) - [0.0, ABSENT_HAND_DROP_M, 0.0]
+        )

@@ -29,8 +29,9 @@ def frames(request: pytest.FixtureRequest) -> list[tuple[np.ndarray, np.ndarray,
     head, hand = procedural_head(), procedural_hand()
     out = []
     for sequence, count in DRAFT_FRAMES.items():
-        cap = generate(SyntheticConfig(request.param, sequence, image_size=16, num_frames=count, supersample=1,
-                                       num_cameras=2))
+        cap = generate(
+            SyntheticConfig(request.param, sequence, image_size=16, num_frames=count, supersample=1, num_cameras=2)
+        )
         posed = posed_keypoints(cap.params, head, hand)
         out += list(zip(posed["face_vertices"], posed["hand_vertices"], cap.face_offsets, cap.contact))
     return out

@@ -14,8 +14,15 @@ from avatar.templates.layers import FLAMELayer, MANOLayer
 from avatar.templates.procedural import procedural_hand, procedural_head
 
 SIZE, FRAMES = 40, 6
-FLAME_KEYS = ("flame_shape", "flame_expression", "flame_global_orient", "flame_neck_pose",
-              "flame_jaw_pose", "flame_eye_pose", "flame_transl")
+FLAME_KEYS = (
+    "flame_shape",
+    "flame_expression",
+    "flame_global_orient",
+    "flame_neck_pose",
+    "flame_jaw_pose",
+    "flame_eye_pose",
+    "flame_transl",
+)
 MANO_KEYS = ("mano_shape", "mano_hand_pose", "mano_global_orient", "mano_transl")
 
 
@@ -76,9 +83,17 @@ def test_shapes_and_dtypes(train_a: SyntheticCapture) -> None:
         kp = cap.keypoints[cam.camera_id]
         assert kp["hand"].shape == (t, 21, 3) and kp["face"].shape == (t, 68, 3)
         assert set(np.unique(kp["hand"][..., 2])) <= {0.0, 1.0}
-    widths = {"flame_global_orient": 3, "flame_neck_pose": 3, "flame_jaw_pose": 3, "flame_eye_pose": 6,
-              "flame_transl": 3, "mano_shape": 10, "mano_hand_pose": 45, "mano_global_orient": 3,
-              "mano_transl": 3}
+    widths = {
+        "flame_global_orient": 3,
+        "flame_neck_pose": 3,
+        "flame_jaw_pose": 3,
+        "flame_eye_pose": 6,
+        "flame_transl": 3,
+        "mano_shape": 10,
+        "mano_hand_pose": 45,
+        "mano_global_orient": 3,
+        "mano_transl": 3,
+    }
     assert set(cap.params) == set(FLAME_KEYS) | set(MANO_KEYS)
     for key, value in cap.params.items():
         assert value.ndim == 2 and value.shape[0] == t and np.isfinite(value).all()
@@ -144,8 +159,12 @@ def test_keypoints_reproject_and_mostly_lie_in_the_image(train_a: SyntheticCaptu
         assert in_image[stored[..., 2] == 1].all()
     assert good_views >= 6
     vis = np.concatenate([k["hand"][..., 2].ravel() for k in train_a.keypoints.values()])
-    in_img = np.concatenate([(((k["hand"][..., :2] >= 0) & (k["hand"][..., :2] < SIZE)).all(-1)).ravel()
-                             for k in train_a.keypoints.values()])
+    in_img = np.concatenate(
+        [
+            (((k["hand"][..., :2] >= 0) & (k["hand"][..., :2] < SIZE)).all(-1)).ravel()
+            for k in train_a.keypoints.values()
+        ]
+    )
     assert 0.1 < vis.mean() < 0.95 and (in_img & (vis == 0)).any()
 
 

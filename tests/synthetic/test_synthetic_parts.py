@@ -81,8 +81,9 @@ def _plane(half: float = 0.035, step: float = 0.0025) -> tuple[torch.Tensor, tor
     gx, gy = np.meshgrid(xs, xs)
     n = xs.size
     corner = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None]).ravel()
-    faces = np.concatenate([np.stack([corner, corner + 1, corner + n + 1], 1),
-                            np.stack([corner, corner + n + 1, corner + n], 1)])
+    faces = np.concatenate(
+        [np.stack([corner, corner + 1, corner + n + 1], 1), np.stack([corner, corner + n + 1, corner + n], 1)]
+    )
     return torch.as_tensor(np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])), torch.as_tensor(faces)
 
 
@@ -122,8 +123,9 @@ def test_soft_tissue_compliance_and_no_contact() -> None:
     assert soft.norm(dim=1).sum() > 2 * stiff.norm(dim=1).sum()
     face, faces = _plane()
     far, far_faces = _sphere(0.012, (0.0, 0.0, 0.0125))
-    assert (contact_offsets(face, faces, torch.full((face.shape[0],), 0.02, dtype=torch.float64),
-                            far, far_faces) == 0).all()
+    assert (
+        contact_offsets(face, faces, torch.full((face.shape[0],), 0.02, dtype=torch.float64), far, far_faces) == 0
+    ).all()
 
 
 def test_membrane_matrix_is_a_symmetric_m_matrix() -> None:
@@ -156,8 +158,14 @@ def test_signorini_magnitudes_solve_the_contact_problem() -> None:
     bounds = [(None, None)] * w.numel()
     for i, m in zip(pressed.tolist(), minimum.tolist()):
         bounds[i] = (m, None)
-    ref = scipy.optimize.minimize(lambda v: (0.5 * v @ H @ v, H @ v), np.full(w.numel(), 1e-3), jac=True,
-                                  method="L-BFGS-B", bounds=bounds, options={"ftol": 1e-15, "gtol": 1e-12})
+    ref = scipy.optimize.minimize(
+        lambda v: (0.5 * v @ H @ v, H @ v),
+        np.full(w.numel(), 1e-3),
+        jac=True,
+        method="L-BFGS-B",
+        bounds=bounds,
+        options={"ftol": 1e-15, "gtol": 1e-12},
+    )
     np.testing.assert_allclose(w.numpy(), ref.x, atol=2e-6)
 
 

@@ -22,9 +22,11 @@ def test_pca_pose_equals_full_pose(hand: TemplateModel) -> None:
     pose = coeffs @ torch.as_tensor(np.array(hand.hands_components[:12]))
     np.testing.assert_allclose(pca(betas, coeffs).vertices.numpy(), full(betas, pose).vertices.numpy(), atol=1e-12)
     relaxed = MANOLayer(hand, flat_hand_mean=False)
-    np.testing.assert_allclose(relaxed(betas, _zeros(2, 45)).vertices.numpy(),
-                               full(betas, torch.as_tensor(np.tile(hand.hands_mean, (2, 1)))).vertices.numpy(),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        relaxed(betas, _zeros(2, 45)).vertices.numpy(),
+        full(betas, torch.as_tensor(np.tile(hand.hands_mean, (2, 1)))).vertices.numpy(),
+        atol=1e-12,
+    )
 
 
 def test_keypoints21_openpose_order(hand: TemplateModel) -> None:

@@ -41,21 +41,37 @@ def _t(a: np.ndarray, dtype: torch.dtype = torch.float64) -> torch.Tensor:
 
 
 def _random_hand_inputs(rng: np.random.Generator, batch: int = 1) -> dict[str, np.ndarray]:
-    return {"betas": rng.normal(0, 1.0, (batch, 10)), "hand_pose": rng.normal(0, 0.4, (batch, 45)),
-            "global_orient": rng.normal(0, 0.5, (batch, 3)), "transl": rng.normal(0, 0.1, (batch, 3))}
+    return {
+        "betas": rng.normal(0, 1.0, (batch, 10)),
+        "hand_pose": rng.normal(0, 0.4, (batch, 45)),
+        "global_orient": rng.normal(0, 0.5, (batch, 3)),
+        "transl": rng.normal(0, 0.1, (batch, 3)),
+    }
 
 
 def _random_head_inputs(rng: np.random.Generator, batch: int = 1, num_shape: int = 10) -> dict[str, np.ndarray]:
-    return {"shape": rng.normal(0, 1.0, (batch, num_shape)), "expression": rng.normal(0, 1.0, (batch, 10)),
-            "global_orient": rng.normal(0, 0.3, (batch, 3)), "neck_pose": rng.normal(0, 0.3, (batch, 3)),
-            "jaw_pose": np.abs(rng.normal(0, 0.2, (batch, 3))), "eye_pose": rng.normal(0, 0.2, (batch, 6)),
-            "transl": rng.normal(0, 0.1, (batch, 3))}
+    return {
+        "shape": rng.normal(0, 1.0, (batch, num_shape)),
+        "expression": rng.normal(0, 1.0, (batch, 10)),
+        "global_orient": rng.normal(0, 0.3, (batch, 3)),
+        "neck_pose": rng.normal(0, 0.3, (batch, 3)),
+        "jaw_pose": np.abs(rng.normal(0, 0.2, (batch, 3))),
+        "eye_pose": rng.normal(0, 0.2, (batch, 6)),
+        "transl": rng.normal(0, 0.1, (batch, 3)),
+    }
 
 
 def test_batch_rodrigues_matches_scipy() -> None:
     rng = np.random.default_rng(0)
-    rotvecs = np.concatenate([rng.normal(0, 1.5, (50, 3)), rng.normal(0, 1e-9, (5, 3)), np.zeros((1, 3)),
-                              np.array([[np.pi - 1e-6, 0, 0], [0, 0, 3 * np.pi / 2]]), rng.normal(0, 5e-3, (5, 3))])
+    rotvecs = np.concatenate(
+        [
+            rng.normal(0, 1.5, (50, 3)),
+            rng.normal(0, 1e-9, (5, 3)),
+            np.zeros((1, 3)),
+            np.array([[np.pi - 1e-6, 0, 0], [0, 0, 3 * np.pi / 2]]),
+            rng.normal(0, 5e-3, (5, 3)),
+        ]
+    )
     got = batch_rodrigues(_t(rotvecs)).numpy()
     np.testing.assert_allclose(got, Rotation.from_rotvec(rotvecs).as_matrix(), atol=1e-12)
 
@@ -158,9 +174,18 @@ def test_mano_layer_gradcheck(hand: TemplateModel) -> None:
 
 def test_gradient_finite_at_zero_pose(head: TemplateModel) -> None:
     flame = FLAMELayer(head, 10, 10)
-    inputs = {k: torch.zeros(2, n, dtype=torch.float64, requires_grad=True) for k, n in
-              (("shape", 10), ("expression", 10), ("global_orient", 3), ("neck_pose", 3), ("jaw_pose", 3),
-               ("eye_pose", 6), ("transl", 3))}
+    inputs = {
+        k: torch.zeros(2, n, dtype=torch.float64, requires_grad=True)
+        for k, n in (
+            ("shape", 10),
+            ("expression", 10),
+            ("global_orient", 3),
+            ("neck_pose", 3),
+            ("jaw_pose", 3),
+            ("eye_pose", 6),
+            ("transl", 3),
+        )
+    }
     flame(**inputs).vertices.square().sum().backward()
     assert all(torch.isfinite(t.grad).all() for t in inputs.values())
 

@@ -45,16 +45,18 @@ def _ch(cls: type, **state: Any) -> Any:
     return obj
 
 
-def write_official_pickle(model: TemplateModel, path: Path, drop: tuple[str, ...] = (),
-                          weights_dtype: type = np.float64) -> None:
+def write_official_pickle(
+    model: TemplateModel, path: Path, drop: tuple[str, ...] = (), weights_dtype: type = np.float64
+) -> None:
     """Dump a model in the official key layout, with chumpy wrappers and a sparse regressor."""
     with fake_chumpy() as chumpy:
         kintree = np.array(model.kintree_table).astype(np.uint32)  # root parent -> 4294967295
         data: dict[str, Any] = {
             "v_template": _ch(chumpy.Ch, x=np.array(model.v_template), _dirty_vars=set()),
             "shapedirs": _ch(chumpy.Ch, x=np.array(model.shapedirs)),
-            "posedirs": _ch(chumpy.Reshape, a=_ch(chumpy.Ch, x=np.array(model.posedirs).ravel()),
-                            newshape=model.posedirs.shape),
+            "posedirs": _ch(
+                chumpy.Reshape, a=_ch(chumpy.Ch, x=np.array(model.posedirs).ravel()), newshape=model.posedirs.shape
+            ),
             "J_regressor": sp.csc_matrix(np.array(model.J_regressor)),
             "weights": _ch(chumpy.Ch, x=np.array(model.weights).astype(weights_dtype)),
             "kintree_table": kintree,
@@ -86,8 +88,9 @@ def test_mano_round_trip_without_chumpy(hand: TemplateModel, tmp_path: Path) -> 
     assert loaded.kintree_table[0, 0] == -1
     # A non-official vertex count: fingertips found from the skinning, one per finger chain.
     assert loaded.tip_vertex_ids.shape == (5,)
-    np.testing.assert_allclose(loaded.v_template[loaded.tip_vertex_ids], hand.v_template[hand.tip_vertex_ids],
-                               atol=0.004)
+    np.testing.assert_allclose(
+        loaded.v_template[loaded.tip_vertex_ids], hand.v_template[hand.tip_vertex_ids], atol=0.004
+    )
 
 
 def test_flame_round_trip_with_landmark_embedding(head: TemplateModel, tmp_path: Path) -> None:
@@ -95,8 +98,14 @@ def test_flame_round_trip_with_landmark_embedding(head: TemplateModel, tmp_path:
     write_official_pickle(head, path)
     embedding = tmp_path / "flame_static_embedding.pkl"
     with embedding.open("wb") as stream:
-        pickle.dump({"lmk_face_idx": np.array(head.landmark_faces[17:]).astype(np.uint32),
-                     "lmk_b_coords": np.array(head.landmark_bary[17:])}, stream, protocol=2)
+        pickle.dump(
+            {
+                "lmk_face_idx": np.array(head.landmark_faces[17:]).astype(np.uint32),
+                "lmk_b_coords": np.array(head.landmark_bary[17:]),
+            },
+            stream,
+            protocol=2,
+        )
     loaded = load_official_model(path, "flame", landmark_embedding=embedding, num_shape=10)
     _assert_same_core(loaded, head)
     assert loaded.num_shape == 10 and loaded.landmark_faces.shape == (51,)
@@ -164,7 +173,8 @@ def test_python2_module_names(hand: TemplateModel, tmp_path: Path) -> None:
     raw = path.read_bytes()
     assert b"numpy._core.multiarray\n" in raw and b"scipy.sparse._csc\n" in raw
     old = raw.replace(b"numpy._core.multiarray\n", b"numpy.core.multiarray\n").replace(
-        b"scipy.sparse._csc\n", b"scipy.sparse.csc\n")
+        b"scipy.sparse._csc\n", b"scipy.sparse.csc\n"
+    )
     path.write_bytes(old)
     _assert_same_core(load_official_model(path, "mano"), hand)
 

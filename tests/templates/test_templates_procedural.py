@@ -151,10 +151,12 @@ def test_landmark_region_fields_move_their_landmark(head: TemplateModel) -> None
     """Identity column 13 + 3 k + a moves landmark k along axis a (by ~1 cm per unit where no other
     landmark is near) and decays away from it: the scalp and the neck stay put."""
     layer = FLAMELayer(head, int(head.num_shape), 0)
-    rest = layer.landmarks(layer(torch.zeros(1, head.num_shape, dtype=torch.float64),
-                                 torch.zeros(1, 0, dtype=torch.float64)).vertices)[0].numpy()
-    landmark_rows = np.einsum("lk,lkvc->lvc", head.landmark_bary,
-                              head.shapedirs[head.faces[head.landmark_faces]][..., 13:217])  # (68, 3, 204)
+    rest = layer.landmarks(
+        layer(torch.zeros(1, head.num_shape, dtype=torch.float64), torch.zeros(1, 0, dtype=torch.float64)).vertices
+    )[0].numpy()
+    landmark_rows = np.einsum(
+        "lk,lkvc->lvc", head.landmark_bary, head.shapedirs[head.faces[head.landmark_faces]][..., 13:217]
+    )  # (68, 3, 204)
     moves = landmark_rows.reshape(68, 3, 68, 3)  # landmark, axis moved, field landmark, field axis
     own = np.einsum("kakb->kab", moves)  # (68, 3, 3): landmark k's motion under its own three fields
     assert np.all(np.abs(own - np.diagonal(own, axis1=1, axis2=2)[..., None] * np.eye(3)) < 1e-12)
@@ -185,8 +187,11 @@ def test_inner_distance_is_plausible(hand: TemplateModel, head: TemplateModel) -
         assert np.all(model.inner_distance >= 0) and np.all(np.isfinite(model.inner_distance))
     assert 0.002 < np.median(hand.inner_distance) < 0.01 and hand.inner_distance.max() < 0.03
     d, labels = head.inner_distance, head.part_labels
-    forehead, chin, cheeks = d[labels["forehead"]], d[labels["chin"]], d[np.r_[labels["cheek_left"],
-                                                                                 labels["cheek_right"]]]
+    forehead, chin, cheeks = (
+        d[labels["forehead"]],
+        d[labels["chin"]],
+        d[np.r_[labels["cheek_left"], labels["cheek_right"]]],
+    )
     assert 0.003 < forehead.mean() < 0.009
     assert 0.003 < chin.mean() < 0.012
     assert 0.012 < cheeks.mean() < 0.025

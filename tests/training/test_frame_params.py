@@ -19,7 +19,11 @@ from avatar.templates import procedural_hand, procedural_head
 from avatar.training import static
 from avatar.training.data import ViewSet
 from avatar.training.frame_params import (
-    REFINED_COLUMNS, FrameAdam, FrameParams, ParamLearningRates, parameter_movement,
+    REFINED_COLUMNS,
+    FrameAdam,
+    FrameParams,
+    ParamLearningRates,
+    parameter_movement,
 )
 from avatar.training.static import StaticConfig, train_static
 from stages.artifacts import read_params, write_params
@@ -43,10 +47,14 @@ def _views(cameras: int = 2) -> ViewSet:
     cams = capture.cameras[:cameras]
     images = np.stack([capture.frames[c.camera_id] for c in cams], 1)
     labels = np.stack([capture.masks[c.camera_id] for c in cams], 1)
-    return ViewSet(torch.from_numpy(images), torch.from_numpy(labels),
-                   torch.tensor(np.stack([c.K for c in cams]), dtype=torch.float32),
-                   torch.tensor(np.stack([c.world_to_cam for c in cams]), dtype=torch.float32),
-                   [c.camera_id for c in cams], torch.tensor([0.5, 0.5, 0.5]))
+    return ViewSet(
+        torch.from_numpy(images),
+        torch.from_numpy(labels),
+        torch.tensor(np.stack([c.K for c in cams]), dtype=torch.float32),
+        torch.tensor(np.stack([c.world_to_cam for c in cams]), dtype=torch.float32),
+        [c.camera_id for c in cams],
+        torch.tensor([0.5, 0.5, 0.5]),
+    )
 
 
 def test_frame_adam_is_torch_adam_on_each_row_alone():
@@ -74,7 +82,7 @@ def test_posing_and_conditioning_match_the_sequence_posing():
     offsets = 1e-3 * torch.randn(4, HEAD.num_vertices, 3, generator=torch.Generator().manual_seed(1))
     frames = FrameParams(params, HEAD, HAND, offsets, ParamLearningRates())
     meshes = posed_meshes(params, HEAD, HAND)
-    meshes.vertices[:, :HEAD.num_vertices] += offsets
+    meshes.vertices[:, : HEAD.num_vertices] += offsets
     cond = sequence_conditioning(params, HEAD, HAND, offsets)
     for t in range(4):
         torch.testing.assert_close(frames.vertices(t).detach(), meshes.vertices[t], rtol=0, atol=1e-6)
@@ -150,8 +158,15 @@ def test_a_killed_warmup_resumes_the_refinement_to_the_same_result(tmp_path, mon
     as the warm-up's own resume test)."""
     params, views = _params(), _views(cameras=1)
     meshes = posed_meshes(params, HEAD, HAND)
-    cfg = StaticConfig(steps=20, densify_from=0.5, densify_until=0.9, densify_interval=0.5, opacity_reset_interval=1.0,
-                       log_every=4, checkpoint_every=10)
+    cfg = StaticConfig(
+        steps=20,
+        densify_from=0.5,
+        densify_until=0.9,
+        densify_interval=0.5,
+        opacity_reset_interval=1.0,
+        log_every=4,
+        checkpoint_every=10,
+    )
     lrs = ParamLearningRates(translation=1e-4, rotation=1e-3, pose=1e-3, expression=1e-2)
 
     def run(checkpoint_dir=None) -> FrameParams:  # noqa: ANN001

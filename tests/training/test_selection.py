@@ -53,14 +53,18 @@ def test_the_best_step_wins_and_ties_keep_the_earlier_one():
     assert float(model.value.detach()) == 50.0 and (resumed.step, resumed.psnr) == (50, 31.0)
 
 
-@pytest.mark.parametrize(("hand_worth", "interaction_worth", "kept_hand", "kept_interaction"), [
-    (0.5, 0.3, True, True),     # both pay for themselves
-    (0.5, 0.01, True, False),   # I is worth less than the margin: off
-    (-0.2, 0.3, False, True),   # H lowers validation PSNR: off
-    (0.05, 0.06, False, True),  # exactly the margin is not enough
-])
-def test_a_module_stays_only_when_it_is_worth_more_than_the_margin(hand_worth, interaction_worth, kept_hand,
-                                                                   kept_interaction):
+@pytest.mark.parametrize(
+    ("hand_worth", "interaction_worth", "kept_hand", "kept_interaction"),
+    [
+        (0.5, 0.3, True, True),  # both pay for themselves
+        (0.5, 0.01, True, False),  # I is worth less than the margin: off
+        (-0.2, 0.3, False, True),  # H lowers validation PSNR: off
+        (0.05, 0.06, False, True),  # exactly the margin is not enough
+    ],
+)
+def test_a_module_stays_only_when_it_is_worth_more_than_the_margin(
+    hand_worth, interaction_worth, kept_hand, kept_interaction
+):
     model, best = _Model(), BestStep()
     best.offer(7, _psnr(model, hand_worth, interaction_worth), model)
     hand_before = {k: v.clone() for k, v in model.hand_app.state_dict().items()}

@@ -39,8 +39,16 @@ def _model(meshes: MeshSequence) -> BoundGaussians:
     return BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, 8, init_opacity=0.3)
 
 
-CFG = StaticConfig(steps=30, densify_from=0.2, densify_until=0.8, densify_interval=0.2,
-                   opacity_reset_interval=1.0, log_every=5, checkpoint_every=10, backend="torch")
+CFG = StaticConfig(
+    steps=30,
+    densify_from=0.2,
+    densify_until=0.8,
+    densify_interval=0.2,
+    opacity_reset_interval=1.0,
+    log_every=5,
+    checkpoint_every=10,
+    backend="torch",
+)
 
 
 def test_warmup_reduces_the_loss():
@@ -88,7 +96,8 @@ def _run_killed_at(call: int, tmp_path, monkeypatch) -> None:
 
 @pytest.mark.parametrize("damage", ["garbage", "truncated", "bit_flip"])
 def test_a_corrupt_checkpoint_is_named_discarded_and_the_run_resumes_from_the_previous_one(
-        tmp_path, monkeypatch, caplog, damage):
+    tmp_path, monkeypatch, caplog, damage
+):
     """Issue 9, case 5: verified on load; the newest is corrupt, so the run resumes from the one before it."""
     views, meshes = _scene()
     reference = _model(meshes)

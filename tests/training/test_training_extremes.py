@@ -18,8 +18,14 @@ from tests.training.test_validation import _scene
 
 
 def _ten_times(cfg):  # noqa: ANN001, ANN202 - a training config dataclass
-    return dataclasses.replace(cfg, **{f.name: 10 * getattr(cfg, f.name) for f in dataclasses.fields(cfg)
-                                       if f.name.startswith("lr_") and f.name != "lr_decay"})
+    return dataclasses.replace(
+        cfg,
+        **{
+            f.name: 10 * getattr(cfg, f.name)
+            for f in dataclasses.fields(cfg)
+            if f.name.startswith("lr_") and f.name != "lr_decay"
+        },
+    )
 
 
 def _all_finite(module_tensors: list[torch.Tensor]) -> bool:
@@ -29,8 +35,18 @@ def _all_finite(module_tensors: list[torch.Tensor]) -> bool:
 def test_the_warmup_at_ten_times_the_learning_rates_stays_finite():
     views, meshes = _scene(3)
     model = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, 8, init_opacity=0.3)
-    cfg = _ten_times(StaticConfig(steps=60, densify_from=0.1, densify_until=0.5, densify_interval=0.1,
-                                  opacity_reset_interval=1.0, log_every=5, checkpoint_every=0, backend="torch"))
+    cfg = _ten_times(
+        StaticConfig(
+            steps=60,
+            densify_from=0.1,
+            densify_until=0.5,
+            densify_interval=0.1,
+            opacity_reset_interval=1.0,
+            log_every=5,
+            checkpoint_every=0,
+            backend="torch",
+        )
+    )
     assert cfg.lr_scale == 10 * StaticConfig.lr_scale
     log = train_static(model, views, meshes, cfg)
     assert all(math.isfinite(r.loss) for r in log)
@@ -53,8 +69,14 @@ def test_contact_in_every_frame_trains_every_module_and_stays_finite():
     on every step, and everything stays finite."""
     scene = make_scene([0.02, 0.03, 0.02])
     model = scene.model()
-    result = train_dynamic(model, scene.views, scene.meshes, scene.cond, np.ones(3, bool),
-                           DynamicTrainConfig(steps=8, backend="auto", log_every=1, contact_fraction=0.9))
+    result = train_dynamic(
+        model,
+        scene.views,
+        scene.meshes,
+        scene.cond,
+        np.ones(3, bool),
+        DynamicTrainConfig(steps=8, backend="auto", log_every=1, contact_fraction=0.9),
+    )
     assert result.interaction_steps == 8 and result.interaction_evaluations > 0
     assert all(math.isfinite(r.loss) for r in result.log)
     assert _all_finite([t for t in model.network_state().values() if t.is_floating_point()])

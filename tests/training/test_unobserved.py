@@ -40,9 +40,16 @@ def test_the_label_is_the_frames_schemas() -> None:
 
 def test_the_render_on_unobserved_pixels_changes_neither_loss_nor_gradient() -> None:
     gen = torch.Generator().manual_seed(0)
-    views = _padded(ViewSet(torch.randint(0, 256, (1, 1, 32, 32, 3), generator=gen, dtype=torch.uint8),
-                            torch.ones(1, 1, 32, 32, dtype=torch.uint8), torch.eye(3)[None], torch.eye(4)[None],
-                            ["a"], torch.zeros(3)))
+    views = _padded(
+        ViewSet(
+            torch.randint(0, 256, (1, 1, 32, 32, 3), generator=gen, dtype=torch.uint8),
+            torch.ones(1, 1, 32, 32, dtype=torch.uint8),
+            torch.eye(3)[None],
+            torch.eye(4)[None],
+            ["a"],
+            torch.zeros(3),
+        )
+    )
     first = torch.rand(32, 32, 3, generator=gen, dtype=torch.float64)
     second = first.clone()
     second[:, :BAND] = torch.rand(32, BAND, 3, generator=gen, dtype=torch.float64)
@@ -60,8 +67,9 @@ def test_the_render_on_unobserved_pixels_changes_neither_loss_nor_gradient() -> 
     assert torch.equal(results[0][1], results[1][1])
 
 
-def _padding_gradients(module: ModuleType, name: str, train: Callable[[], None],
-                       monkeypatch: pytest.MonkeyPatch) -> tuple[float, float]:
+def _padding_gradients(
+    module: ModuleType, name: str, train: Callable[[], None], monkeypatch: pytest.MonkeyPatch
+) -> tuple[float, float]:
     """Run ``train`` with ``module.name`` (the loop's renderer) recording the gradient of every training
     render; returns the largest |gradient| on the padded columns and on the others."""
     real, grads = getattr(module, name), []
@@ -94,14 +102,31 @@ def _splatting_loop(label: int) -> Callable[[], None]:
 
 def _dynamic_loop(label: int) -> Callable[[], None]:
     scene = make_scene([0.08, 1.0])
-    cfg = dynamic.DynamicTrainConfig(steps=3, backend="auto", patch_weight=0.1, patch_min_size=16, log_every=1,
-                                     contact_fraction=1.0, max_contact_frame_share=1.0)
-    return lambda: dynamic.train_dynamic(scene.model(), _padded(scene.views, label=label), scene.meshes,
-                                         scene.cond, np.array([True, False]), cfg, lpips=LPIPS("vgg"))
+    cfg = dynamic.DynamicTrainConfig(
+        steps=3,
+        backend="auto",
+        patch_weight=0.1,
+        patch_min_size=16,
+        log_every=1,
+        contact_fraction=1.0,
+        max_contact_frame_share=1.0,
+    )
+    return lambda: dynamic.train_dynamic(
+        scene.model(),
+        _padded(scene.views, label=label),
+        scene.meshes,
+        scene.cond,
+        np.array([True, False]),
+        cfg,
+        lpips=LPIPS("vgg"),
+    )
 
 
-LOOPS = {"static": (static, "render_frame", _static_loop), "dynamic": (dynamic, "rasterize", _dynamic_loop),
-         "splatting": (splatting, "render_splatting", _splatting_loop)}
+LOOPS = {
+    "static": (static, "render_frame", _static_loop),
+    "dynamic": (dynamic, "rasterize", _dynamic_loop),
+    "splatting": (splatting, "render_splatting", _splatting_loop),
+}
 
 
 @pytest.mark.parametrize("loop", list(LOOPS))

@@ -78,8 +78,12 @@ def _scene(num_frames: int) -> tuple[ViewSet, MeshSequence]:
     labels = torch.zeros(num_frames, cams, size, size, dtype=torch.uint8)
     labels[:, :, 4:20, 4:20] = 1
     views = ViewSet(images, labels, K.repeat(cams, 1, 1), w2c, ["a", "b"], torch.tensor([60 / 255, 0.0, 0.0]))
-    meshes = MeshSequence(verts.repeat(num_frames, 1, 1), torch.tensor([[0, 1, 2], [0, 2, 3]]),
-                          torch.zeros(2, dtype=torch.long), ("face",))
+    meshes = MeshSequence(
+        verts.repeat(num_frames, 1, 1),
+        torch.tensor([[0, 1, 2], [0, 2, 3]]),
+        torch.zeros(2, dtype=torch.long),
+        ("face",),
+    )
     return views, meshes
 
 
@@ -88,8 +92,17 @@ def _model(meshes: MeshSequence) -> BoundGaussians:
 
 
 # density control until step 10 of 40: the stop rule looks at the validations from step 10 on
-CFG = StaticConfig(steps=40, densify_from=0.05, densify_until=0.25, densify_interval=0.125,
-                   opacity_reset_interval=1.0, log_every=5, checkpoint_every=10, lr_color=0.02, backend="torch")
+CFG = StaticConfig(
+    steps=40,
+    densify_from=0.05,
+    densify_until=0.25,
+    densify_interval=0.125,
+    opacity_reset_interval=1.0,
+    log_every=5,
+    checkpoint_every=10,
+    lr_color=0.02,
+    backend="torch",
+)
 STOP_NOW = FlatStop(enabled=True, min_gain_db=1e9, window=2)
 
 
@@ -148,8 +161,14 @@ def test_lpips_on_the_curve_is_the_evaluation_metric_of_the_withheld_images_and_
     gen = torch.Generator().manual_seed(0)
     frames, cams, size = 5, 2, 40
     images = torch.randint(0, 256, (frames, cams, size, size, 3), generator=gen, dtype=torch.uint8)
-    views = ViewSet(images, torch.zeros(frames, cams, size, size, dtype=torch.uint8), torch.eye(3).repeat(cams, 1, 1),
-                    torch.eye(4).repeat(cams, 1, 1), ["a", "b"], torch.zeros(3))
+    views = ViewSet(
+        images,
+        torch.zeros(frames, cams, size, size, dtype=torch.uint8),
+        torch.eye(3).repeat(cams, 1, 1),
+        torch.eye(4).repeat(cams, 1, 1),
+        ["a", "b"],
+        torch.zeros(3),
+    )
     noise = torch.rand(frames, cams, size, size, 3, generator=gen)
 
     def render(frame: int) -> torch.Tensor:  # (C, S, S, 3): each frame's images, blurred towards noise
@@ -160,8 +179,15 @@ def test_lpips_on_the_curve_is_the_evaluation_metric_of_the_withheld_images_and_
     for validator in (on, off):
         validator.begin(0, 3, 0, render)
     np.testing.assert_array_equal(on.frames, [2, 3])
-    expected = np.mean([float(reference(render(t)[c].permute(2, 0, 1), images[t, c].permute(2, 0, 1).float() / 255,
-                                        unit_range=True)) for t in (2, 3) for c in range(cams)])
+    expected = np.mean(
+        [
+            float(
+                reference(render(t)[c].permute(2, 0, 1), images[t, c].permute(2, 0, 1).float() / 255, unit_range=True)
+            )
+            for t in (2, 3)
+            for c in range(cams)
+        ]
+    )
     assert on.curve[0].lpips == pytest.approx(expected, rel=1e-5) and 0.0 < expected
     assert on.curve[0].psnr == off.curve[0].psnr
     assert on.metrics()["validation_lpips"] == on.curve[0].lpips
@@ -197,6 +223,7 @@ def _killed_at(step: int):  # noqa: ANN202 - a Progress that dies before ``step`
             if s == step:
                 raise KeyboardInterrupt("killed")
             yield s
+
     return progress
 
 
@@ -235,13 +262,21 @@ def test_stage_two_records_a_curve_and_stops_at_the_first_window():
 
 
 def test_bad_validation_settings_fail_before_any_stage(tmp_path: Path):
-    overrides = ["stage.warmup.validation.every=-1", "stage.warmup.validation.stop_when_flat.window=0",
-                 "stage.dynamic.validation.frames=0", "stage.dynamic.validation.stop_when_flat.min_gain_db=nan"]
+    overrides = [
+        "stage.warmup.validation.every=-1",
+        "stage.warmup.validation.stop_when_flat.window=0",
+        "stage.dynamic.validation.frames=0",
+        "stage.dynamic.validation.stop_when_flat.min_gain_db=nan",
+    ]
     cfg = compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", *overrides])
     with pytest.raises(ConfigError) as info:
         run_app(cfg)
     message = str(info.value)
-    for expected in ("stage.warmup.validation.every=-1", "stage.warmup.validation.stop_when_flat.window=0",
-                     "stage.dynamic.validation.frames=0", "stage.dynamic.validation.stop_when_flat.min_gain_db=nan"):
+    for expected in (
+        "stage.warmup.validation.every=-1",
+        "stage.warmup.validation.stop_when_flat.window=0",
+        "stage.dynamic.validation.frames=0",
+        "stage.dynamic.validation.stop_when_flat.min_gain_db=nan",
+    ):
         assert expected in message, message
     assert not (tmp_path / "out").exists()

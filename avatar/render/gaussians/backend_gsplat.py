@@ -68,8 +68,16 @@ def unit_quaternions(quats: Tensor) -> Tensor:
     return scaled / scaled.norm(dim=-1, keepdim=True)
 
 
-def gsplat_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, K: Tensor,
-                  world_to_cam: Tensor, near: float, far: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def gsplat_inputs(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    K: Tensor,
+    world_to_cam: Tensor,
+    near: float,
+    far: float,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The Gaussians as gsplat should see them: culled ones parked beyond ``far`` with opacity 0 (zero
     gradient), unit quaternions, scales capped at :data:`MAX_STD_PX`. Shapes as the inputs: (N, 3),
     (N, 4), (N, 3), (N,)."""
@@ -85,27 +93,52 @@ def gsplat_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
         max_scale = ((MAX_STD_PX / focal) * depth.clamp(near, far)).to(scales)
     keep_col = keep[:, None]
     means = torch.where(keep_col, means, parked)
-    quats = torch.where(keep_col, unit_quaternions(torch.where(keep_col, quats, torch.ones_like(quats))),
-                        quats.new_tensor(_IDENTITY))
+    quats = torch.where(
+        keep_col, unit_quaternions(torch.where(keep_col, quats, torch.ones_like(quats))), quats.new_tensor(_IDENTITY)
+    )
     scales = torch.where(keep_col, torch.minimum(scales, max_scale[:, None]), torch.ones_like(scales))
     opacities = torch.where(keep, opacities, torch.zeros_like(opacities))
     return means, quats, scales, opacities
 
 
-def _background_only(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, width: int,
-                     height: int, background: Tensor) -> RenderOutput:
+def _background_only(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    width: int,
+    height: int,
+    background: Tensor,
+) -> RenderOutput:
     """The image of no Gaussians: the background everywhere, alpha and depth 0; (0, 2) means2d. The zero sums
     keep the (empty) inputs in the graph, so that ``backward()`` works as with Gaussians."""
     zero = sum(t.sum() for t in (means, quats, scales, opacities, colors)) * 0
     holder = means.new_zeros(0, 2).requires_grad_(means.requires_grad)
-    return RenderOutput(rgb=background.expand(height, width, 3) + zero, alpha=means.new_zeros(height, width) + zero,
-                        depth=means.new_zeros(height, width) + zero, means2d=holder,
-                        radii=torch.zeros(0, dtype=torch.int32, device=means.device), grad_holder=holder)
+    return RenderOutput(
+        rgb=background.expand(height, width, 3) + zero,
+        alpha=means.new_zeros(height, width) + zero,
+        depth=means.new_zeros(height, width) + zero,
+        means2d=holder,
+        radii=torch.zeros(0, dtype=torch.int32, device=means.device),
+        grad_holder=holder,
+    )
 
 
-def render_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
-                  K: Tensor, world_to_cam: Tensor, width: int, height: int, background: Tensor,
-                  near: float = 0.01, far: float = 100.0) -> RenderOutput:
+def render_gsplat(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    K: Tensor,
+    world_to_cam: Tensor,
+    width: int,
+    height: int,
+    background: Tensor,
+    near: float = 0.01,
+    far: float = 100.0,
+) -> RenderOutput:
     """Render N Gaussians with ``gsplat.rasterization`` (arguments and outputs as ``render_gaussians``).
 
     float32 CUDA inputs render where they are. CPU inputs (a pipeline that trains on the CPU with
@@ -118,19 +151,48 @@ def render_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
         return _background_only(means, quats, scales, opacities, colors, width, height, background)
     device = means.device
     if device.type != "cuda" and torch.cuda.is_available():
-        out = render_gsplat(means.cuda(), quats.cuda(), scales.cuda(), opacities.cuda(), colors.cuda(), K.cuda(),
-                            world_to_cam.cuda(), width, height, background.cuda(), near=near, far=far)
-        return RenderOutput(rgb=out.rgb.to(device), alpha=out.alpha.to(device), depth=out.depth.to(device),
-                            means2d=out.means2d.to(device), radii=out.radii.to(device), grad_holder=out.grad_holder)
+        out = render_gsplat(
+            means.cuda(),
+            quats.cuda(),
+            scales.cuda(),
+            opacities.cuda(),
+            colors.cuda(),
+            K.cuda(),
+            world_to_cam.cuda(),
+            width,
+            height,
+            background.cuda(),
+            near=near,
+            far=far,
+        )
+        return RenderOutput(
+            rgb=out.rgb.to(device),
+            alpha=out.alpha.to(device),
+            depth=out.depth.to(device),
+            means2d=out.means2d.to(device),
+            radii=out.radii.to(device),
+            grad_holder=out.grad_holder,
+        )
 
     means, quats, scales, opacities = gsplat_inputs(means, quats, scales, opacities, K, world_to_cam, near, far)
     k_gsplat = K.detach().clone().to(means)
     k_gsplat[:2, 2] += 0.5
     colors_depth, alphas, meta = gsplat.rasterization(
-        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
-        viewmats=world_to_cam.detach().to(means)[None], Ks=k_gsplat[None], width=width, height=height,
-        near_plane=near * (1 - DEPTH_SLACK), far_plane=far * (1 + DEPTH_SLACK), backgrounds=background.to(means)[None],
-        render_mode="RGB+D", packed=False, rasterize_mode="classic",
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opacities,
+        colors=colors,
+        viewmats=world_to_cam.detach().to(means)[None],
+        Ks=k_gsplat[None],
+        width=width,
+        height=height,
+        near_plane=near * (1 - DEPTH_SLACK),
+        far_plane=far * (1 + DEPTH_SLACK),
+        backgrounds=background.to(means)[None],
+        render_mode="RGB+D",
+        packed=False,
+        rasterize_mode="classic",
     )
     holder = meta["means2d"]  # (1, N, 2), gsplat's pixel frame
     if holder.requires_grad:
@@ -140,5 +202,11 @@ def render_gsplat(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
         radii = radii.amax(-1)
     radii = radii.to(torch.int32)
     means2d = torch.where(radii[:, None] > 0, holder[0] - 0.5, torch.zeros_like(holder[0]))  # see the docstring
-    return RenderOutput(rgb=colors_depth[0, ..., :3], alpha=alphas[0, ..., 0], depth=colors_depth[0, ..., 3],
-                        means2d=means2d, radii=radii, grad_holder=holder)
+    return RenderOutput(
+        rgb=colors_depth[0, ..., :3],
+        alpha=alphas[0, ..., 0],
+        depth=colors_depth[0, ..., 3],
+        means2d=means2d,
+        radii=radii,
+        grad_holder=holder,
+    )

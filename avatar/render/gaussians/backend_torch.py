@@ -15,10 +15,22 @@ from .tiling import build_tile_lists
 DEFAULT_TILE_SIZE = 4
 
 
-def render_torch(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
-                 K: Tensor, world_to_cam: Tensor, width: int, height: int, background: Tensor,
-                 near: float = 0.01, far: float = 100.0, tile_size: int = DEFAULT_TILE_SIZE,
-                 settings: CompositeSettings = CompositeSettings()) -> RenderOutput:
+def render_torch(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    K: Tensor,
+    world_to_cam: Tensor,
+    width: int,
+    height: int,
+    background: Tensor,
+    near: float = 0.01,
+    far: float = 100.0,
+    tile_size: int = DEFAULT_TILE_SIZE,
+    settings: CompositeSettings = CompositeSettings(),
+) -> RenderOutput:
     """Render N Gaussians with the pure-PyTorch tiled rasterizer (arguments as ``render_gaussians``).
 
     ``tile_size`` and ``settings`` trade speed and memory; the image does not depend on them.
@@ -32,5 +44,6 @@ def render_torch(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor
     table = torch.cat([means2d, proj.conics, log_opacity[:, None], colors, proj.depths[:, None]], -1)
     feat, alpha = composite(table, lists, width, height, settings)
     rgb = feat[..., :3] + (1.0 - alpha)[..., None] * background.to(feat.dtype)
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=feat[..., 3], means2d=means2d, radii=proj.radii,
-                        grad_holder=means2d)
+    return RenderOutput(
+        rgb=rgb, alpha=alpha, depth=feat[..., 3], means2d=means2d, radii=proj.radii, grad_holder=means2d
+    )

@@ -90,14 +90,16 @@ def exponent_coefficients_vjp(geom: Tensor, centres: Tensor, d_coef: Tensor) -> 
     u, v = geom[0] - centres[0], geom[1] - centres[1]
     a, b, c = geom[2], geom[3], geom[4]
     d0, d1, d2, d3, d4, d5 = d_coef
-    return torch.stack([
-        d1 * a + d2 * b - d0 * (a * u + b * v),
-        d1 * b + d2 * c - d0 * (b * u + c * v),
-        u * (d1 - 0.5 * d0 * u) - 0.5 * d3,
-        v * d1 + u * (d2 - d0 * v) - d4,
-        v * (d2 - 0.5 * d0 * v) - 0.5 * d5,
-        d0,
-    ])
+    return torch.stack(
+        [
+            d1 * a + d2 * b - d0 * (a * u + b * v),
+            d1 * b + d2 * c - d0 * (b * u + c * v),
+            u * (d1 - 0.5 * d0 * u) - 0.5 * d3,
+            v * d1 + u * (d2 - d0 * v) - d4,
+            v * (d2 - 0.5 * d0 * v) - 0.5 * d5,
+            d0,
+        ]
+    )
 
 
 def _indicator(compare: Callable[..., Tensor], x: Tensor, threshold: float) -> Tensor:
@@ -174,8 +176,9 @@ class _Compositor:
         for k in range(1, alpha.shape[0]):
             torch.mul(t_prev[k - 1], one_minus[k - 1], out=t_prev[k])
         alpha_kept = _indicator(torch.ge, t_prev * one_minus, T_MIN).mul_(alpha)
-        return _Dense(alpha=alpha, one_minus=one_minus, t_prev=t_prev, alpha_kept=alpha_kept,
-                      weight=alpha_kept * t_prev)
+        return _Dense(
+            alpha=alpha, one_minus=one_minus, t_prev=t_prev, alpha_kept=alpha_kept, weight=alpha_kept * t_prev
+        )
 
     @staticmethod
     def features(cols: Tensor, step: _Step) -> Tensor:
@@ -243,8 +246,9 @@ class _TileComposite(torch.autograd.Function):
     """(N, 6 + C) Gaussian table -> (H, W, C) features and (H, W) accumulated alpha."""
 
     @staticmethod
-    def forward(ctx: Any, table: Tensor, lists: TileLists, width: int, height: int,
-                settings: CompositeSettings) -> tuple[Tensor, Tensor]:
+    def forward(
+        ctx: Any, table: Tensor, lists: TileLists, width: int, height: int, settings: CompositeSettings
+    ) -> tuple[Tensor, Tensor]:
         comp = _Compositor(table, lists, settings)
         valid = image_to_tiles(table.new_ones(height, width, 1), lists)[..., 0]
         feat, acc, steps = comp.schedule_forward(valid)
@@ -256,13 +260,15 @@ class _TileComposite(torch.autograd.Function):
     @once_differentiable
     def backward(ctx: Any, grad_feat: Tensor, grad_acc: Tensor) -> tuple[Tensor | None, ...]:
         comp: _Compositor = ctx.compositor
-        grad_table = comp.schedule_backward(ctx.steps, image_to_tiles(grad_feat, comp.lists),
-                                            image_to_tiles(grad_acc[..., None], comp.lists)[..., 0])
+        grad_table = comp.schedule_backward(
+            ctx.steps, image_to_tiles(grad_feat, comp.lists), image_to_tiles(grad_acc[..., None], comp.lists)[..., 0]
+        )
         return grad_table, None, None, None, None
 
 
-def composite(table: Tensor, lists: TileLists, width: int, height: int,
-              settings: CompositeSettings = CompositeSettings()) -> tuple[Tensor, Tensor]:
+def composite(
+    table: Tensor, lists: TileLists, width: int, height: int, settings: CompositeSettings = CompositeSettings()
+) -> tuple[Tensor, Tensor]:
     """Composite the Gaussians of ``table`` over the tile lists.
 
     Args:

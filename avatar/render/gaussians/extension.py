@@ -56,8 +56,13 @@ def target_tag() -> str:
     family with different extensions (e.g. with and without AVX-512) get different tags. ``unknown``
     when the compiler cannot be asked (the build then fails and says why)."""
     try:
-        listing = subprocess.run([_compiler(), "-march=native", "-Q", "--help=target"], capture_output=True, text=True,
-                                 check=True, timeout=60).stdout
+        listing = subprocess.run(
+            [_compiler(), "-march=native", "-Q", "--help=target"],
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=60,
+        ).stdout
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     arch = re.search(r"^\s*-march=\s+(\S+)", listing, re.MULTILINE)
@@ -114,9 +119,15 @@ def build(verbose: bool = False) -> Path:
         (folder / "lock").unlink(missing_ok=True)
         try:
             with _ninja_on_path():
-                path = cpp_extension.load(name=NAME, sources=[str(s) for s in SOURCES],
-                                          build_directory=str(folder), extra_cflags=list(CFLAGS),
-                                          extra_ldflags=list(LDFLAGS), is_python_module=False, verbose=verbose)
+                path = cpp_extension.load(
+                    name=NAME,
+                    sources=[str(s) for s in SOURCES],
+                    build_directory=str(folder),
+                    extra_cflags=list(CFLAGS),
+                    extra_ldflags=list(LDFLAGS),
+                    is_python_module=False,
+                    verbose=verbose,
+                )
         except Exception as exc:
             failed.write_text(f"{key}\n{type(exc).__name__}: {exc}\n")
             raise
@@ -132,8 +143,11 @@ def unavailable_reason() -> str | None:
     except Exception as exc:  # any build or load failure means: use the torch backend
         first_line = (str(exc).strip().splitlines() or [""])[0]
         reason = f"{type(exc).__name__}: {first_line} (build log: {_failed_record()})"
-        warnings.warn(f"the compiled CPU Gaussian rasterizer is unavailable, using the torch backend: {reason}",
-                      RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"the compiled CPU Gaussian rasterizer is unavailable, using the torch backend: {reason}",
+            RuntimeWarning,
+            stacklevel=2,
+        )
         return reason
     return None
 

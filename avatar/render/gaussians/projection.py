@@ -64,9 +64,11 @@ def rotation_entries(quats: Tensor) -> list[list[Tensor]]:
     w, x, y, z = _columns(quats)
     inv_norm = torch.rsqrt((w * w + x * x + y * y + z * z).clamp_min(_QUAT_EPS2))
     w, x, y, z = w * inv_norm, x * inv_norm, y * inv_norm, z * inv_norm
-    return [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+    return [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
 
 
 def fov_limits(K: Tensor, width: int, height: int) -> tuple[float, float, float, float]:
@@ -79,8 +81,12 @@ def fov_limits(K: Tensor, width: int, height: int) -> tuple[float, float, float,
     fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     margin_x = FOV_MARGIN * 0.5 * width / fx
     margin_y = FOV_MARGIN * 0.5 * height / fy
-    return ((cx + 0.5) / fx + margin_x, (width - 0.5 - cx) / fx + margin_x,
-            (cy + 0.5) / fy + margin_y, (height - 0.5 - cy) / fy + margin_y)
+    return (
+        (cx + 0.5) / fx + margin_x,
+        (width - 0.5 - cx) / fx + margin_x,
+        (cy + 0.5) / fy + margin_y,
+        (height - 0.5 - cy) / fy + margin_y,
+    )
 
 
 def alpha_extent(opacities: Tensor) -> Tensor:
@@ -94,8 +100,9 @@ def alpha_extent(opacities: Tensor) -> Tensor:
     return torch.sqrt(2.0 * torch.log(ratio))
 
 
-def _image_jacobian(p_cam: list[Tensor], rot_wc: list[list[float]], K: Tensor, width: int, height: int
-                    ) -> list[list[Tensor]]:
+def _image_jacobian(
+    p_cam: list[Tensor], rot_wc: list[list[float]], K: Tensor, width: int, height: int
+) -> list[list[Tensor]]:
     """Rows of the EWA Jacobian of the projection composed with the camera rotation, ``J W`` (2 x 3 of (N,)).
 
     ``J = [[fx / z, 0, -fx tx / z], [0, fy / z, -fy ty / z]]`` with ``tx = x / z`` and ``ty = y / z``
@@ -104,8 +111,9 @@ def _image_jacobian(p_cam: list[Tensor], rot_wc: list[list[float]], K: Tensor, w
     x_neg, x_pos, y_neg, y_pos = fov_limits(K, width, height)
     x, y, z = p_cam
     rows = []
-    for axis, (f, t) in enumerate(((float(K[0, 0]), (x / z).clamp(-x_neg, x_pos)),
-                                   (float(K[1, 1]), (y / z).clamp(-y_neg, y_pos)))):
+    for axis, (f, t) in enumerate(
+        ((float(K[0, 0]), (x / z).clamp(-x_neg, x_pos)), (float(K[1, 1]), (y / z).clamp(-y_neg, y_pos)))
+    ):
         f_z = f / z
         rows.append([f_z * (rot_wc[axis][k] - t * rot_wc[2][k]) for k in range(3)])
     return rows
@@ -122,9 +130,18 @@ def _pixel_box(means2d: Tensor, half: Tensor, width: int, height: int) -> tuple[
     return torch.cat([lo_c, hi_c], -1).long(), nonempty
 
 
-def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, K: Tensor,
-                      world_to_cam: Tensor, width: int, height: int, near: float, far: float
-                      ) -> Projection:
+def project_gaussians(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    K: Tensor,
+    world_to_cam: Tensor,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+) -> Projection:
     """Project N 3D Gaussians with the EWA approximation.
 
     Args:
@@ -157,8 +174,7 @@ def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
     b = cast(Tensor, sum(u * v for u, v in zip(a_mat[0], a_mat[1])))
     c = cast(Tensor, sum(v * v for v in a_mat[1])) + LOW_PASS
     finite = torch.isfinite(a) & torch.isfinite(b) & torch.isfinite(c)  # only fails past ~1e150
-    a, b, c = (torch.where(finite, v, torch.full_like(v, fill))
-               for v, fill in ((a, LOW_PASS), (b, 0.0), (c, LOW_PASS)))
+    a, b, c = (torch.where(finite, v, torch.full_like(v, fill)) for v, fill in ((a, LOW_PASS), (b, 0.0), (c, LOW_PASS)))
     det = a * c - b * b  # >= LOW_PASS^2 since A A^T is positive semi-definite
     conics = torch.stack([c / det, -b / det, a / det], -1)
 
@@ -169,5 +185,6 @@ def project_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: T
         visible = in_depth & finite & (extent > 0) & nonempty & torch.isfinite(means2d).all(-1)
         radius = half.amax(-1).clamp_max(_MAX_RADIUS).ceil()
         radii = torch.where(visible, radius, torch.zeros_like(radius)).to(torch.int32)
-    return Projection(means2d=means2d.to(dtype), conics=conics.to(dtype), depths=z.to(dtype),
-                      box=box, visible=visible, radii=radii)
+    return Projection(
+        means2d=means2d.to(dtype), conics=conics.to(dtype), depths=z.to(dtype), box=box, visible=visible, radii=radii
+    )

@@ -32,31 +32,60 @@ def resolve_backend(backend: str, means: Tensor) -> str:
         use_cpu = means.device.type == "cpu" and means.dtype in CPU_DTYPES
         return "cpu" if use_cpu and cpu_extension_available() else "torch"
     if backend not in BACKENDS:
-        raise ValueError(f"unknown Gaussian rasterizer backend {backend!r}; "
-                         f"choose one of auto, {', '.join(BACKENDS)}")
+        raise ValueError(f"unknown Gaussian rasterizer backend {backend!r}; choose one of auto, {', '.join(BACKENDS)}")
     if backend == "gsplat" and not gsplat_available():
-        raise RuntimeError("backend 'gsplat' needs CUDA and the gsplat package (pip install gsplat); "
-                           "use backend='torch' or 'auto'")
+        raise RuntimeError(
+            "backend 'gsplat' needs CUDA and the gsplat package (pip install gsplat); use backend='torch' or 'auto'"
+        )
     if backend == "cpu" and not cpu_extension_available():
-        raise RuntimeError(f"backend 'cpu' (the compiled CPU rasterizer) is unavailable: {unavailable_reason()}; "
-                           "use backend='torch' or 'auto'")
+        raise RuntimeError(
+            f"backend 'cpu' (the compiled CPU rasterizer) is unavailable: {unavailable_reason()}; "
+            "use backend='torch' or 'auto'"
+        )
     return backend
 
 
-def _check_shapes(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
-                  K: Tensor, world_to_cam: Tensor, background: Tensor) -> None:
+def _check_shapes(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    K: Tensor,
+    world_to_cam: Tensor,
+    background: Tensor,
+) -> None:
     n = means.shape[0]
-    expected = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
-                "opacities": (opacities, (n,)), "colors": (colors, (n, 3)), "K": (K, (3, 3)),
-                "world_to_cam": (world_to_cam, (4, 4)), "background": (background, (3,))}
+    expected = {
+        "means": (means, (n, 3)),
+        "quats": (quats, (n, 4)),
+        "scales": (scales, (n, 3)),
+        "opacities": (opacities, (n,)),
+        "colors": (colors, (n, 3)),
+        "K": (K, (3, 3)),
+        "world_to_cam": (world_to_cam, (4, 4)),
+        "background": (background, (3,)),
+    }
     for name, (tensor, shape) in expected.items():
         if tuple(tensor.shape) != shape:
             raise ValueError(f"render_gaussians: {name} has shape {tuple(tensor.shape)}, expected {shape}")
 
 
-def render_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
-                     K: Tensor, world_to_cam: Tensor, width: int, height: int, background: Tensor,
-                     backend: str = "auto", near: float = 0.01, far: float = 100.0) -> RenderOutput:
+def render_gaussians(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    K: Tensor,
+    world_to_cam: Tensor,
+    width: int,
+    height: int,
+    background: Tensor,
+    backend: str = "auto",
+    near: float = 0.01,
+    far: float = 100.0,
+) -> RenderOutput:
     """Render N 3D Gaussians into one view.
 
     Args:
@@ -78,5 +107,6 @@ def render_gaussians(means: Tensor, quats: Tensor, scales: Tensor, opacities: Te
     """
     _check_shapes(means, quats, scales, opacities, colors, K, world_to_cam, background)
     render = _RENDERERS[resolve_backend(backend, means)]
-    return render(means, quats, scales, opacities, colors, K, world_to_cam, width, height, background,
-                  near=near, far=far)
+    return render(
+        means, quats, scales, opacities, colors, K, world_to_cam, width, height, background, near=near, far=far
+    )

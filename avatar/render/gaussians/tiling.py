@@ -45,8 +45,9 @@ class TileLists:
         return torch.stack([cols, rows], -1)
 
 
-def build_tile_lists(box: Tensor, depths: Tensor, visible: Tensor, width: int, height: int,
-                     tile_size: int) -> TileLists:
+def build_tile_lists(
+    box: Tensor, depths: Tensor, visible: Tensor, width: int, height: int, tile_size: int
+) -> TileLists:
     """Bin visible Gaussians into tiles.
 
     Args:
@@ -82,8 +83,14 @@ def build_tile_lists(box: Tensor, depths: Tensor, visible: Tensor, width: int, h
     tile_sorted, perm = torch.sort(tile_ids.to(key_dtype), stable=True)
     counts = torch.bincount(tile_sorted.to(torch.int32), minlength=tiles_x * tiles_y)
     ids = repeat(order.to(torch.int32)).index_select(0, perm)
-    return TileLists(tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y, ids=ids,
-                     offsets=torch.cumsum(counts, 0) - counts, counts=counts)
+    return TileLists(
+        tile_size=tile_size,
+        tiles_x=tiles_x,
+        tiles_y=tiles_y,
+        ids=ids,
+        offsets=torch.cumsum(counts, 0) - counts,
+        counts=counts,
+    )
 
 
 def image_to_tiles(image: Tensor, lists: TileLists) -> Tensor:

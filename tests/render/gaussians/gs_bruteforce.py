@@ -24,8 +24,9 @@ def rotation(quats: Tensor) -> Tensor:
     return (w * w - (v * v).sum(-1)[:, None, None]) * eye + 2 * v[:, :, None] * v[:, None, :] + 2 * w * cross
 
 
-def project(means: Tensor, quats: Tensor, scales: Tensor, K: Tensor, world_to_cam: Tensor,
-            width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
+def project(
+    means: Tensor, quats: Tensor, scales: Tensor, K: Tensor, world_to_cam: Tensor, width: int, height: int
+) -> tuple[Tensor, Tensor, Tensor]:
     """2D means (N, 2), 2D covariances (N, 2, 2) with the low-pass, camera z (N,)."""
     rot_wc, t_wc = world_to_cam[:3, :3], world_to_cam[:3, 3]
     p = means @ rot_wc.T + t_wc
@@ -48,8 +49,17 @@ def project(means: Tensor, quats: Tensor, scales: Tensor, K: Tensor, world_to_ca
     return means2d, cov2d, z
 
 
-def composite(means2d: Tensor, cov2d: Tensor, depths: Tensor, opacities: Tensor, colors: Tensor,
-              width: int, height: int, background: Tensor, valid: Tensor) -> dict[str, Tensor]:
+def composite(
+    means2d: Tensor,
+    cov2d: Tensor,
+    depths: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    width: int,
+    height: int,
+    background: Tensor,
+    valid: Tensor,
+) -> dict[str, Tensor]:
     """Brute-force front-to-back compositing of 2D Gaussians; ``valid`` (N,) masks culled ones.
 
     Returns rgb (H, W, 3), alpha (H, W), depth (H, W) and stopped (H, W): whether the early stop
@@ -57,8 +67,9 @@ def composite(means2d: Tensor, cov2d: Tensor, depths: Tensor, opacities: Tensor,
     """
     order = torch.argsort(depths.detach(), stable=True)
     order = order[valid[order]]
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=means2d.dtype), torch.arange(width, dtype=means2d.dtype),
-                            indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=means2d.dtype), torch.arange(width, dtype=means2d.dtype), indexing="ij"
+    )
     pix = torch.stack([xs, ys], -1)  # (H, W, 2), OpenCV centres
     d = pix[None] - means2d[order][:, None, None, :]  # (M, H, W, 2)
     conic = torch.linalg.inv(cov2d[order])
@@ -76,9 +87,20 @@ def composite(means2d: Tensor, cov2d: Tensor, depths: Tensor, opacities: Tensor,
     return {"rgb": rgb, "alpha": acc, "depth": depth, "stopped": stopped}
 
 
-def render(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, K: Tensor,
-           world_to_cam: Tensor, width: int, height: int, background: Tensor, near: float = 0.01,
-           far: float = 100.0) -> dict[str, Tensor]:
+def render(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    K: Tensor,
+    world_to_cam: Tensor,
+    width: int,
+    height: int,
+    background: Tensor,
+    near: float = 0.01,
+    far: float = 100.0,
+) -> dict[str, Tensor]:
     """rgb (H, W, 3), alpha (H, W), depth (H, W), stopped (H, W) and means2d (N, 2) of the scene."""
     means2d, cov2d, z = project(means, quats, scales, K, world_to_cam, width, height)
     valid = (z >= near) & (z <= far)

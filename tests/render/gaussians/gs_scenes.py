@@ -43,11 +43,11 @@ class Scene:
         return Scene(*joined, *self.camera())
 
 
-def intrinsics(width: int = WIDTH, height: int = HEIGHT, focal: float = FOCAL,
-               dtype: torch.dtype = torch.float64) -> Tensor:
+def intrinsics(
+    width: int = WIDTH, height: int = HEIGHT, focal: float = FOCAL, dtype: torch.dtype = torch.float64
+) -> Tensor:
     """OpenCV K with the principal point at the image centre ((W - 1) / 2, (H - 1) / 2)."""
-    return torch.tensor([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]],
-                        dtype=dtype)
+    return torch.tensor([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]], dtype=dtype)
 
 
 def look_from(eye: tuple[float, float, float], dtype: torch.dtype = torch.float64) -> Tensor:
@@ -64,8 +64,16 @@ def look_from(eye: tuple[float, float, float], dtype: torch.dtype = torch.float6
     return view
 
 
-def random_scene(n: int, seed: int, width: int = WIDTH, height: int = HEIGHT, focal: float = FOCAL,
-                 dtype: torch.dtype = torch.float64, max_opacity: float = 1.0, scale: float = 0.12) -> Scene:
+def random_scene(
+    n: int,
+    seed: int,
+    width: int = WIDTH,
+    height: int = HEIGHT,
+    focal: float = FOCAL,
+    dtype: torch.dtype = torch.float64,
+    max_opacity: float = 1.0,
+    scale: float = 0.12,
+) -> Scene:
     """N random Gaussians around the origin, seen from a tilted camera at distance ~3.
 
     Projected sizes are a few pixels, so most Gaussians straddle tile borders.
@@ -79,21 +87,39 @@ def random_scene(n: int, seed: int, width: int = WIDTH, height: int = HEIGHT, fo
     colors = torch.rand(n, 3, generator=g)
     background = torch.tensor([0.2, 0.5, 0.9])
     tensors = [t.to(dtype) for t in (means, quats, scales, opacities, colors, background)]
-    return Scene(*tensors[:5], K=intrinsics(width, height, focal, dtype),
-                 world_to_cam=look_from((0.3, -0.2, -3.0), dtype), width=width, height=height,
-                 background=tensors[5])
+    return Scene(
+        *tensors[:5],
+        K=intrinsics(width, height, focal, dtype),
+        world_to_cam=look_from((0.3, -0.2, -3.0), dtype),
+        width=width,
+        height=height,
+        background=tensors[5],
+    )
 
 
-def single_gaussian(pixel: tuple[float, float], depth: float, sigma_px: float, opacity: float,
-                    width: int = WIDTH, height: int = HEIGHT, dtype: torch.dtype = torch.float64) -> Scene:
+def single_gaussian(
+    pixel: tuple[float, float],
+    depth: float,
+    sigma_px: float,
+    opacity: float,
+    width: int = WIDTH,
+    height: int = HEIGHT,
+    dtype: torch.dtype = torch.float64,
+) -> Scene:
     """One isotropic Gaussian whose mean projects to ``pixel`` (x, y), identity camera."""
     K = intrinsics(width, height, FOCAL, dtype)
     x = (pixel[0] - K[0, 2]) * depth / FOCAL
     y = (pixel[1] - K[1, 2]) * depth / FOCAL
     s = sigma_px * depth / FOCAL
-    return Scene(means=torch.tensor([[x, y, depth]], dtype=dtype),
-                 quats=torch.tensor([[1.0, 0, 0, 0]], dtype=dtype), scales=torch.full((1, 3), s, dtype=dtype),
-                 opacities=torch.tensor([opacity], dtype=dtype),
-                 colors=torch.tensor([[1.0, 0.5, 0.25]], dtype=dtype), K=K,
-                 world_to_cam=torch.eye(4, dtype=dtype), width=width, height=height,
-                 background=torch.tensor([0.2, 0.5, 0.9], dtype=dtype))
+    return Scene(
+        means=torch.tensor([[x, y, depth]], dtype=dtype),
+        quats=torch.tensor([[1.0, 0, 0, 0]], dtype=dtype),
+        scales=torch.full((1, 3), s, dtype=dtype),
+        opacities=torch.tensor([opacity], dtype=dtype),
+        colors=torch.tensor([[1.0, 0.5, 0.25]], dtype=dtype),
+        K=K,
+        world_to_cam=torch.eye(4, dtype=dtype),
+        width=width,
+        height=height,
+        background=torch.tensor([0.2, 0.5, 0.9], dtype=dtype),
+    )

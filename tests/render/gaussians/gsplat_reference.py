@@ -42,9 +42,19 @@ TRANSMITTANCE_STOP = 1e-4  # rasterize_to_indices_3dgs: a pixel is done once T w
 MAX_ALPHA = 0.999
 
 
-def indices_in_range(range_start: int, range_end: int, transmittances: Tensor, means2d: Tensor, conics: Tensor,
-                     opacities: Tensor, image_width: int, image_height: int, tile_size: int, isect_offsets: Tensor,
-                     flatten_ids: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def indices_in_range(
+    range_start: int,
+    range_end: int,
+    transmittances: Tensor,
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    image_width: int,
+    image_height: int,
+    tile_size: int,
+    isect_offsets: Tensor,
+    flatten_ids: Tensor,
+) -> tuple[Tensor, Tensor, Tensor]:
     """PyTorch transcription of gsplat's ``rasterize_to_indices_in_range`` (same arguments and returns).
 
     Args:
@@ -71,9 +81,11 @@ def indices_in_range(range_start: int, range_end: int, transmittances: Tensor, m
             if first >= last:
                 continue
             ty, tx = divmod(tile, tile_w)
-            ii, jj = torch.meshgrid(torch.arange(ty * tile_size, min((ty + 1) * tile_size, image_height)),
-                                    torch.arange(tx * tile_size, min((tx + 1) * tile_size, image_width)),
-                                    indexing="ij")
+            ii, jj = torch.meshgrid(
+                torch.arange(ty * tile_size, min((ty + 1) * tile_size, image_height)),
+                torch.arange(tx * tile_size, min((tx + 1) * tile_size, image_width)),
+                indexing="ij",
+            )
             ii, jj = ii.flatten(), jj.flatten()
             ids = flatten_ids[first:last].long()  # (K,) nearest first
             dx = flat_means[ids, 0][None, :] - (jj.to(means2d.dtype)[:, None] + 0.5)  # (P, K)
@@ -130,8 +142,18 @@ class _NerfaccOnCpu(types.ModuleType):
         return src.new_zeros(n_rays, src.shape[1]).index_add(0, ray_indices, src)
 
 
-def opacity_aware_radii(radii: Tensor, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
-                        viewmats: Tensor, Ks: Tensor, width: int, height: int, eps2d: float = 0.3) -> Tensor:
+def opacity_aware_radii(
+    radii: Tensor,
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    eps2d: float = 0.3,
+) -> Tensor:
     """The CUDA projection's radii: per axis ``ceil(extent sqrt(cov_aa + eps2d))`` of gsplat's own 2D
     covariance (its torch functions), ``extent = min(3.33, sqrt(2 ln(o / (1/255))))``, 0 where ``o < 1/255``
     or the reference culled.
@@ -152,8 +174,16 @@ def opacity_aware_radii(radii: Tensor, means: Tensor, quats: Tensor, scales: Ten
     return torch.where(keep, aware, torch.zeros_like(aware))
 
 
-def isect_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, tile_width: int, tile_height: int,
-                sort: bool = True, **_unpacked_only: object) -> tuple[Tensor, Tensor, Tensor]:
+def isect_tiles(
+    means2d: Tensor,
+    radii: Tensor,
+    depths: Tensor,
+    tile_size: int,
+    tile_width: int,
+    tile_height: int,
+    sort: bool = True,
+    **_unpacked_only: object,
+) -> tuple[Tensor, Tensor, Tensor]:
     """gsplat's ``_torch_impl._isect_tiles`` without its Python loop over Gaussians and tiles (the same tile
     boxes, keys and layout; a test checks it against gsplat's), sorted stably as the CUDA path's radix sort:
     Gaussians at equal depth keep their index order (the reference's ``torch.sort`` does not promise it).
@@ -187,6 +217,7 @@ def isect_tiles(means2d: Tensor, radii: Tensor, depths: Tensor, tile_size: int, 
 
 def _isect_offset_encode(isect_ids: Tensor, n_images: int, tile_width: int, tile_height: int) -> Tensor:
     from gsplat.cuda._torch_impl import _isect_offset_encode as reference
+
     return reference(isect_ids, n_images, tile_width, tile_height)
 
 
@@ -195,11 +226,15 @@ def _rasterization(*, packed: bool = False, **kwargs: Tensor) -> tuple[Tensor, T
     reference's images hang off no graph, whereas the CUDA op's always do (with zero gradients): a zero
     term of every differentiable input keeps ``backward()`` working as on CUDA."""
     from gsplat.rendering import _rasterization as reference
+
     colors, alphas, meta = reference(**kwargs)
     with torch.no_grad():
         meta["radii"] = opacity_aware_radii(
-            meta["radii"], *(kwargs[k].detach() for k in ("means", "quats", "scales", "opacities", "viewmats", "Ks")),
-            kwargs["width"], kwargs["height"])
+            meta["radii"],
+            *(kwargs[k].detach() for k in ("means", "quats", "scales", "opacities", "viewmats", "Ks")),
+            kwargs["width"],
+            kwargs["height"],
+        )
     zero = sum((kwargs[name] * 0).sum() for name in ("means", "quats", "scales", "opacities", "colors"))
     return colors + zero, alphas + zero, meta
 
@@ -211,9 +246,12 @@ def gsplat_on_cpu() -> Iterator[None]:
     import gsplat.cuda._wrapper as wrapper
     import gsplat.rendering as rendering
 
-    patches = [(gsplat, "rasterization", _rasterization), (rendering, "isect_tiles", isect_tiles),
-               (rendering, "isect_offset_encode", _isect_offset_encode),
-               (wrapper, "rasterize_to_indices_in_range", indices_in_range)]
+    patches = [
+        (gsplat, "rasterization", _rasterization),
+        (rendering, "isect_tiles", isect_tiles),
+        (rendering, "isect_offset_encode", _isect_offset_encode),
+        (wrapper, "rasterize_to_indices_in_range", indices_in_range),
+    ]
     saved = [(owner, name, getattr(owner, name)) for owner, name, _ in patches]
     saved_nerfacc = sys.modules.get("nerfacc")
     try:

@@ -23,8 +23,10 @@ from avatar.render.gaussians.backend_cpu import render_cpu, work_counts
 from avatar.render.gaussians.backend_torch import render_torch
 from avatar.render.gaussians.render import resolve_backend
 
-pytestmark = pytest.mark.skipif(not extension.cpu_extension_available(),
-                                reason=f"compiled CPU rasterizer not built: {extension.unavailable_reason()}")
+pytestmark = pytest.mark.skipif(
+    not extension.cpu_extension_available(),
+    reason=f"compiled CPU rasterizer not built: {extension.unavailable_reason()}",
+)
 
 OUTPUTS = ("rgb", "alpha", "depth")
 NAMES = ("means", "quats", "scales", "opacities", "colors", "background")
@@ -33,8 +35,11 @@ TOL = {torch.float64: 1e-10, torch.float32: 1e-5}
 
 def _weights(scene: Scene, seed: int = 7) -> dict[str, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
-    shapes = {"rgb": (scene.height, scene.width, 3), "alpha": (scene.height, scene.width),
-              "depth": (scene.height, scene.width)}
+    shapes = {
+        "rgb": (scene.height, scene.width, 3),
+        "alpha": (scene.height, scene.width),
+        "depth": (scene.height, scene.width),
+    }
     return {k: torch.rand(shape, generator=g, dtype=torch.float64).to(scene.means.dtype) for k, shape in shapes.items()}
 
 
@@ -43,8 +48,9 @@ def _inputs(scene: Scene) -> list[torch.Tensor]:
     return [*scene.params(), scene.background]
 
 
-def _images_and_grads(render: Callable[..., Any], scene: Scene,
-                      **kwargs: Any) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+def _images_and_grads(
+    render: Callable[..., Any], scene: Scene, **kwargs: Any
+) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
     """Images (detached) and gradients of a weighted sum of them w.r.t. every input and means2d."""
     inputs = [t.detach().clone().requires_grad_(True) for t in _inputs(scene)]
     out = render(*inputs[:5], scene.K, scene.world_to_cam, scene.width, scene.height, inputs[5], **kwargs)

@@ -21,8 +21,9 @@ from data_schemas.tables import read_table
 from tests.conftest import run_cli
 from tests.training.test_static import CFG, _model, _scene
 
-pytestmark = pytest.mark.skipif(not cpu_extension_available(),
-                                reason=f"compiled CPU rasterizer not built: {unavailable_reason()}")
+pytestmark = pytest.mark.skipif(
+    not cpu_extension_available(), reason=f"compiled CPU rasterizer not built: {unavailable_reason()}"
+)
 PSNR_TOLERANCE_DB = 0.05
 
 
@@ -63,10 +64,17 @@ def test_smoke_warmup_reaches_the_torch_backend_held_out_psnr(tmp_path: Path) ->
     out = tmp_path / "out"
     results = {}
     for backend in ("torch", "cpu"):
-        run = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.until=evaluate",
-                      f"stage.warmup.backend={backend}", f"stage.evaluate.backend={backend}",
-                      f"stage.dynamic.backend={backend}", "quality.dynamic_steps=0",  # the warm-up alone
-                      "method=gaussian_avatars")
+        run = run_cli(
+            f"paths.outputs={out}",
+            "quality=smoke",
+            "run.progress=false",
+            "run.until=evaluate",
+            f"stage.warmup.backend={backend}",
+            f"stage.evaluate.backend={backend}",
+            f"stage.dynamic.backend={backend}",
+            "quality.dynamic_steps=0",  # the warm-up alone
+            "method=gaussian_avatars",
+        )
         assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
         results[backend] = _held_out_psnr(out / "synth_a")
     assert set(results["cpu"]) == {"novel_view", "self_reenact"}

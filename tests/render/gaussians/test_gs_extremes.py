@@ -60,8 +60,9 @@ def _backward(scene: Scene, backend: str) -> tuple[RenderOutput, list[torch.Tens
     return out, [p.grad for p in params]
 
 
-def _render_and_backward(scene: Scene, backend: str, ill_conditioned: tuple[int, ...] = (),
-                         depth_ties: bool = False) -> tuple[RenderOutput, list[torch.Tensor]]:
+def _render_and_backward(
+    scene: Scene, backend: str, ill_conditioned: tuple[int, ...] = (), depth_ties: bool = False
+) -> tuple[RenderOutput, list[torch.Tensor]]:
     """Render, backpropagate rgb + alpha + depth, and assert that everything is finite (and, for the
     compiled backend and gsplat, equal to the torch backend's to 1e-5).
 
@@ -105,17 +106,28 @@ def _assert_same_radii(out: RenderOutput, ref: RenderOutput, backend: str) -> No
     assert torch.equal(out.radii[~huge], ref.radii[~huge]) and (out.radii[huge] > 1_000_000).all()
 
 
-def _with_extra(means: list[list[float]], *, scales: float | list[list[float]] = 0.05,
-                quats: list[list[float]] | None = None, opacities: float = 0.9) -> Scene:
+def _with_extra(
+    means: list[list[float]],
+    *,
+    scales: float | list[list[float]] = 0.05,
+    quats: list[list[float]] | None = None,
+    opacities: float = 0.9,
+) -> Scene:
     """Five ordinary float32 Gaussians followed by extra ones at ``means``."""
     base = random_scene(5, seed=11, dtype=F32)
     n = len(means)
-    extra = Scene(means=torch.tensor(means, dtype=F32),
-                  quats=torch.tensor(quats if quats is not None else [[1.0, 0, 0, 0]] * n, dtype=F32),
-                  scales=torch.tensor(scales, dtype=F32) if isinstance(scales, list) else torch.full((n, 3), scales),
-                  opacities=torch.full((n,), opacities), colors=torch.linspace(0.1, 0.9, 3 * n).view(n, 3),
-                  K=base.K, world_to_cam=base.world_to_cam, width=base.width, height=base.height,
-                  background=base.background)
+    extra = Scene(
+        means=torch.tensor(means, dtype=F32),
+        quats=torch.tensor(quats if quats is not None else [[1.0, 0, 0, 0]] * n, dtype=F32),
+        scales=torch.tensor(scales, dtype=F32) if isinstance(scales, list) else torch.full((n, 3), scales),
+        opacities=torch.full((n,), opacities),
+        colors=torch.linspace(0.1, 0.9, 3 * n).view(n, 3),
+        K=base.K,
+        world_to_cam=base.world_to_cam,
+        width=base.width,
+        height=base.height,
+        background=base.background,
+    )
     return base.cat(extra)
 
 
@@ -179,8 +191,9 @@ def test_degenerate_scales_per_axis(backend: str) -> None:
     # cancellation: its mean and quaternion gradients differ between the two backends by 7e-5 (means) and
     # 2e-2 (quats) of their size even in float64, and their float32 values are off the float64 ones by 1.5-2.4.
     # Its image and the other Gaussians' gradients are still compared; its own only need to be finite.
-    _render_and_backward(_with_extra(means, scales=scales), backend, ill_conditioned=(base.means.shape[0] + 2,),
-                         depth_ties=True)
+    _render_and_backward(
+        _with_extra(means, scales=scales), backend, ill_conditioned=(base.means.shape[0] + 2,), depth_ties=True
+    )
 
 
 def test_unnormalised_and_zero_quaternions(backend: str) -> None:
@@ -188,9 +201,11 @@ def test_unnormalised_and_zero_quaternions(backend: str) -> None:
     means = [_camera_point(base, [0.1 * i - 0.2, 0.0, 2.0]) for i in range(4)]
     anisotropic = [[0.2, 0.02, 0.05]] * 4
     q = [0.3, -0.5, 0.7, 0.1]
-    out, _ = _render_and_backward(_with_extra(means, scales=anisotropic,
-                                              quats=[q, [100 * v for v in q], [0.0] * 4, [1e-30, 0.0, 0.0, 0.0]]),
-                                  backend, depth_ties=True)
+    out, _ = _render_and_backward(
+        _with_extra(means, scales=anisotropic, quats=[q, [100 * v for v in q], [0.0] * 4, [1e-30, 0.0, 0.0, 0.0]]),
+        backend,
+        depth_ties=True,
+    )
     unit = _with_extra(means, scales=anisotropic, quats=[q, q, [1.0, 0, 0, 0], [1.0, 0, 0, 0]])
     assert torch.allclose(out.rgb, _render(unit, backend).rgb, atol=1e-5)  # only the direction matters
 

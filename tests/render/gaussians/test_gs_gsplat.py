@@ -29,8 +29,9 @@ def _gsplat_at_least(major: int, minor: int) -> bool:
     return (int(version[0]), int(version[1])) >= (major, minor)
 
 
-requires_gsplat = pytest.mark.skipif(not gsplat_available() or not _gsplat_at_least(1, 5),
-                                     reason="needs CUDA and gsplat >= 1.5")
+requires_gsplat = pytest.mark.skipif(
+    not gsplat_available() or not _gsplat_at_least(1, 5), reason="needs CUDA and gsplat >= 1.5"
+)
 SIZE, N = 128, 2000
 
 
@@ -38,9 +39,13 @@ def _scene(seed: int = 0) -> tuple[list[torch.Tensor], tuple]:
     g = torch.Generator().manual_seed(seed)
     z = 2.0 + 2.0 * torch.rand(N, generator=g)
     xy = (torch.rand(N, 2, generator=g) - 0.5) * 1.2 * z[:, None]
-    params = [torch.cat([xy, z[:, None]], -1), torch.randn(N, 4, generator=g),
-              0.005 + 0.025 * torch.rand(N, 3, generator=g), 0.05 + 0.9 * torch.rand(N, generator=g),
-              torch.rand(N, 3, generator=g)]
+    params = [
+        torch.cat([xy, z[:, None]], -1),
+        torch.randn(N, 4, generator=g),
+        0.005 + 0.025 * torch.rand(N, 3, generator=g),
+        0.05 + 0.9 * torch.rand(N, generator=g),
+        torch.rand(N, 3, generator=g),
+    ]
     k = torch.tensor([[SIZE * 0.8, 0.0, (SIZE - 1) / 2], [0.0, SIZE * 0.8, (SIZE - 1) / 2], [0.0, 0.0, 1.0]])
     camera = (k.cuda(), torch.eye(4).cuda(), SIZE, SIZE, torch.tensor([0.1, 0.2, 0.3]).cuda())
     return [p.cuda().requires_grad_(True) for p in params], camera
@@ -70,8 +75,12 @@ def test_gsplat_and_torch_render_the_same_image() -> None:
 def test_gsplat_and_torch_give_the_same_gradients() -> None:
     ours, p_ours = _render("torch")
     theirs, p_theirs = _render("gsplat")
-    pairs = {"means": (p_ours[0].grad, p_theirs[0].grad), "opacities": (p_ours[3].grad, p_theirs[3].grad),
-             "colors": (p_ours[4].grad, p_theirs[4].grad), "means2d": (ours.grad2d(), theirs.grad2d())}
+    pairs = {
+        "means": (p_ours[0].grad, p_theirs[0].grad),
+        "opacities": (p_ours[3].grad, p_theirs[3].grad),
+        "colors": (p_ours[4].grad, p_theirs[4].grad),
+        "means2d": (ours.grad2d(), theirs.grad2d()),
+    }
     for name, (a, b) in pairs.items():
         rel = ((a - b).norm() / b.norm()).item()
         assert rel <= 2e-2, f"{name}: relative error {rel:.3e}"

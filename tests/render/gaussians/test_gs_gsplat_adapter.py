@@ -37,8 +37,9 @@ PROJECT = "cpu" if cpu_extension_available() else "torch"
 
 def _backward(scene: Scene, backend: str) -> tuple[RenderOutput, list[torch.Tensor]]:
     params = [p.detach().clone().requires_grad_(True) for p in (*scene.params(), scene.background)]
-    out = render_gaussians(*params[:5], scene.K, scene.world_to_cam, scene.width, scene.height, params[5],
-                           backend=backend)
+    out = render_gaussians(
+        *params[:5], scene.K, scene.world_to_cam, scene.width, scene.height, params[5], backend=backend
+    )
     g = torch.Generator().manual_seed(3)
     weights = [torch.rand(x.shape, generator=g) for x in (out.rgb, out.alpha, out.depth)]
     sum(w.mul(x).sum() for w, x in zip(weights, (out.rgb, out.alpha, out.depth))).backward()

@@ -35,8 +35,7 @@ def test_gsplat_without_cuda_or_package_says_how_to_fix() -> None:
 def test_shapes_are_checked() -> None:
     scene = random_scene(3, seed=0)
     with pytest.raises(ValueError, match=r"quats has shape \(3, 3\), expected \(3, 4\)"):
-        render_gaussians(scene.means, scene.quats[:, :3], scene.scales, scene.opacities, scene.colors,
-                         *scene.camera())
+        render_gaussians(scene.means, scene.quats[:, :3], scene.scales, scene.opacities, scene.colors, *scene.camera())
 
 
 def test_output_shapes_and_types() -> None:
@@ -92,9 +91,13 @@ def test_512px_200k_gaussians_fit_in_bounded_memory() -> None:
     n, size = 200_000, 512
     g = torch.Generator().manual_seed(0)
     direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
-    params = [direction * 0.1 + torch.tensor([0.0, 0.0, 0.7]), torch.randn(n, 4, generator=g),
-              0.001 + 0.002 * torch.rand(n, 3, generator=g), torch.rand(n, generator=g),
-              torch.rand(n, 3, generator=g)]
+    params = [
+        direction * 0.1 + torch.tensor([0.0, 0.0, 0.7]),
+        torch.randn(n, 4, generator=g),
+        0.001 + 0.002 * torch.rand(n, 3, generator=g),
+        torch.rand(n, generator=g),
+        torch.rand(n, 3, generator=g),
+    ]
     for p in params:
         p.requires_grad_(True)
     k = torch.tensor([[2.0 * size, 0.0, (size - 1) / 2], [0.0, 2.0 * size, (size - 1) / 2], [0.0, 0.0, 1.0]])

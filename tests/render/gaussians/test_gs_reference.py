@@ -24,8 +24,11 @@ OUTPUTS = ("rgb", "alpha", "depth")
 
 def _loss_weights(scene: Scene, seed: int = 7) -> dict[str, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
-    shapes = {"rgb": (scene.height, scene.width, 3), "alpha": (scene.height, scene.width),
-              "depth": (scene.height, scene.width)}
+    shapes = {
+        "rgb": (scene.height, scene.width, 3),
+        "alpha": (scene.height, scene.width),
+        "depth": (scene.height, scene.width),
+    }
     return {k: torch.rand(shape, generator=g, dtype=scene.means.dtype) for k, shape in shapes.items()}
 
 
@@ -113,8 +116,20 @@ def test_gradcheck_compositing_function() -> None:
     scene = random_scene(6, seed=6, width=9, height=7, focal=12.0, scale=0.25)
     proj = project_gaussians(*scene.params()[:4], scene.K, scene.world_to_cam, 9, 7, 0.01, 100.0)
     lists = build_tile_lists(proj.box, proj.depths, proj.visible, 9, 7, tile_size=4)
-    table = torch.cat([proj.means2d, proj.conics, scene.opacities.clamp_min(ALPHA_MIN).log()[:, None],
-                       scene.colors, proj.depths[:, None]], -1).detach().requires_grad_()
+    table = (
+        torch.cat(
+            [
+                proj.means2d,
+                proj.conics,
+                scene.opacities.clamp_min(ALPHA_MIN).log()[:, None],
+                scene.colors,
+                proj.depths[:, None],
+            ],
+            -1,
+        )
+        .detach()
+        .requires_grad_()
+    )
     settings = CompositeSettings(round_len=2, max_chunk_elements=64)
 
     def run(t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -136,8 +151,17 @@ def test_means2d_gradient_matches_bruteforce() -> None:
 
     means2d, cov2d, z = brute.project(*scene.params()[:3], scene.K, scene.world_to_cam, scene.width, scene.height)
     leaf = means2d.detach().requires_grad_()
-    ref_images = brute.composite(leaf, cov2d.detach(), z.detach(), scene.opacities.detach(), scene.colors.detach(),
-                                 scene.width, scene.height, scene.background, (z >= 0.01) & (z <= 100.0))
+    ref_images = brute.composite(
+        leaf,
+        cov2d.detach(),
+        z.detach(),
+        scene.opacities.detach(),
+        scene.colors.detach(),
+        scene.width,
+        scene.height,
+        scene.background,
+        (z >= 0.01) & (z <= 100.0),
+    )
     (ref,) = torch.autograd.grad(_loss(ref_images, weights), leaf)
 
     grad2d = out.grad2d()
