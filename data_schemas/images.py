@@ -63,6 +63,12 @@ def read_exr(path: str | Path) -> dict[str, np.ndarray]:
         raise SchemaError(f"{path}: not a readable OpenEXR file ({exc})") from exc
 
 
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """An image of floats in [0, 1] (any shape) as uint8: scaled by 255, rounded half up, values outside [0, 1]
+    clipped. The one conversion of renders to the PNG and video artifacts."""
+    return (image * 255 + 0.5).clip(0, 255).astype(np.uint8)
+
+
 def write_png(path: str | Path, image: np.ndarray) -> None:
     """Write ``(H, W)`` or ``(H, W, 3)`` uint8 (RGB order) losslessly."""
     path = Path(path)

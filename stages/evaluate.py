@@ -20,7 +20,7 @@ from avatar.training.dynamic import rasterize
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
 from data_schemas.frames import UNOBSERVED
-from data_schemas.images import write_png
+from data_schemas.images import to_uint8, write_png
 from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, showcase_path
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.writes import write_json
@@ -231,7 +231,7 @@ def _regions(labels: np.ndarray) -> dict[str, np.ndarray | None]:
 
 def _to_u8(image: torch.Tensor) -> np.ndarray:
     """(S, S, 3) uint8 of an image (3, S, S) in [0, 1]."""
-    return (image.permute(1, 2, 0).numpy() * 255 + 0.5).clip(0, 255).astype(np.uint8)
+    return to_uint8(image.permute(1, 2, 0).numpy())
 
 
 def _grid_row(gt: torch.Tensor, preds: list[torch.Tensor]) -> np.ndarray:

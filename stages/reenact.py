@@ -34,7 +34,7 @@ from avatar.templates.lbs import batch_rodrigues
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, cross_sequence, mask_path, video_path
 from data_schemas.deform import DEFORM
-from data_schemas.images import read_png, write_png
+from data_schemas.images import read_png, to_uint8, write_png
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.video import iter_video
@@ -131,7 +131,7 @@ def reenact(ctx: StageContext) -> None:
                     backend=conf.backend,
                 )
                 render_s += time.perf_counter() - start
-                rendered[name].append((out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+                rendered[name].append(to_uint8(out.rgb.numpy()))
             if conf.ply:
                 write_frame_ply(ctx.out_dir / "ply" / f"{t:05d}.ply", g)
     fps = float(conf.fps) or _capture_fps(ctx.input_dir("capture"))
