@@ -5,6 +5,7 @@ still talk only through artifacts)."""
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -165,6 +166,18 @@ def load_scene(scene_dir: Path) -> SceneDecision:
     return SceneDecision(
         bool(info["model_hand"]), bool(info["model_pbd"]), bool(info["model_interaction"]), dict(info["why"])
     )
+
+
+@dataclass
+class PosedGaussians:
+    """World-space Gaussians of one frame (a :class:`WorldGaussians`): means (N, 3), scales (N, 3), quats (N, 4),
+    opacities (N,), colors (N, 3)."""
+
+    means: torch.Tensor
+    scales: torch.Tensor
+    quats: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
 
 
 def write_frame_ply(path: Path, g: WorldGaussians) -> None:

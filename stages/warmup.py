@@ -12,10 +12,9 @@ from avatar.render.gaussians import resolve_backend
 from avatar.training.static import StaticConfig, colors_from_views
 from avatar.training.validation import Validator
 from data_schemas.capture import MASK_LABELS
-from data_schemas.gaussians_ply import GaussianCloud, write_gaussians_ply
 from pipeline.schema import section_schema
 from pipeline.stage import StageContext, stage
-from stages.artifacts import TRAIN_SEQUENCE, load_scene, load_views
+from stages.artifacts import TRAIN_SEQUENCE, PosedGaussians, load_scene, load_views, write_frame_ply
 from stages.dependencies import model_sources, unused_training_settings
 from stages.posing import applied_deformation, posed_sequence
 from stages.representations import representation, representation_problems
@@ -81,8 +80,9 @@ WarmupConfig = section_schema("WarmupConfig", StaticConfig, exclude=("steps",), 
         "stage.keypoints.detector",
     ),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet", "params.parquet"),
-    version="8",
-    # 8: refine_params (the train motion's parameters refined with the Gaussians; params.parquet);
+    version="9",
+    # 9: gaussians.ply by the one PLY writer (write_frame_ply: opacity logits of the clamped opacities, equal to
+    # rounding); 8: refine_params (the train motion's parameters refined with the Gaussians; params.parquet);
     # 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
     # rasterizer's alpha as a power of two (rounding-level)
     per_method=True,
@@ -133,14 +133,9 @@ def warmup(ctx: StageContext) -> None:
     with torch.no_grad():
         vertices = params.vertices(frame) if params is not None else meshes.vertices[frame]
         means, scales, quats = model.world(vertices, meshes.faces)
-        cloud = GaussianCloud.from_rgb(
-            means.numpy(),
-            torch.log(scales).numpy(),
-            quats.numpy(),
-            model.opacity_logits.numpy(),
-            model.colors().numpy(),
+        write_frame_ply(
+            ctx.out_dir / "gaussians.ply", PosedGaussians(means, scales, quats, model.opacities(), model.colors())
         )
-    write_gaussians_ply(ctx.out_dir / "gaussians.ply", cloud)
     record_refinement(ctx, posed.params, posed.params, params)
     ctx.metrics["gaussians"] = model.num_gaussians
     ctx.metrics["final_loss"] = final_loss

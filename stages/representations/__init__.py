@@ -70,6 +70,10 @@ class CanonicalGaussians(Protocol):
         """(N, 3) RGB in [0, 1]."""
         ...
 
+    def opacities(self) -> torch.Tensor:
+        """(N,) in (0, 1)."""
+        ...
+
 
 class TrainedAvatar(Protocol):
     """A method's final model, loaded from its dynamic stage's folder."""

@@ -28,7 +28,7 @@ from data_schemas.writes import write_bytes
 from pipeline.config import schema_problems
 from pipeline.schema import core_config, section_schema
 from pipeline.stage import StageContext
-from stages.artifacts import TRAIN_SEQUENCE, WorldGaussians, load_params
+from stages.artifacts import TRAIN_SEQUENCE, PosedGaussians, WorldGaussians, load_params
 from stages.posing import PosedSequence
 from stages.representations import (
     CanonicalGaussians,
@@ -70,17 +70,6 @@ def splatting_config(cfg: DictConfig, steps: int, schedule: DictConfig, *, densi
         seed=int(schedule.seed),
         backend=str(schedule.backend),
     )
-
-
-@dataclass
-class PosedGaussians:
-    """World-space Gaussians of one frame (a :class:`WorldGaussians`)."""
-
-    means: torch.Tensor
-    scales: torch.Tensor
-    quats: torch.Tensor
-    opacities: torch.Tensor
-    colors: torch.Tensor
 
 
 def write_embedded_gaussians(path: Path, model: EmbeddedGaussians, part_names: tuple[str, ...]) -> None:
