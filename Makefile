@@ -119,8 +119,10 @@ bench: $(STAMP) ext
 	$(PY) benchmarks/run_all.py $(BENCH_ARGS)
 
 ## make docs: the documentation site (MkDocs, Material theme) into site/; strict, so a broken link fails it.
-## The generated pages are rewritten first: the config reference and the README's results table.
+## The generated files are rewritten first: conf/'s blocks of dataclass defaults, the config reference and the
+## README's results table.
 docs: $(STAMP)
+	$(PY) -m stages.config_defaults
 	$(PY) -m pipeline.config_reference
 	$(PY) benchmarks/render_results.py
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict

@@ -11,7 +11,12 @@ reason.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
+import io
+import textwrap
+import tokenize
 import typing
 from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
@@ -61,3 +66,84 @@ def core_config(core: type[T], section: Mapping[str, Any], **given: Any) -> T:
             value = tuple(items) if typing.get_origin(kind) is tuple else items
         values[name] = value
     return core(**values)
+
+
+def field_docs(core: type) -> dict[str, str]:
+    """field -> its documentation in the dataclass ``core``'s source: the full-line comments right above the
+    field, then the comment at the end of its line ("" where it has neither)."""
+    source = textwrap.dedent(inspect.getsource(core))
+    lines = source.splitlines()
+    trailing: dict[int, str] = {}
+    for token in tokenize.generate_tokens(io.StringIO(source).readline):
+        if token.type == tokenize.COMMENT and lines[token.start[0] - 1].strip() != token.string.strip():
+            trailing[token.start[0]] = token.string.lstrip("#").strip()
+    body = ast.parse(source).body[0]
+    assert isinstance(body, ast.ClassDef)
+    docs: dict[str, str] = {}
+    for node in body.body:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            above: list[str] = []
+            row = node.lineno - 2
+            while row >= 0 and lines[row].strip().startswith("#"):
+                above.insert(0, lines[row].strip().lstrip("#").strip())
+                row -= 1
+            docs[node.target.id] = " ".join([*above, trailing.get(node.lineno, "")]).strip()
+    return docs
+
+
+def yaml_value(value: Any) -> str:
+    """``value`` (a bool, number, string or tuple/list of them) as a YAML flow value that reads back equal."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (tuple, list)):
+        return "[" + ", ".join(yaml_value(v) for v in value) + "]"
+    if isinstance(value, float):
+        text = repr(value)
+        mantissa, e, exponent = text.partition("e")
+        return f"{mantissa if '.' in mantissa else mantissa + '.0'}e{exponent}" if e else text
+    return str(value)
+
+
+def yaml_defaults(core: type, exclude: Iterable[str] = (), indent: str = "", width: int = 120) -> list[str]:
+    """The YAML lines of the defaults of ``core``'s fields less ``exclude``, each documented by its comment in the
+    dataclass (at the end of the line, or above the key where the line would pass ``width``). ``ValueError`` for a
+    field without a default or without documentation."""
+    docs = field_docs(core)
+    defaults = {f.name: f.default for f in dataclasses.fields(core)}
+    lines: list[str] = []
+    for name, _ in core_fields(core, exclude):
+        if defaults[name] is dataclasses.MISSING:
+            raise ValueError(f"{core.__name__}.{name} has no default to write")
+        if not docs[name]:
+            raise ValueError(f"{core.__name__}.{name} has no comment: document it in the dataclass")
+        line = f"{indent}{name}: {yaml_value(defaults[name])}"
+        if len(line) + 3 + len(docs[name]) <= width:
+            lines.append(f"{line}  # {docs[name]}")
+        else:
+            prefix = f"{indent}# "
+            lines += [prefix + text for text in textwrap.wrap(docs[name], width - len(prefix))]
+            lines.append(line)
+    return lines
+
+
+def generated_block_markers(core: type) -> tuple[str, str]:
+    """The comment lines that open and close the YAML block generated from ``core``."""
+    name = f"{core.__module__}.{core.__qualname__}"
+    return (
+        f"# >>> generated from {name} (python -m stages.config_defaults): edit the dataclass, not this block",
+        f"# <<< generated from {name}",
+    )
+
+
+def with_generated_block(text: str, core: type, exclude: Iterable[str] = (), where: str = "") -> str:
+    """``text`` (a YAML file) with its block generated from ``core`` rewritten (``where``: the file, for the error
+    when its markers are missing); the block's indentation is its opening marker's."""
+    opening, closing = generated_block_markers(core)
+    lines = text.splitlines()
+    starts = [i for i, line in enumerate(lines) if line.strip() == opening]
+    ends = [i for i, line in enumerate(lines) if line.strip() == closing]
+    if len(starts) != 1 or len(ends) != 1 or ends[0] < starts[0]:
+        raise ValueError(f"{where}: needs exactly one block between '{opening}' and '{closing}'")
+    indent = lines[starts[0]][: len(lines[starts[0]]) - len(lines[starts[0]].lstrip())]
+    block = yaml_defaults(core, exclude, indent)
+    return "\n".join([*lines[: starts[0] + 1], *block, *lines[ends[0] :]]) + "\n"

@@ -1,6 +1,6 @@
-"""One definition per setting (issue 37): the config sections that feed a training loop are typed by the loop's own
-config dataclass, set every one of its hyperparameters, and default to its values unless the pipeline chooses
-otherwise for a reason stated here."""
+"""One definition per setting (issue 37): the config sections that feed a training loop or the dynamic model are
+typed by its own config dataclass and set every one of its settings, and their YAML defaults and descriptions are
+generated from the dataclass (stages.config_defaults), except the pipeline's own choices."""
 
 from __future__ import annotations
 
@@ -16,48 +16,57 @@ from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.static import StaticConfig
 from pipeline.config import ConfigError, validate_config
-from pipeline.schema import core_config, core_fields, section_schema
+from pipeline.schema import core_config, core_fields, section_schema, yaml_defaults, yaml_value
 from stages import REGISTRY
+from stages.config_defaults import BLOCKS, CONF_DIR, PIPELINE_CHOICES, rendered
 from stages.dynamic import DynamicConfig
 from stages.representations.bound import PRESET_ARCHITECTURE, dynamic_train_config, model_config, static_config
 from stages.representations.embedded import SHARED_SCHEDULE, SplattingSchema, splatting_config
 from stages.warmup import WarmupConfig
-from tests.conftest import CONF_DIR, compose_cfg
+from tests.conftest import compose_cfg
 
-#: Where the pipeline's default differs from the core's, and why.
-PIPELINE_CHOICES = {
-    "checkpoint_every": "the pipeline checkpoints so that a killed run resumes; the core, a library, does not",
-    "seed": "the run's seed (root key seed)",
-}
-
-#: (core dataclass, the file and key of its config section, its fields the section does not hold, the section's
-#: schema)
+#: (core dataclass, its config section, its fields the section does not hold, the section's schema)
 SECTIONS = [
-    (StaticConfig, "stage/warmup.yaml", "stage.warmup", ("steps",), WarmupConfig),
-    (DynamicTrainConfig, "stage/dynamic.yaml", "stage.dynamic", ("steps", "selection"), DynamicConfig),
-    (DynamicModelConfig, "stage/dynamic.yaml", "stage.dynamic", PRESET_ARCHITECTURE, DynamicConfig),
-    (SplattingConfig, "config.yaml", "splatting", SHARED_SCHEDULE, SplattingSchema),
+    (StaticConfig, "stage.warmup", ("steps",), WarmupConfig),
+    (DynamicTrainConfig, "stage.dynamic", ("steps", "selection"), DynamicConfig),
+    (DynamicModelConfig, "stage.dynamic", PRESET_ARCHITECTURE, DynamicConfig),
+    (SplattingConfig, "splatting", SHARED_SCHEDULE, SplattingSchema),
 ]
 
 
 @pytest.mark.parametrize(
-    ("core", "file", "key", "exclude", "schema"), SECTIONS, ids=[f"{s[2]}-{s[0].__name__}" for s in SECTIONS]
+    ("core", "key", "exclude", "schema"), SECTIONS, ids=[f"{s[1]}-{s[0].__name__}" for s in SECTIONS]
 )
-def test_each_section_sets_every_hyperparameter_of_its_loop_at_the_loops_default(
-    core, file, key, exclude, schema
-) -> None:
-    loaded = OmegaConf.load(CONF_DIR / file)  # the defaults, before any preset's choices
-    section = loaded if file.startswith("stage/") else loaded[key]
-    defaults = {f.name: f.default for f in dataclasses.fields(core)}
+def test_each_section_types_and_sets_every_hyperparameter_of_its_dataclass(core, key, exclude, schema) -> None:
+    section = OmegaConf.select(compose_cfg([]), key)
+    typed = {f.name for f in dataclasses.fields(schema)}
     for name, _ in core_fields(core, exclude):
         assert name in section, f"{key}.{name}: a hyperparameter of {core.__name__} that the config cannot set"
-        assert name in {f.name for f in dataclasses.fields(schema)}, f"{schema.__name__} does not type {name}"
-        if name not in PIPELINE_CHOICES:
-            value = tuple(section[name]) if isinstance(defaults[name], tuple) else section[name]
-            assert value == defaults[name], (
-                f"{key}.{name}={section[name]} but {core.__name__}.{name} defaults to {defaults[name]}: one default "
-                f"per setting (change both, or state the pipeline's reason in PIPELINE_CHOICES)"
-            )
+        assert name in typed, f"{schema.__name__} does not type {name}"
+
+
+def test_the_yaml_defaults_are_generated_from_the_dataclasses() -> None:
+    """One default and one description per setting: conf/'s blocks are what the dataclasses generate, and every
+    block is declared (the settings outside the blocks are the stages' own or the pipeline's choices)."""
+    stale = [str(path) for path, text in rendered().items() if path.read_text() != text]
+    assert not stale, f"{stale}: run python -m stages.config_defaults"
+    excluded = {core: set(exclude) | set(PIPELINE_CHOICES) for core, _, exclude, _ in SECTIONS}
+    assert {b.core for b in BLOCKS} == set(excluded)
+    for block in BLOCKS:  # a block leaves out only what its section does not hold and the pipeline's choices
+        assert set(block.exclude) <= excluded[block.core], block
+    warm = OmegaConf.load(CONF_DIR / "stage" / "warmup.yaml")
+    assert warm.checkpoint_every != StaticConfig(steps=1).checkpoint_every  # a pipeline's choice, by hand
+
+
+def test_a_setting_without_documentation_is_refused() -> None:
+    @dataclass(frozen=True)
+    class Undocumented:
+        rate: float = 0.1
+
+    with pytest.raises(ValueError, match="Undocumented.rate has no comment: document it in the dataclass"):
+        yaml_defaults(Undocumented)
+    assert yaml_defaults(_Core, ("steps",)) == ["rate: 0.1  # per step", "name: x  # what it is called"]
+    assert yaml_value(5e-05) == "5.0e-05" and yaml_value((0.2, 4)) == "[0.2, 4]" and yaml_value(True) == "true"
 
 
 def test_the_loops_configs_are_built_from_their_sections_whole() -> None:
@@ -99,8 +108,9 @@ def test_a_hyperparameter_of_the_wrong_type_is_refused_before_any_stage(override
 @dataclass(frozen=True)
 class _Core:
     steps: int
-    rate: float = 0.1
-    name: str = "x"
+    rate: float = 0.1  # per step
+    # what it is
+    name: str = "x"  # called
 
 
 @dataclass

@@ -76,24 +76,27 @@ class DynamicModelConfig:
         colour_delta: how d_c enters: ``add`` (``c_i + d_c``, the paper) or ``scale`` (``c_i exp(d_c)``).
     """
 
-    hand_mlp: bool = True
-    interaction: bool = True
+    hand_mlp: bool = True  # H_geo, H_app on the hand Gaussians (false: the "w/o H" ablation)
+    interaction: bool = True  # I on the face Gaussians near the hand (false: the "w/o I" ablation)
     hand_width: int = 256
     hand_depth: int = 4
     interaction_width: int = 256
     interaction_depth: int = 6
-    position_frequencies: int = 10
-    offset_frequencies: int = 4
-    offset_unit_m: float = 0.01
-    point_feature_dim: int = 64
+    position_frequencies: int = 10  # octaves of gamma(mu_cano) (NeRF)
+    offset_frequencies: int = 4  # octaves of gamma(d_j / offset_unit_m)
+    offset_unit_m: float = 0.01  # the unit of the PBD offsets d_j in I's encoding, metres
+    point_feature_dim: int = 64  # P_i (paper)
     geometry_feature_dim: int = 1024
     pointnet_centres: tuple[int, int] = (512, 128)
+    # ball radii of PointNet++'s two set-abstraction levels, units of pointnet_unit_m
     pointnet_radii: tuple[float, float] = (0.2, 0.4)
-    pointnet_neighbours: tuple[int, int] = (32, 64)
+    pointnet_neighbours: tuple[int, int] = (32, 64)  # points grouped per centre at each level (PointNet++)
     pointnet_width: float = 1.0
-    pointnet_unit_m: float = 0.1
-    d_max: float = 0.05
-    deform_threshold_m: float = 1e-4
+    pointnet_unit_m: float = 0.1  # metres per PointNet++ unit
+    d_max: float = 0.05  # interaction radius, metres (paper)
+    deform_threshold_m: float = 1e-4  # a face triangle deforms (PointNet++ input) when its mean PBD offset exceeds this
+    # d_c of H_app and I: add (c_i + d_c, the paper) or scale (c_i exp(d_c): shading multiplies); scale validated
+    # 0.06 dB lower at draft (6 runs; docs/notes/2026-12-03-gains-with-seeds.md)
     colour_delta: str = "add"
 
     @property

@@ -45,27 +45,32 @@ class DynamicTrainConfig:
     """Stage-two hyperparameters (paper values as defaults)."""
 
     steps: int
-    lambda_dssim: float = 0.2
-    scale_weight: float = 1.0  # a
-    position_weight: float = 0.01  # b
-    patch_weight: float = 0.1  # c
-    eps_s: float = 0.4
-    eps_mu: float = 0.2
-    lr_mlp: float = 1e-3
-    lr_point_features: float = 2.5e-3
-    lr_decay: float = 0.1  # final / initial learning rate of the MLPs and point features
-    lr_position: float = 5e-5  # Gaussians: where the warm-up's schedule ended
-    lr_scale: float = 1.7e-2
-    lr_rotation: float = 1e-3
-    lr_opacity: float = 5e-2
-    lr_color: float = 2.5e-3
+    lambda_dssim: float = 0.2  # lambda (paper)
+    scale_weight: float = 1.0  # a, L_s (paper)
+    position_weight: float = 0.01  # b, L_mu (paper)
+    # c, L_patch: LPIPS-VGG on the hand box and the hand-face overlap (paper; 0: "w/o L_patch")
+    patch_weight: float = 0.1
+    eps_s: float = 0.4  # (paper)
+    eps_mu: float = 0.2  # (paper)
+    lr_mlp: float = 1e-3  # MLPs and PointNet++ (paper)
+    lr_point_features: float = 2.5e-3  # P_i (paper)
+    lr_decay: float = 0.1  # final / initial learning rate of the MLPs and P_i (3DGS-style exponential decay)
+    lr_position: float = 5e-5  # Adam rate of the Gaussians' local positions, constant: where the warm-up's decay ended
+    lr_scale: float = 1.7e-2  # of their log-scales, as in the warm-up
+    lr_rotation: float = 1e-3  # of their quaternions, as in the warm-up
+    lr_opacity: float = 5e-2  # of their opacity logits, as in the warm-up
+    lr_color: float = 2.5e-3  # of their colours, as in the warm-up
+    # probability of drawing a contact frame first, else any frame (the paper oversamples contact frames; 0: frames
+    # uniformly)
     contact_fraction: float = 0.5
-    max_contact_frame_share: float = 0.1  # no contact frame takes more of the steps (contact_draw_probability)
-    patch_min_size: int = 32
+    # lowers contact_fraction so that no contact frame takes more of the steps (with few contact frames the Gaussians
+    # fit their tracking error; docs/explanation/dynamic-model.md)
+    max_contact_frame_share: float = 0.1
+    patch_min_size: int = 32  # L_patch boxes grow to at least this many pixels a side
     checkpoint_every: int = 0
-    log_every: int = 10
+    log_every: int = 10  # steps between loss-curve points
     seed: int = 0
-    backend: str = "auto"
+    backend: str = "auto"  # rasterizer, as stage.warmup.backend
     selection: SelectionConfig = SelectionConfig()  # keep the best validation step and the modules it needs
 
 

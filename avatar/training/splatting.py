@@ -64,28 +64,30 @@ class SplattingConfig:
     of ``steps`` except ``walk_every``, in steps)."""
 
     steps: int
-    lambda_dssim: float = 0.2
-    lambda_mse: float = 10.0
-    lambda_lpips: float = 0.05
-    lpips_net: str = "alex"
-    scale_weight: float = 1.0
-    scale_threshold: float = 0.008  # world units (metres)
-    scale_ratio_threshold: float = 10.0
-    lr_position_init: float = 1.6e-4  # u, v (barycentric units) and d (world units)
-    lr_position_final: float = 1.6e-6
-    lr_scale: float = 5e-3
-    lr_rotation: float = 1e-3
-    lr_opacity: float = 5e-2
-    lr_color: float = 2.5e-3
-    densify_from: float = 100 / 30_000
+    lambda_dssim: float = 0.2  # D-SSIM weight (lambda_ssim)
+    lambda_mse: float = 10.0  # MSE weight (configs/splatting_avatar.yaml: lambda_rgb_mse)
+    lambda_lpips: float = 0.05  # LPIPS weight (lambda_perceptual)
+    lpips_net: str = "alex"  # the LPIPS network (alex, the public code's)
+    scale_weight: float = 1.0  # L_scale weight (lambda_scaling: 0 for heads, 1 for bodies; the hand is articulated)
+    scale_threshold: float = 0.008  # L_scale penalises scales above this, metres (scaling_threshold)
+    scale_ratio_threshold: float = 10.0  # and largest / smallest scale ratios above this
+    # Adam rate of u, v (barycentric units) and d (metres) at the start (position_lr_init)
+    lr_position_init: float = 1.6e-4
+    lr_position_final: float = 1.6e-6  # and at the end: decayed exponentially over the steps (position_lr_final)
+    lr_scale: float = 5e-3  # Adam rate of the log-scales (scaling_lr)
+    lr_rotation: float = 1e-3  # of the quaternions (rotation_lr)
+    lr_opacity: float = 5e-2  # of the opacity logits (opacity_lr)
+    lr_color: float = 2.5e-3  # of the colours (feature_lr)
+    densify_from: float = 100 / 30_000  # density control from this fraction of the steps (public: 100 of 30k)
     densify_until: float = 0.5  # 0 disables density control (and the opacity resets)
-    densify_interval: float = 100 / 30_000
+    densify_interval: float = 100 / 30_000  # fraction of the steps between densifications (public: 100 of 30k)
     opacity_reset_interval: float = 0.1
+    # screen-space gradient above which a Gaussian is cloned or split (densify_grad_threshold)
     grad_threshold: float = 2e-4
-    scene_extent: float = 2.0  # public ``cameras_extent`` as used; <= 0: the meshes' bounding radius
+    scene_extent: float = 2.0  # the public code's cameras_extent as used, metres; <= 0: the meshes' bounding radius
     max_gaussians: int = 150_000
-    walk_every: int = 100
-    max_hops: int = 64
+    walk_every: int = 100  # steps between triangle walks (triangle_walk_interval)
+    max_hops: int = 64  # most triangles one walk may cross
     backend: str = "auto"
     seed: int = 0
     log_every: int = 10

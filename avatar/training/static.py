@@ -35,26 +35,30 @@ class StaticConfig:
     """Warm-up hyperparameters (paper / GaussianAvatars values as defaults)."""
 
     steps: int
-    lambda_dssim: float = 0.2
-    scale_weight: float = 1.0  # a
-    position_weight: float = 0.01  # b
-    eps_s: float = 0.4
-    eps_mu: float = 0.2
-    lr_position_init: float = 5e-3  # local units (k), GaussianAvatars
-    lr_position_final: float = 5e-5
-    lr_scale: float = 1.7e-2
-    lr_rotation: float = 1e-3
-    lr_opacity: float = 5e-2
-    lr_color: float = 2.5e-3
-    densify_from: float = 0.02  # fractions of ``steps``
-    densify_until: float = 0.5
-    densify_interval: float = 0.01
-    opacity_reset_interval: float = 0.1
+    lambda_dssim: float = 0.2  # lambda of (1 - lambda) L1 + lambda D-SSIM (paper)
+    scale_weight: float = 1.0  # a, weight of L_s (paper)
+    position_weight: float = 0.01  # b, weight of L_mu (paper)
+    eps_s: float = 0.4  # L_s threshold on local scales, units of the triangle scale k (paper)
+    eps_mu: float = 0.2  # L_mu threshold on local positions, units of k (paper)
+    # Adam rate of the Gaussians' local positions (units of k) at the start (GaussianAvatars)
+    lr_position_init: float = 5e-3
+    lr_position_final: float = 5e-5  # and at the end: decayed exponentially over the steps (GaussianAvatars)
+    lr_scale: float = 1.7e-2  # Adam rate of the log-scales (GaussianAvatars)
+    lr_rotation: float = 1e-3  # of the quaternions (3DGS)
+    lr_opacity: float = 5e-2  # of the opacity logits (3DGS)
+    lr_color: float = 2.5e-3  # of the colours, degree-0 spherical harmonics (3DGS)
+    densify_from: float = 0.02  # density control starts at this fraction of the steps (3DGS: 500 of 30k)
+    densify_until: float = 0.5  # density control runs until this fraction of the steps (3DGS: 15k of 30k)
+    densify_interval: float = 0.01  # fraction of the steps between densifications (3DGS: 100 of 30k)
+    opacity_reset_interval: float = 0.1  # fraction of the steps between opacity resets (3DGS: 3k of 30k)
+    # a Gaussian whose mean screen-space position gradient exceeds this is cloned or split (3DGS)
     grad_threshold: float = 2e-4
-    max_gaussians: int = 1_000_000
+    max_gaussians: int = 1_000_000  # density control never grows the model beyond this
     checkpoint_every: int = 0  # steps; 0 = never
-    log_every: int = 10
+    log_every: int = 10  # steps between loss-curve points
     seed: int = 0
+    # rasterizer: auto (gsplat on CUDA if installed; on CPU the compiled cpu backend if built, else torch), torch, cpu,
+    # gsplat
     backend: str = "auto"
 
     def density(self) -> DensityConfig:
