@@ -55,6 +55,9 @@ def _commented_keys(path: Path) -> Iterator[tuple[str, str]]:
     prefix = _package(path)
     for number, line in enumerate(path.read_text().splitlines()):
         stripped = line.strip()
+        if stripped.startswith(("# >>> generated", "# <<< generated")):  # stages.config_defaults' block markers
+            above = []
+            continue
         if stripped.startswith("#"):
             header = number == len(above)  # the file's opening comment describes the file, not its first key
             above = [] if header and "@package" in stripped else above

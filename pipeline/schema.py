@@ -121,7 +121,7 @@ def yaml_defaults(core: type, exclude: Iterable[str] = (), indent: str = "", wid
             lines.append(f"{line}  # {docs[name]}")
         else:
             prefix = f"{indent}# "
-            lines += [prefix + text for text in textwrap.wrap(docs[name], width - len(prefix))]
+            lines += [prefix + text for text in textwrap.wrap(docs[name], width - len(prefix), break_on_hyphens=False)]
             lines.append(line)
     return lines
 

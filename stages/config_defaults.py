@@ -1,11 +1,11 @@
 """The defaults in ``conf/`` of the settings the core's config dataclasses define, generated from the dataclasses.
 
-Each such setting is defined once, in its dataclass (avatar.training.static.StaticConfig,
-avatar.training.dynamic.DynamicTrainConfig, avatar.dynamic.model.DynamicModelConfig,
-avatar.training.splatting.SplattingConfig): its name, type, default and documentation (the comment at or above
-its field). The YAML files hold a generated block of those defaults and comments between two marker lines, beside
-the settings of their own (the stages' own, and where the pipeline chooses otherwise: checkpoints, the run's
-seed). ``python -m stages.config_defaults`` rewrites the blocks; ``--check`` fails where one is out of date, as
+Each such setting is defined once, in its dataclass (the training loops' StaticConfig, DynamicTrainConfig and
+SplattingConfig, the model's DynamicModelConfig, the fitting's FitConfig and RefineConfig, the contact solver's
+PBDConfig): its name, type, default and documentation (the comment at or above its field). The YAML files hold a
+generated block of those defaults and comments between two marker lines, beside the settings of their own (the
+stages' own, and where the pipeline chooses otherwise: checkpoints, the run's seed). ``python -m
+stages.config_defaults`` rewrites the blocks; ``--check`` fails where one is out of date, as
 ``tests/test_config_schemas.py`` does. The config reference (``pipeline.config_reference``) reads the YAML, so it
 shows the dataclasses' words.
 """
@@ -18,6 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from avatar.dynamic.model import DynamicModelConfig
+from avatar.fitting.fit import FitConfig
+from avatar.fitting.refine import RefineConfig
+from avatar.pbd import PBDConfig
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.static import StaticConfig
@@ -44,6 +47,9 @@ BLOCKS = (
     GeneratedDefaults("stage/dynamic.yaml", DynamicModelConfig, PRESET_ARCHITECTURE),
     GeneratedDefaults("stage/dynamic.yaml", DynamicTrainConfig, ("steps", "selection", *PIPELINE_CHOICES)),
     GeneratedDefaults("config.yaml", SplattingConfig, SHARED_SCHEDULE),
+    GeneratedDefaults("stage/fit.yaml", FitConfig, ("face_shape_columns",)),
+    GeneratedDefaults("stage/fit.yaml", RefineConfig, ()),
+    GeneratedDefaults("stage/pbd.yaml", PBDConfig, ()),
 )
 
 

@@ -7,8 +7,9 @@ import logging
 import os
 import shutil
 from collections import defaultdict
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -33,6 +34,7 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.manifest import hash_outputs
+from pipeline.schema import core_config, section_schema
 from pipeline.stage import StageContext, stage
 from stages.artifacts import load_ground_truth_params, load_provided_params, load_views
 from stages.dependencies import model_sources
@@ -57,25 +59,15 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
-class FitStageConfig:
-    """Types of ``stage.fit`` (values in conf/stage/fit.yaml): the optimiser's iterations and loss weights."""
+class FitStageSettings:
+    """The fit stage's own settings: those the fitting's :class:`FitConfig` does not hold."""
 
-    coarse_iterations: int
-    fine_iterations: int
-    hand_pose_prior: float
-    face_pose_prior: float
-    expression_prior: float
-    shape_prior: float
-    shape_roughness: float
     identity_space: str
-    smooth_rotation: float
-    smooth_transl_mm: float
-    penetration_mm: float
     refine: str
     refinement: RefineConfig
 
     @staticmethod
-    def validate(conf: FitStageConfig) -> list[str]:
+    def validate(conf: Any) -> list[str]:
         problems = (
             []
             if conf.refine in REFINE_CHOICES
@@ -87,6 +79,11 @@ class FitStageConfig:
             if getattr(conf.refinement, key) < 1
         ]
         return problems
+
+
+#: Types of ``stage.fit`` (values in conf/stage/fit.yaml): every setting of the fitting's :class:`FitConfig` (its
+#: identity columns come from ``identity_space``) and the stage's own.
+FitStageConfig = section_schema("FitStageConfig", FitConfig, exclude=("face_shape_columns",), own=FitStageSettings)
 
 
 @stage(
@@ -111,15 +108,9 @@ def fit(ctx: StageContext) -> None:
     index = CaptureIndex.read(cap_dir)
     head, hand = templates(ctx.cfg.model)
     cameras = [c for c in read_cameras(cap_dir / "cameras.parquet") if c.split == "train"]
-    settings = {
-        f.name: getattr(ctx.cfg.stage.fit, f.name)
-        for f in fields(FitStageConfig)
-        if f.name not in ("refine", "refinement")
-    }
-    conf = FitConfig(
-        **{k: v for k, v in settings.items() if k != "identity_space"},
-        face_shape_columns=face_shape_columns(head, settings["identity_space"], str(ctx.cfg.stage.keypoints.detector)),
-    )
+    section = ctx.cfg.stage.fit
+    identity_columns = face_shape_columns(head, str(section.identity_space), str(ctx.cfg.stage.keypoints.detector))
+    conf = core_config(FitConfig, section, face_shape_columns=identity_columns)
     # train_views: 1 is a monocular fit (avatar.fitting.monocular): depth comes from the templates' sizes.
     report: dict = {"source": source, "train_views": len(cameras), "sequences": {}}
     refine = refine_mode(str(ctx.cfg.stage.fit.refine), str(ctx.cfg.stage.keypoints.detector), len(cameras))

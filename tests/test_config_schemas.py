@@ -11,6 +11,9 @@ import pytest
 from omegaconf import OmegaConf
 
 from avatar.dynamic.model import DynamicModelConfig
+from avatar.fitting.fit import FitConfig
+from avatar.fitting.refine import RefineConfig
+from avatar.pbd import PBDConfig
 from avatar.scene import SceneDecision
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
@@ -20,6 +23,7 @@ from pipeline.schema import core_config, core_fields, section_schema, yaml_defau
 from stages import REGISTRY
 from stages.config_defaults import BLOCKS, CONF_DIR, PIPELINE_CHOICES, rendered
 from stages.dynamic import DynamicConfig
+from stages.fit import FitStageConfig
 from stages.representations.bound import PRESET_ARCHITECTURE, dynamic_train_config, model_config, static_config
 from stages.representations.embedded import SHARED_SCHEDULE, SplattingSchema, splatting_config
 from stages.warmup import WarmupConfig
@@ -31,6 +35,9 @@ SECTIONS = [
     (DynamicTrainConfig, "stage.dynamic", ("steps", "selection"), DynamicConfig),
     (DynamicModelConfig, "stage.dynamic", PRESET_ARCHITECTURE, DynamicConfig),
     (SplattingConfig, "splatting", SHARED_SCHEDULE, SplattingSchema),
+    (FitConfig, "stage.fit", ("face_shape_columns",), FitStageConfig),
+    (RefineConfig, "stage.fit.refinement", (), RefineConfig),
+    (PBDConfig, "stage.pbd.solver", (), PBDConfig),
 ]
 
 

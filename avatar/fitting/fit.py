@@ -52,29 +52,31 @@ class FitConfig:
     """Fitting settings. Loss weights multiply terms that are averaged over frames;
     the data term is in px^2 per view (sum over keypoints)."""
 
+    # triangulation: a detection farther than this (px) from the RANSAC point is an outlier
     ransac_threshold_px: float = 8.0
-    min_confidence: float = 0.05
-    min_views: int = 2
-    min_keypoints_per_view: int = 4
+    min_confidence: float = 0.05  # detections below this confidence are not used
+    min_views: int = 2  # views a keypoint needs to be triangulated (>= 2; a frame with fewer is weak)
+    min_keypoints_per_view: int = 4  # confident keypoints of a part a view needs to count for that part's frame
+    # scale of the robust (Geman-McClure) data term in the rigid and coarse steps (px)
     robust_scale_start_px: float = 20.0
-    robust_scale_px: float = 8.0
-    rigid_iterations: int = 30
-    coarse_iterations: int = 120
-    fine_iterations: int = 250
-    hand_pose_prior: float = 1e-2
-    face_pose_prior: float = 1e-1
-    expression_prior: float = 1e-2
-    shape_prior: float = 1e-2
+    robust_scale_px: float = 8.0  # and in the fine steps (px)
+    rigid_iterations: int = 30  # optimisation steps of the rotations and translations alone, first
+    coarse_iterations: int = 120  # optimisation steps with a wide robust kernel (from the triangulated start)
+    fine_iterations: int = 250  # steps with the final robust kernel
+    hand_pose_prior: float = 1e-2  # L2 on MANO finger pose
+    face_pose_prior: float = 1e-1  # L2 on neck/jaw/eye pose
+    expression_prior: float = 1e-2  # L2 on expression coefficients
+    shape_prior: float = 1e-2  # L2 on the shared shape coefficients
+    # penalty on identity roughness (procedural head: landmark-region offsets unlike their neighbours')
     shape_roughness: float = 10.0
     face_shape_columns: int | None = None
     """Fit only the head's first ``face_shape_columns`` identity columns (None: all ``num_shape``); the
     result's ``flame_shape`` is that wide (the rest are zero)."""
-    smooth_rotation: float = 1e-1
-    smooth_transl_mm: float = 1e-3
-    penetration_mm: float = 1e-3
-    penetration_stride: int = 4
-    penetration_radius_m: float = 0.03
-    """Hand vertices checked for interpenetration: every ``penetration_stride``-th one."""
+    smooth_rotation: float = 1e-1  # second differences of rotations over time
+    smooth_transl_mm: float = 1e-3  # second differences of translations (mm) over time
+    penetration_mm: float = 1e-3  # hand-inside-face penalty (mm of penetration)
+    penetration_stride: int = 4  # the interpenetration term checks every penetration_stride-th hand vertex
+    penetration_radius_m: float = 0.03  # against the face within this distance of it (metres)
 
 
 @dataclass

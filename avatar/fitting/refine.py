@@ -66,24 +66,22 @@ class RefineConfig:
     (translations), expression coefficients, colour (linear RGB).
     """
 
-    iterations: int = 100
-    render_size: int = 64
-    silhouette_weight: float = 1.0
-    photometric_weight: float = 1.0
+    iterations: int = 100  # Adam steps over all frames and train views
+    render_size: int = 64  # the crops are box-averaged to at most this many pixels per side for the comparison
+    silhouette_weight: float = 1.0  # squared error of the part silhouettes (crop pixels, mean over frames and views)
+    photometric_weight: float = 1.0  # photometric: L1 colour error (crop pixels, mean over frames and views)
+    # the keypoint objective (reprojection, priors, smoothness, interpenetration) as anchor
     keypoint_weight: float = 0.1
-    lr_rotation: float = 6e-3
-    lr_translation_cm: float = 0.06
-    lr_pose: float = 6e-3
-    lr_expression: float = 0.03
-    lr_colour: float = 0.05
-    lr_shape: float = 0.0
-    """Adam's step on the shared identity coefficients (FLAME and MANO shape); 0 keeps the keypoint fit's."""
-    colour_steps: int = 40
-    proxy_sigma: float = 0.35
-    """In-plane standard deviation of a triangle's proxy Gaussian, in units of the triangle's scale k."""
-    proxy_opacity: float = 0.95
-    exact_every: int = 1
-    """Steps between two exact renders of every view (the corrections of the proxies' renders; 1: every step)."""
+    lr_rotation: float = 6e-3  # Adam step of the global rotations (rad)
+    lr_translation_cm: float = 0.06  # of the translations (cm)
+    lr_pose: float = 6e-3  # of the finger, neck and jaw poses (rad)
+    lr_expression: float = 0.03  # of the expression coefficients
+    lr_colour: float = 0.05  # photometric: of the per-triangle albedo
+    lr_shape: float = 0.0  # of the shared identity coefficients (0: the keypoint fit's shapes stay)
+    colour_steps: int = 40  # photometric: albedo-only steps before the tracking moves
+    proxy_sigma: float = 0.35  # in-plane size of a triangle's proxy Gaussian (units of the triangle's scale k)
+    proxy_opacity: float = 0.95  # opacity of the proxy Gaussians
+    exact_every: int = 1  # steps between two exact (z-buffer) renders of every view, which correct the proxies' values
 
 
 @dataclass
