@@ -75,6 +75,26 @@ class CanonicalGaussians(Protocol):
         ...
 
 
+class GaussianPopulation(Protocol):
+    """A class of :class:`CanonicalGaussians` that populates a mesh's triangles."""
+
+    def on_triangles(
+        self,
+        vertices: torch.Tensor,
+        faces: torch.Tensor,
+        face_part: torch.Tensor,
+        per_triangle: int,
+        /,
+        *,
+        init_opacity: float = ...,
+        seed: int = ...,
+        populate: torch.Tensor | None = ...,
+    ) -> CanonicalGaussians:
+        """``per_triangle`` Gaussians on each triangle of the mesh ``vertices`` (V, 3), ``faces`` (F, 3) (``face_part``
+        (F,) their parts), only on the triangles ``populate`` (F,) bool marks (None: all)."""
+        ...
+
+
 class TrainedAvatar(Protocol):
     """A method's final model, loaded from its dynamic stage's folder."""
 
@@ -98,6 +118,8 @@ class Representation(ABC):
     refines_tracking: ClassVar[bool] = True
     #: stage (``warmup``, ``dynamic``) -> (schema of its ``train_log.parquet``, the loss terms the report plots).
     train_logs: ClassVar[dict[str, tuple[TableSchema, tuple[str, ...]]]]
+    #: The class of the Gaussians the warm-up populates the mesh with (BoundGaussians, EmbeddedGaussians).
+    gaussians: ClassVar[GaussianPopulation]
 
     def __init__(self, cfg: DictConfig) -> None:
         self.cfg = cfg
@@ -108,7 +130,6 @@ class Representation(ABC):
         (checked with the rest of the config before any stage runs); empty when it can run."""
         return []
 
-    @abstractmethod
     def populate(
         self,
         canonical: torch.Tensor,
@@ -119,8 +140,18 @@ class Representation(ABC):
         seed: int,
         populate: torch.Tensor | None,
     ) -> CanonicalGaussians:
-        """The warm-up's initial Gaussians: ``per_triangle`` on each triangle of the canonical mesh (``canonical``
-        (V, 3) with ``meshes.faces``), only on the triangles ``populate`` (F,) bool marks (None: all)."""
+        """The warm-up's initial Gaussians (:attr:`gaussians`): ``per_triangle`` on each triangle of the canonical
+        mesh (``canonical`` (V, 3) with ``meshes.faces``), only on the triangles ``populate`` (F,) bool marks (None:
+        all)."""
+        return self.gaussians.on_triangles(
+            canonical,
+            meshes.faces,
+            meshes.face_part,
+            per_triangle,
+            init_opacity=init_opacity,
+            seed=seed,
+            populate=populate,
+        )
 
     @abstractmethod
     def warm_up(

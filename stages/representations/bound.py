@@ -190,26 +190,7 @@ class BoundRepresentation(Representation):
         "warmup": (TRAIN_LOG, ("loss", "l1", "dssim")),
         "dynamic": (DYNAMIC_TRAIN_LOG, ("loss", "l1", "dssim", "patch")),
     }
-
-    def populate(
-        self,
-        canonical: torch.Tensor,
-        meshes: MeshSequence,
-        per_triangle: int,
-        *,
-        init_opacity: float,
-        seed: int,
-        populate: torch.Tensor | None,
-    ) -> BoundGaussians:
-        return BoundGaussians.on_triangles(
-            canonical,
-            meshes.faces,
-            meshes.face_part,
-            per_triangle,
-            init_opacity=init_opacity,
-            seed=seed,
-            populate=populate,
-        )
+    gaussians = BoundGaussians
 
     def warm_up(
         self,

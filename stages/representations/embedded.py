@@ -136,6 +136,7 @@ class EmbeddedRepresentation(Representation):
         "warmup": (SPLATTING_TRAIN_LOG, ("loss", "l1", "dssim", "mse")),
         "dynamic": (SPLATTING_TRAIN_LOG, ("loss", "l1", "dssim", "mse")),
     }
+    gaussians = EmbeddedGaussians
 
     def problems(self) -> list[str]:
         recipe = schema_problems(self.cfg.get("splatting"), SplattingSchema, "splatting")
@@ -162,26 +163,6 @@ class EmbeddedRepresentation(Representation):
             for section in ("warmup", "dynamic")
             if str(self.cfg.stage[section].refine_params).lower() == "true"
         ]
-
-    def populate(
-        self,
-        canonical: torch.Tensor,
-        meshes: MeshSequence,
-        per_triangle: int,
-        *,
-        init_opacity: float,
-        seed: int,
-        populate: torch.Tensor | None,
-    ) -> EmbeddedGaussians:
-        return EmbeddedGaussians.on_triangles(
-            canonical,
-            meshes.faces,
-            meshes.face_part,
-            per_triangle,
-            init_opacity=init_opacity,
-            seed=seed,
-            populate=populate,
-        )
 
     def warm_up(
         self,

@@ -84,20 +84,7 @@ class WarmupOnly(Representation):
     train_logs: ClassVar[dict[str, tuple[TableSchema, tuple[str, ...]]]] = {
         "warmup": (TRAIN_LOG, ("loss", "l1", "dssim"))
     }
-
-    def populate(
-        self,
-        canonical: torch.Tensor,
-        meshes: MeshSequence,
-        per_triangle: int,
-        *,
-        init_opacity: float,
-        seed: int,
-        populate: torch.Tensor | None,
-    ) -> BoundGaussians:
-        return BoundRepresentation(self.cfg).populate(
-            canonical, meshes, per_triangle, init_opacity=init_opacity, seed=seed, populate=populate
-        )
+    gaussians = BoundGaussians
 
     def warm_up(
         self,
