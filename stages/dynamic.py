@@ -11,14 +11,15 @@ world-space 3DGS PLYs of the frames ``stage.dynamic.ply_frames`` asks for (``ply
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from omegaconf import DictConfig
 
-from avatar.dynamic.model import COLOUR_DELTAS, DynamicModelConfig
+from avatar.dynamic.model import DynamicModelConfig
 from avatar.training.dynamic import DynamicTrainConfig
-from pipeline.schema import section_schema
+from avatar.training.selection import SelectionConfig
+from pipeline.schema import core_config, section_schema
 from pipeline.stage import StageContext, stage
 from stages.artifacts import TRAIN_SEQUENCE, load_views, method_params
 from stages.dependencies import model_sources, unused_training_settings
@@ -52,24 +53,10 @@ class DynamicStageSettings:
     def validate(cls, conf: DictConfig) -> list[str]:
         """Range problems of a ``stage.dynamic`` section, one line each; empty when it can run."""
         problems = []
-        fraction = float(conf.contact_fraction)
-        if not 0.0 <= fraction <= 1.0:
-            problems.append(f"contact_fraction={fraction:g}: must lie in [0, 1] (the share of steps on contact frames)")
-        share = float(conf.max_contact_frame_share)
-        if not 0.0 < share <= 1.0:
-            problems.append(
-                f"max_contact_frame_share={share:g}: must lie in (0, 1] (the most steps one contact frame "
-                "may take; 1 leaves contact_fraction uncapped)"
-            )
-        colour = conf.colour_delta
-        if colour not in COLOUR_DELTAS:
-            problems.append(
-                f"colour_delta={colour}: must be one of {', '.join(COLOUR_DELTAS)} "
-                "(add: c_i + d_c as the paper; scale: c_i exp(d_c))"
-            )
-        d_max = float(conf.d_max)
-        if not d_max > 0.0:
-            problems.append(f"d_max={d_max:g}: must be positive (metres; the paper uses 0.05)")
+        # the loop's and the model's own ranges (their size and steps are the preset's, not checked here)
+        problems += core_config(DynamicTrainConfig, conf, steps=1, selection=SelectionConfig()).problems()
+        sizes = {f.name: f.default for f in fields(DynamicModelConfig) if f.name in PRESET_ARCHITECTURE}
+        problems += core_config(DynamicModelConfig, conf, **sizes).problems()
         select = selection_config(conf)
         problems += [f"select.{problem}" for problem in select.problems()]
         if select.enabled and int(conf.validation.every) <= 0:

@@ -99,6 +99,18 @@ class DynamicModelConfig:
     # 0.06 dB lower at draft (6 runs; docs/notes/2026-12-03-gains-with-seeds.md)
     colour_delta: str = "add"
 
+    def problems(self) -> list[str]:
+        """Range problems of the settings that have a range beyond non-negative, one line each, keyed by field."""
+        problems = []
+        if self.colour_delta not in COLOUR_DELTAS:
+            problems.append(
+                f"colour_delta={self.colour_delta}: must be one of {', '.join(COLOUR_DELTAS)} "
+                "(add: c_i + d_c as the paper; scale: c_i exp(d_c))"
+            )
+        if not self.d_max > 0.0:
+            problems.append(f"d_max={self.d_max:g}: must be positive (metres; the paper uses 0.05)")
+        return problems
+
     @property
     def uses_geometry_feature(self) -> bool:
         return self.hand_mlp or self.interaction

@@ -73,6 +73,20 @@ class DynamicTrainConfig:
     backend: str = "auto"  # rasterizer, as stage.warmup.backend
     selection: SelectionConfig = SelectionConfig()  # keep the best validation step and the modules it needs
 
+    def problems(self) -> list[str]:
+        """Range problems of the settings that have a range beyond non-negative, one line each, keyed by field."""
+        problems = []
+        if not 0.0 <= self.contact_fraction <= 1.0:  # also refuses NaN
+            problems.append(
+                f"contact_fraction={self.contact_fraction:g}: must lie in [0, 1] (the share of steps on contact frames)"
+            )
+        if not 0.0 < self.max_contact_frame_share <= 1.0:
+            problems.append(
+                f"max_contact_frame_share={self.max_contact_frame_share:g}: must lie in (0, 1] (the most steps one "
+                "contact frame may take; 1 leaves contact_fraction uncapped)"
+            )
+        return problems + [f"selection.{problem}" for problem in self.selection.problems()]
+
 
 @dataclass
 class DynamicLogRow:
