@@ -54,7 +54,7 @@ from torch.optim.optimizer import register_optimizer_step_post_hook, register_op
 from avatar.dynamic import DynamicAvatar  # noqa: E402
 from avatar.metrics.lpips import LPIPS  # noqa: E402
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic  # noqa: E402
-from avatar.training.static import StaticConfig, train_static  # noqa: E402
+from avatar.training.warmup import WarmupTrainConfig, train_warmup  # noqa: E402
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.capture import MASK_LABELS  # noqa: E402
 from data_schemas.frames import UNOBSERVED  # noqa: E402
@@ -268,7 +268,7 @@ def step_costs(
 ) -> dict[str, float]:
     """ms per training step of the warm-up and of stage two from the same cached warm-up, side by side.
 
-    Each round trains a copy of the warm-up Gaussians ``steps`` warm-up steps (``train_static`` without density
+    Each round trains a copy of the warm-up Gaussians ``steps`` warm-up steps (``train_warmup`` without density
     control) and then the full model, built from them as the stage builds it, ``steps`` stage-two steps
     (``train_dynamic``: frames drawn as in training, contact frames oversampled); the rounds alternate the two, and
     every figure is the median over the rounds (after one untimed round of two steps each). The stage-two step is
@@ -298,7 +298,7 @@ def step_costs(
     def warmup_round(n: int, seed: int) -> float:
         model = copy.deepcopy(gaussians)
         t0 = time.perf_counter()
-        train_static(model, views, meshes, StaticConfig(steps=n, densify_from=1.0, densify_until=0.0, seed=seed))
+        train_warmup(model, views, meshes, WarmupTrainConfig(steps=n, densify_from=1.0, densify_until=0.0, seed=seed))
         return 1000 * (time.perf_counter() - t0) / n
 
     def dynamic_round(n: int, seed: int) -> dict[str, float]:

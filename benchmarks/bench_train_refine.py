@@ -39,15 +39,15 @@ from avatar.gaussians.model import BoundGaussians  # noqa: E402
 from avatar.posing import posed_keypoints  # noqa: E402
 from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.frame_params import FrameParams, ParamLearningRates  # noqa: E402
-from avatar.training.static import StaticConfig, colors_from_views, render_frame, train_static  # noqa: E402
 from avatar.training.validation import ValidationConfig, Validator  # noqa: E402
+from avatar.training.warmup import WarmupTrainConfig, colors_from_views, render_frame, train_warmup  # noqa: E402
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.capture import MASK_LABELS, CaptureIndex  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from stages.artifacts import load_ground_truth_params, load_views  # noqa: E402
 from stages.posing import posed_sequence, templates  # noqa: E402
 
-DRAFT = StaticConfig(steps=2000, opacity_reset_interval=0.25, max_gaussians=100_000, seed=0)  # conf/quality/draft
+DRAFT = WarmupTrainConfig(steps=2000, opacity_reset_interval=0.25, max_gaussians=100_000, seed=0)  # conf/quality/draft
 GAUSSIANS_PER_TRIANGLE, INIT_OPACITY, VALIDATION = 2, 0.3, ValidationConfig(every=200, frames=4)
 BASE = ParamLearningRates()  # GaussianAvatars' values (the defaults of conf/stage/warmup.yaml are 10x these)
 
@@ -89,7 +89,7 @@ def arm(workspace: Path, scale: float, centred: bool, hold: str, steps: int) -> 
     model.set_colors(colors_from_views(means, part_label, views, frame=0))
     validator = Validator(VALIDATION, views)
     start = time.perf_counter()
-    train_static(model, views, meshes, dataclasses.replace(DRAFT, steps=steps), validator=validator, params=params)
+    train_warmup(model, views, meshes, dataclasses.replace(DRAFT, steps=steps), validator=validator, params=params)
     seconds = time.perf_counter() - start - validator.validation_s
     trained = validator.train_frames
     with torch.no_grad():
@@ -134,7 +134,7 @@ def cost(workspace: Path, steps: int, repeats: int) -> dict:
     warm = BoundGaussians.on_triangles(
         meshes.vertices[0], meshes.faces, meshes.face_part, GAUSSIANS_PER_TRIANGLE, init_opacity=INIT_OPACITY, seed=0
     )
-    train_static(warm, views, meshes, dataclasses.replace(DRAFT, steps=10))  # caches and allocator, not timed
+    train_warmup(warm, views, meshes, dataclasses.replace(DRAFT, steps=10))  # caches and allocator, not timed
     for _ in range(repeats):
         for name in timings:
             params = (
@@ -151,7 +151,7 @@ def cost(workspace: Path, steps: int, repeats: int) -> dict:
                 seed=0,
             )
             start = time.perf_counter()
-            train_static(model, views, meshes, dataclasses.replace(DRAFT, steps=steps), params=params)
+            train_warmup(model, views, meshes, dataclasses.replace(DRAFT, steps=steps), params=params)
             timings[name].append(1e3 * (time.perf_counter() - start) / steps)
     params = FrameParams(posed.params, head, hand, None, ParamLearningRates(), centred=True)
     parts: dict[str, list[float]] = {"posing_forward_backward_step": [], "conditioning": []}

@@ -44,7 +44,7 @@ from avatar.dynamic import DynamicAvatar  # noqa: E402
 from avatar.metrics import image_metrics  # noqa: E402
 from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.dynamic import rasterize  # noqa: E402
-from avatar.training.static import render_frame  # noqa: E402
+from avatar.training.warmup import render_frame  # noqa: E402
 from data_schemas.cameras import Camera, read_cameras  # noqa: E402
 from data_schemas.capture import MASK_LABELS  # noqa: E402
 from data_schemas.metrics import SPLIT_SOURCES  # noqa: E402

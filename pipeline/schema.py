@@ -1,6 +1,6 @@
 """Config sections typed by the core's own config dataclasses, so that a setting's name and type are defined once.
 
-The training loops of ``avatar`` take frozen dataclasses (``StaticConfig``, ``DynamicTrainConfig``,
+The training loops of ``avatar`` take frozen dataclasses (``WarmupTrainConfig``, ``DynamicTrainConfig``,
 ``SplattingConfig``) whose fields are the hyperparameters. A config section that feeds one declares its schema
 with :func:`section_schema` (the core's fields with their types, less those the section does not hold, plus the
 section's own settings) and builds the core's config with :func:`core_config` (every field from the section or

@@ -1,6 +1,6 @@
 """The defaults in ``conf/`` of the settings the core's config dataclasses define, generated from the dataclasses.
 
-Each such setting is defined once, in its dataclass (the training loops' StaticConfig, DynamicTrainConfig and
+Each such setting is defined once, in its dataclass (the training loops' WarmupTrainConfig, DynamicTrainConfig and
 SplattingConfig, the model's DynamicModelConfig, the fitting's FitConfig and RefineConfig, the contact solver's
 PBDConfig): its name, type, default and documentation (the comment at or above its field). The YAML files hold a
 generated block of those defaults and comments between two marker lines, beside the settings of their own (the
@@ -23,7 +23,7 @@ from avatar.fitting.refine import RefineConfig
 from avatar.pbd import PBDConfig
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
-from avatar.training.static import StaticConfig
+from avatar.training.warmup import WarmupTrainConfig
 from pipeline.schema import with_generated_block
 from stages.representations.bound import PRESET_ARCHITECTURE
 from stages.representations.embedded import SHARED_SCHEDULE
@@ -43,7 +43,7 @@ class GeneratedDefaults:
 
 
 BLOCKS = (
-    GeneratedDefaults("stage/warmup.yaml", StaticConfig, ("steps", *PIPELINE_CHOICES)),
+    GeneratedDefaults("stage/warmup.yaml", WarmupTrainConfig, ("steps", *PIPELINE_CHOICES)),
     GeneratedDefaults("stage/dynamic.yaml", DynamicModelConfig, PRESET_ARCHITECTURE),
     GeneratedDefaults("stage/dynamic.yaml", DynamicTrainConfig, ("steps", "selection", *PIPELINE_CHOICES)),
     GeneratedDefaults("config.yaml", SplattingConfig, SHARED_SCHEDULE),

@@ -9,8 +9,8 @@ from typing import Any
 import torch
 
 from avatar.render.gaussians import resolve_backend
-from avatar.training.static import StaticConfig, colors_from_views
 from avatar.training.validation import Validator
+from avatar.training.warmup import WarmupTrainConfig, colors_from_views
 from data_schemas.capture import MASK_LABELS
 from pipeline.schema import section_schema
 from pipeline.stage import StageContext, stage
@@ -32,7 +32,7 @@ from stages.training_settings import (
 
 @dataclass
 class WarmupSettings:
-    """The warm-up's own settings: those the training loop's :class:`StaticConfig` does not hold."""
+    """The warm-up's own settings: those the training loop's :class:`WarmupTrainConfig` does not hold."""
 
     init_opacity: float
     ply_frame: int
@@ -61,8 +61,8 @@ class WarmupSettings:
 
 
 #: Types of ``stage.warmup`` (values in conf/stage/warmup.yaml): every hyperparameter of the training loop's
-#: :class:`StaticConfig` (its steps come from ``quality.warmup_steps``) and the stage's own settings.
-WarmupConfig = section_schema("WarmupConfig", StaticConfig, exclude=("steps",), own=WarmupSettings)
+#: :class:`WarmupTrainConfig` (its steps come from ``quality.warmup_steps``) and the stage's own settings.
+WarmupConfig = section_schema("WarmupConfig", WarmupTrainConfig, exclude=("steps",), own=WarmupSettings)
 
 
 @stage(

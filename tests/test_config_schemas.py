@@ -17,7 +17,7 @@ from avatar.pbd import PBDConfig
 from avatar.scene import SceneDecision
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
-from avatar.training.static import StaticConfig
+from avatar.training.warmup import WarmupTrainConfig
 from pipeline.config import ConfigError, validate_config
 from pipeline.schema import core_config, core_fields, section_schema, yaml_defaults, yaml_value
 from stages import REGISTRY
@@ -31,7 +31,7 @@ from tests.conftest import compose_cfg
 
 #: (core dataclass, its config section, its fields the section does not hold, the section's schema)
 SECTIONS = [
-    (StaticConfig, "stage.warmup", ("steps",), WarmupConfig),
+    (WarmupTrainConfig, "stage.warmup", ("steps",), WarmupConfig),
     (DynamicTrainConfig, "stage.dynamic", ("steps", "selection"), DynamicConfig),
     (DynamicModelConfig, "stage.dynamic", PRESET_ARCHITECTURE, DynamicConfig),
     (SplattingConfig, "splatting", SHARED_SCHEDULE, SplattingSchema),
@@ -62,7 +62,7 @@ def test_the_yaml_defaults_are_generated_from_the_dataclasses() -> None:
     for block in BLOCKS:  # a block leaves out only what its section does not hold and the pipeline's choices
         assert set(block.exclude) <= excluded[block.core], block
     warm = OmegaConf.load(CONF_DIR / "stage" / "warmup.yaml")
-    assert warm.checkpoint_every != StaticConfig(steps=1).checkpoint_every  # a pipeline's choice, by hand
+    assert warm.checkpoint_every != WarmupTrainConfig(steps=1).checkpoint_every  # a pipeline's choice, by hand
 
 
 def test_a_setting_without_documentation_is_refused() -> None:
@@ -95,7 +95,7 @@ def test_the_loops_configs_are_built_from_their_sections_whole() -> None:
     assert (dynamic.lr_color, dynamic.steps) == (0.01, cfg.quality.dynamic_steps)
     assert dynamic.selection.enabled == cfg.stage.dynamic.select.enabled
     assert (splat.max_hops, splat.steps, splat.max_gaussians) == (8, 7, cfg.stage.warmup.max_gaussians)
-    for name, _ in core_fields(StaticConfig, ("steps",)):  # nothing is left at the core's default by omission
+    for name, _ in core_fields(WarmupTrainConfig, ("steps",)):  # nothing is left at the core's default by omission
         assert getattr(static, name) == cfg.stage.warmup[name], name
     scene = SceneDecision(model_hand=True, model_pbd=True, model_interaction=False, why={})
     arch = model_config(compose_cfg(["quality=draft", "stage.dynamic.pointnet_radii=[0.1,0.3]"]), scene)

@@ -1,1 +1,1 @@
-"""Training loops of the avatar (static warm-up; dynamic MLP training arrives later)."""
+"""Training loops of the avatar: the warm-up (stage one), stage two (the dynamic model), SplattingAvatar's."""

@@ -33,8 +33,8 @@ from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams
 from avatar.training.schedule import exponential_lr
 from avatar.training.selection import BestStep, Selection, SelectionConfig, select
-from avatar.training.static import gaussian_param_groups
 from avatar.training.validation import ValidationConfig, Validator, draw_frame
+from avatar.training.warmup import gaussian_param_groups
 
 CHECKPOINT = "dynamic.pt"
 FACE_LABEL, HAND_LABEL = 1, 2  # part labels of the crops' masks (see avatar.training.data.ViewSet)

@@ -28,7 +28,7 @@ The recipe of the public code (``initialneil/SplattingAvatar``):
   Gaussian that left its triangle walks (:mod:`avatar.splatting.walking`) and the Adam moments of the
   walked Gaussians' ``(u, v)`` are zeroed (the public code zeroes those of all Gaussians).
 
-Structure as :mod:`avatar.training.static`: one random (frame, camera) per step, verified checkpoints
+Structure as :mod:`avatar.training.warmup`: one random (frame, camera) per step, verified checkpoints
 that resume bit for bit, a :class:`LogRow` list. Calling :func:`train_splatting` again on a trained
 model with ``densify_until = 0`` continues without density control (walking goes on).
 """

@@ -23,8 +23,8 @@ from avatar.training.data import ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
 from avatar.training.frame_params import FrameParams
 from avatar.training.selection import SelectionConfig
-from avatar.training.static import StaticConfig, train_static
 from avatar.training.validation import Validator
+from avatar.training.warmup import WarmupTrainConfig, train_warmup
 from data_schemas.gaussians import BOUND_GAUSSIANS, DYNAMIC_TRAIN_LOG, TRAIN_LOG
 from data_schemas.tables import SchemaError, TableSchema, read_table, write_records, write_table
 from data_schemas.writes import write_bytes
@@ -152,9 +152,9 @@ def model_config(cfg: DictConfig, scene: SceneDecision) -> DynamicModelConfig:
     )
 
 
-def static_config(cfg: DictConfig) -> StaticConfig:
-    """The warm-up's :class:`StaticConfig` of ``stage.warmup`` and ``quality.warmup_steps``."""
-    return core_config(StaticConfig, cfg.stage.warmup, steps=int(cfg.quality.warmup_steps))
+def static_config(cfg: DictConfig) -> WarmupTrainConfig:
+    """The warm-up's :class:`WarmupTrainConfig` of ``stage.warmup`` and ``quality.warmup_steps``."""
+    return core_config(WarmupTrainConfig, cfg.stage.warmup, steps=int(cfg.quality.warmup_steps))
 
 
 def dynamic_train_config(cfg: DictConfig) -> DynamicTrainConfig:
@@ -183,7 +183,7 @@ class BoundAvatar:
 
 class BoundRepresentation(Representation):
     """GaussianAvatars' binding (``method.representation=bound``): stage one trains static Gaussians bound to the
-    triangles (:func:`avatar.training.static.train_static`); stage two adds InteractAvatar's MLPs and PointNet++
+    triangles (:func:`avatar.training.warmup.train_warmup`); stage two adds InteractAvatar's MLPs and PointNet++
     (:func:`avatar.training.dynamic.train_dynamic`), as far as ``stage.dynamic`` and the scene analysis keep them."""
 
     train_logs: ClassVar[dict[str, tuple[TableSchema, tuple[str, ...]]]] = {
@@ -203,7 +203,7 @@ class BoundRepresentation(Representation):
         progress: Progress,
     ) -> float:
         assert isinstance(model, BoundGaussians)
-        log = train_static(
+        log = train_warmup(
             model,
             views,
             meshes,

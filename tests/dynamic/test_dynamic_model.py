@@ -18,7 +18,7 @@ from avatar.nets.mlp import DeltaMLP
 from avatar.posing import pose_layers
 from avatar.templates import procedural_hand, procedural_head
 from avatar.training.dynamic import rasterize
-from avatar.training.static import render_frame
+from avatar.training.warmup import render_frame
 from tests.dynamic.conftest import FAR, NEAR, TINY, Scene, make_scene, scene_params
 
 

@@ -16,7 +16,7 @@ from avatar.gaussians.model import BoundGaussians
 from avatar.posing import posed_meshes
 from avatar.synthetic import SyntheticCapture, SyntheticConfig, generate
 from avatar.templates import procedural_hand, procedural_head
-from avatar.training import static
+from avatar.training import warmup
 from avatar.training.data import ViewSet
 from avatar.training.frame_params import (
     REFINED_COLUMNS,
@@ -25,7 +25,7 @@ from avatar.training.frame_params import (
     ParamLearningRates,
     parameter_movement,
 )
-from avatar.training.static import StaticConfig, train_static
+from avatar.training.warmup import WarmupTrainConfig, train_warmup
 from stages.artifacts import read_params, write_params
 
 HEAD, HAND = procedural_head(), procedural_hand()
@@ -158,7 +158,7 @@ def test_a_killed_warmup_resumes_the_refinement_to_the_same_result(tmp_path, mon
     as the warm-up's own resume test)."""
     params, views = _params(), _views(cameras=1)
     meshes = posed_meshes(params, HEAD, HAND)
-    cfg = StaticConfig(
+    cfg = WarmupTrainConfig(
         steps=20,
         densify_from=0.5,
         densify_until=0.9,
@@ -172,11 +172,11 @@ def test_a_killed_warmup_resumes_the_refinement_to_the_same_result(tmp_path, mon
     def run(checkpoint_dir=None) -> FrameParams:  # noqa: ANN001
         model = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, 1, init_opacity=0.3)
         frames = FrameParams(params, HEAD, HAND, None, lrs, centred=True)
-        train_static(model, views, meshes, cfg, checkpoint_dir=checkpoint_dir, params=frames)
+        train_warmup(model, views, meshes, cfg, checkpoint_dir=checkpoint_dir, params=frames)
         return frames
 
     reference = run().arrays()
-    real_render, calls = static.render_frame, {"n": 0}
+    real_render, calls = warmup.render_frame, {"n": 0}
 
     def dying_render(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
         calls["n"] += 1
@@ -184,10 +184,10 @@ def test_a_killed_warmup_resumes_the_refinement_to_the_same_result(tmp_path, mon
             raise KeyboardInterrupt("killed")
         return real_render(*args, **kwargs)
 
-    monkeypatch.setattr(static, "render_frame", dying_render)
+    monkeypatch.setattr(warmup, "render_frame", dying_render)
     with pytest.raises(KeyboardInterrupt):
         run(tmp_path)
-    monkeypatch.setattr(static, "render_frame", real_render)
+    monkeypatch.setattr(warmup, "render_frame", real_render)
     resumed = run(tmp_path).arrays()
     assert any(not np.array_equal(reference[k], params[k]) for k in reference)  # it refined
     for k in reference:

@@ -12,7 +12,7 @@ import torch
 
 from avatar.gaussians.model import BoundGaussians
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
-from avatar.training.static import StaticConfig, train_static
+from avatar.training.warmup import WarmupTrainConfig, train_warmup
 from tests.dynamic.conftest import make_scene
 from tests.training.test_validation import _scene
 
@@ -36,7 +36,7 @@ def test_the_warmup_at_ten_times_the_learning_rates_stays_finite():
     views, meshes = _scene(3)
     model = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, 8, init_opacity=0.3)
     cfg = _ten_times(
-        StaticConfig(
+        WarmupTrainConfig(
             steps=60,
             densify_from=0.1,
             densify_until=0.5,
@@ -47,8 +47,8 @@ def test_the_warmup_at_ten_times_the_learning_rates_stays_finite():
             backend="torch",
         )
     )
-    assert cfg.lr_scale == 10 * StaticConfig.lr_scale
-    log = train_static(model, views, meshes, cfg)
+    assert cfg.lr_scale == 10 * WarmupTrainConfig.lr_scale
+    log = train_warmup(model, views, meshes, cfg)
     assert all(math.isfinite(r.loss) for r in log)
     assert _all_finite([p.detach() for p in model.parameters()]) and model.num_gaussians > 0
 

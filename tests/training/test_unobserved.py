@@ -14,14 +14,14 @@ import torch
 
 from avatar.metrics.lpips import LPIPS
 from avatar.metrics.ssim import dssim_loss
-from avatar.training import dynamic, splatting, static
+from avatar.training import dynamic, splatting, warmup
 from avatar.training.data import UNOBSERVED_LABEL, ViewSet
 from avatar.training.validation import ValidationConfig, Validator
 from data_schemas.frames import UNOBSERVED
 from stages.evaluate import _regions
 from tests.dynamic.conftest import make_scene
 from tests.splatting import test_training as splatting_case
-from tests.training import test_static as static_case
+from tests.training import test_warmup_training as static_case
 
 BAND = 3  # padded columns on the left of every crop
 
@@ -91,7 +91,7 @@ def _padding_gradients(
 def _static_loop(label: int) -> Callable[[], None]:
     views, meshes = static_case._scene()
     cfg = dataclasses.replace(static_case.CFG, steps=6)
-    return lambda: static.train_static(static_case._model(meshes), _padded(views, label=label), meshes, cfg)
+    return lambda: warmup.train_warmup(static_case._model(meshes), _padded(views, label=label), meshes, cfg)
 
 
 def _splatting_loop(label: int) -> Callable[[], None]:
@@ -123,7 +123,7 @@ def _dynamic_loop(label: int) -> Callable[[], None]:
 
 
 LOOPS = {
-    "static": (static, "render_frame", _static_loop),
+    "static": (warmup, "render_frame", _static_loop),
     "dynamic": (dynamic, "rasterize", _dynamic_loop),
     "splatting": (splatting, "render_splatting", _splatting_loop),
 }

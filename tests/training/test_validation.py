@@ -15,12 +15,12 @@ from avatar.gaussians.model import BoundGaussians
 from avatar.metrics.lpips import LPIPS
 from avatar.posing import MeshSequence
 from avatar.splatting import EmbeddedGaussians
-from avatar.training import static
+from avatar.training import warmup
 from avatar.training.data import ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, sample_frame, train_dynamic
 from avatar.training.splatting import SplattingConfig, train_splatting
-from avatar.training.static import StaticConfig, train_static
 from avatar.training.validation import FlatStop, ValidationConfig, Validator, is_flat, withheld_frames
+from avatar.training.warmup import WarmupTrainConfig, train_warmup
 from pipeline.cli import run_app
 from pipeline.config import ConfigError
 from tests.conftest import compose_cfg
@@ -92,7 +92,7 @@ def _model(meshes: MeshSequence) -> BoundGaussians:
 
 
 # density control until step 10 of 40: the stop rule looks at the validations from step 10 on
-CFG = StaticConfig(
+CFG = WarmupTrainConfig(
     steps=40,
     densify_from=0.05,
     densify_until=0.25,
@@ -110,14 +110,14 @@ def test_training_never_draws_a_withheld_frame(monkeypatch):
     views, meshes = _scene(6)
     validator = Validator(ValidationConfig(every=10, frames=2), views)
     drawn: list[tuple[int, bool]] = []
-    real_render = static.render_frame
+    real_render = warmup.render_frame
 
     def spy(model, meshes, views, frame, camera, backend="auto", vertices=None):  # noqa: ANN001, ANN202
         drawn.append((frame, torch.is_grad_enabled()))
         return real_render(model, meshes, views, frame, camera, backend, vertices)
 
-    monkeypatch.setattr(static, "render_frame", spy)
-    train_static(_model(meshes), views, meshes, CFG, validator=validator)
+    monkeypatch.setattr(warmup, "render_frame", spy)
+    train_warmup(_model(meshes), views, meshes, CFG, validator=validator)
     np.testing.assert_array_equal(validator.frames, [2, 4])
     trained = {f for f, grad in drawn if grad}
     assert trained == {0, 1, 3, 5}
@@ -133,7 +133,7 @@ def test_a_tiny_warmup_records_a_curve_and_nothing_changes_without_validation():
     views, meshes = _scene(3)
     validator = Validator(ValidationConfig(every=10, frames=1), views)
     model = _model(meshes)
-    log = train_static(model, views, meshes, CFG, validator=validator)
+    log = train_warmup(model, views, meshes, CFG, validator=validator)
     steps = [p.step for p in validator.curve]
     assert steps == [0, 10, 20, 30, 40] and log[-1].step == 40
     psnrs = [p.psnr for p in validator.curve]
@@ -148,8 +148,8 @@ def test_a_tiny_warmup_records_a_curve_and_nothing_changes_without_validation():
 
     off = Validator(ValidationConfig(), views)  # every=0: no frame withheld, no curve, the very same run as before
     plain, with_off = _model(meshes), _model(meshes)
-    train_static(plain, views, meshes, CFG)
-    train_static(with_off, views, meshes, CFG, validator=off)
+    train_warmup(plain, views, meshes, CFG)
+    train_warmup(with_off, views, meshes, CFG, validator=off)
     assert off.curve == [] and off.table()["step"].size == 0 and off.frames.size == 0
     for name, value in plain.state_dict().items():
         assert torch.equal(with_off.state_dict()[name], value), name
@@ -200,7 +200,7 @@ def test_a_flat_curve_stops_at_the_first_window_after_density_control(densify_un
     views, meshes = _scene(3)
     validator = Validator(ValidationConfig(every=5, frames=1, stop_when_flat=STOP_NOW), views)
     cfg = dataclasses.replace(CFG, densify_until=densify_until)
-    log = train_static(_model(meshes), views, meshes, cfg, validator=validator)
+    log = train_warmup(_model(meshes), views, meshes, cfg, validator=validator)
     m = validator.metrics()
     assert validator.curve[-1].step == stop == m["stopped_at_step"] < m["planned_steps"] == 40
     assert log[-1].step == stop  # the last step run is logged
@@ -233,17 +233,17 @@ def test_a_killed_run_resumes_the_curve_and_the_stop(tmp_path: Path, kill_at: in
     config = ValidationConfig(every=5, frames=1, stop_when_flat=STOP_NOW)
     reference = _model(meshes)
     ref = Validator(config, views)
-    ref_log = train_static(reference, views, meshes, CFG, validator=ref)
+    ref_log = train_warmup(reference, views, meshes, CFG, validator=ref)
     assert ref.stopped_at == 20  # a checkpoint step: the checkpoint holds the stop
 
     if kill_at > ref.stopped_at:  # the stopped run was killed before the stage wrote its outputs
-        train_static(_model(meshes), views, meshes, CFG, tmp_path, validator=Validator(config, views))
+        train_warmup(_model(meshes), views, meshes, CFG, tmp_path, validator=Validator(config, views))
     else:
         with pytest.raises(KeyboardInterrupt):
-            train_static(_model(meshes), views, meshes, CFG, tmp_path, _killed_at(kill_at), Validator(config, views))
+            train_warmup(_model(meshes), views, meshes, CFG, tmp_path, _killed_at(kill_at), Validator(config, views))
     resumed = _model(meshes)
     again = Validator(config, views)
-    log = train_static(resumed, views, meshes, CFG, tmp_path, validator=again)
+    log = train_warmup(resumed, views, meshes, CFG, tmp_path, validator=again)
     assert [(p.step, p.psnr) for p in again.curve] == [(p.step, p.psnr) for p in ref.curve]
     assert again.stopped_at == ref.stopped_at and [r.step for r in log] == [r.step for r in ref_log]
     for name, value in reference.state_dict().items():

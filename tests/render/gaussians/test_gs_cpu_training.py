@@ -15,11 +15,11 @@ import torch
 
 from avatar.metrics.psnr import psnr
 from avatar.render.gaussians.extension import cpu_extension_available, unavailable_reason
-from avatar.training.static import render_frame, train_static
+from avatar.training.warmup import render_frame, train_warmup
 from data_schemas.metrics import METRICS
 from data_schemas.tables import read_table
 from tests.conftest import run_cli
-from tests.training.test_static import CFG, _model, _scene
+from tests.training.test_warmup_training import CFG, _model, _scene
 
 pytestmark = pytest.mark.skipif(
     not cpu_extension_available(), reason=f"compiled CPU rasterizer not built: {unavailable_reason()}"
@@ -31,7 +31,7 @@ def _toy_psnr(backend: str) -> float:
     """Mean PSNR over every view and frame of the toy scene after 60 warm-up steps with ``backend``."""
     views, meshes = _scene()
     model = _model(meshes)
-    train_static(model, views, meshes, dataclasses.replace(CFG, steps=60, backend=backend))
+    train_warmup(model, views, meshes, dataclasses.replace(CFG, steps=60, backend=backend))
     values = []
     with torch.no_grad():
         for frame in range(views.num_frames):

@@ -31,7 +31,7 @@ UNKNOWN_PART_LABEL = 3  # keyed foreground whose part is unknown (see data_schem
 
 
 @dataclass(frozen=True)
-class StaticConfig:
+class WarmupTrainConfig:
     """Warm-up hyperparameters (paper / GaussianAvatars values as defaults)."""
 
     steps: int
@@ -100,7 +100,7 @@ def gaussian_param_groups(
     ]
 
 
-def _optimizer(model: BoundGaussians, cfg: StaticConfig) -> torch.optim.Adam:
+def _optimizer(model: BoundGaussians, cfg: WarmupTrainConfig) -> torch.optim.Adam:
     groups = gaussian_param_groups(
         model, cfg.lr_position_init, cfg.lr_scale, cfg.lr_rotation, cfg.lr_opacity, cfg.lr_color
     )
@@ -158,11 +158,11 @@ def colors_from_views(means: Tensor, part_labels: Tensor, views: ViewSet, frame:
     return torch.where(count[:, None] > 0, total / count.clamp_min(1)[:, None], torch.full_like(total, 0.5))
 
 
-def train_static(
+def train_warmup(
     model: BoundGaussians,
     views: ViewSet,
     meshes: MeshSequence,
-    cfg: StaticConfig,
+    cfg: WarmupTrainConfig,
     checkpoint_dir: Path | None = None,
     progress: Progress = iter,
     validator: Validator | None = None,

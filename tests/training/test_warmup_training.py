@@ -10,10 +10,10 @@ import torch
 
 from avatar.gaussians.model import BoundGaussians
 from avatar.posing import MeshSequence
-from avatar.training import static
+from avatar.training import warmup
 from avatar.training.data import ViewSet
-from avatar.training.static import StaticConfig, train_static
 from avatar.training.validation import ValidationConfig, Validator
+from avatar.training.warmup import WarmupTrainConfig, train_warmup
 
 
 def _scene() -> tuple[ViewSet, MeshSequence]:
@@ -39,7 +39,7 @@ def _model(meshes: MeshSequence) -> BoundGaussians:
     return BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, 8, init_opacity=0.3)
 
 
-CFG = StaticConfig(
+CFG = WarmupTrainConfig(
     steps=30,
     densify_from=0.2,
     densify_until=0.8,
@@ -53,7 +53,7 @@ CFG = StaticConfig(
 
 def test_warmup_reduces_the_loss():
     views, meshes = _scene()
-    log = train_static(_model(meshes), views, meshes, dataclasses.replace(CFG, steps=100, lr_color=0.02))
+    log = train_warmup(_model(meshes), views, meshes, dataclasses.replace(CFG, steps=100, lr_color=0.02))
     assert log[-1].loss < 0.5 * log[0].loss, [r.loss for r in log]
     assert all(math.isfinite(r.loss) for r in log)
 
@@ -61,14 +61,14 @@ def test_warmup_reduces_the_loss():
 def test_killed_run_resumes_from_checkpoint_to_the_same_result(tmp_path, monkeypatch):
     views, meshes = _scene()
     reference = _model(meshes)
-    ref_log = train_static(reference, views, meshes, CFG)
+    ref_log = train_warmup(reference, views, meshes, CFG)
 
     _run_killed_at(17, tmp_path, monkeypatch)  # after the checkpoint of step 10
-    assert (tmp_path / static.CHECKPOINT).is_file()
+    assert (tmp_path / warmup.CHECKPOINT).is_file()
 
     resumed = _model(meshes)
     validator = Validator(ValidationConfig(), views)
-    log = train_static(resumed, views, meshes, CFG, checkpoint_dir=tmp_path, validator=validator)
+    log = train_warmup(resumed, views, meshes, CFG, checkpoint_dir=tmp_path, validator=validator)
     assert validator.metrics()["resumed_from_step"] == 10  # the manifest says the run was resumed, and where
     assert [r.step for r in log] == [r.step for r in ref_log]
     assert resumed.num_gaussians == reference.num_gaussians
@@ -79,7 +79,7 @@ def test_killed_run_resumes_from_checkpoint_to_the_same_result(tmp_path, monkeyp
 def _run_killed_at(call: int, tmp_path, monkeypatch) -> None:
     """Run the warm-up into ``tmp_path`` and kill it at render call ``call`` (checkpoints every 10 steps)."""
     views, meshes = _scene()
-    real_render = static.render_frame
+    real_render = warmup.render_frame
     calls = {"n": 0}
 
     def dying_render(*args, **kwargs):
@@ -88,10 +88,10 @@ def _run_killed_at(call: int, tmp_path, monkeypatch) -> None:
             raise KeyboardInterrupt("killed")
         return real_render(*args, **kwargs)
 
-    monkeypatch.setattr(static, "render_frame", dying_render)
+    monkeypatch.setattr(warmup, "render_frame", dying_render)
     with pytest.raises(KeyboardInterrupt):
-        train_static(_model(meshes), views, meshes, CFG, checkpoint_dir=tmp_path)
-    monkeypatch.setattr(static, "render_frame", real_render)
+        train_warmup(_model(meshes), views, meshes, CFG, checkpoint_dir=tmp_path)
+    monkeypatch.setattr(warmup, "render_frame", real_render)
 
 
 @pytest.mark.parametrize("damage", ["garbage", "truncated", "bit_flip"])
@@ -101,9 +101,9 @@ def test_a_corrupt_checkpoint_is_named_discarded_and_the_run_resumes_from_the_pr
     """Issue 9, case 5: verified on load; the newest is corrupt, so the run resumes from the one before it."""
     views, meshes = _scene()
     reference = _model(meshes)
-    train_static(reference, views, meshes, CFG)
+    train_warmup(reference, views, meshes, CFG)
     _run_killed_at(27, tmp_path, monkeypatch)  # checkpoints of steps 10 (.prev) and 20
-    newest = tmp_path / static.CHECKPOINT
+    newest = tmp_path / warmup.CHECKPOINT
     blob = bytearray(newest.read_bytes())
     if damage == "garbage":
         blob = bytearray(b"not a checkpoint at all")
@@ -115,7 +115,7 @@ def test_a_corrupt_checkpoint_is_named_discarded_and_the_run_resumes_from_the_pr
 
     resumed = _model(meshes)
     with caplog.at_level("WARNING"):
-        log = train_static(resumed, views, meshes, CFG, checkpoint_dir=tmp_path)
+        log = train_warmup(resumed, views, meshes, CFG, checkpoint_dir=tmp_path)
     assert f"{newest}: checkpoint discarded" in caplog.text and "trying the previous one" in caplog.text
     assert log[-1].step == CFG.steps
     for name, value in reference.state_dict().items():
@@ -125,13 +125,13 @@ def test_a_corrupt_checkpoint_is_named_discarded_and_the_run_resumes_from_the_pr
 def test_with_every_checkpoint_corrupt_the_run_starts_over_instead_of_failing(tmp_path, monkeypatch, caplog):
     views, meshes = _scene()
     reference = _model(meshes)
-    train_static(reference, views, meshes, CFG)
+    train_warmup(reference, views, meshes, CFG)
     _run_killed_at(27, tmp_path, monkeypatch)
-    for path in (tmp_path / static.CHECKPOINT, tmp_path / f"{static.CHECKPOINT}.prev"):
+    for path in (tmp_path / warmup.CHECKPOINT, tmp_path / f"{warmup.CHECKPOINT}.prev"):
         path.write_bytes(b"\0" * 100)
     fresh = _model(meshes)
     with caplog.at_level("WARNING"):
-        train_static(fresh, views, meshes, CFG, checkpoint_dir=tmp_path)
+        train_warmup(fresh, views, meshes, CFG, checkpoint_dir=tmp_path)
     assert "starting over" in caplog.text
     for name, value in reference.state_dict().items():
         torch.testing.assert_close(fresh.state_dict()[name], value, rtol=1e-5, atol=1e-6)
