@@ -84,7 +84,7 @@ VARIANTS = {
 }
 
 
-def compose_cfg(preset: str, subject: str, outputs: Path, extra: list[str], until: str = "evaluate"):  # noqa: ANN201 - DictConfig
+def compose_cfg(preset: str, subject: str, outputs: Path, extra: list[str], until: str = "evaluate"):  # DictConfig
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose(
             "config",

@@ -23,7 +23,7 @@ from avatar.synthetic import SyntheticConfig, generate
 from avatar.templates import FLAMELayer, MANOLayer, procedural_hand, procedural_head
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
+from benchmarks.provenance import ResultLog, add_results_argument
 
 HAND_KEYS = ("mano_shape", "mano_hand_pose", "mano_global_orient", "mano_transl")
 FACE_KEYS = (

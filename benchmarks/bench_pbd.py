@@ -32,7 +32,7 @@ from avatar.synthetic import SyntheticConfig, generate
 from avatar.templates import procedural_hand, procedural_head
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
+from benchmarks.provenance import ResultLog, add_results_argument
 
 #: quality=draft frame counts (conf/quality/draft.yaml)
 DRAFT_FRAMES = {"train": 24, "test": 12}

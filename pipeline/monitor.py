@@ -66,7 +66,7 @@ class ResourceMonitor:
             self.usage.peak_cuda_mb = cuda.max_memory_allocated() / 2**20
 
 
-def _cuda():  # noqa: ANN202 - returns the torch.cuda module or None
+def _cuda():  # returns the torch.cuda module or None
     """torch.cuda if torch is already imported and CUDA is initialised; never imports torch itself."""
     import sys
 

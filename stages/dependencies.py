@@ -17,14 +17,14 @@ def model_files(cfg: DictConfig) -> list[Path]:
     return [Path(p).resolve() for p in (cfg.model.flame_path, cfg.model.mano_path) if p and Path(p).is_file()]
 
 
-def contact_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG001 - the SourceLister signature
+def contact_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # the SourceLister signature
     """Source lister of stages that simulate contact: the official model files and the face stiffness file."""
     stiffness = cfg.model.get("face_stiffness_path")
     extra = [Path(stiffness).resolve()] if stiffness and Path(stiffness).is_file() else []
     return SourceFiles(Path("/"), tuple(model_files(cfg) + extra))
 
 
-def model_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # noqa: ARG001 - the SourceLister signature
+def model_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # the SourceLister signature
     """Source lister of stages that pose the official models: a replaced model file reruns them."""
     return SourceFiles(Path("/"), tuple(model_files(cfg)))
 

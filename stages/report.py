@@ -550,7 +550,7 @@ def _loss_curve(train_dir: Path, schema: TableSchema, terms: tuple[str, ...]) ->
     return _figure_png(fig)
 
 
-def _figure_png(fig) -> str:  # noqa: ANN001 - a matplotlib Figure
+def _figure_png(fig) -> str:  # a matplotlib Figure
     """Base64 PNG of a matplotlib figure, closed afterwards."""
     import matplotlib.pyplot as plt
 
@@ -561,7 +561,7 @@ def _figure_png(fig) -> str:  # noqa: ANN001 - a matplotlib Figure
     return base64.b64encode(buf.getvalue()).decode()
 
 
-def _pyplot():  # noqa: ANN202 - the matplotlib.pyplot module
+def _pyplot():  # the matplotlib.pyplot module
     import matplotlib
 
     matplotlib.use("Agg")

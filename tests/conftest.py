@@ -83,7 +83,7 @@ def record_crop_reads(monkeypatch: pytest.MonkeyPatch, capture_dir: Path) -> tup
     assert held_out, f"{capture_dir}: no held-out camera to check"
     read: list[Path] = []
 
-    def recording_read_png(path, channels):  # noqa: ANN001, ANN202 - read_png's signature
+    def recording_read_png(path, channels):  # read_png's signature
         read.append(Path(path))
         return read_png(path, channels)
 

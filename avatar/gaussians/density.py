@@ -16,6 +16,7 @@ removed Gaussians, zeroed for the reset opacities.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -168,7 +169,13 @@ def _rotate(q: Tensor, v: Tensor) -> Tensor:
     return v + w * t + torch.linalg.cross(xyz, t)
 
 
-def _replace(model: BoundGaussians, optimizer: torch.optim.Optimizer, name: str, value: Tensor, edit_state) -> None:  # noqa: ANN001 - edit_state: Callable[[Tensor], Tensor]
+def _replace(
+    model: BoundGaussians,
+    optimizer: torch.optim.Optimizer,
+    name: str,
+    value: Tensor,
+    edit_state: Callable[[Tensor], Tensor],
+) -> None:
     """Swap parameter ``name`` for ``value``, carrying its Adam moments through ``edit_state``."""
     old = getattr(model, name)
     new = nn.Parameter(value.contiguous())

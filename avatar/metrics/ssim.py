@@ -77,13 +77,13 @@ class _SeparableBlur(torch.autograd.Function):
     taps (the same: the window is symmetric) and padding ``K - 1 - p``."""
 
     @staticmethod
-    def forward(ctx, planes: Tensor, weights: list[float], pad: int) -> Tensor:  # noqa: ANN001
+    def forward(ctx, planes: Tensor, weights: list[float], pad: int) -> Tensor:
         ctx.weights, ctx.adjoint_pad = weights, len(weights) - 1 - pad
         return _correlate_axis(_correlate_axis(planes, weights, -1, pad), weights, -2, pad)
 
     @staticmethod
     @once_differentiable  # a second derivative would need the adjoint's graph: raise instead of a silent zero
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:  # noqa: ANN001
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
         w, p = ctx.weights, ctx.adjoint_pad
         return _correlate_axis(_correlate_axis(grad, w, -2, p), w, -1, p), None, None
 

@@ -57,7 +57,7 @@ def _read(path: Path, required: Iterable[str]) -> dict[str, Any]:
         raise ValueError("content does not match its digest (truncated or corrupted)")
     try:
         state = torch.load(io.BytesIO(payload), weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means the file is unusable
+    except Exception as exc:  # any unpickling failure means the file is unusable
         raise ValueError(f"unreadable ({type(exc).__name__}: {exc})") from exc
     missing = sorted(set(required) - set(state)) if isinstance(state, dict) else ["<a dict>"]
     if missing:

@@ -154,7 +154,7 @@ def render_dynamic(
     return rasterize(g, views, camera, backend), g
 
 
-def rasterize(g: WorldGaussians, views: ViewSet, camera: int, backend: str = "auto"):  # noqa: ANN201 - RenderOutput
+def rasterize(g: WorldGaussians, views: ViewSet, camera: int, backend: str = "auto"):  # RenderOutput
     """Render the Gaussians of one frame from view ``camera`` of ``views``."""
     return render_gaussians(
         g.means,

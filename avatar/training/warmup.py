@@ -115,7 +115,7 @@ def render_frame(
     camera: int,
     backend: str = "auto",
     vertices: Tensor | None = None,
-):  # noqa: ANN201 - the RenderOutput
+):  # the RenderOutput
     """Render the model on frame ``frame``'s meshes from view ``camera`` of ``views`` (``vertices`` (V, 3):
     that frame's posed vertices when they differ from ``meshes``', e.g. refined by :class:`FrameParams`)."""
     vertices = meshes.vertices[frame] if vertices is None else vertices

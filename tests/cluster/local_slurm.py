@@ -176,7 +176,7 @@ LogFile={self.logs / "slurmdbd.log"}
     # -- daemons ---------------------------------------------------------------------------------------
     def _spawn(self, name: str, *cmd: str) -> None:
         """Start ``cmd`` in the foreground of its own session (pytest's signals never reach it)."""
-        out = open(self.logs / f"{name}.out", "wb")  # noqa: SIM115 -- kept open for the daemon's life
+        out = open(self.logs / f"{name}.out", "wb")  # kept open for the daemon's life
         self.procs[name] = subprocess.Popen(
             cmd, stdout=out, stderr=subprocess.STDOUT, env=self.env(), start_new_session=True
         )

@@ -110,7 +110,7 @@ class _IndexLosingWriter:
     def __init__(self, path: str, *args: object) -> None:
         self._inner, self._path = self.real(path, *args), Path(path)
 
-    def isOpened(self) -> bool:  # noqa: N802 - OpenCV's name
+    def isOpened(self) -> bool:  # OpenCV's name
         return self._inner.isOpened()
 
     def write(self, frame: np.ndarray) -> None:

@@ -60,7 +60,7 @@ def test_delta_heads_equal_the_per_head_reference_values_and_gradients(depth: in
     point = (code, learned) if parts == 2 else code
     weights = torch.randn(23, 3, generator=gen)
 
-    def run(forward) -> tuple[dict[str, Tensor], dict[str, Tensor]]:  # noqa: ANN001
+    def run(forward) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         heads.zero_grad(set_to_none=True)
         learned.grad = frame.grad = None
         out = forward()
@@ -118,7 +118,7 @@ def test_a_short_stage_two_gives_the_reference_loss_curve(scene: Scene, monkeypa
     contact = np.array([True, False])
     fast = train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, contact, cfg).log
     adam = torch.optim.Adam
-    monkeypatch.setattr(torch.optim, "Adam", lambda *a, fused=None, **k: adam(*a, **k))  # noqa: ARG005
+    monkeypatch.setattr(torch.optim, "Adam", lambda *a, fused=None, **k: adam(*a, **k))
     monkeypatch.setattr(DeltaMLP, "forward", reference_forward)
     monkeypatch.setattr(dynamic_model, "nearest_distance", reference_nearest_distance)
     reference = train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, contact, cfg).log

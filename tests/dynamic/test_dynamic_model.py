@@ -118,7 +118,7 @@ def test_split_mlp_equals_the_concatenated_mlp() -> None:
     point, frame = torch.randn(11, 5), torch.randn(7)
     x = torch.cat([point, frame.expand(11, 7)], dim=-1)
 
-    def joined(split) -> nn.Linear:  # noqa: ANN001
+    def joined(split) -> nn.Linear:
         lin = nn.Linear(12, 16)
         lin.weight.data = torch.cat([split.point.weight, split.frame.weight], dim=1)
         lin.bias.data = split.point.bias.clone()
@@ -219,7 +219,7 @@ def test_extremes_stay_finite(case: str) -> None:
         assert g.interaction_evaluations == 0
 
 
-def _only(scene: Scene, model, keep: torch.Tensor, cfg: DynamicModelConfig):  # noqa: ANN001, ANN202
+def _only(scene: Scene, model, keep: torch.Tensor, cfg: DynamicModelConfig):
     """A model of the face Gaussians only (no hand Gaussian at all)."""
     from avatar.dynamic import DynamicAvatar
     from avatar.gaussians.model import BoundGaussians

@@ -27,7 +27,7 @@ class _Kill(Exception):
     pass
 
 
-def _cfg(steps: int, **kw) -> DynamicTrainConfig:  # noqa: ANN003
+def _cfg(steps: int, **kw) -> DynamicTrainConfig:
     return DynamicTrainConfig(steps=steps, backend="auto", patch_min_size=16, log_every=1, **kw)
 
 
@@ -62,7 +62,7 @@ def test_a_killed_run_resumes_to_the_same_result(scene: Scene, tmp_path, lpips: 
     straight = scene.model()
     log = train_dynamic(straight, scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips).log
 
-    def killed_after_two(steps):  # noqa: ANN001, ANN202
+    def killed_after_two(steps):
         for step in steps:
             if step == 3:
                 raise _Kill
@@ -136,7 +136,7 @@ def test_the_selection_keeps_the_best_validated_step_and_resumes_to_the_same_cho
 
     assert validator.measure(render) == pytest.approx(chosen.psnr, abs=1e-9)
 
-    def killed_after_three(steps):  # noqa: ANN001, ANN202
+    def killed_after_three(steps):
         for step in steps:
             if step == 4:
                 raise _Kill

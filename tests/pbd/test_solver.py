@@ -20,7 +20,7 @@ def _solve(
     hand_faces: torch.Tensor,
     stiffness: torch.Tensor | None = None,
     rest: torch.Tensor | None = None,
-):  # noqa: ANN202 - FrameResult
+):  # FrameResult
     return solve_frame(
         head.vertices if rest is None else rest,
         hand,
@@ -35,7 +35,7 @@ def _check_bounded(
     head: Head,
     result,
     hand: torch.Tensor,
-    hand_faces: torch.Tensor,  # noqa: ANN001
+    hand_faces: torch.Tensor,
     bound_m: float = 0.06,
 ) -> None:
     assert torch.isfinite(result.offsets).all()

@@ -169,7 +169,7 @@ def test_a_killed_warmup_resumes_the_refinement_to_the_same_result(tmp_path, mon
     )
     lrs = ParamLearningRates(translation=1e-4, rotation=1e-3, pose=1e-3, expression=1e-2)
 
-    def run(checkpoint_dir=None) -> FrameParams:  # noqa: ANN001
+    def run(checkpoint_dir=None) -> FrameParams:
         model = BoundGaussians.on_triangles(meshes.vertices[0], meshes.faces, meshes.face_part, 1, init_opacity=0.3)
         frames = FrameParams(params, HEAD, HAND, None, lrs, centred=True)
         train_warmup(model, views, meshes, cfg, checkpoint_dir=checkpoint_dir, params=frames)
@@ -178,7 +178,7 @@ def test_a_killed_warmup_resumes_the_refinement_to_the_same_result(tmp_path, mon
     reference = run().arrays()
     real_render, calls = warmup.render_frame, {"n": 0}
 
-    def dying_render(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def dying_render(*args, **kwargs):
         calls["n"] += 1
         if calls["n"] == 13:
             raise KeyboardInterrupt("killed")

@@ -17,7 +17,7 @@ from tests.dynamic.conftest import make_scene
 from tests.training.test_validation import _scene
 
 
-def _ten_times(cfg):  # noqa: ANN001, ANN202 - a training config dataclass
+def _ten_times(cfg):  # a training config dataclass
     return dataclasses.replace(
         cfg,
         **{

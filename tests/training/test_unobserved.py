@@ -74,7 +74,7 @@ def _padding_gradients(
     render; returns the largest |gradient| on the padded columns and on the others."""
     real, grads = getattr(module, name), []
 
-    def recording(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def recording(*args, **kwargs):
         result = real(*args, **kwargs)
         out = result[0] if isinstance(result, tuple) else result
         if out.rgb.requires_grad:

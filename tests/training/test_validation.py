@@ -112,7 +112,7 @@ def test_training_never_draws_a_withheld_frame(monkeypatch):
     drawn: list[tuple[int, bool]] = []
     real_render = warmup.render_frame
 
-    def spy(model, meshes, views, frame, camera, backend="auto", vertices=None):  # noqa: ANN001, ANN202
+    def spy(model, meshes, views, frame, camera, backend="auto", vertices=None):
         drawn.append((frame, torch.is_grad_enabled()))
         return real_render(model, meshes, views, frame, camera, backend, vertices)
 
@@ -217,8 +217,8 @@ def test_the_splatting_avatar_loop_records_its_curve_and_stops_after_its_density
     assert all(math.isfinite(p.psnr) for p in validator.curve)
 
 
-def _killed_at(step: int):  # noqa: ANN202 - a Progress that dies before ``step``
-    def progress(steps):  # noqa: ANN001, ANN202
+def _killed_at(step: int):  # a Progress that dies before ``step``
+    def progress(steps):
         for s in steps:
             if s == step:
                 raise KeyboardInterrupt("killed")

@@ -25,7 +25,7 @@ DEFAULT_TILE_SIZE = 16
 DTYPES = (torch.float32, torch.float64)
 
 
-def _ops():  # noqa: ANN202 - the torch.ops namespace object
+def _ops():  # the torch.ops namespace object
     """The compiled operators, built and loaded on first use."""
     reason = unavailable_reason()
     if reason is not None:
