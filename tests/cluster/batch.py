@@ -119,9 +119,9 @@ def stop_mid_warmup(cluster: Cluster, out: Path, subject: str, timeout_s: float 
     """Stop the job of ``subject`` at its warm-up's first checkpoint, while it is in warm-up; says what was done.
 
     The job's process is looked up while its warm-up starts, frozen (SIGSTOP) the moment the checkpoint
-    appears, then stopped the scheduler's way: the scheduler's grace time (SLURM sends SIGCONT and SIGTERM,
-    which submitit ignores, then SIGKILL after ``KillWait``) and a slow process lookup on a loaded machine no
-    longer let the warm-up finish before the stop."""
+    appears, then stopped the scheduler's way with a signal that does not resume it (SLURM: ``scancel
+    --signal=KILL``; a plain scancel sends SIGCONT first), so neither the scheduler's grace time nor a slow process
+    lookup on a loaded machine lets the warm-up finish before the stop."""
     pid = None
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
