@@ -49,10 +49,7 @@ class SlurmLauncher:
             if "SLURM_ARRAY_JOB_ID" in environ
             else environ["SLURM_JOB_ID"]
         )
-        # SIGKILL from the scheduler, not scancel's default stop: that sends SIGCONT and SIGTERM first (SIGKILL only
-        # KillWait later), and SIGCONT resumes the frozen warm-up, which once finished in that window on a loaded
-        # 2-core machine (1 run in 5 on 2026-12-06): the stop must come while the warm-up is still unfinished.
-        subprocess.run(["scancel", "--signal=KILL", job_id], env=self.env(), check=True)
+        subprocess.run(["scancel", job_id], env=self.env(), check=True)
         return job_id
 
 
