@@ -25,7 +25,7 @@ from stages import REGISTRY
 from tests.conftest import REPO, cli_command, cli_env
 
 SMOKE = ("quality=smoke", "run.progress=false")
-# The story stops a job at its first warm-up checkpoint: at step 10 of 150, not 50 (not in the cache key).
+# The story stops a job at its first warm-up checkpoint: at step 10, not 50 (not in the cache key).
 EARLY_CHECKPOINT = "stage.warmup.checkpoint_every=10"
 #: The story's warm-up: 1500 steps (smoke's 150 took 4 s on the loaded 2-core machine, and the 140 after the first
 #: checkpoint fitted into the window between SLURM's SIGCONT and its SIGKILL: 2 runs in 7 on 2026-12-06).
