@@ -24,7 +24,7 @@ from stages import REGISTRY
 from stages.config_defaults import BLOCKS, CONF_DIR, PIPELINE_CHOICES, rendered
 from stages.dynamic import DynamicConfig
 from stages.fit import FitStageConfig
-from stages.representations.bound import PRESET_ARCHITECTURE, dynamic_train_config, model_config, static_config
+from stages.representations.bound import PRESET_ARCHITECTURE, dynamic_train_config, model_config, warmup_train_config
 from stages.representations.embedded import SHARED_SCHEDULE, SplattingSchema, splatting_config
 from stages.warmup import WarmupConfig
 from tests.conftest import compose_cfg
@@ -89,7 +89,7 @@ def test_the_loops_configs_are_built_from_their_sections_whole() -> None:
         ),
         REGISTRY,
     )
-    static, dynamic = static_config(cfg), dynamic_train_config(cfg)
+    static, dynamic = warmup_train_config(cfg), dynamic_train_config(cfg)
     splat = splatting_config(cfg, 7, cfg.stage.warmup, densify=True)
     assert (static.lr_scale, static.grad_threshold, static.steps) == (0.02, 0.0003, cfg.quality.warmup_steps)
     assert (dynamic.lr_color, dynamic.steps) == (0.01, cfg.quality.dynamic_steps)

@@ -152,7 +152,7 @@ def model_config(cfg: DictConfig, scene: SceneDecision) -> DynamicModelConfig:
     )
 
 
-def static_config(cfg: DictConfig) -> WarmupTrainConfig:
+def warmup_train_config(cfg: DictConfig) -> WarmupTrainConfig:
     """The warm-up's :class:`WarmupTrainConfig` of ``stage.warmup`` and ``quality.warmup_steps``."""
     return core_config(WarmupTrainConfig, cfg.stage.warmup, steps=int(cfg.quality.warmup_steps))
 
@@ -207,7 +207,7 @@ class BoundRepresentation(Representation):
             model,
             views,
             meshes,
-            static_config(self.cfg),
+            warmup_train_config(self.cfg),
             checkpoint_dir=ctx.scratch_dir,
             progress=progress,
             validator=validator,

@@ -191,10 +191,8 @@ class EmbeddedRepresentation(Representation):
 
     def train(self, ctx: StageContext, views: ViewSet, posed: PosedSequence) -> None:
         """SplattingAvatar continued from its warm-up for ``quality.dynamic_steps`` (no density control; walking
-        goes on), so it trains as many steps as every other method. ``networks.pt`` holds its canonical mesh."""
-        problems = self.problems()
-        if problems:
-            raise ValueError("; ".join(problems))
+        goes on), so it trains as many steps as every other method. ``networks.pt`` holds its canonical mesh. Its
+        :meth:`problems` were refused before any stage ran."""
         conf, meshes = self.cfg.stage.dynamic, posed.meshes
         canonical = meshes.vertices[0]
         model = load_embedded_gaussians(ctx.input_dir("warmup"), meshes.part_names, canonical, meshes.faces)
@@ -223,8 +221,8 @@ class EmbeddedRepresentation(Representation):
         write_train_plys(ctx, EmbeddedAvatar(model), posed.conditioning(self.cfg), meshes, views.num_frames)
         write_records(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
         record_validation(ctx, validator)
-        record_refinement(ctx, load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE), posed.params, None)
         seconds = time.perf_counter() - start - validator.validation_s
+        record_refinement(ctx, load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE), posed.params, None)
         ctx.metrics.update(
             {
                 "steps": steps,
