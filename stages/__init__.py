@@ -12,8 +12,9 @@ from stages.pbd import pbd
 from stages.reenact import reenact
 from stages.report import report
 from stages.scene import scene
+from stages.viewer import viewer
 from stages.warmup import warmup
 
 REGISTRY = StageRegistry(
-    [capture, frames, keypoints, fit, scene, pbd, warmup, dynamic, evaluate, compare, reenact, report]
+    [capture, frames, keypoints, fit, scene, pbd, warmup, dynamic, evaluate, compare, reenact, viewer, report]
 )

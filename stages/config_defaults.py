@@ -2,9 +2,9 @@
 
 Each such setting is defined once, in its dataclass (the training loops' WarmupTrainConfig, DynamicTrainConfig and
 SplattingConfig, the model's DynamicModelConfig, the fitting's FitConfig and RefineConfig, the contact solver's
-PBDConfig): its name, type, default and documentation (the comment at or above its field). The YAML files hold a
-generated block of those defaults and comments between two marker lines, beside the settings of their own (the
-stages' own, and where the pipeline chooses otherwise: checkpoints, the run's seed). ``python -m
+PBDConfig, the viewer's CodecConfig): its name, type, default and documentation (the comment at or above its field).
+The YAML files hold a generated block of those defaults and comments between two marker lines, beside the settings of
+their own (the stages' own, and where the pipeline chooses otherwise: checkpoints, the run's seed). ``python -m
 stages.config_defaults`` rewrites the blocks; ``--check`` fails where one is out of date, as
 ``tests/test_config_schemas.py`` does. The config reference (``pipeline.config_reference``) reads the YAML, so it
 shows the dataclasses' words.
@@ -24,6 +24,7 @@ from avatar.pbd import PBDConfig
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.warmup import WarmupTrainConfig
+from avatar.viewer_codec import CodecConfig
 from pipeline.schema import with_generated_block
 from stages.representations.bound import PRESET_ARCHITECTURE
 from stages.representations.embedded import SHARED_SCHEDULE
@@ -50,6 +51,7 @@ BLOCKS = (
     GeneratedDefaults("stage/fit.yaml", FitConfig, ("face_shape_columns",)),
     GeneratedDefaults("stage/fit.yaml", RefineConfig, ()),
     GeneratedDefaults("stage/pbd.yaml", PBDConfig, ()),
+    GeneratedDefaults("stage/viewer.yaml", CodecConfig, ()),
 )
 
 

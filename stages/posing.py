@@ -59,13 +59,18 @@ def posed_sequence(
     fit_dir: Path, sequence: str, cfg: DictConfig, pbd_dir: Path | None, params: dict[str, np.ndarray] | None = None
 ) -> PosedSequence:
     """``sequence`` posed with ``params`` (default: the fit stage's) and the pbd stage's offsets (``pbd_dir``)."""
-    head, hand = templates(cfg.model)
+    head, _ = templates(cfg.model)
     params = load_params(fit_dir, sequence) if params is None else params
-    meshes = posed_meshes(params, head, hand)
-    num_frames = meshes.vertices.shape[0]
+    num_frames = len(params["flame_global_orient"])
     if pbd_dir is None:
-        return PosedSequence(params, meshes, np.zeros((num_frames, head.num_vertices, 3)))
-    offsets = load_face_offsets(pbd_dir, sequence, num_frames, head.num_vertices)
+        return posed_with_offsets(params, cfg, np.zeros((num_frames, head.num_vertices, 3)))
+    return posed_with_offsets(params, cfg, load_face_offsets(pbd_dir, sequence, num_frames, head.num_vertices))
+
+
+def posed_with_offsets(params: dict[str, np.ndarray], cfg: DictConfig, offsets: np.ndarray) -> PosedSequence:
+    """``params`` posed, the face's contact ``offsets`` (T, V_face, 3) (metres) added."""
+    head, hand = templates(cfg.model)
+    meshes = posed_meshes(params, head, hand)
     # posed_meshes concatenates the parts in order, face first: its vertices are the first V
     meshes.vertices[:, : head.num_vertices] += torch.from_numpy(offsets).to(meshes.vertices.dtype)
     return PosedSequence(params, meshes, offsets)

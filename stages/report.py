@@ -29,7 +29,19 @@ from stages.artifacts import TRAIN_SEQUENCE, contact_frames, contact_source, loa
 from stages.posing import templates
 from stages.representations import representation_class
 
-UPSTREAM = ("capture", "frames", "fit", "scene", "pbd", "warmup", "dynamic", "evaluate", "compare", "reenact")
+UPSTREAM = (
+    "capture",
+    "frames",
+    "fit",
+    "scene",
+    "pbd",
+    "warmup",
+    "dynamic",
+    "evaluate",
+    "compare",
+    "reenact",
+    "viewer",
+)
 
 
 @dataclass
@@ -44,7 +56,7 @@ class ReportConfig:
     inputs=UPSTREAM,
     config_keys=("quality.name", "method.name", "method.label", "stage.report", "model"),
     outputs=("report.html",),
-    version="15",
+    version="16",
     config_schema=ReportConfig,
     per_method=True,
     reads_manifests=True,
@@ -113,6 +125,8 @@ def report(ctx: StageContext) -> None:
         _metrics_section(ctx.input_dir("evaluate")),
         "<h2>Reenactment</h2>",
         _reenact_section(ctx.input_dir("reenact")),
+        "<h2>In 3D, in the browser</h2>",
+        _viewer_section(ctx.input_dir("viewer")),
         "<h2>Methods side by side</h2>",
         _comparison_section(ctx.input_dir("compare")),
         "<h2>Training</h2>",
@@ -506,6 +520,28 @@ def _reenact_section(reenact_dir: Path) -> str:
         for path, caption in shown
     )
     return f"<p>{html.escape(text)}</p>{videos}"
+
+
+def _viewer_section(viewer_dir: Path) -> str:
+    """Links to this method's browser viewer and to the other methods' (those written by now), with its sizes."""
+    info = json.loads((viewer_dir / "viewer.json").read_text())
+    others = sorted(p for p in viewer_dir.parent.parent.glob("*/viewer/index.html") if p.parent != viewer_dir)
+    names = [html.escape(p.parent.parent.name) for p in others]
+    links = "".join(f" <a href='../../{name}/viewer/index.html'>{name}</a>" for name in names)
+    built = (
+        ""
+        if info["page_built"]
+        else f" The page is not built on this machine: run <code>{html.escape(info['build_command'])}</code>, then "
+        "<code>interactavatar run.only=viewer</code>."
+    )
+    return (
+        f"<p><a href='../viewer/index.html'>Open this avatar in the viewer</a>: orbit it, play its motions, step "
+        f"through the frames beside the ground truth (from a server: <code>interactavatar-view "
+        f"&lt;outputs&gt;/&lt;subject&gt;</code>).{built} {info['gaussians']} Gaussians, "
+        f"{info['bytes_per_frame'] / 1e3:.0f} kB per frame, {info['mb_per_100_frames']:.1f} MB per 100 frames."
+        + (f" The other methods' viewers:{links}." if links else "")
+        + "</p>"
+    )
 
 
 def _comparison_section(compare_dir: Path) -> str:

@@ -101,6 +101,12 @@ class TrainedAvatar(Protocol):
     @property
     def num_gaussians(self) -> int: ...
 
+    @property
+    def triangles(self) -> torch.Tensor:
+        """(N,) int64: the triangle (a row of the posed meshes' faces) each Gaussian rides on; the browser viewer
+        poses the Gaussians with that triangle's frame (:mod:`avatar.viewer_codec`)."""
+        ...
+
     def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:
         """The world-space Gaussians of frame ``frame`` of a sequence whose conditioning is ``cond`` and whose
         posed meshes of that frame have ``vertices`` (V, 3), as evaluated (no sampling noise)."""

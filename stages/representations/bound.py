@@ -177,6 +177,10 @@ class BoundAvatar:
     def num_gaussians(self) -> int:
         return self.model.gaussians.num_gaussians
 
+    @property
+    def triangles(self) -> torch.Tensor:
+        return self.model.gaussians.binding
+
     def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:
         return self.model(cond.frame(frame), vertices)
 

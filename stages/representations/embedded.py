@@ -120,6 +120,10 @@ class EmbeddedAvatar:
     def num_gaussians(self) -> int:
         return self.model.num_gaussians
 
+    @property
+    def triangles(self) -> torch.Tensor:
+        return self.model.triangle
+
     def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:
         means, scales, quats = self.model.world(vertices, self.model.mesh.faces)
         return PosedGaussians(means, scales, quats, self.model.opacities(), self.model.colors())

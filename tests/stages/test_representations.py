@@ -61,6 +61,10 @@ class WarmupOnlyAvatar:
     def num_gaussians(self) -> int:
         return self.gaussians.num_gaussians
 
+    @property
+    def triangles(self) -> torch.Tensor:
+        return self.gaussians.binding
+
     def pose(self, cond: object, vertices: torch.Tensor, frame: int) -> WorldGaussians:
         means, scales, quats = self.gaussians.world(vertices, self.faces)
         return _Posed(means, scales, quats, self.gaussians.opacities(), self.gaussians.colors())
