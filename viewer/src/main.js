@@ -277,14 +277,14 @@ async function main() {
   });
 
   // Resolves once the current splats are sorted and drawn (at least `minimum` more frames, at most 5 s).
-  function settle(minimum = 6) {
+  function settle(minimum = 3) {
     const start = frameCount;
     const deadline = performance.now() + 5000;
     let quiet = 0;
     return new Promise((resolve) => {
       const check = () => {
         quiet = spark.sorting || spark.sortDirty ? 0 : quiet + 1;
-        if ((frameCount - start >= minimum && quiet >= 3) || performance.now() > deadline) resolve();
+        if ((frameCount - start >= minimum && quiet >= 2) || performance.now() > deadline) resolve();
         else requestAnimationFrame(check);
       };
       requestAnimationFrame(check);
@@ -312,6 +312,7 @@ async function main() {
 }
 
 main().catch((error) => {
+  window.viewerFailed = true;
   $("message").textContent = `The viewer could not start: ${error.message}`;
   console.error(error);
 });
