@@ -3,7 +3,7 @@ or timed-out benchmark is reported and the others still run. Ends with a table: 
 status, wall time, and the machine's load.
 
 Quick modes write under a temporary folder (``--keep DIR`` keeps it), never over the committed
-``benchmarks/results/``. The benchmarks that read a finished run (``bench_reenact``, ``bench_refine``,
+``benchmarks/results/``. The benchmarks that read a finished run (``bench_reenact``, ``bench_viewer``, ``bench_refine``,
 ``bench_train_refine``) get one ``quality=smoke`` DAG made first. ``--full`` runs each with its own defaults
 instead (hours; those that need a run get the same smoke DAG, so pass a bigger one by hand for real
 figures). A benchmark's full mode is always ``python benchmarks/<name>.py`` with its own arguments
@@ -75,6 +75,7 @@ QUICK: dict[str, list[list[str]]] = {
         ["--preset", "smoke", "--weights", "0", "0.03", "--every", "50", "--outputs", "{out}", "--results", "{out}"]
     ],
     "bench_reenact": [["--outputs", "{smoke}", "--sizes", "128", "--repeats", "1", "--results", "{out}"]],
+    "bench_viewer": [["--outputs", "{smoke}", "--frames", "2", "--play-s", "2", "--results", "{out}"]],
     "bench_refine": [
         [
             "--workspace",
@@ -96,6 +97,7 @@ QUICK: dict[str, list[list[str]]] = {
 #: the arguments a benchmark needs even in its full mode
 NEEDS = {
     "bench_reenact": [["--outputs", "{smoke}"]],
+    "bench_viewer": [["--outputs", "{smoke}"]],
     "bench_refine": [["--workspace", "{smoke}/synth_a"]],
     "bench_train_refine": [["--workspace", "{smoke}/synth_a"]],
     "bench_seeds": [["table"]],
