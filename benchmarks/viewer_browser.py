@@ -24,6 +24,16 @@ import torch
 from omegaconf import DictConfig
 
 from avatar.render.gaussians import render_gaussians
+from avatar.viewer_codec import (
+    FrameGaussians,
+    Overrides,
+    Ranges,
+    StaticGaussians,
+    decode_frame,
+    mask_indices,
+    sums_in_time,
+    unpack_sections,
+)
 from stages.artifacts import TRAIN_SEQUENCE, method_params
 from stages.posing import applied_deformation, posed_sequence
 from stages.representations import load_trained
@@ -117,6 +127,36 @@ def manifest(viewer_dir: Path) -> dict:
     if match is None:
         raise ValueError(f"{viewer_dir / 'data' / 'manifest.js'}: no manifest")
     return json.loads(match.group(1))
+
+
+def read_data(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of one of the page's data scripts (``data/avatar.js``, ``data/motion-<name>.js``)."""
+    match = re.search(r'= \{sections: (.*), data: "(.*)"\};', path.read_text())
+    if match is None:
+        raise ValueError(f"{path}: not a viewer data script")
+    return unpack_sections(base64.b64decode(match.group(2)), json.loads(match.group(1)))
+
+
+def decoded_frame(viewer_dir: Path, motion: str, frame: int) -> tuple[FrameGaussians, Overrides]:
+    """Frame ``frame`` of ``motion`` as :func:`avatar.viewer_codec.decode_frame` decodes it from the page's files
+    (the reference of the page's pose.js), and the frame's overrides."""
+    data = read_data(viewer_dir / "data" / "avatar.js")
+    arrays = read_data(viewer_dir / "data" / f"motion-{motion}.js")
+    entry = next(m for m in manifest(viewer_dir)["motions"] if m["name"] == motion)
+    ranges = Ranges(np.asarray(entry["ranges"]["vertex_lo"]), np.asarray(entry["ranges"]["vertex_hi"]))
+    static = StaticGaussians(*(data[k] for k in StaticGaussians.__dataclass_fields__))
+    count = static.triangle.shape[0]
+    spans = {}
+    for kind in ("geometry", "appearance"):
+        index = mask_indices(arrays[f"{kind}_mask"][frame], count)
+        start = int(arrays[f"{kind}_start"][frame])
+        spans[kind] = (index, slice(start, start + len(index)))
+    (g, gs), (a, as_) = spans["geometry"], spans["appearance"]
+    overrides = Overrides(
+        g, arrays["d_mean"][gs], arrays["d_log_scale"][gs], arrays["d_rotation"][gs], a, arrays["d_rgba"][as_]
+    )
+    vertices = sums_in_time(arrays["vertices"])[frame]
+    return decode_frame(static, vertices, overrides, ranges, data["faces"].astype(np.int64)), overrides
 
 
 class ProjectRender:

@@ -18,6 +18,7 @@ from avatar.scene import SceneDecision
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.warmup import WarmupTrainConfig
+from avatar.viewer_codec import CodecConfig
 from pipeline.config import ConfigError, validate_config
 from pipeline.schema import core_config, core_fields, section_schema, yaml_defaults, yaml_value
 from stages import REGISTRY
@@ -26,6 +27,7 @@ from stages.dynamic import DynamicConfig
 from stages.fit import FitStageConfig
 from stages.representations.bound import PRESET_ARCHITECTURE, dynamic_train_config, model_config, warmup_train_config
 from stages.representations.embedded import SHARED_SCHEDULE, SplattingSchema, splatting_config
+from stages.viewer import ViewerConfig
 from stages.warmup import WarmupConfig
 from tests.conftest import compose_cfg
 
@@ -38,6 +40,7 @@ SECTIONS = [
     (FitConfig, "stage.fit", ("face_shape_columns",), FitStageConfig),
     (RefineConfig, "stage.fit.refinement", (), RefineConfig),
     (PBDConfig, "stage.pbd.solver", (), PBDConfig),
+    (CodecConfig, "stage.viewer", (), ViewerConfig),
 ]
 
 
