@@ -33,6 +33,8 @@ from avatar.gaussians.frames import quaternion_multiply, rotation_to_quaternion,
 
 #: 16-bit quantisation of the vertices over their motion's bounding box.
 POSITION_LEVELS = 65535
+#: Local values (in units of the triangle's scale) beyond this are not stored (float16 tops out at 65504).
+LOCAL_LIMIT = 1000.0
 #: The steps of the overrides' int16 deltas: mean (metres), log-scale, rotation vector (radians); colour and opacity
 #: are exact 8-bit levels. Rounding moves a mean by at most 0.043 mm (half a step per axis), a 5 mm axis by 0.025 mm
 #: and the surface of a Gaussian whose axes differ by 5 mm by 0.025 mm: within a quarter of the default geometry
@@ -76,6 +78,10 @@ class FrameGaussians:
         quats = arrays[2] / np.linalg.norm(arrays[2], axis=1, keepdims=True).clip(1e-30)
         opacity = g.opacities.detach().double().cpu().numpy().reshape(-1)
         return cls(arrays[0], arrays[1], quats, opacity, g.colors.detach().double().cpu().numpy())
+
+    def non_finite(self) -> list[str]:
+        """The attributes holding a NaN or an infinity (empty when all are finite)."""
+        return [name for name, values in vars(self).items() if not np.isfinite(values).all()]
 
 
 @dataclass
@@ -211,13 +217,19 @@ def static_gaussians(
     q = q * np.where((q * q[:1]).sum(-1, keepdims=True) < 0, -1.0, 1.0)
     median_q = np.median(q, axis=0)
     median_q /= np.linalg.norm(median_q, axis=1, keepdims=True).clip(1e-30)
+    local_means = np.median(np.stack(means), axis=0)
+    # a Gaussian on a degenerate triangle (its scale k clamped to 1e-6) lies millions of k from it: float16 cannot
+    # hold that, so it is stored at the triangle's centroid and every frame overrides it (encode_overrides)
+    unbound = ~np.isfinite(local_means).all(1) | (np.abs(local_means).max(1) > LOCAL_LIMIT)
+    local_means[unbound] = 0.0
+    local_logs = np.clip(np.median(np.stack(logs), axis=0), -LOCAL_LIMIT, LOCAL_LIMIT)
     colors = np.median(np.stack([f.colors for f, _ in samples]), axis=0)
     opacities = np.median(np.stack([f.opacities for f, _ in samples]), axis=0)
     return StaticGaussians(
         triangle=triangle.astype(np.uint32),
         part=face_part[triangle].astype(np.uint8),
-        local_means=np.median(np.stack(means), axis=0).astype(np.float16),
-        local_log_scales=np.median(np.stack(logs), axis=0).astype(np.float16),
+        local_means=local_means.astype(np.float16),
+        local_log_scales=local_logs.astype(np.float16),
         local_quats=median_q.astype(np.float16),
         rgba=np.concatenate([to_levels(colors), to_levels(opacities)[:, None]], axis=1),
     )

@@ -152,10 +152,21 @@ def write_viewer(
 
 
 def _pose_all(avatar: TrainedAvatar, motion: Motion) -> list[FrameGaussians]:
-    """Every frame of ``motion`` as the avatar poses it (as evaluated: no sampling noise)."""
+    """Every frame of ``motion`` as the avatar poses it (as evaluated: no sampling noise). A frame whose mesh or
+    Gaussians are not finite is refused, naming it (nothing is written)."""
     vertices = motion.posed.meshes.vertices
+    frames = []
     with torch.no_grad():
-        return [FrameGaussians.of(avatar.pose(motion.cond, vertices[t], t)) for t in range(vertices.shape[0])]
+        for t in range(vertices.shape[0]):
+            frame = FrameGaussians.of(avatar.pose(motion.cond, vertices[t], t))
+            bad = frame.non_finite()
+            if bad or not torch.isfinite(vertices[t]).all():
+                raise ValueError(
+                    f"viewer: frame {t} of motion '{motion.name}' has non-finite {', '.join(bad) or 'vertices'}; "
+                    "the trained model or its tracking is broken there (rerun the stage that made it)"
+                )
+            frames.append(frame)
+    return frames
 
 
 def _write_motion(

@@ -191,3 +191,36 @@ def test_codec_config_refuses_non_positive_tolerances() -> None:
     assert CodecConfig().problems() == []
     assert CodecConfig(geometry_tolerance_mm=0).problems() == ["geometry_tolerance_mm=0: must be > 0"]
     assert len(CodecConfig(color_tolerance_levels=-1, opacity_tolerance_levels=float("nan")).problems()) == 2
+
+
+def test_a_degenerate_triangle_gives_finite_local_values_and_poses_back() -> None:
+    """Coincident vertices (zero area): the frame's fallbacks keep every value finite, and the static Gaussians posed
+    on the same mesh are where they were."""
+    rng = np.random.default_rng(7)
+    vertices, faces, part = _mesh(rng, 2)
+    vertices[:, faces[0, 1]] = vertices[:, faces[0, 0]]  # triangle 0 collapses to an edge
+    vertices[:, faces[0, 2]] = vertices[:, faces[0, 0]]  # then to a point
+    triangle, frames = _bound_frames(rng, vertices, faces, 30)
+    triangle[:5] = 0
+    frames = [
+        FrameGaussians(f.means.copy(), f.scales.copy(), f.quats.copy(), f.opacities.copy(), f.colors.copy())
+        for f in frames
+    ]
+    static = static_gaussians(list(zip(frames, vertices)), faces, part, triangle)
+    for values in (static.local_means, static.local_log_scales, static.local_quats):
+        assert np.isfinite(values.astype(np.float64)).all()
+    ranges = Ranges.of(vertices)
+    q = quantise_vertices(vertices[0], ranges)
+    posed = pose_static(static, dequantise_vertices(q, ranges), faces)
+    assert not posed.non_finite()
+    overrides = encode_overrides(frames[0], posed, CodecConfig())
+    assert set(range(5)) <= set(overrides.geometry.tolist())  # the collapsed triangle's Gaussians: every frame
+    errors = frame_errors(decode_frame(static, q, overrides, ranges, faces), frames[0])
+    assert errors["geometry_mm_max"] <= CodecConfig().geometry_tolerance_mm
+
+
+def test_non_finite_gaussians_are_named() -> None:
+    g = FrameGaussians(np.zeros((2, 3)), np.ones((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)), np.ones(2), np.zeros((2, 3)))
+    assert g.non_finite() == []
+    g.means[1, 0], g.opacities[0] = np.nan, np.inf
+    assert g.non_finite() == ["means", "opacities"]
