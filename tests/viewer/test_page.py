@@ -11,7 +11,6 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -21,22 +20,15 @@ import torch
 from avatar.metrics import image_metrics
 from avatar.posing import MeshSequence
 from benchmarks.viewer_browser import (
-    CHROMIUM,
-    INSTALL_HINT,
     ViewerPage,
-    chromium,
-    decoded_frame,
     manifest,
     open_viewer,
     psnr,
 )
-from stages.viewer_page import BUNDLE
+from tests.viewer.conftest import NEEDS_BROWSER, assert_posed_as_decoded
 from tests.viewer.toy_viewer import BACKGROUND, ToyAvatar, render, write_toy_viewer
 
-pytestmark = [
-    pytest.mark.skipif(CHROMIUM is None, reason=INSTALL_HINT),
-    pytest.mark.skipif(not BUNDLE.is_file(), reason=f"the viewer page is not built: make viewer ({BUNDLE})"),
-]
+pytestmark = [*NEEDS_BROWSER]
 
 
 @pytest.fixture(scope="module")
@@ -50,19 +42,6 @@ def toy(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, ToyAvatar, dict
 @pytest.fixture(scope="module")
 def viewer_dir(toy: tuple[Path, ToyAvatar, dict[str, MeshSequence]]) -> Path:
     return toy[0] / "methods" / "toy" / "viewer"
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[object]:
-    with chromium() as running:
-        yield running
-
-
-@pytest.fixture(scope="module")
-def page(browser: object, viewer_dir: Path) -> Iterator[ViewerPage]:
-    """The toy's page, opened from the file system at scale 1 (canvas pixels = camera pixels)."""
-    with open_viewer(browser, f"{(viewer_dir / 'index.html').as_uri()}?scale=1") as viewer:
-        yield viewer
 
 
 def _drawn(image: np.ndarray) -> np.ndarray:
@@ -100,15 +79,7 @@ def test_a_frame_matches_the_projects_own_render_of_it(
 def test_the_pages_posing_is_the_codecs_decoding(page: ViewerPage, viewer_dir: Path) -> None:
     """pose.js against avatar/viewer_codec.py's decode_frame, the reference it follows, on a frame with overrides of
     both kinds: the same Gaussians."""
-    page.show("train", 5, "front")
-    shown = page.posed()
-    reference, overrides = decoded_frame(viewer_dir, "train", 5)
-    assert overrides.geometry.size > 0 and overrides.appearance.size > 0
-    np.testing.assert_allclose(shown["centers"], reference.means, atol=1e-9)
-    np.testing.assert_allclose(shown["scales"], reference.scales, rtol=1e-9)
-    np.testing.assert_allclose(np.abs((shown["quats"] * reference.quats).sum(1)), 1, atol=1e-9)
-    np.testing.assert_allclose(shown["rgba"][:, :3], reference.colors, atol=1e-9)
-    np.testing.assert_allclose(shown["rgba"][:, 3], reference.opacities, atol=1e-9)
+    assert_posed_as_decoded(page, viewer_dir, "train", 5, "front")
 
 
 def test_the_timeline_the_motion_selector_and_the_toggles_change_what_is_drawn(page: ViewerPage) -> None:

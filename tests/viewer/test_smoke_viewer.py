@@ -9,7 +9,6 @@ Needs ``chromium`` (``make browser`` installs it as root; ``apt-get install chro
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -19,24 +18,15 @@ from hydra import compose, initialize_config_dir
 
 from avatar.metrics import image_metrics
 from benchmarks.viewer_browser import (
-    CHROMIUM,
-    INSTALL_HINT,
     ProjectRender,
     ViewerPage,
-    chromium,
-    decoded_frame,
     manifest,
-    open_viewer,
     psnr,
 )
-from stages.viewer_page import BUNDLE
 from tests.conftest import REPO, run_cli
+from tests.viewer.conftest import NEEDS_BROWSER, assert_posed_as_decoded
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.skipif(CHROMIUM is None, reason=INSTALL_HINT),
-    pytest.mark.skipif(not BUNDLE.is_file(), reason=f"the viewer page is not built: make viewer ({BUNDLE})"),
-]
+pytestmark = [pytest.mark.slow, *NEEDS_BROWSER]
 METHOD = "interactavatar"
 
 
@@ -52,19 +42,6 @@ def smoke(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def viewer_dir(smoke: Path) -> Path:
     return smoke / "methods" / METHOD / "viewer"
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[object]:
-    with chromium() as running:
-        yield running
-
-
-@pytest.fixture(scope="module")
-def page(browser: object, viewer_dir: Path) -> Iterator[ViewerPage]:
-    """The smoke avatar's page, opened from the file system at scale 1 (canvas pixels = camera pixels)."""
-    with open_viewer(browser, f"{(viewer_dir / 'index.html').as_uri()}?scale=1") as viewer:
-        yield viewer
 
 
 @pytest.fixture(scope="module")
@@ -105,14 +82,7 @@ def test_a_frame_matches_the_projects_own_render_of_it(
 
 def test_the_pages_posing_is_the_codecs_decoding(page: ViewerPage, viewer_dir: Path) -> None:
     """pose.js against avatar/viewer_codec.py's decode_frame on the real avatar, whose H changes the hand."""
-    page.show("train", 3, manifest(viewer_dir)["motions"][0]["cameras"][0]["id"])
-    shown = page.posed()
-    reference, overrides = decoded_frame(viewer_dir, "train", 3)
-    assert overrides.geometry.size > 0 and overrides.appearance.size > 0
-    np.testing.assert_allclose(shown["centers"], reference.means, atol=1e-9)
-    np.testing.assert_allclose(shown["scales"], reference.scales, rtol=1e-9)
-    np.testing.assert_allclose(np.abs((shown["quats"] * reference.quats).sum(1)), 1, atol=1e-9)
-    np.testing.assert_allclose(shown["rgba"], np.concatenate([reference.colors, reference.opacities[:, None]], 1))
+    assert_posed_as_decoded(page, viewer_dir, "train", 3, manifest(viewer_dir)["motions"][0]["cameras"][0]["id"])
 
 
 def test_every_motion_plays_without_errors_and_reports_its_frame_time(page: ViewerPage, viewer_dir: Path) -> None:

@@ -161,6 +161,7 @@ async function main() {
     $("frame-label").textContent = `frame ${state.frame + 1} / ${motion.frames}${contact}`;
     $("play").textContent = state.playing ? "pause" : "play";
     const view = motion.cameras.find((c) => c.id === state.camera);
+    $("render-caption").textContent = `${manifest.label}, ${motion.label} (drag to orbit, wheel to zoom)`;
     const gt = $("gt");
     if (view && view.ground_truth) {
       gt.src = `data/gt/${motion.name}/${view.id}/${pad(state.frame)}.jpg`;
