@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from avatar.gaussians.frames import quaternion_multiply, rotation_to_quaternion, triangle_frames
+from avatar.render.gaussians.world import WorldGaussians
 
 #: 16-bit quantisation of the vertices over their motion's bounding box.
 POSITION_LEVELS = 65535
@@ -72,8 +73,8 @@ class FrameGaussians:
     colors: np.ndarray
 
     @classmethod
-    def of(cls, g) -> FrameGaussians:  # g: a WorldGaussians (torch tensors)
-        """From a representation's posed frame (``WorldGaussians``)."""
+    def of(cls, g: WorldGaussians) -> FrameGaussians:
+        """From a representation's posed frame."""
         arrays = [np.asarray(t.detach().double().cpu().numpy()) for t in (g.means, g.scales, g.quats)]
         quats = arrays[2] / np.linalg.norm(arrays[2], axis=1, keepdims=True).clip(1e-30)
         opacity = g.opacities.detach().double().cpu().numpy().reshape(-1)

@@ -90,6 +90,14 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     cloud = read_gaussians_ply(stage_dir(subject, "warmup") / "gaussians.ply")
     assert len(cloud.means) > 1000 and np.isfinite(cloud.means).all()
     assert {"interactavatar"} == set(metrics["method"])
+    # The browser viewer's data: every motion, H's hand changes stored per frame, within the codec's tolerances
+    # (the page itself is tested in a browser: tests/viewer/)
+    viewer = json.loads((stage_dir(subject, "viewer") / "viewer.json").read_text())
+    assert [m["name"] for m in viewer["motions"]] == ["train", "test", "reenact"]
+    assert all(
+        m["appearance_overrides_per_frame"] > 0 and m["errors"]["geometry_mm_max"] <= 0.2 for m in viewer["motions"]
+    )
+    assert (stage_dir(subject, "viewer") / "index.html").is_file() and viewer["mb_per_100_frames"] < 20
     dynamic = json.loads((stage_dir(subject, "dynamic") / "_manifest.json").read_text())["metrics"]
     assert dynamic["steps"] > 0 and dynamic["ms_per_step"] > 0 and dynamic["interaction_mlp_evaluations"] > 0
     # Tracking fitted to the synthetic ground-truth keypoints is not refined in training (refine_params=auto; with
