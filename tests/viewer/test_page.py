@@ -120,6 +120,16 @@ def test_contact_frames_are_marked_on_the_timeline(page: ViewerPage, viewer_dir:
     assert page.page.locator(".contact-mark").count() == sum(contact) == 3
 
 
+def test_an_idle_page_draws_nothing_and_a_change_draws_again(page: ViewerPage) -> None:
+    page.show("train", 1, "front")
+    idle = page.page.evaluate("window.viewer.draws()")
+    page.page.wait_for_timeout(500)
+    assert page.page.evaluate("window.viewer.draws()") == idle
+    page.page.click("#next")
+    page.page.wait_for_timeout(300)
+    assert page.page.evaluate("window.viewer.draws()") > idle
+
+
 def test_playing_reports_the_frame_time(page: ViewerPage) -> None:
     stats = page.frame_ms(1.5)
     print(f"SwiftShader, toy avatar: frame {stats['frame_ms']:.1f} ms, posing {stats['pose_ms']:.2f} ms")

@@ -3,7 +3,7 @@
 //
 // URL parameters: motion, frame, camera (a capture camera id), scale (canvas pixels per camera pixel).
 // window.viewer is the page's handle for scripts and tests: ready (a promise), show({motion, frame, camera}) (a
-// promise resolved once that frame is drawn), state, stats ({pose_ms, frame_ms}).
+// promise resolved once that frame is drawn), state, stats ({pose_ms, frame_ms}), draws() (frames drawn so far).
 
 import { PackedSplats, SparkRenderer, SplatMesh, setPackedSplat } from "@sparkjsdev/spark";
 import * as THREE from "three";
@@ -82,6 +82,11 @@ async function main() {
   const mesh = new SplatMesh({ packedSplats: splats });
   scene.add(mesh);
   const controls = new OrbitControls(camera, canvas);
+  let drawsOwed = 3; // draws still owed to a change: a few, since Spark sorts after the first
+  const requestDraw = (count = 3) => {
+    drawsOwed = Math.max(drawsOwed, count);
+  };
+  controls.addEventListener("change", () => requestDraw());
   let intrinsics = null; // {K, width, height, scale}
 
   // The projection of pinhole intrinsics K (OpenCV pixel convention: pixel centres at integers) on a canvas of
@@ -124,6 +129,7 @@ async function main() {
     camera.updateMatrixWorld(true);
     setProjection();
     drawContactMarks();
+    requestDraw();
   }
 
   // --- one frame ------------------------------------------------------------------------------------------------
@@ -147,6 +153,7 @@ async function main() {
     splats.numSplats = N;
     splats.needsUpdate = true;
     mesh.updateVersion();
+    requestDraw();
     poseTimes.push(performance.now() - start);
     if (poseTimes.length > 120) poseTimes.shift();
     stats.pose_ms = median(poseTimes);
@@ -260,6 +267,8 @@ async function main() {
   let lastAdvance = 0;
   let lastFrameTime = null;
   let frameCount = 0;
+  // Drawn on demand: while playing, after a change (a frame, the camera, a toggle: requestDraw), and while Spark
+  // sorts or asks for a draw (its dirty flag); an idle page draws nothing.
   renderer.setAnimationLoop((now) => {
     if (state.playing && motions[state.motion]) {
       if (lastFrameTime !== null) {
@@ -273,12 +282,16 @@ async function main() {
       }
     }
     lastFrameTime = state.playing ? now : null;
+    const busy = spark.dirty || spark.sorting || spark.sortDirty;
+    if (!state.playing && drawsOwed <= 0 && !busy) return;
+    drawsOwed--;
     renderer.render(scene, camera);
     frameCount++;
   });
 
   // Resolves once the current splats are sorted and drawn (at least `minimum` more frames, at most 5 s).
   function settle(minimum = 3) {
+    requestDraw(minimum + 3);
     const start = frameCount;
     const deadline = performance.now() + 5000;
     let quiet = 0;
@@ -306,7 +319,7 @@ async function main() {
   const ready = selectMotion(first.name, Number(params.get("frame") || 0), params.get("camera")).then(settle);
   // posed(): the current frame's Gaussians as the page computed them (for tests against avatar/viewer_codec.py)
   const posedArrays = () => Object.fromEntries(Object.entries(posed).map(([k, v]) => [k, Array.from(v)]));
-  window.viewer = { ready, show, settle, state, stats, gaussians: N, posed: posedArrays };
+  window.viewer = { ready, show, settle, state, stats, gaussians: N, posed: posedArrays, draws: () => frameCount };
   ready.then(() => {
     document.body.dataset.ready = "true";
   });
