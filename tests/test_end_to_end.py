@@ -242,7 +242,11 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     assert table2.index("w/o L_patch") < table2.index("Eighth (c = 0.05)")
     assert "Not evaluated yet: no_hand_mlp, no_interaction, no_pbd" in tables
     assert sorted(p.name for p in (subject / "compare" / "figures").glob("*.png"))
-    assert "Methods side by side" in (stage_dir(subject, "report", "no_patch") / "report.html").read_text()
+    no_patch_report = (stage_dir(subject, "report", "no_patch") / "report.html").read_text()
+    assert "Methods side by side" in no_patch_report
+    # each report links its method's browser viewer, and the viewers of the methods written before it
+    assert "href='../viewer/index.html'" in no_patch_report
+    assert "href='../../interactavatar/viewer/index.html'" in no_patch_report
 
     # Cross-actor reenactment: synth_b (fitted in the same outputs folder) drives synth_a. The driver's fit is
     # an input of evaluate and reenact; evaluate measures it against the capture's ground truth of synth_a
