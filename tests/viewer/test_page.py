@@ -122,8 +122,9 @@ def test_contact_frames_are_marked_on_the_timeline(page: ViewerPage, viewer_dir:
 
 def test_an_idle_page_draws_nothing_and_a_change_draws_again(page: ViewerPage) -> None:
     page.show("train", 1, "front")
+    page.page.wait_for_timeout(300)  # a draw Spark asks for after its last sort may still come
     idle = page.page.evaluate("window.viewer.draws()")
-    page.page.wait_for_timeout(500)
+    page.page.wait_for_timeout(700)
     assert page.page.evaluate("window.viewer.draws()") == idle
     page.page.click("#next")
     page.page.wait_for_timeout(300)
