@@ -315,7 +315,12 @@ def decode_frame(
 ) -> FrameGaussians:
     """What the viewer draws for a frame: the static Gaussians on the dequantised vertices ``vertices_q`` (V, 3)
     u16, plus the overrides' deltas."""
-    g = pose_static(static, dequantise_vertices(vertices_q, ranges), faces)
+    return apply_overrides(pose_static(static, dequantise_vertices(vertices_q, ranges), faces), overrides)
+
+
+def apply_overrides(posed_static: FrameGaussians, overrides: Overrides) -> FrameGaussians:
+    """A copy of ``posed_static`` (the static Gaussians posed on a frame) with the frame's overrides' deltas added."""
+    g = FrameGaussians(*(np.array(values, copy=True) for values in vars(posed_static).values()))
     i = overrides.geometry.astype(np.int64)
     g.means[i] += overrides.d_mean * STEPS["mean"]
     g.scales[i] *= np.exp(overrides.d_log_scale * STEPS["log_scale"])

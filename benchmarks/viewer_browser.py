@@ -34,7 +34,7 @@ from avatar.viewer_codec import (
     sums_in_time,
     unpack_sections,
 )
-from stages.artifacts import TRAIN_SEQUENCE, method_params
+from stages.artifacts import HELD_OUT_SEQUENCE, TRAIN_SEQUENCE, method_params
 from stages.posing import applied_deformation, posed_sequence
 from stages.representations import load_trained
 
@@ -172,7 +172,7 @@ class ProjectRender:
 
     def _sequence(self, motion: str) -> Any:
         if motion not in self._posed:
-            sequence = TRAIN_SEQUENCE if motion == "train" else "test"
+            sequence = TRAIN_SEQUENCE if motion == "train" else HELD_OUT_SEQUENCE
             fit, pbd = self.subject_dir / "fit", self.subject_dir / "pbd"
             posed = posed_sequence(
                 fit, sequence, self.cfg, applied_deformation(self.cfg, pbd), method_params(self.dynamic, fit, sequence)

@@ -91,6 +91,8 @@ def contact_flags(pbd_dir: Path, sequence: str, num_frames: int) -> np.ndarray:
 
 
 TRAIN_SEQUENCE = "train"
+#: the held-out motion (reenact.sequence names it by default; a capture of one's own may lack it)
+HELD_OUT_SEQUENCE = "test"
 
 
 def method_params(trained_dir: Path, fit_dir: Path, sequence: str) -> dict[str, np.ndarray]:

@@ -42,7 +42,14 @@ from data_schemas.web_video import write_web_video
 from data_schemas.writes import write_json
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
-from stages.artifacts import TRAIN_SEQUENCE, load_params, load_scene, method_params, write_frame_ply
+from stages.artifacts import (
+    HELD_OUT_SEQUENCE,
+    TRAIN_SEQUENCE,
+    load_params,
+    load_scene,
+    method_params,
+    write_frame_ply,
+)
 from stages.dependencies import contact_sources, unused_driving_settings
 from stages.driving import drive, driver_subject, is_parameter_file, transfer_summary, transferred_params
 from stages.representations import load_trained
@@ -202,18 +209,15 @@ def reenact(ctx: StageContext) -> None:
     )
 
 
-HELD_OUT = "test"  # the held-out motion reenact.sequence names by default; a capture of one's own may lack it
-
-
 def self_sequence(capture_dir: Path, requested: str) -> tuple[str, str]:
     """(the sequence ``reenact.driver=self`` drives the avatar with, why). The requested one, except that a
     capture without the held-out ``test`` sequence (optional for a folder capture) reenacts its training motion
     instead of failing at the end of the DAG; any other sequence the capture lacks stays an error (listed)."""
     sequences = CaptureIndex.read(capture_dir).sequences
-    if requested == HELD_OUT and HELD_OUT not in sequences and TRAIN_SEQUENCE in sequences:
+    if requested == HELD_OUT_SEQUENCE and HELD_OUT_SEQUENCE not in sequences and TRAIN_SEQUENCE in sequences:
         return TRAIN_SEQUENCE, (
-            f"the capture has no held-out '{HELD_OUT}' sequence: the avatar reenacts the "
-            f"training motion '{TRAIN_SEQUENCE}' instead (add <capture>/{HELD_OUT}/ for a "
+            f"the capture has no held-out '{HELD_OUT_SEQUENCE}' sequence: the avatar reenacts the "
+            f"training motion '{TRAIN_SEQUENCE}' instead (add <capture>/{HELD_OUT_SEQUENCE}/ for a "
             "held-out motion)"
         )
     return requested, ""

@@ -25,15 +25,17 @@ from data_schemas.tables import SchemaError, read_table
 from pipeline.schema import core_config, section_schema
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
-from stages.artifacts import TRAIN_SEQUENCE, contact_flags, load_views, method_params, read_params
+from stages.artifacts import HELD_OUT_SEQUENCE, TRAIN_SEQUENCE, contact_flags, load_views, method_params, read_params
 from stages.dependencies import model_files
 from stages.posing import applied_deformation, posed_sequence, posed_with_offsets
 from stages.representations import load_trained
 from stages.viewer_page import BUNDLE, PAGE_DIR, Motion, PageSettings, write_viewer
 
+#: what stage reenact renders on by default (its report does not record stage.reenact.background); the page's
+#: background is the first motion's, the capture's for the train and held-out motions
+REENACT_BACKGROUND = [1.0, 1.0, 1.0]
 #: the motions the viewer can offer, in its menu's order: the training motion, the held-out one, the reenactment
 MOTIONS = ("train", "test", "reenact")
-HELD_OUT = "test"
 
 
 @dataclass
@@ -116,7 +118,7 @@ def viewer(ctx: StageContext) -> None:
                 for key in ("geometry_overrides_per_frame", "appearance_overrides_per_frame")
             },
             **{
-                f"{key}": max(s["errors"][key] for s in summaries)
+                key: max(s["errors"][key] for s in summaries)
                 for key in ("geometry_mm_max", "position_mm_max", "color_levels_max", "opacity_levels_max")
             },
         }
@@ -154,9 +156,9 @@ def _motion(ctx: StageContext, name: str) -> Motion | None:
             np.asarray(deform["contact"], dtype=bool),
             cameras,
             None,
-            [float(c) for c in report.get("background", (1.0, 1.0, 1.0))],
+            REENACT_BACKGROUND,
         )
-    sequence = TRAIN_SEQUENCE if name == "train" else HELD_OUT
+    sequence = TRAIN_SEQUENCE if name == "train" else HELD_OUT_SEQUENCE
     if sequence not in CaptureIndex.read(cap_dir).sequences:
         ctx.metrics[f"{name}_skipped"] = f"the capture has no '{sequence}' sequence"
         return None

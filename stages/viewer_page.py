@@ -18,14 +18,15 @@ import torch
 
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.viewer_codec import (
+    POSITION_LEVELS,
     STEPS,
     CodecConfig,
     FrameGaussians,
     Overrides,
     Ranges,
     StaticGaussians,
+    apply_overrides,
     bit_mask,
-    decode_frame,
     dequantise_vertices,
     differences_in_time,
     encode_overrides,
@@ -89,7 +90,7 @@ def write_viewer(
     bundle is built), ``data/`` and ``viewer.json``, whose content it returns. ``identity`` (method, label,
     subject) goes into the page's manifest."""
     data_dir = out_dir / "data"
-    (data_dir / "gt").mkdir(parents=True)
+    data_dir.mkdir()
     faces = motions[0].posed.meshes.faces.numpy()
     face_part = motions[0].posed.meshes.face_part.numpy()
     triangle = avatar.triangles.numpy()
@@ -100,7 +101,7 @@ def write_viewer(
     avatar_bytes = _write_script(
         data_dir / "avatar.js",
         "window.IAV.avatar",
-        {"faces": faces.astype(np.uint32), **{k: v for k, v in vars(static).items()}},
+        {"faces": faces.astype(np.uint32), **vars(static)},
     )
     summaries = []
     for motion in motions:
@@ -116,6 +117,7 @@ def write_viewer(
         "centre": vertices.mean(0).tolist(),
         "gaussians": int(triangle.shape[0]),
         "steps": STEPS,
+        "vertex_levels": POSITION_LEVELS,
         "avatar": {"file": "data/avatar.js", "bytes": avatar_bytes},
         "motions": [s["page"] for s in summaries],
     }
@@ -189,7 +191,7 @@ def _write_motion(
     for t, frame in enumerate(progress(frames, f"viewer {motion.name}")):
         posed_static = pose_static(static, dequantise_vertices(quantised[t], ranges), faces)
         overrides.append(encode_overrides(frame, posed_static, codec))
-        errors.append(frame_errors(decode_frame(static, quantised[t], overrides[-1], ranges, faces), frame))
+        errors.append(frame_errors(apply_overrides(posed_static, overrides[-1]), frame))  # what the page draws
     N = static.triangle.shape[0]
     geometry = np.array([len(o.geometry) for o in overrides], dtype=np.uint32)
     appearance = np.array([len(o.appearance) for o in overrides], dtype=np.uint32)

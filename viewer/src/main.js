@@ -35,7 +35,13 @@ async function main() {
   const avatarEntry = await loadScript(manifest.avatar.file).then(() => window.IAV.avatar);
   const statics = unpack(avatarEntry);
   const N = statics.triangle.length;
-  const avatar = { statics, steps: manifest.steps, ...usedTriangles(statics.triangle) };
+  // the quantisation of the vertices and the overrides' steps (avatar/viewer_codec.py's POSITION_LEVELS and STEPS)
+  const avatar = {
+    statics,
+    steps: manifest.steps,
+    vertexLevels: manifest.vertex_levels,
+    ...usedTriangles(statics.triangle),
+  };
   avatar.frames = new Float64Array(17 * avatar.used.length);
   const posed = {
     centers: new Float64Array(3 * N),
@@ -50,10 +56,10 @@ async function main() {
       const meta = manifest.motions.find((m) => m.name === name);
       await loadScript(meta.file);
       const sections = unpack(window.IAV.motions[name]);
-    // the vertices come as differences between frames (avatar/viewer_codec.py's differences_in_time)
-    const stride = sections.vertices.length / meta.frames;
-    for (let i = stride; i < sections.vertices.length; i++) sections.vertices[i] += sections.vertices[i - stride];
-    motions[name] = { ...meta, sections };
+      // the vertices come as differences between frames (avatar/viewer_codec.py's differences_in_time)
+      const stride = sections.vertices.length / meta.frames;
+      for (let i = stride; i < sections.vertices.length; i++) sections.vertices[i] += sections.vertices[i - stride];
+      motions[name] = { ...meta, sections };
     }
     return motions[name];
   }
@@ -134,10 +140,19 @@ async function main() {
 
   // --- one frame ------------------------------------------------------------------------------------------------
 
+  // Pose the current frame and hand it to Spark.
   function applyFrame() {
-    const motion = motions[state.motion];
     const start = performance.now();
-    poseFrame(avatar, motion, state.frame, posed);
+    poseFrame(avatar, motions[state.motion], state.frame, posed);
+    upload();
+    poseTimes.push(performance.now() - start);
+    if (poseTimes.length > 120) poseTimes.shift();
+    stats.pose_ms = median(poseTimes);
+    updateControls();
+  }
+
+  // Hand the posed Gaussians to Spark, those of hidden parts transparent.
+  function upload() {
     const packed = splats.ensureSplats(N);
     const { centers, scales, quats, rgba } = posed;
     for (let i = 0; i < N; i++) {
@@ -154,10 +169,6 @@ async function main() {
     splats.needsUpdate = true;
     mesh.updateVersion();
     requestDraw();
-    poseTimes.push(performance.now() - start);
-    if (poseTimes.length > 120) poseTimes.shift();
-    stats.pose_ms = median(poseTimes);
-    updateControls();
   }
 
   function updateControls() {
@@ -250,7 +261,7 @@ async function main() {
     if (!box) return;
     box.addEventListener("change", () => {
       state.visible[p] = box.checked;
-      applyFrame();
+      upload();
     });
   });
   addEventListener("keydown", (e) => {
@@ -284,7 +295,7 @@ async function main() {
     lastFrameTime = state.playing ? now : null;
     const busy = spark.dirty || spark.sorting || spark.sortDirty;
     if (!state.playing && drawsOwed <= 0 && !busy) return;
-    drawsOwed--;
+    drawsOwed = Math.max(drawsOwed - 1, 0);
     renderer.render(scene, camera);
     frameCount++;
   });

@@ -3,7 +3,6 @@
 // overrides).
 
 const EPS = 1e-12;
-const POSITION_LEVELS = 65535;
 
 // v / |v| into out[o..o+3], or the fallback (already unit) where |v| is tiny; returns out.
 function normalise(x, y, z, fallback, out) {
@@ -75,9 +74,9 @@ function matrixToQuaternion(m, out, o) {
 
 // The frames of the triangles `used` on the dequantised vertices: origin (3), rotation (9, row-major, columns a0
 // a1 a2), scale (1), quaternion (4) per used triangle, in `frames` (Float64Array(17 * used.length)).
-export function triangleFrames(vertices, ranges, faces, used, frames) {
+export function triangleFrames(vertices, ranges, levels, faces, used, frames) {
   const lo = ranges.vertex_lo;
-  const step = ranges.vertex_hi.map((hi, i) => (hi - lo[i]) / POSITION_LEVELS);
+  const step = ranges.vertex_hi.map((hi, i) => (hi - lo[i]) / levels);
   const v = [
     [0, 0, 0],
     [0, 0, 0],
@@ -140,7 +139,7 @@ export function poseFrame(avatar, motion, t, out) {
   const N = statics.triangle.length;
   const V = motion.sections.vertices.length / (3 * motion.frames);
   const vertices = motion.sections.vertices.subarray(3 * V * t, 3 * V * (t + 1));
-  triangleFrames(vertices, motion.ranges, statics.faces, used, frames);
+  triangleFrames(vertices, motion.ranges, avatar.vertexLevels, statics.faces, used, frames);
   const lm = statics.local_means;
   const ls = statics.local_log_scales;
   const lq = statics.local_quats;
