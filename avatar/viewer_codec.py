@@ -136,19 +136,10 @@ def _widened(lo: np.ndarray, hi: np.ndarray, minimum: float = 1e-6) -> tuple[np.
     return lo - pad, hi + pad
 
 
-def quantise(x: np.ndarray, lo: np.ndarray | float, hi: np.ndarray | float, levels: int) -> np.ndarray:
-    """``x`` in [lo, hi] -> integers 0..levels (rounded, clipped)."""
-    return np.rint((np.asarray(x) - lo) / (np.asarray(hi) - lo) * levels).clip(0, levels)
-
-
-def dequantise(q: np.ndarray, lo: np.ndarray | float, hi: np.ndarray | float, levels: int) -> np.ndarray:
-    """The inverse of :func:`quantise` (float64)."""
-    return np.asarray(lo) + q.astype(np.float64) * ((np.asarray(hi) - lo) / levels)
-
-
 def quantise_vertices(vertices: np.ndarray, ranges: Ranges) -> np.ndarray:
-    """(..., V, 3) metres -> u16."""
-    return quantise(vertices, ranges.vertex_lo, ranges.vertex_hi, POSITION_LEVELS).astype(np.uint16)
+    """(..., V, 3) metres in the motion's box -> u16 (rounded to the nearest of POSITION_LEVELS steps, clipped)."""
+    span = ranges.vertex_hi - ranges.vertex_lo
+    return np.rint((vertices - ranges.vertex_lo) / span * POSITION_LEVELS).clip(0, POSITION_LEVELS).astype(np.uint16)
 
 
 def differences_in_time(q: np.ndarray) -> np.ndarray:
@@ -163,8 +154,8 @@ def sums_in_time(d: np.ndarray) -> np.ndarray:
 
 
 def dequantise_vertices(q: np.ndarray, ranges: Ranges) -> np.ndarray:
-    """(..., V, 3) u16 -> metres (float64)."""
-    return dequantise(q, ranges.vertex_lo, ranges.vertex_hi, POSITION_LEVELS)
+    """The inverse of :func:`quantise_vertices`: (..., V, 3) u16 -> metres (float64)."""
+    return ranges.vertex_lo + q.astype(np.float64) * ((ranges.vertex_hi - ranges.vertex_lo) / POSITION_LEVELS)
 
 
 def _frames(vertices: np.ndarray, faces: np.ndarray, triangle: np.ndarray) -> tuple[np.ndarray, ...]:
