@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from data_schemas.names import check_camera_id
 from data_schemas.tables import Column, SchemaError, TableSchema, read_table, write_table
 
 CAMERAS = TableSchema(
@@ -61,7 +62,9 @@ class Camera:
 
 
 def check_camera(path: Path, cam: Camera) -> None:
-    """Semantic checks beyond types: finite non-singular K, rigid extrinsics, known split."""
+    """Semantic checks beyond types: an id that can name files (:mod:`data_schemas.names`), finite non-singular
+    K, rigid extrinsics, known split."""
+    check_camera_id(cam.camera_id, str(path))
     where = f"{path}: camera '{cam.camera_id}'"
     if cam.width <= 0 or cam.height <= 0:
         raise SchemaError(f"{where}: width/height must be positive, got {cam.width}x{cam.height}")

@@ -27,6 +27,7 @@ import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from data_schemas.names import check_sequence_name
 from data_schemas.tables import SchemaError
 from data_schemas.writes import write_failed, write_json
 
@@ -59,6 +60,8 @@ class CaptureIndex:
     sequences: dict[str, SequenceInfo]
 
     def write(self, root: Path) -> None:
+        for name in self.sequences:
+            check_sequence_name(name, str(root / CAPTURE_INDEX))
         body = {
             "schema_version": CAPTURE_VERSION,
             "subject": self.subject,
@@ -78,9 +81,11 @@ class CaptureIndex:
                 k: SequenceInfo(**{**v, "provided": tuple(v.get("provided", ())), "notes": tuple(v.get("notes", ()))})
                 for k, v in body["sequences"].items()
             }
-            return cls(subject=body["subject"], dataset=body["dataset"], sequences=sequences)
         except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
             raise SchemaError(f"{path}: missing or malformed capture index ({exc})") from exc
+        for name in sequences:
+            check_sequence_name(name, str(path))
+        return cls(subject=body["subject"], dataset=body["dataset"], sequences=sequences)
 
 
 def cross_sequence(performer: str) -> str:

@@ -38,6 +38,7 @@ from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from data_schemas.names import FOLDER_NAME_RULE, folder_name_problem
 from pipeline.locks import LockTimeout, flock, flock_all
 
 __all__ = [
@@ -54,8 +55,7 @@ __all__ = [
     "subject_problem",
 ]
 
-SUBJECT_RULE = "letters, digits, '-' or '_', starting with a letter or digit"
-_SUBJECT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
+SUBJECT_RULE = FOLDER_NAME_RULE
 METHODS_DIR = "methods"
 _UNIQUE_HEX = 12  # hex digits naming one temporary dir of an artifact
 _SCRATCH_KEY_HEX = 16  # hex digits of the cache key naming one scratch dir of an artifact
@@ -64,16 +64,14 @@ ATTEMPT_FILE = "_attempt.json"  # in a scratch dir: when the run now using it st
 
 def subject_problem(subject: object) -> str | None:
     """Why ``subject`` cannot name a subject folder, or ``None`` when it can."""
-    if not isinstance(subject, str) or not _SUBJECT.fullmatch(subject):
-        return f"subject={subject!r}: use {SUBJECT_RULE}, e.g. subject=synth_a"
-    return None
+    problem = folder_name_problem(subject)
+    return None if problem is None else f"subject={subject!r}: {problem}, e.g. subject=synth_a"
 
 
 def method_problem(method: object, key: str = "method.name") -> str | None:
     """Why ``method`` cannot name a method folder, or ``None`` when it can."""
-    if not isinstance(method, str) or not _SUBJECT.fullmatch(method):
-        return f"{key}={method!r}: use {SUBJECT_RULE}, e.g. method=interactavatar"
-    return None
+    problem = folder_name_problem(method)
+    return None if problem is None else f"{key}={method!r}: {problem}, e.g. method=interactavatar"
 
 
 def method_run(method: str, seed: int = 0) -> str:

@@ -73,6 +73,17 @@ def capture_sources(cfg: DictConfig, subject: str) -> SourceFiles:
     return SourceFiles(Path("."), ())
 
 
+def capture_checks(cfg: DictConfig) -> list[str]:
+    """What a folder capture cannot be imported with, found before any stage runs: sequence folders and camera
+    names that cannot name artifact paths (``stages.capture_folder.name_problems``)."""
+    dataset = cfg.dataset
+    if dataset.get("name") != "folder" or not dataset.get("root"):
+        return []
+    from stages.capture_folder import name_problems  # COLMAP, nerfstudio: folder captures only
+
+    return name_problems(Path(str(dataset.root)) / str(cfg.subject))
+
+
 def _files_below(folder: Path) -> tuple[Path, ...]:
     return tuple(sorted(p.resolve() for p in folder.rglob("*") if p.is_file())) if folder.is_dir() else ()
 
@@ -91,6 +102,7 @@ def _files_below(folder: Path) -> tuple[Path, ...]:
     version="8",
     config_schema=CaptureConfig,
     sources=capture_sources,
+    checks=capture_checks,
 )
 def capture(ctx: StageContext) -> None:
     """Generate (synthetic) or validate and import (folder, decaf) a multi-view capture."""

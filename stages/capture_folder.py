@@ -34,6 +34,7 @@ from avatar.calibration.undistort import Undistorter, is_distorted
 from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, copy_into_capture, mask_path, video_path
 from data_schemas.images import read_png, write_png
+from data_schemas.names import camera_id_problem, folder_name_problem
 from data_schemas.tables import SchemaError
 from data_schemas.video import check_fully_decoded, iter_video, video_fps, write_video_stream
 from data_schemas.writes import write_json
@@ -93,6 +94,26 @@ def _is_sequence(path: Path) -> bool:
     return (path / "videos").is_dir() or (path / "images").is_dir()
 
 
+def name_problems(src: Path) -> list[str]:
+    """The sequence folders and camera names (video stems, image folders) of the capture folder ``src`` that
+    cannot name artifact paths (:mod:`data_schemas.names`), one line each naming the file and the fix; read from
+    the folder listing alone, so the config check runs it before any stage."""
+    problems = []
+    for seq in sorted(p for p in src.iterdir() if _is_sequence(p)) if src.is_dir() else ():
+        if (problem := folder_name_problem(seq.name)) is not None:
+            problems.append(f"{seq}: sequence folder {seq.name!r}: {problem} (rename the folder)")
+            continue
+        try:
+            views = view_sources(seq)
+        except SchemaError:  # both videos/ and images/: the capture stage says so
+            continue
+        for camera_id, view in views.items():
+            if (problem := camera_id_problem(camera_id)) is not None:
+                noun = "video" if view.is_video else "image folder"
+                problems.append(f"{view.path}: camera id {camera_id!r} (the {noun}'s name): {problem}")
+    return problems
+
+
 def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_rate: float) -> CaptureIndex:
     """Validate ``<dataset.root>/<subject>`` and bring it into ``out`` (copies, or undistorted re-encodes)."""
     src = Path(dataset.root) / subject
@@ -103,6 +124,9 @@ def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_ra
             f"{src}: capture folder is empty; put {PARQUET_HELP} and one video per camera in "
             f"<sequence>/videos/<camera_id>.mp4 in it, as in docs/reference/artifacts.md"
         )
+    problems = name_problems(src)
+    if problems:
+        raise SchemaError("; ".join(problems))
     cameras, calibration = read_calibration(src, dataset)
     seq_names = sorted(p.name for p in src.iterdir() if _is_sequence(p))
     if not seq_names:
