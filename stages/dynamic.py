@@ -22,7 +22,7 @@ from avatar.training.selection import SelectionConfig
 from pipeline.schema import core_config, section_schema
 from pipeline.stage import StageContext, stage
 from stages.artifacts import TRAIN_SEQUENCE, load_views, method_params
-from stages.dependencies import model_sources, unused_training_settings
+from stages.dependencies import TEMPLATE_KEYS, model_sources, unused_training_settings
 from stages.posing import applied_deformation, posed_sequence
 from stages.representations import representation, representation_problems
 from stages.representations.bound import PRESET_ARCHITECTURE, selection_config
@@ -90,7 +90,7 @@ DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("st
         "quality.geometry_feature_dim",
         "quality.pointnet_width",
         "quality.pointnet_centres",
-        "model",
+        *TEMPLATE_KEYS,
         "stage.dynamic",
         "method.representation",
         "method.pbd",

@@ -37,7 +37,7 @@ from pipeline.manifest import hash_outputs
 from pipeline.schema import core_config, section_schema
 from pipeline.stage import StageContext, stage
 from stages.artifacts import load_ground_truth_params, load_provided_params, load_views
-from stages.dependencies import model_sources
+from stages.dependencies import TEMPLATE_KEYS, model_file_problems, model_sources
 from stages.posing import templates
 
 SOURCES = ("ground_truth", "provided", "fitted")
@@ -89,11 +89,12 @@ FitStageConfig = section_schema("FitStageConfig", FitConfig, exclude=("face_shap
 @stage(
     "fit",
     inputs=("capture", "frames", "keypoints"),
-    config_keys=("fit.source", "model", "stage.fit", "stage.keypoints.detector"),
+    config_keys=("fit.source", *TEMPLATE_KEYS, "stage.fit", "stage.keypoints.detector"),
     outputs=("train/params.parquet", "fit_report.json"),
     version="8",  # 8: image refinement (stage.fit.refine), keypoint-fit errors kept beside the refined ones
     config_schema=FitStageConfig,
     sources=model_sources,
+    checks=model_file_problems,
 )
 def fit(ctx: StageContext) -> None:
     """Write params.parquet per sequence from fit.source, and fit_report.json with the errors and, per sequence,

@@ -38,7 +38,7 @@ from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
 from stages.artifacts import load_scene
-from stages.dependencies import contact_sources, unused_solver_settings
+from stages.dependencies import contact_sources, stiffness_file_problems, unused_solver_settings
 from stages.driving import face_stiffness, pbd_solver_config
 from stages.posing import templates
 
@@ -63,6 +63,7 @@ class PBDStageConfig:
     config_schema=PBDStageConfig,
     sources=contact_sources,
     unused_keys=unused_solver_settings,
+    checks=stiffness_file_problems,
 )
 def pbd(ctx: StageContext) -> None:
     """Face offsets and contact flags per frame from stage.pbd.source; pbd_report.json."""

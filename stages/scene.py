@@ -24,7 +24,7 @@ from data_schemas.scene import SCENE_FRAMES
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
-from stages.dependencies import model_sources
+from stages.dependencies import TEMPLATE_KEYS, model_sources
 from stages.posing import templates
 
 DECIDED_ON = "train"
@@ -54,7 +54,7 @@ class SceneConfig:
 @stage(
     "scene",
     inputs=("capture", "frames", "fit"),
-    config_keys=("model", "stage.scene", "stage.dynamic.d_max"),
+    config_keys=(*TEMPLATE_KEYS, "stage.scene", "stage.dynamic.d_max"),
     outputs=("scene.json", "scene.parquet"),
     version="3",
     config_schema=SceneConfig,

@@ -15,7 +15,7 @@ from data_schemas.capture import MASK_LABELS
 from pipeline.schema import section_schema
 from pipeline.stage import StageContext, stage
 from stages.artifacts import TRAIN_SEQUENCE, PosedGaussians, load_scene, load_views, write_frame_ply
-from stages.dependencies import model_sources, unused_training_settings
+from stages.dependencies import TEMPLATE_KEYS, model_sources, unused_training_settings
 from stages.posing import applied_deformation, posed_sequence
 from stages.representations import representation, representation_problems
 from stages.training_settings import (
@@ -71,7 +71,7 @@ WarmupConfig = section_schema("WarmupConfig", WarmupTrainConfig, exclude=("steps
     config_keys=(
         "quality.gaussians_per_triangle",
         "quality.warmup_steps",
-        "model",
+        *TEMPLATE_KEYS,
         "stage.warmup",
         "method.representation",
         "method.pbd",
