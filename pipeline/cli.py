@@ -20,20 +20,19 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.config import ConfigError, fix_command, validate_config
+from pipeline.config import CONF_DIR, ConfigError, fix_command, validate_config
 from pipeline.registry import RegistryError, load_registry
 from pipeline.runner import MissingUpstream, Runner, StageFailed, StageReport
 from pipeline.summary import metrics_table, stage_table
 from pipeline.workspace import LockTimeout, outputs_problem, run_overrides
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 USER_ERRORS = (ConfigError, RegistryError, MissingUpstream, StageFailed, LockTimeout)
 
 
 def hydra_root(outputs: str) -> str:
     """Where Hydra keeps its logs (``hydra.run.dir``, ``hydra.sweep.dir``): ``<paths.outputs>/_hydra``, or a
-    temporary folder when ``paths.outputs`` cannot be written, so that the run stops with one clear error
-    about ``paths.outputs`` (from :func:`run_app`) instead of Hydra's traceback."""
+    temporary folder when ``paths.outputs`` is empty or cannot be written, so that the run stops with one clear
+    error about ``paths.outputs`` (from :func:`run_app`'s config check) instead of Hydra's traceback."""
     if outputs_problem(outputs) is None:
         return str(Path(outputs) / "_hydra")
     return str(Path(tempfile.gettempdir()) / "interactavatar-hydra")
@@ -46,9 +45,6 @@ def run_app(cfg: DictConfig) -> list[StageReport]:
     """Validate ``cfg``, then plan (``run.dry``) or run the DAG and print the summary."""
     registry = load_registry(cfg.pipeline.stages_module)
     cfg = validate_config(cfg, registry)
-    problem = outputs_problem(cfg.paths.outputs)
-    if problem:
-        raise ConfigError(f"invalid config:\n  - {problem}")
     runner = Runner(cfg, registry)
     if cfg.run.dry:
         reports = runner.plan()

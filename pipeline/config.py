@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import math
 import shlex
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -16,11 +18,23 @@ from omegaconf.errors import OmegaConfBaseException
 
 from pipeline.registry import RegistryError, StageRegistry
 from pipeline.stage import Stage
-from pipeline.workspace import method_problem, seed_problem, subject_problem
+from pipeline.workspace import method_problem, outputs_problem, seed_problem, subject_problem
+
+#: the app's config tree (Hydra's ``config_path``): ``config.yaml`` and one folder per config group
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 
 
 class ConfigError(ValueError):
-    """The config cannot run; the message lists every problem and how to fix it."""
+    """The config cannot run; the message lists every problem and how to fix it, ``problems`` each of them."""
+
+    def __init__(self, message: str, problems: Sequence[str] = ()) -> None:
+        super().__init__(message)
+        self.problems = tuple(problems) or (message,)
+
+
+def group_options(group: str) -> list[str]:
+    """The options of the config group ``group`` (``conf/<group>/<option>.yaml``), e.g. the methods."""
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
 
 
 @dataclass
@@ -179,7 +193,9 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
                 errors.append(f"run.{key}={name}: unknown stage; choose one of {', '.join(known)}")
         if run.get("only") is not None and (run.get("from") is not None or run.get("until") is not None):
             errors.append("run.only cannot be combined with run.from or run.until")
-    _check_schema(cfg.get("paths", {}), PathsConfig, "paths", errors)
+    paths = _check_schema(cfg.get("paths", {}), PathsConfig, "paths", errors)
+    if paths is not None and (problem := outputs_problem(paths.outputs)):
+        errors.append(problem)
     if cfg.get("quality") is None:
         errors.append("missing section 'quality'; choose a preset, e.g. quality=smoke")
     else:
@@ -232,7 +248,7 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
         errors.extend(dict.fromkeys(p for s in stages if s.checks is not None for p in s.checks(cfg)))
     errors.extend(numeric_problems(cfg, errors))
     if errors:
-        raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors))
+        raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors), errors)
     return cfg
 
 
@@ -282,13 +298,29 @@ def _int_problem(key: str, value: object, minimum: int) -> str | None:
     return f"{key}={value}: must be >= {minimum}" if value < minimum else None
 
 
+#: what a dataset on disk reads below ``dataset.root`` (conf/dataset/<name>.yaml)
+DATASET_LAYOUTS = {"folder": "<root>/<subject>/...", "decaf": "<root>/{train,test}/.../<subject>/..."}
+
+
+def synthetic_camera_ids(cfg: DictConfig) -> list[str]:
+    """The synthetic rig's camera ids under ``cfg``: ``cam00`` .. for ``stage.capture.num_cameras`` cameras."""
+    count = int(OmegaConf.select(cfg, "stage.capture.num_cameras", default=0) or 0)
+    return [SYNTHETIC_CAMERA_IDS.format(i) for i in range(count)]
+
+
 def dataset_problems(cfg: DictConfig) -> list[str]:
-    """Problems of the ``dataset`` section's frame selection and training cameras, one line each, before any
-    stage runs: ``start_frame`` (>= 0), ``frame_step`` (>= 1) and ``max_frames`` (null or >= 1) whole numbers;
+    """Problems of the ``dataset`` section, one line each, before any stage runs: ``root`` set where the dataset
+    reads one; ``start_frame`` (>= 0), ``frame_step`` (>= 1) and ``max_frames`` (null or >= 1) whole numbers;
     ``train_cameras`` null or a non-empty list of camera ids, and, for the synthetic rig whose ids are known
-    now (``cam00`` .. from ``stage.capture.num_cameras``), some but not all of them."""
+    now (:func:`synthetic_camera_ids`), some but not all of them."""
     dataset = cfg.dataset
-    problems = []
+    name = dataset.get("name")
+    problems: list[str | None] = []
+    if OmegaConf.is_missing(dataset, "root"):
+        problems.append(
+            f"dataset.root: not set; dataset={name} reads {DATASET_LAYOUTS.get(str(name), '<root>/...')}; "
+            f"set dataset.root=/path"
+        )
     for key, minimum in (("start_frame", 0), ("frame_step", 1), ("max_frames", 1)):
         if key in dataset and not (key == "max_frames" and dataset[key] is None):
             problems.append(_int_problem(f"dataset.{key}", dataset[key], minimum))
@@ -300,9 +332,8 @@ def dataset_problems(cfg: DictConfig) -> list[str]:
             or not all(isinstance(c, (str, int)) and not isinstance(c, bool) for c in train)
         ):
             problems.append(f"dataset.train_cameras={train}: a non-empty list of camera ids, e.g. [cam04], or null")
-        elif dataset.get("name") == "synthetic":
-            count = int(OmegaConf.select(cfg, "stage.capture.num_cameras", default=0) or 0)
-            ids = [SYNTHETIC_CAMERA_IDS.format(i) for i in range(count)]
+        elif name == "synthetic":
+            ids = synthetic_camera_ids(cfg)
             if not {str(c) for c in train} < set(ids):
                 problems.append(
                     f"dataset.train_cameras={list(train)}: choose some but not all of the synthetic rig's cameras {ids}"

@@ -116,8 +116,12 @@ class Artifact:
         return self.id if self.subject is None else f"{self.subject}:{self.id}"
 
 
-def outputs_problem(outputs: str | Path) -> str | None:
-    """Why ``paths.outputs`` cannot hold artifacts (a file, not writable), or ``None`` when it can."""
+def outputs_problem(outputs: str | Path | None) -> str | None:
+    """Why ``paths.outputs`` cannot hold artifacts (empty, a file, not writable, a place where no folder can be made,
+    e.g. under ``/proc``), or ``None`` when it can. It makes and removes an empty folder in the nearest folder of
+    ``outputs`` that exists to find out."""
+    if outputs is None or not str(outputs).strip():
+        return "paths.outputs is empty; set it to a folder, e.g. paths.outputs=outputs"
     path = Path(outputs).absolute()
     existing = path
     while not existing.exists() and existing != existing.parent:
@@ -132,6 +136,15 @@ def outputs_problem(outputs: str | Path) -> str | None:
             f"paths.outputs={outputs}: {existing} is not writable (read-only file system or no permission); "
             f"choose a writable folder, e.g. paths.outputs=$HOME/interactavatar-outputs"
         )
+    probe = existing / f".outputs-probe-{uuid.uuid4().hex[:_UNIQUE_HEX]}"
+    try:
+        probe.mkdir()
+    except OSError as exc:
+        return (
+            f"paths.outputs={outputs}: no folder can be made in {existing} ({exc.strerror}); choose a writable "
+            f"folder, e.g. paths.outputs=$HOME/interactavatar-outputs"
+        )
+    probe.rmdir()
     return None
 
 
