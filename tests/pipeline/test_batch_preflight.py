@@ -99,3 +99,45 @@ def test_other_sacct_failures_are_named(tmp_path, monkeypatch):
         _slurm_cfg(), run=lambda args, **kw: subprocess.CompletedProcess(args, 1, stdout="", stderr=DISABLED)
     )
     assert disabled is not None and "keeps no job accounting" in disabled
+
+
+def _toy_batch(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess[str]:
+    """A local multirun of the toy DAG with per-method stages (``tests.toy_methods``) writing under tmp_path."""
+    return subprocess.run(
+        cli_command(
+            "-m",
+            "pipeline.stages_module=tests.toy_methods",
+            "stage=[]",
+            "+stage.a.value=1",
+            "+stage.cmp.methods=[m1]",
+            "+stage.cmp.seeds=[0]",
+            "method.name=m1",
+            "+method.p_value=1",
+            "run.progress=false",
+            f"paths.outputs={tmp_path / 'out'}",
+            *overrides,
+        ),
+        cwd=REPO,
+        env=cli_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+
+
+def test_a_batch_with_a_bad_job_is_refused_before_any_job_runs(tmp_path):
+    """Issue 52, item 7: with `-m seed=0,-1`, job 0 trained fully before job 1 failed."""
+    done = _toy_batch(tmp_path, "seed=0,-1")
+    assert done.returncode == 2, done.stdout[-2000:] + done.stderr[-2000:]
+    assert "the batch was not started, 1 of its jobs cannot run" in done.stderr, done.stderr
+    assert "\n  - job 1 (seed=-1): seed=-1: use a non-negative integer" in done.stderr, done.stderr
+    assert "job 0" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert not (tmp_path / "out").exists(), sorted((tmp_path / "out").rglob("*"))
+
+
+def test_a_batch_of_good_jobs_runs_them_all(tmp_path):
+    done = _toy_batch(tmp_path, "seed=0,1")
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    methods = tmp_path / "out" / "synth_a" / "methods"
+    assert sorted(p.name for p in methods.iterdir()) == ["m1", "m1-seed1"]
