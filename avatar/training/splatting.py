@@ -84,7 +84,7 @@ class SplattingConfig:
     opacity_reset_interval: float = 0.1
     # screen-space gradient above which a Gaussian is cloned or split (densify_grad_threshold)
     grad_threshold: float = 2e-4
-    scene_extent: float = 2.0  # the public code's cameras_extent as used, metres; <= 0: the meshes' bounding radius
+    scene_extent: float = 2.0  # the public code's cameras_extent as used, metres; 0: the meshes' bounding radius
     max_gaussians: int = 150_000
     walk_every: int = 100  # steps between triangle walks (triangle_walk_interval)
     max_hops: int = 64  # most triangles one walk may cross
