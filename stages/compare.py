@@ -29,6 +29,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from omegaconf import DictConfig
 from scipy.stats import ttest_ind
 
 from avatar.preprocess.crops import label_box, overlap_box
@@ -38,7 +39,7 @@ from data_schemas.images import read_png, write_png
 from data_schemas.metrics import COMPARISON, CONTACT_GROUPS, METRICS, REGIONS, SPLIT_SOURCES, SPLITS, showcase_path
 from data_schemas.tables import read_table, write_table
 from data_schemas.writes import write_bytes, write_json
-from pipeline.config import fix_command
+from pipeline.config import fix_command, group_options
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.workspace import method_run
@@ -120,6 +121,17 @@ class MethodRun:
         return None if values is None else dict(zip(METRIC_NAMES, map(float, values)))
 
 
+def compare_checks(cfg: DictConfig) -> list[str]:
+    """``stage.compare.methods`` naming a method the app does not have (no ``conf/method/<name>.yaml``), found
+    before any stage runs rather than as a method never evaluated."""
+    methods = [str(m) for m in cfg.stage.compare.methods]
+    known = group_options("method")
+    unknown = [m for m in methods if m not in known]
+    if not unknown:
+        return []
+    return [f"stage.compare.methods={methods}: {unknown} are not methods; choose among {known} (conf/method/)"]
+
+
 @stage(
     "compare",
     inputs=SHARED_STAGES,
@@ -129,6 +141,7 @@ class MethodRun:
     cross_method_inputs=("warmup", "dynamic", "evaluate"),
     methods_key="stage.compare.methods",
     seeds_key="stage.compare.seeds",
+    checks=compare_checks,
     reads_manifests=True,
     version="5",
 )  # 5: resumed time; 4: scene; 3: seeds

@@ -17,7 +17,8 @@ from avatar.posing import MeshSequence, posed_keypoints, posed_meshes
 from avatar.reenact import PLACEMENTS, MotionTransfer, MotionTransferError, transfer_motion
 from avatar.scene import SceneDecision
 from avatar.templates import TemplateModel
-from data_schemas.tables import SchemaError
+from data_schemas.params import PARAMS
+from data_schemas.tables import SchemaError, read_table
 from stages.artifacts import load_params
 from stages.posing import templates
 
@@ -29,8 +30,34 @@ def driver_subject(cfg: DictConfig) -> str | None:
 
 
 def is_parameter_file(driver: str) -> bool:
-    """Whether ``reenact.driver`` names a ``params.parquet`` file rather than ``self`` or a subject."""
-    return driver.endswith(".parquet") or "/" in driver
+    """Whether ``reenact.driver`` names a file rather than ``self`` or a subject (whose names hold neither a '/'
+    nor a '.': :data:`pipeline.workspace.SUBJECT_RULE`)."""
+    return "/" in driver or "." in driver
+
+
+#: what ``reenact.driver`` may name, for its messages
+DRIVER_CHOICES = "give a params.parquet (the fit stage's schema), 'self', or a subject of this outputs folder"
+
+
+def driver_file_problem(driver: str) -> str | None:
+    """Why the file ``reenact.driver`` names cannot drive an avatar (missing, not ``.parquet``, not a table of the
+    fit stage's params schema), or ``None``; reads the table, which is small (a row per frame)."""
+    path = Path(driver)
+    if not path.is_file():
+        return f"reenact.driver={driver}: no such file; {DRIVER_CHOICES}"
+    if path.suffix != ".parquet":
+        return f"reenact.driver={driver}: not a .parquet file; {DRIVER_CHOICES}"
+    try:
+        read_table(path, PARAMS)
+    except SchemaError as exc:
+        return f"reenact.driver={driver}: not a params table ({exc}); {DRIVER_CHOICES}"
+    return None
+
+
+def placement_problem(cfg: DictConfig) -> str | None:
+    """Why ``reenact.placement`` is not a placement of :func:`avatar.reenact.transfer_motion`, or ``None``."""
+    placement = str(cfg.reenact.placement)
+    return None if placement in PLACEMENTS else f"reenact.placement={placement}: choose one of {', '.join(PLACEMENTS)}"
 
 
 @dataclass
@@ -77,12 +104,12 @@ def transferred_params(
 ) -> MotionTransfer:
     """The driver's motion on the target whose fit is ``target_fit_dir`` (its train sequence's identity), placed
     as ``reenact.placement`` says; one error naming ``source`` when the driver cannot drive it."""
-    placement = str(cfg.reenact.placement)
-    if placement not in PLACEMENTS:
-        raise SchemaError(f"reenact.placement={placement}: use one of {', '.join(PLACEMENTS)}")
+    problem = placement_problem(cfg)
+    if problem is not None:
+        raise SchemaError(problem)
     head, hand = templates(cfg.model)
     try:
-        return transfer_motion(load_params(target_fit_dir, "train"), driver, head, hand, placement)
+        return transfer_motion(load_params(target_fit_dir, "train"), driver, head, hand, str(cfg.reenact.placement))
     except MotionTransferError as exc:
         raise SchemaError(f"{source}: cannot drive the avatar: {exc}") from exc
 

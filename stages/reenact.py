@@ -40,6 +40,7 @@ from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.video import iter_video
 from data_schemas.web_video import write_web_video
 from data_schemas.writes import write_json
+from pipeline.config import synthetic_camera_ids
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
 from stages.artifacts import (
@@ -51,7 +52,16 @@ from stages.artifacts import (
     write_frame_ply,
 )
 from stages.dependencies import contact_sources, unused_driving_settings
-from stages.driving import drive, driver_subject, is_parameter_file, transfer_summary, transferred_params
+from stages.driving import (
+    DRIVER_CHOICES,
+    drive,
+    driver_file_problem,
+    driver_subject,
+    is_parameter_file,
+    placement_problem,
+    transfer_summary,
+    transferred_params,
+)
 from stages.representations import load_trained
 
 
@@ -77,11 +87,54 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
         return files
     path = Path(driver).resolve()
     if not path.is_file():
-        raise SchemaError(
-            f"reenact.driver={driver}: no such file; give a params.parquet (the fit stage's "
-            f"schema), 'self', or a subject of this outputs folder"
-        )
+        raise SchemaError(f"reenact.driver={driver}: no such file; {DRIVER_CHOICES}")
     return SourceFiles(Path("/"), (*files.files, path))
+
+
+def reenact_checks(cfg: DictConfig) -> list[str]:
+    """What the reenactment cannot run with, found before any stage runs (not after training): an unknown
+    ``reenact.placement``, a driver file that is not a params table, and ``stage.reenact.cameras`` the capture
+    does not have where its camera ids are known now (:func:`capture_camera_ids`)."""
+    driver = str(cfg.reenact.driver)
+    problems = (
+        placement_problem(cfg),
+        driver_file_problem(driver) if is_parameter_file(driver) else None,
+        cameras_problem(cfg),
+    )
+    return [p for p in problems if p is not None]
+
+
+def cameras_problem(cfg: DictConfig) -> str | None:
+    """Why ``stage.reenact.cameras`` names cameras the capture does not have, or ``None`` (also where the
+    capture's camera ids are not known before it runs: the capture stage names them)."""
+    wanted = [str(c) for c in cfg.stage.reenact.cameras]
+    ids = capture_camera_ids(cfg) if wanted else None
+    unknown = [c for c in wanted if ids is not None and c not in ids]
+    if not unknown:
+        return None
+    return (
+        f"stage.reenact.cameras={wanted}: {unknown} not among the capture's cameras {ids}; choose among them, or "
+        "[] for the held-out camera(s) and the first train camera"
+    )
+
+
+def capture_camera_ids(cfg: DictConfig) -> list[str] | None:
+    """The camera ids the capture will have, where they are known before it runs: the synthetic rig's, and a
+    capture folder's (the names of its sequences' videos or image folders, which the capture stage requires to
+    be its calibration's cameras); ``None`` otherwise (a folder not there yet or not readable, DECAF)."""
+    dataset = cfg.dataset
+    if dataset.name == "synthetic":
+        return synthetic_camera_ids(cfg)
+    if dataset.name != "folder":
+        return None
+    from stages.capture_folder import view_sources  # COLMAP, nerfstudio: folder captures only
+
+    src = Path(str(dataset.root)) / str(cfg.subject)
+    try:
+        ids = {camera for seq in sorted(src.iterdir()) if seq.is_dir() for camera in view_sources(seq)}
+    except (OSError, SchemaError):  # no folder, or one the capture stage will name
+        return None
+    return sorted(ids) or None
 
 
 @stage(
@@ -96,6 +149,7 @@ def _sources(cfg: DictConfig, subject: str) -> SourceFiles:
     input_subject=driver_subject,
     sources=_sources,
     unused_keys=unused_driving_settings,
+    checks=reenact_checks,
 )
 def reenact(ctx: StageContext) -> None:
     """Drive the method's avatar with reenact.driver; videos, frames, PLY sequence, contact report."""

@@ -10,6 +10,7 @@ from ``file://`` as well as from ``interactavatar-view``; the ground-truth crops
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,6 +49,23 @@ class ViewerSettings:
     jpeg_quality: int
     fps: float
 
+    @classmethod
+    def validate(cls, conf: DictConfig) -> list[str]:
+        """Range problems of a ``stage.viewer`` section (merged onto :data:`ViewerConfig`), one line each, keyed
+        relative to ``stage.viewer``: the codec's tolerances, the motions (known ones, each once), the reference
+        frames, the crops' JPEG quality (OpenCV's 1..100) and the playback rate (a page at 0 fps never advances)."""
+        problems = core_config(CodecConfig, conf).problems()
+        motions = list(conf.motions)
+        if not motions or not set(motions) <= set(MOTIONS) or len(set(motions)) < len(motions):
+            problems.append(f"motions={motions}: choose one or more of {list(MOTIONS)}, each once")
+        if int(conf.reference_frames) < 1:
+            problems.append(f"reference_frames={conf.reference_frames}: must be >= 1")
+        if not 1 <= int(conf.jpeg_quality) <= 100:
+            problems.append(f"jpeg_quality={conf.jpeg_quality}: must be between 1 and 100 (JPEG quality of the crops)")
+        if not math.isfinite(float(conf.fps)) or float(conf.fps) <= 0:
+            problems.append(f"fps={conf.fps}: must be > 0 (frames per second of the page's playback)")
+        return problems
+
 
 ViewerConfig = section_schema("ViewerConfig", CodecConfig, own=ViewerSettings)
 
@@ -58,18 +76,6 @@ def page_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # the SourceLis
     return SourceFiles(Path("/"), tuple(page + model_files(cfg)))
 
 
-def viewer_checks(cfg: DictConfig) -> list[str]:
-    """The settings of ``stage.viewer`` out of range."""
-    conf = cfg.stage.viewer
-    problems = [f"stage.viewer.{p}" for p in core_config(CodecConfig, conf).problems()]
-    unknown = [m for m in conf.motions if m not in MOTIONS]
-    if unknown or not conf.motions:
-        problems.append(f"stage.viewer.motions={list(conf.motions)}: choose one or more of {list(MOTIONS)}")
-    if int(conf.reference_frames) < 1:
-        problems.append(f"stage.viewer.reference_frames={conf.reference_frames}: must be >= 1")
-    return problems
-
-
 @stage(
     "viewer",
     inputs=("capture", "frames", "fit", "pbd", "dynamic", "reenact"),
@@ -78,7 +84,6 @@ def viewer_checks(cfg: DictConfig) -> list[str]:
     version="1",
     config_schema=ViewerConfig,
     sources=page_sources,
-    checks=viewer_checks,
     per_method=True,
 )
 def viewer(ctx: StageContext) -> None:
