@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import base64
-import html
 import io
 import json
 from dataclasses import dataclass
@@ -14,14 +13,15 @@ import numpy as np
 
 from avatar.fitting.refine import tracking_outlines
 from avatar.training.frame_params import parameter_movement
-from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex
+from data_schemas.cameras import Camera, read_cameras
+from data_schemas.capture import CaptureIndex, SequenceInfo
 from data_schemas.curve import CURVE
 from data_schemas.frames import FRAMES_INDEX, rgb_path
 from data_schemas.images import read_png
 from data_schemas.metrics import COMPARISON, METRICS, REGIONS, SPLITS
 from data_schemas.tables import TableSchema, read_table
 from data_schemas.writes import write_bytes
+from pipeline import web_escape as esc
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
@@ -56,7 +56,7 @@ class ReportConfig:
     inputs=UPSTREAM,
     config_keys=("quality.name", "method.name", "method.label", "stage.report", "model"),
     outputs=("report.html",),
-    version="16",
+    version="17",  # 17: every name escaped (pipeline.web_escape)
     config_schema=ReportConfig,
     per_method=True,
     reads_manifests=True,
@@ -75,47 +75,20 @@ def report(ctx: StageContext) -> None:
         frames_dir, seq, [c.camera_id for c in cameras], frame, int(ctx.cfg.stage.report.thumbnail_px)
     )
     hand_share = float(np.mean(frames_index["hand_visible"]))
-    grids = ctx.input_dir("evaluate") / "grids"
+    label = str(ctx.cfg.method.label)
     sections = [
-        f"<h1>InteractAvatar report: {html.escape(ctx.subject)}</h1>",
-        f"<p>method <b>{html.escape(str(ctx.cfg.method.label))}</b> ({html.escape(str(ctx.method))}), "
-        f"dataset <b>{html.escape(index.dataset)}</b>, quality preset <b>{html.escape(ctx.cfg.quality.name)}</b>, "
-        f"{len(cameras)} cameras, sequences: "
-        + ", ".join(f"{k} ({v.num_frames} frames, {v.width}x{v.height})" for k, v in index.sequences.items())
-        + "</p>",
+        _intro(
+            ctx.subject, str(ctx.method), label, str(ctx.cfg.quality.name), index.dataset, index.sequences, len(cameras)
+        ),
         "<h2>What the scene contains</h2>",
         f"<p>The hand is visible in {100 * hand_share:.0f}% of the crops.</p>",
         _contact_summary(cap_dir, index),
         "<h2>What was modelled, and why</h2>",
         _scene_section(ctx.input_dir("scene"), manifests),
         "<h2>Stages</h2>",
-        _table(
-            ("stage", "wall s", "peak MB", "metrics", "written"),
-            [
-                (
-                    n,
-                    f"{m['timings']['wall_s']:.2f}",
-                    f"{m['peak_memory_mb']:.0f}",
-                    ", ".join(f"{k}={format_value(v)}" for k, v in sorted(m["metrics"].items())),
-                    m["created"],
-                )
-                for n, m in manifests.items()
-            ],
-        ),
+        _stages_table(manifests),
         "<h2>Cameras</h2>",
-        _table(
-            ("camera", "split", "size", "fx", "position (m)"),
-            [
-                (
-                    c.camera_id,
-                    c.split,
-                    f"{c.width}x{c.height}",
-                    f"{c.K[0, 0]:.1f}",
-                    np.array2string(c.cam_to_world[:3, 3], precision=3),
-                )
-                for c in cameras
-            ],
-        ),
+        _cameras_table(cameras),
         "<h2>Fitted meshes</h2>",
         _fit_section(ctx.input_dir("fit")),
         _trained_tracking_section(ctx, manifests),
@@ -135,25 +108,91 @@ def report(ctx: StageContext) -> None:
         + _dynamic_summary(manifests["dynamic"])
         + "</p>",
         *(
-            f'<img alt="{name} loss curve" src="data:image/png;base64,{_loss_curve(ctx.input_dir(name), *curve)}">'
+            _png_image(f"{name} loss curve", _loss_curve(ctx.input_dir(name), *curve))
             for name, curve in representation_class(str(ctx.cfg.method.representation)).train_logs.items()
         ),
         _validation_section(ctx.input_dir("warmup"), ctx.input_dir("dynamic")),
-        f"<h2>All views, sequence '{seq}', frame {frame} ({html.escape(why)})</h2>",
-        f'<img alt="contact sheet" src="data:image/png;base64,{sheet}">',
-        f"<h2>Renders: ground truth | {html.escape(str(ctx.cfg.method.label))} | its error x4</h2>",
-        *(
-            f"<h3>{s}</h3><img alt='{s}' src='data:image/png;base64,{_base64_file(grids / (s + '.png'))}'>"
-            for s in SPLITS
-            if (grids / (s + ".png")).is_file()
-        ),
+        _contact_sheet_section(seq, frame, why, sheet),
+        _renders_section(label, ctx.input_dir("evaluate") / "grids"),
     ]
-    page = (
+    write_bytes(ctx.out_dir / "report.html", _page(sections).encode(), "report")
+
+
+def _page(sections: list[str]) -> str:
+    """The report's HTML document around its ``sections`` (HTML, every name in them escaped)."""
+    return (
         "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>"
         "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
         "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}</style>\n" + "\n".join(sections)
     )
-    write_bytes(ctx.out_dir / "report.html", page.encode(), "report")
+
+
+def _intro(
+    subject: str,
+    method: str,
+    label: str,
+    quality: str,
+    dataset: str,
+    sequences: dict[str, SequenceInfo],
+    num_cameras: int,
+) -> str:
+    """The title and the paragraph on what was run: subject, method, dataset, preset, cameras, sequences."""
+    listed = ", ".join(f"{k} ({v.num_frames} frames, {v.width}x{v.height})" for k, v in sequences.items())
+    return (
+        f"<h1>InteractAvatar report: {esc.text(subject)}</h1>"
+        f"<p>method <b>{esc.text(label)}</b> ({esc.text(method)}), dataset <b>{esc.text(dataset)}</b>, "
+        f"quality preset <b>{esc.text(quality)}</b>, {num_cameras} cameras, sequences: {esc.text(listed)}</p>"
+    )
+
+
+def _stages_table(manifests: dict[str, dict]) -> str:
+    """Per upstream stage: wall time, peak memory, its metrics and when it was written (from its manifest)."""
+    return _table(
+        ("stage", "wall s", "peak MB", "metrics", "written"),
+        [
+            (
+                n,
+                f"{m['timings']['wall_s']:.2f}",
+                f"{m['peak_memory_mb']:.0f}",
+                ", ".join(f"{k}={format_value(v)}" for k, v in sorted(m["metrics"].items())),
+                m["created"],
+            )
+            for n, m in manifests.items()
+        ],
+    )
+
+
+def _cameras_table(cameras: list[Camera]) -> str:
+    """Per capture camera: id, split, size, focal length and position."""
+    return _table(
+        ("camera", "split", "size", "fx", "position (m)"),
+        [
+            (
+                c.camera_id,
+                c.split,
+                f"{c.width}x{c.height}",
+                f"{c.K[0, 0]:.1f}",
+                np.array2string(c.cam_to_world[:3, 3], precision=3),
+            )
+            for c in cameras
+        ],
+    )
+
+
+def _contact_sheet_section(seq: str, frame: int, why: str, sheet_png: str) -> str:
+    """Every camera's crop of one frame side by side (``sheet_png``: base64 PNG), with what it shows."""
+    return f"<h2>All views, sequence '{esc.text(seq)}', frame {frame} ({esc.text(why)})</h2>" + _png_image(
+        "contact sheet", sheet_png
+    )
+
+
+def _renders_section(label: str, grids: Path) -> str:
+    """The evaluate stage's image grids per split (ground truth, the method ``label``, its error)."""
+    return f"<h2>Renders: ground truth | {esc.text(label)} | its error x4</h2>" + "".join(
+        f"<h3>{esc.text(s)}</h3>" + _png_image(s, _base64_file(grids / f"{s}.png"))
+        for s in SPLITS
+        if (grids / f"{s}.png").is_file()
+    )
 
 
 def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
@@ -193,8 +232,8 @@ def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
     )
     return (
         _table(("modelled", "", "why"), rows)
-        + f"<p>{html.escape(work)}</p>"
-        + (f"<p>{html.escape(saved)}</p>" if saved else "")
+        + f"<p>{esc.text(work)}</p>"
+        + (f"<p>{esc.text(saved)}</p>" if saved else "")
         + _contact_draws_paragraph(manifests["dynamic"])
         + _selection_paragraph(dynamic)
     )
@@ -215,7 +254,7 @@ def _contact_draws_paragraph(dynamic: dict) -> str:
             f"{float(conf['max_contact_frame_share']):g} of the steps: with few contact frames the Gaussians "
             "would fit their tracking error)"
         )
-    return f"<p>{html.escape(text)}.</p>"
+    return f"<p>{esc.text(text)}.</p>"
 
 
 def _selection_paragraph(dynamic: dict) -> str:
@@ -241,7 +280,7 @@ def _selection_paragraph(dynamic: dict) -> str:
             f" {name[0].upper()}{name[1:]}: {'kept' if kept else 'switched off'} (validation PSNR without them "
             f"{without:.2f} dB)."
         )
-    return f"<p>{html.escape(text)} Rule: docs/explanation/selection.md.</p>"
+    return f"<p>{esc.text(text)} Rule: docs/explanation/selection.md.</p>"
 
 
 def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, str]:
@@ -253,13 +292,20 @@ def _showcase_frame(cap_dir: Path, seq: str, index: CaptureIndex) -> tuple[int, 
 
 
 def _contact_summary(cap_dir: Path, index: CaptureIndex) -> str:
-    parts = [
-        f"{seq}: {int(contact_frames(cap_dir, seq, info.num_frames).sum())} of {info.num_frames} frames "
-        f"with contact ({source})"
-        for seq, info in index.sequences.items()
-        if (source := contact_source(info)) is not None
-    ]
-    return "<p>" + "; ".join(parts) + "</p>" if parts else "<p>No contact labels in this capture.</p>"
+    """Per sequence with contact labels, how many frames have contact and where the labels come from."""
+    return _contact_paragraph(
+        {
+            seq: (int(contact_frames(cap_dir, seq, info.num_frames).sum()), info.num_frames, source)
+            for seq, info in index.sequences.items()
+            if (source := contact_source(info)) is not None
+        }
+    )
+
+
+def _contact_paragraph(counts: dict[str, tuple[int, int, str]]) -> str:
+    """The paragraph of :func:`_contact_summary` from sequence -> (contact frames, frames, label source)."""
+    parts = [f"{seq}: {n} of {total} frames with contact ({source})" for seq, (n, total, source) in counts.items()]
+    return f"<p>{esc.text('; '.join(parts))}</p>" if parts else "<p>No contact labels in this capture.</p>"
 
 
 def _fit_section(fit_dir: Path) -> str:
@@ -298,10 +344,10 @@ def _fit_section(fit_dir: Path) -> str:
             figure = fit_dir / seq / "refinement.png"
             if figure.is_file():
                 figures.append(
-                    f"<figure><img alt='{html.escape(seq)}: keypoint fit and refined meshes' "
-                    f"src='data:image/png;base64,{_base64_file(figure)}'><figcaption>{html.escape(seq)}: "
-                    f"keypoint fit (red) and refined (green) mesh outlines, the frame that moved most"
-                    f"</figcaption></figure>"
+                    "<figure>"
+                    + _png_image(f"{seq}: keypoint fit and refined meshes", _base64_file(figure))
+                    + f"<figcaption>{esc.text(seq)}: keypoint fit (red) and refined (green) mesh outlines, the "
+                    "frame that moved most</figcaption></figure>"
                 )
     table = _table(
         (
@@ -316,10 +362,10 @@ def _fit_section(fit_dir: Path) -> str:
         ),
         rows,
     )
-    text = f"<p>Parameters: {html.escape(intro)}. Errors against ground truth where the capture has it.</p>{table}"
+    text = f"<p>Parameters: {esc.text(intro)}. Errors against ground truth where the capture has it.</p>{table}"
     if moves:
         text += (
-            f"<p>The keypoint fit refined by the train views' {html.escape(refine)} (never the held-out "
+            f"<p>The keypoint fit refined by the train views' {esc.text(refine)} (never the held-out "
             f"camera): silhouette IoU of the parts (mean over views, keypoint fit → refined) and how far "
             f"each part moved per frame (mean vertex displacement; change of global rotation).</p>"
             + _table(
@@ -398,9 +444,10 @@ def _trained_tracking_section(ctx: StageContext, manifests: dict[str, dict]) -> 
         f"validation and the held-out motion stay as fitted). Per frame, how far each part moved from the fit "
         f"(mean vertex displacement, mm; change of global rotation, degrees):</p>"
         + _table(("frame", "face mm", "face deg", "hand mm", "hand deg"), rows)
-        + f"<figure><img alt='fitted and refined meshes, train frame {frame}' src='data:image/png;base64,"
-        f"{_image_png(figure)}'><figcaption>Train frame {frame}, camera "
-        f"{html.escape(views.camera_ids[0])}: fitted (red) and refined in training (green) mesh outlines"
+        + "<figure>"
+        + _png_image(f"fitted and refined meshes, train frame {frame}", _image_png(figure))
+        + f"<figcaption>Train frame {frame}, camera "
+        f"{esc.text(views.camera_ids[0])}: fitted (red) and refined in training (green) mesh outlines"
         f"</figcaption></figure>"
     )
 
@@ -440,7 +487,7 @@ def _pbd_section(pbd_dir: Path) -> str:
     stiffness = f", stiffness from {report['stiffness']}" if "stiffness" in report else ""
     intro = f"Offsets: {report['source']}{stiffness} ({report['frame_convention']})"
     return (
-        f"<p>{html.escape(intro)}; frames whose hand stays clear of the face are not simulated. Vertex errors "
+        f"<p>{esc.text(intro)}; frames whose hand stays clear of the face are not simulated. Vertex errors "
         f"over the vertices that move in contact frames, against ground truth where the capture has it.</p>{table}"
     )
 
@@ -515,29 +562,31 @@ def _reenact_section(reenact_dir: Path) -> str:
         shown.append((paired, f"{path.stem}: reenacted | ground truth") if paired.is_file() else (path, path.stem))
     videos = "".join(
         f"<figure style='display:inline-block;margin:4px'><video controls autoplay loop muted playsinline "
-        f"src='data:video/mp4;base64,{_base64_file(path)}'></video><figcaption>{html.escape(caption)}</figcaption>"
+        f"src='data:video/mp4;base64,{_base64_file(path)}'></video><figcaption>{esc.text(caption)}</figcaption>"
         f"</figure>"
         for path, caption in shown
     )
-    return f"<p>{html.escape(text)}</p>{videos}"
+    return f"<p>{esc.text(text)}</p>{videos}"
 
 
 def _viewer_section(viewer_dir: Path) -> str:
     """Links to this method's browser viewer and to the other methods' (those written by now), with its sizes."""
     info = json.loads((viewer_dir / "viewer.json").read_text())
     others = sorted(p for p in viewer_dir.parent.parent.glob("*/viewer/index.html") if p.parent != viewer_dir)
-    names = [html.escape(p.parent.parent.name) for p in others]
-    links = "".join(f" <a href='../../{name}/viewer/index.html'>{name}</a>" for name in names)
+    links = "".join(
+        f" <a href='../../{esc.url_path(name, 'viewer', 'index.html')}'>{esc.text(name)}</a>"
+        for name in (p.parent.parent.name for p in others)
+    )
     built = (
         ""
         if info["page_built"]
-        else f" The page is not built on this machine: run <code>{html.escape(info['build_command'])}</code>, then "
+        else f" The page is not built on this machine: run <code>{esc.text(info['build_command'])}</code>, then "
         "<code>interactavatar run.only=viewer</code>."
     )
     return (
         f"<p><a href='../viewer/index.html'>Open this avatar in the viewer</a>: orbit it, play its motions, step "
         f"through the frames beside the ground truth (from a server: <code>interactavatar-view "
-        f"&lt;outputs&gt;/&lt;subject&gt;</code>).{built} {info['gaussians']} Gaussians, "
+        f"&lt;outputs&gt;/&lt;subject&gt;</code>).{built} {esc.text(info['gaussians'])} Gaussians, "
         f"{info['bytes_per_frame'] / 1e3:.0f} kB per frame, {info['mb_per_100_frames']:.1f} MB per 100 frames."
         + (f" The other methods' viewers:{links}." if links else "")
         + "</p>"
@@ -549,13 +598,13 @@ def _comparison_section(compare_dir: Path) -> str:
     tables = json.loads((compare_dir / "tables.json").read_text())
     parts = []
     for table in tables["tables"]:
-        parts += [f"<h3>{html.escape(table['title'])}</h3>", _table(tuple(table["headers"]), table["rows"])]
-    parts.append("<ul>" + "".join(f"<li>{html.escape(note)}</li>" for note in tables["notes"]) + "</ul>")
+        parts += [f"<h3>{esc.text(table['title'])}</h3>", _table(tuple(table["headers"]), table["rows"])]
+    parts.append("<ul>" + "".join(f"<li>{esc.text(note)}</li>" for note in tables["notes"]) + "</ul>")
     parts.append(_pareto_plot(compare_dir))
     for figure in sorted((compare_dir / "figures").glob("*.png")):
         parts.append(
-            f"<h3>{html.escape(figure.stem.replace('_', ' '))}: ground truth, then each method</h3>"
-            f"<img alt='{html.escape(figure.stem)}' src='data:image/png;base64,{_base64_file(figure)}'>"
+            f"<h3>{esc.text(figure.stem.replace('_', ' '))}: ground truth, then each method</h3>"
+            + _png_image(figure.stem, _base64_file(figure))
         )
     return "\n".join(parts)
 
@@ -564,10 +613,10 @@ def _dynamic_summary(manifest: dict) -> str:
     """One sentence on the dynamic stage's cost: steps, ms per step, interaction-MLP evaluations."""
     m = manifest["metrics"]
     if "interaction_steps" not in m:  # SplattingAvatar: no MLPs
-        return html.escape(
+        return esc.text(
             f"{m['steps']} steps at {m['ms_per_step']:.0f} ms each, {m.get('walked', 0)} triangle changes by walking"
         )
-    return html.escape(
+    return esc.text(
         f"{m['steps']} steps at {m['ms_per_step']:.0f} ms each; the interaction MLPs ran in "
         f"{m['interaction_steps']} steps on {m['interaction_mlp_evaluations']} Gaussians in all"
     )
@@ -642,7 +691,7 @@ def _pareto_plot(compare_dir: Path) -> str:
     png = _figure_png(fig)
     return (
         "<h3>Quality against training time (red: the Pareto front, methods no other beats on both)</h3>"
-        f"<img alt='quality against time' src='data:image/png;base64,{png}'>"
+        + _png_image("quality against time", png)
     )
 
 
@@ -677,10 +726,14 @@ def _validation_section(warmup_dir: Path, dynamic_dir: Path) -> str:
         ax_lpips.set_ylabel("validation LPIPS (dashed)")
     ax.legend()
     title = "Validation PSNR" + (" and LPIPS" if with_lpips else "")
-    return (
-        f"<h3>{title} during training (withheld training frames, training cameras)</h3>"
-        f"<img alt='validation curve' src='data:image/png;base64,{_figure_png(fig)}'>"
+    return f"<h3>{title} during training (withheld training frames, training cameras)</h3>" + _png_image(
+        "validation curve", _figure_png(fig)
     )
+
+
+def _png_image(alt: str, png_base64: str) -> str:
+    """An ``<img>`` of a base64 PNG (its alphabet needs no escaping) described by ``alt``."""
+    return f"<img alt='{esc.text(alt)}' src='data:image/png;base64,{png_base64}'>"
 
 
 def _base64_file(path: Path) -> str:
@@ -689,6 +742,7 @@ def _base64_file(path: Path) -> str:
 
 
 def _contact_sheet(frames_dir: Path, seq: str, camera_ids: list[str], frame: int, px: int) -> str:
+    """Base64 PNG of every camera's crop of ``frame`` of ``seq``, ``px`` square each, side by side."""
     tiles = [
         cv2.resize(read_png(rgb_path(frames_dir, seq, cid, frame), 3), (px, px), interpolation=cv2.INTER_AREA)
         for cid in camera_ids
@@ -705,6 +759,7 @@ def _image_png(image: np.ndarray) -> str:
 
 
 def _table(headers: tuple[str, ...], rows: list[tuple]) -> str:
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in headers)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    """An HTML table of ``headers`` and ``rows`` (any values: each cell is ``str(value)``, escaped)."""
+    head = "".join(f"<th>{esc.text(h)}</th>" for h in headers)
+    body = "".join("<tr>" + "".join(f"<td>{esc.text(c)}</td>" for c in r) + "</tr>" for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"

@@ -81,7 +81,7 @@ def page_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # the SourceLis
     inputs=("capture", "frames", "fit", "pbd", "dynamic", "reenact"),
     config_keys=("model", "method", "stage.viewer"),
     outputs=("index.html", "data", "viewer.json"),
-    version="1",
+    version="2",  # 2: names escaped in the page's data (pipeline.web_escape)
     config_schema=ViewerConfig,
     sources=page_sources,
     per_method=True,

@@ -4,7 +4,6 @@ tests write a page from motions of their own."""
 
 from __future__ import annotations
 
-import json
 import logging
 import shutil
 from base64 import b64encode
@@ -37,6 +36,7 @@ from avatar.viewer_codec import (
     static_gaussians,
 )
 from data_schemas.writes import write_json
+from pipeline.web_escape import script_json, url_path
 from stages.posing import PosedSequence
 from stages.representations import TrainedAvatar
 
@@ -122,7 +122,7 @@ def write_viewer(
         "motions": [s["page"] for s in summaries],
     }
     (data_dir / "manifest.js").write_text(
-        f"window.IAV = window.IAV || {{}};\nwindow.IAV.manifest = {json.dumps(manifest)};\n"
+        f"window.IAV = window.IAV || {{}};\nwindow.IAV.manifest = {script_json(manifest)};\n"
     )
     shutil.copyfile(PAGE_DIR / "index.html", out_dir / "index.html")
     built = BUNDLE.is_file()
@@ -182,7 +182,8 @@ def _write_motion(
     progress: Progress,
 ) -> dict:
     """Write ``data/motion-<name>.js`` (the quantised vertices and the overrides of every frame) and the
-    ground-truth crops; returns its summary for viewer.json and its entry of the page's manifest (``page``)."""
+    ground-truth crops; returns its summary for viewer.json and its entry of the page's manifest (``page``: the
+    script's URL percent-encoded, as the page loads it)."""
     vertices = motion.posed.meshes.vertices.double().numpy()
     ranges = Ranges.of(vertices)
     quantised = quantise_vertices(vertices, ranges)
@@ -195,10 +196,10 @@ def _write_motion(
     N = static.triangle.shape[0]
     geometry = np.array([len(o.geometry) for o in overrides], dtype=np.uint32)
     appearance = np.array([len(o.appearance) for o in overrides], dtype=np.uint32)
-    file = f"data/motion-{motion.name}.js"
+    file = f"motion-{motion.name}.js"
     size = _write_script(
-        out_dir / file,
-        f"window.IAV.motions.{motion.name}",
+        out_dir / "data" / file,
+        f"window.IAV.motions[{script_json(motion.name)}]",
         {
             "vertices": differences_in_time(quantised),
             "geometry_mask": np.stack([bit_mask(o.geometry, N) for o in overrides]),
@@ -233,7 +234,7 @@ def _write_motion(
         "page": {
             "name": motion.name,
             "label": motion.label,
-            "file": file,
+            "file": url_path("data", file),
             "frames": T,
             "fps": settings.fps,
             "contact": motion.contact.astype(int).tolist(),
@@ -255,11 +256,11 @@ def _reference_samples(
 
 def _write_script(path: Path, target: str, arrays: dict[str, np.ndarray]) -> int:
     """Write ``arrays`` packed (:func:`avatar.viewer_codec.pack_sections`) as a script assigning them to
-    ``target``; returns the file's size in bytes."""
+    ``target`` (a JavaScript expression, its names escaped by the caller); returns the file's size in bytes."""
     buffer, sections = pack_sections(arrays)
     text = (
         "window.IAV = window.IAV || {};\nwindow.IAV.motions = window.IAV.motions || {};\n"
-        f'{target} = {{sections: {json.dumps(sections)}, data: "{b64encode(buffer).decode()}"}};\n'
+        f'{target} = {{sections: {script_json(sections)}, data: "{b64encode(buffer).decode()}"}};\n'
     )
     path.write_text(text)
     return path.stat().st_size

@@ -29,6 +29,12 @@ function pad(frame) {
   return String(frame).padStart(5, "0");
 }
 
+// A relative URL of path components (names from the manifest: motions, camera ids), each percent-encoded whole so
+// that no "#", "?", "/" or "%" in a name changes the URL (pipeline/web_escape.py's url_path on the Python side).
+function urlPath(...components) {
+  return components.map(encodeURIComponent).join("/");
+}
+
 async function main() {
   // --- the avatar ---------------------------------------------------------------------------------------------
 
@@ -49,7 +55,7 @@ async function main() {
     quats: new Float64Array(4 * N),
     rgba: new Float64Array(4 * N),
   };
-  const motions = {};
+  const motions = Object.create(null); // name -> loaded motion; no prototype, so a motion may be named "constructor"
 
   async function motionData(name) {
     if (!motions[name]) {
@@ -182,7 +188,7 @@ async function main() {
     $("render-caption").textContent = `${manifest.label}, ${motion.label} (drag to orbit, wheel to zoom)`;
     const gt = $("gt");
     if (view && view.ground_truth) {
-      gt.src = `data/gt/${motion.name}/${view.id}/${pad(state.frame)}.jpg`;
+      gt.src = urlPath("data", "gt", motion.name, view.id, `${pad(state.frame)}.jpg`);
       gt.width = view.width * intrinsics.scale;
       gt.height = view.height * intrinsics.scale;
       $("gt-view").hidden = false;
