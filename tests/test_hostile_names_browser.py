@@ -58,10 +58,11 @@ from tests.viewer.toy_viewer import BACKGROUND, CAMERAS, SIZE, K, toy_avatar, to
 NAME = "'\"><img src=x onerror=window.__pwned=1><svg onload=window.__pwned=2>#?%41&amp;\u2028end"
 #: free text (labels, notes, captions): the name, and a script end and a comment start
 TEXT = NAME + "</script><script>window.__pwned=3</script><!--"
-#: the second camera's id and a motion named as an Object.prototype member (the page's caches must not see one)
+#: a second hostile name (a second camera, a second sequence, another method)
 OTHER = NAME + " 2"
+#: a motion named as an Object.prototype member: the page's lookups by name must not find the prototype's
 PROTOTYPE_NAME = "constructor"
-NEEDS_CHROMIUM, NEEDS_BUNDLE = NEEDS_BROWSER
+NEEDS_CHROMIUM, NEEDS_BUNDLE = NEEDS_BROWSER  # chromium; chromium and the page's bundle
 #: what the browser is asked after loading a page: did anything run, what did the payloads make (the viewer's own
 #: script has an onerror), which scripts are there, and the page's text
 PROBE = """() => ({
@@ -214,9 +215,9 @@ def hostile_report(root: Path) -> str:
     )
 
 
-def hostile_viewer(out_dir: Path, frames: int = 3) -> list[Motion]:
+def hostile_viewer(out_dir: Path, frames: int = 3) -> None:
     """The toy avatar's viewer (tests/viewer/toy_viewer.py) with hostile motion names, labels, camera ids and
-    identity, ground truth on the first motion; returns its motions."""
+    identity, ground truth on the first motion."""
     meshes, rest = toy_meshes(frames)
     avatar = toy_avatar(meshes, rest)
     cameras = [
@@ -240,7 +241,6 @@ def hostile_viewer(out_dir: Path, frames: int = 3) -> list[Motion]:
     out_dir.mkdir(parents=True)
     identity = {"method": NAME, "label": TEXT, "subject": TEXT}
     write_viewer(out_dir, avatar, motions, CodecConfig(), PageSettings(), identity)
-    return motions
 
 
 def _assert_inert(html: str) -> None:
@@ -261,10 +261,11 @@ def test_the_viewers_data_scripts_hold_no_markup_and_parse(tmp_path: Path) -> No
     expected = {"avatar.js", "manifest.js", f"motion-{NAME}.js", f"motion-{PROTOTYPE_NAME}.js"}
     assert {p.name for p in scripts} == expected
     for path in scripts:
-        assert path.read_text().isascii() and not set("<>&") & set(path.read_text()), path
-    written = manifest(tmp_path / "viewer")
-    assert (written["label"], written["motions"][0]["name"]) == (TEXT, NAME)
-    assert written["motions"][0]["file"] == url_path("data", f"motion-{NAME}.js")
+        written = path.read_text()
+        assert written.isascii() and not set("<>&") & set(written), path
+    page = manifest(tmp_path / "viewer")
+    assert (page["label"], page["motions"][0]["name"]) == (TEXT, NAME)
+    assert page["motions"][0]["file"] == url_path("data", f"motion-{NAME}.js")
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ and the seed-2 stage two's checkpoints with it.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 from pipeline.workspace import Artifact, Workspace, method_run
@@ -40,3 +41,37 @@ def test_a_published_artifacts_old_version_is_set_aside_and_removed(tmp_path: Pa
         final = ws.publish(art, tmp)
     assert (final / "v.txt").read_text() == "new"
     assert not list((tmp_path / "s" / ".tmp").iterdir())
+
+
+def test_publishing_over_a_linked_stage_folder_replaces_the_link_and_leaves_its_target(tmp_path: Path):
+    """A stage folder the user linked elsewhere: a forced rerun used to leave the link in .tmp for good
+    (``shutil.rmtree`` refuses links); now the link goes, a real folder takes its place, the target stays."""
+    ws = Workspace(tmp_path / "out", "s")
+    art = Artifact("fit")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "v.txt").write_text("old")
+    final = ws.artifact_dir(art)
+    final.parent.mkdir(parents=True)
+    for target in (elsewhere, tmp_path / "gone"):  # a link, then a dangling link
+        final.symlink_to(target, target_is_directory=True)
+        tmp = ws.new_tmp_dir(art)
+        (tmp / "v.txt").write_text("new")
+        assert ws.publish(art, tmp) == final
+        assert not final.is_symlink() and (final / "v.txt").read_text() == "new"
+        assert not list((tmp_path / "out" / "s" / ".tmp").iterdir()), "the link stayed in .tmp"
+        shutil.rmtree(final)
+    assert (elsewhere / "v.txt").read_text() == "old"
+
+
+def test_a_linked_leftover_in_tmp_is_removed_without_touching_its_target(tmp_path: Path):
+    ws = Workspace(tmp_path / "out", "s")
+    art = Artifact("fit")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "keep.txt").write_text("keep")
+    ws.new_tmp_dir(art).rmdir()  # creates .tmp
+    (tmp_path / "out" / "s" / ".tmp" / f"fit-old-{'a' * 12}").symlink_to(elsewhere, target_is_directory=True)
+    ws.discard_leftovers(art)
+    assert not list((tmp_path / "out" / "s" / ".tmp").iterdir())
+    assert (elsewhere / "keep.txt").read_text() == "keep"
