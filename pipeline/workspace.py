@@ -318,12 +318,12 @@ class Workspace:
         final = self.artifact_dir(artifact)
         final.parent.mkdir(parents=True, exist_ok=True)
         aside = None
-        if final.exists():
+        if final.exists() or final.is_symlink():  # a link the user made, dangling or not, is set aside too
             aside = self._tmp_root / f"{artifact.id}-old-{_unique()}"
             os.replace(final, aside)
         os.replace(tmp_dir, final)
         if aside is not None:
-            shutil.rmtree(aside, ignore_errors=True)
+            _remove(aside)
         return final
 
     def link_copy(self, source: Artifact, tmp_dir: Path) -> None:
@@ -356,4 +356,13 @@ def _remove_own(root: Path, artifact: Artifact, suffix: str) -> None:
     own = re.compile(re.escape(artifact.id) + "-" + suffix)
     for p in root.glob(f"{glob.escape(artifact.id)}-*"):
         if own.fullmatch(p.name):
-            shutil.rmtree(p, ignore_errors=True)
+            _remove(p)
+
+
+def _remove(path: Path) -> None:
+    """Remove the folder ``path``, or the link ``path`` alone (a stage folder the user linked elsewhere: what it
+    points at is not this run's to delete, and ``shutil.rmtree`` refuses a link, which then stayed for good)."""
+    if path.is_symlink():
+        path.unlink(missing_ok=True)
+    else:
+        shutil.rmtree(path, ignore_errors=True)
