@@ -22,11 +22,17 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.config import CONF_DIR, ConfigError, fix_command, validate_config
 from pipeline.registry import RegistryError, load_registry
-from pipeline.runner import MissingUpstream, Runner, StageFailed, StageReport
+from pipeline.runner import Interrupted, MissingUpstream, Runner, StageFailed, StageReport
 from pipeline.summary import metrics_table, stage_table
 from pipeline.workspace import LockTimeout, outputs_problem, run_overrides
 
 USER_ERRORS = (ConfigError, RegistryError, MissingUpstream, StageFailed, LockTimeout)
+#: The exit status of a run stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
+INTERRUPTED_STATUS = 130
+INTERRUPTED_BETWEEN_STAGES = (
+    "interrupted: the stages finished so far are kept and none was left half written; the same command goes on "
+    "from there"
+)
 
 
 def hydra_root(outputs: str) -> str:
@@ -90,6 +96,10 @@ def main(cfg: DictConfig) -> None:
         if HydraConfig.get().mode == RunMode.MULTIRUN:
             raise  # let the launcher record this job as failed and go on with the others
         sys.exit(2 if isinstance(exc, (ConfigError, RegistryError)) else 1)
+    except (Interrupted, KeyboardInterrupt) as exc:  # Ctrl-C: say what was kept, not where Python was
+        said = str(exc) if isinstance(exc, Interrupted) else INTERRUPTED_BETWEEN_STAGES
+        print(f"interactavatar: {said}", file=sys.stderr)
+        sys.exit(INTERRUPTED_STATUS)
 
 
 if __name__ == "__main__":

@@ -95,6 +95,23 @@ class StageFailed(RuntimeError):
         self.stage = stage
 
 
+class Interrupted(RuntimeError):
+    """The user stopped the run (Ctrl-C, SIGINT) while a stage was computing: nothing of that stage was published,
+    the stages finished before it are kept, and so is the stage's checkpoint when it had written one."""
+
+    def __init__(self, stage: str, checkpoint: Path | None) -> None:
+        kept = (
+            f"its checkpoint in {checkpoint} is kept, and the same command resumes from it"
+            if checkpoint is not None
+            else "it had no checkpoint yet, so the same command starts it over"
+        )
+        super().__init__(
+            f"interrupted during stage '{stage}': nothing of it was published (its previous artifact, if any, is "
+            f"kept, as are the stages finished before it); {kept}"
+        )
+        self.stage = stage
+
+
 class MissingUpstream(RuntimeError):
     """A selected stage reads a stage that has no complete artifact and is not selected."""
 
@@ -440,6 +457,8 @@ class Runner:
         except BaseException as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             self.ws.discard_empty_scratch(scratch)
+            if isinstance(exc, KeyboardInterrupt):
+                raise Interrupted(s.name, scratch if scratch.is_dir() else None) from exc
             if isinstance(exc, Exception):
                 raise StageFailed(s.name, exc) from exc
             raise

@@ -1,0 +1,78 @@
+"""Ctrl-C (SIGINT) during a run: one line saying what was kept and how to go on, exit status 130, no traceback,
+nothing half written, and the previous artifact of the interrupted stage kept."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+from pathlib import Path
+
+from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli, wait_for
+
+TOY = [*TOY_OVERRIDES, "run.progress=false"]
+
+
+def test_ctrl_c_during_a_stage_is_one_line_and_keeps_the_previous_artifact(tmp_path) -> None:
+    out = tmp_path / "out"
+    assert run_cli(*TOY, f"paths.outputs={out}").returncode == 0
+    before = (out / "synth_a" / "b" / "b.txt").read_text()
+    args = [*TOY, f"paths.outputs={out}", "run.force=true", "run.only=b", "++stage.b.sleep_s=60"]
+    proc = subprocess.Popen(
+        cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        wait_for(lambda: any((out / "synth_a" / ".tmp").glob("b-*/parts/half.txt")))
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, stderr
+    assert "interrupted during stage 'b'" in lines[0]
+    assert "its previous artifact, if any, is kept" in lines[0]
+    assert "the same command starts it over" in lines[0]
+    assert (out / "synth_a" / "b" / "b.txt").read_text() == before
+    assert not list((out / "synth_a" / ".tmp").iterdir()), "half-written stage left in .tmp"
+    again = run_cli(*TOY, f"paths.outputs={out}")
+    assert again.returncode == 0 and "b          cached" in again.stdout, again.stdout
+
+
+def test_ctrl_c_while_waiting_for_a_lock_is_one_line(tmp_path) -> None:
+    """Interrupted outside any stage's computation (here: waiting for another run's lock)."""
+    from pipeline.locks import flock
+
+    out = tmp_path / "out"
+    assert run_cli(*TOY, f"paths.outputs={out}").returncode == 0
+    with flock(out / "synth_a" / ".locks" / "a.lock", shared=True, timeout_s=0.0, what="a reader of stage a"):
+        proc = subprocess.Popen(
+            cli_command(*TOY, f"paths.outputs={out}", "run.only=a", "run.force=true"),
+            cwd=REPO,
+            env=cli_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            wait_for(lambda: _has_open(proc.pid, out / "synth_a" / ".locks" / "a.lock"))
+            proc.send_signal(signal.SIGINT)
+            _, stderr = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    assert [line for line in stderr.splitlines() if line.strip()] == [
+        "interactavatar: interrupted: the stages finished so far are kept and none was left half written; the same "
+        "command goes on from there"
+    ]
+
+
+def _has_open(pid: int, path: Path) -> bool:
+    """Whether process ``pid`` has ``path`` open (Linux: its /proc/<pid>/fd links)."""
+    fds = Path(f"/proc/{pid}/fd")
+    try:
+        return any(os.readlink(fd) == str(path) for fd in fds.iterdir())
+    except OSError:  # a descriptor closed while listing
+        return False
