@@ -26,6 +26,7 @@ from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
 from stages.artifacts import TRAIN_SEQUENCE, contact_frames, contact_source, load_params, load_views, read_params
+from stages.dependencies import TEMPLATE_KEYS
 from stages.posing import templates
 from stages.representations import representation_class
 
@@ -54,7 +55,7 @@ class ReportConfig:
 @stage(
     "report",
     inputs=UPSTREAM,
-    config_keys=("quality.name", "method.name", "method.label", "stage.report", "model"),
+    config_keys=("quality.name", "method.name", "method.label", "stage.report", *TEMPLATE_KEYS),
     outputs=("report.html",),
     version="17",  # 17: every name escaped (pipeline.web_escape)
     config_schema=ReportConfig,

@@ -27,7 +27,7 @@ from pipeline.schema import core_config, section_schema
 from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
 from stages.artifacts import HELD_OUT_SEQUENCE, TRAIN_SEQUENCE, contact_flags, load_views, method_params, read_params
-from stages.dependencies import model_files
+from stages.dependencies import TEMPLATE_KEYS, model_files
 from stages.posing import applied_deformation, posed_sequence, posed_with_offsets
 from stages.representations import load_trained
 from stages.viewer_page import BUNDLE, PAGE_DIR, Motion, PageSettings, write_viewer
@@ -79,7 +79,7 @@ def page_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # the SourceLis
 @stage(
     "viewer",
     inputs=("capture", "frames", "fit", "pbd", "dynamic", "reenact"),
-    config_keys=("model", "method", "stage.viewer"),
+    config_keys=(*TEMPLATE_KEYS, "method", "stage.viewer"),
     outputs=("index.html", "data", "viewer.json"),
     version="2",  # 2: names escaped in the page's data (pipeline.web_escape)
     config_schema=ViewerConfig,

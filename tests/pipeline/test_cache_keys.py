@@ -60,3 +60,29 @@ def test_an_unused_key_must_be_one_of_the_stage_keys() -> None:
     stage = replace(REGISTRY["warmup"], unused_keys=lambda cfg: ("stage.pbd.solver",))
     with pytest.raises(ValueError, match="unused key 'stage.pbd.solver' is not one of its config_keys"):
         key_config(compose_cfg([]), stage)
+
+
+@pytest.mark.parametrize(
+    ("method", "expected"),
+    [
+        # only contact simulation reads the stiffness: the fit, the scene and the training keep their keys
+        ("interactavatar", {"pbd", "evaluate", "reenact"}),
+        # a method without PBD drives its avatar without it: only the shared pbd stage reruns
+        ("gaussian_avatars", {"pbd"}),
+    ],
+)
+def test_the_face_stiffness_reruns_only_the_stages_that_simulate_contact(
+    tmp_path, method: str, expected: set[str]
+) -> None:
+    """A model.* setting enters the keys of the stages that read it, not of every stage that poses a template:
+    a stiffness file used to recompute the fit (minutes, same bytes) before pbd read it."""
+    stiffness = tmp_path / "thickness.npy"
+    stiffness.write_bytes(b"")
+    assert changed_stages([f"method={method}"], [f"model.face_stiffness_path={stiffness}"]) == expected
+
+
+def test_a_template_file_reruns_every_stage_that_poses_the_templates(tmp_path) -> None:
+    flame = tmp_path / "generic_model.pkl"
+    flame.write_bytes(b"")
+    posing = {"fit", "scene", "pbd", "warmup", "dynamic", "evaluate", "reenact", "viewer", "report"}
+    assert changed_stages(["method=interactavatar"], [f"model.flame_path={flame}"]) == posing
