@@ -11,6 +11,7 @@ Batch (one job per subject, through any Hydra launcher)::
 
 from __future__ import annotations
 
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -38,10 +39,24 @@ INTERRUPTED_BETWEEN_STAGES = (
 def hydra_root(outputs: str) -> str:
     """Where Hydra keeps its logs (``hydra.run.dir``, ``hydra.sweep.dir``): ``<paths.outputs>/_hydra``, or a
     temporary folder when ``paths.outputs`` is empty or cannot be written, so that the run stops with one clear
-    error about ``paths.outputs`` (from :func:`run_app`'s config check) instead of Hydra's traceback."""
-    if outputs_problem(outputs) is None:
+    error about ``paths.outputs`` (from :func:`run_app`'s config check) instead of Hydra's traceback, or when its
+    disk is all but full, so that a run that finds every stage cached (and writes nothing else) still runs, and
+    one that must compute stops with the stage's one line naming the file it could not write."""
+    if outputs_problem(outputs) is None and _free_bytes(Path(outputs)) >= HYDRA_LOG_MIN_FREE_BYTES:
         return str(Path(outputs) / "_hydra")
     return str(Path(tempfile.gettempdir()) / "interactavatar-hydra")
+
+
+#: Free bytes on the outputs' disk below which Hydra's logs (a few kB a run) go to the temporary folder.
+HYDRA_LOG_MIN_FREE_BYTES = 1 << 20
+
+
+def _free_bytes(path: Path) -> int:
+    """Free bytes on the disk of ``path``, or of its nearest folder that exists."""
+    path = path.absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return shutil.disk_usage(path).free
 
 
 OmegaConf.register_new_resolver("hydra_root", hydra_root, replace=True)

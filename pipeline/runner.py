@@ -18,6 +18,7 @@ ones its manifest names, and publishes atomically with the manifest written last
 from __future__ import annotations
 
 import datetime as dt
+import errno
 import functools
 import shutil
 import subprocess
@@ -90,8 +91,8 @@ class StageReport:
 class StageFailed(RuntimeError):
     """A stage raised; nothing of it was published."""
 
-    def __init__(self, stage: str, cause: BaseException) -> None:
-        super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}")
+    def __init__(self, stage: str, cause: BaseException, fix: str | None = None) -> None:
+        super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}" + (f"; {fix}" if fix else ""))
         self.stage = stage
 
 
@@ -411,10 +412,12 @@ class Runner:
         """Run ``s`` into a temporary dir and publish it as ``a`` (decision ``d``; call with its write lock)."""
         report = StageReport(s.name, "run", d.reason)
         self._log_decision(report)
-        tmp = self.ws.new_tmp_dir(a)
-        scratch = self.ws.scratch_dir(a, d.key)
-        resumed_s = self.ws.begin_attempt(scratch)
-        try:
+        tmp: Path | None = None
+        scratch: Path | None = None
+        try:  # the folders too: on a full disk making them is what fails first
+            tmp = self.ws.new_tmp_dir(a)
+            scratch = self.ws.scratch_dir(a, d.key)
+            resumed_s = self.ws.begin_attempt(scratch)
             regular, cross, other_subject = self._context_inputs(s, d.inputs)
             ctx = StageContext(
                 cfg=self.cfg,
@@ -455,10 +458,16 @@ class Runner:
             self.ws.discard_scratch(a)
             self._verified[a.key] = manifest
         except BaseException as exc:
-            shutil.rmtree(tmp, ignore_errors=True)
-            self.ws.discard_empty_scratch(scratch)
+            if tmp is not None:
+                shutil.rmtree(tmp, ignore_errors=True)
+            if scratch is not None:
+                self.ws.discard_empty_scratch(scratch)
             if isinstance(exc, KeyboardInterrupt):
-                raise Interrupted(s.name, scratch if scratch.is_dir() else None) from exc
+                kept = scratch if scratch is not None and scratch.is_dir() else None
+                raise Interrupted(s.name, kept) from exc
+            if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+                fix = f"the disk of {self.ws.root} is full: free some space, then run the same command again"
+                raise StageFailed(s.name, exc, fix) from exc
             if isinstance(exc, Exception):
                 raise StageFailed(s.name, exc) from exc
             raise

@@ -309,8 +309,12 @@ class Workspace:
             except (ValueError, KeyError, TypeError):  # a torn marker: the time is unknown, the checkpoint still good
                 carried = 0.0
         tmp = marker.with_name(f".{ATTEMPT_FILE}.{_unique()}")
-        tmp.write_text(json.dumps({"start": time.time(), "carried_s": carried}))
-        os.replace(tmp, marker)
+        try:
+            tmp.write_text(json.dumps({"start": time.time(), "carried_s": carried}))
+            os.replace(tmp, marker)
+        except OSError:  # a full disk: leave no torn marker that would keep the scratch folder for good
+            tmp.unlink(missing_ok=True)
+            raise
         return carried
 
     def publish(self, artifact: Artifact, tmp_dir: Path) -> Path:

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -89,3 +90,33 @@ def record_crop_reads(monkeypatch: pytest.MonkeyPatch, capture_dir: Path) -> tup
 
     monkeypatch.setattr(stages.artifacts, "read_png", recording_read_png)
     return read, held_out
+
+
+@contextmanager
+def small_disk(mount: Path, size_kib: int) -> Iterator[Path]:
+    """A tmpfs of ``size_kib`` KiB mounted on the empty folder ``mount`` (made here), unmounted afterwards; the
+    test is skipped where mounting is not allowed (needs root)."""
+    mount.mkdir(parents=True)
+    try:
+        done = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={size_kib}k", "tmpfs", str(mount)], capture_output=True, check=False
+        )
+    except OSError:
+        done = None
+    if done is None or done.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    try:
+        yield mount
+    finally:
+        if subprocess.run(["umount", str(mount)], check=False).returncode != 0:
+            subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def fill_disk(mount: Path, leave_kib: int = 0) -> None:
+    """Fill the disk of ``mount`` with a file ``mount/filler`` until ``leave_kib`` KiB are free (or fewer)."""
+    free = os.statvfs(mount).f_bavail * os.statvfs(mount).f_frsize - leave_kib * 1024
+    with open(mount / "filler", "wb") as f:
+        try:
+            f.write(b"\xff" * max(free, 0))
+        except OSError:  # the last block did not fit: the disk is full
+            pass

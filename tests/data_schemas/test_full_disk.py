@@ -7,7 +7,6 @@ The real test mounts a small tmpfs (root only; skipped elsewhere); the simulated
 from __future__ import annotations
 
 import errno
-import subprocess
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from data_schemas.keypoints import KEYPOINTS
 from data_schemas.tables import write_table
 from data_schemas.video import read_video, write_video
 from data_schemas.writes import WriteError
+from tests.conftest import small_disk
 
 RNG = np.random.default_rng(0)
 DISK_KIB, FREE_KIB = 64, 8
@@ -32,22 +32,9 @@ DISK_KIB, FREE_KIB = 64, 8
 @pytest.fixture
 def full_disk(tmp_path: Path) -> Iterator[Path]:
     """A 64 KiB tmpfs holding a filler that leaves 8 KiB free."""
-    mount = tmp_path / "disk"
-    mount.mkdir()
-    try:
-        done = subprocess.run(
-            ["mount", "-t", "tmpfs", "-o", f"size={DISK_KIB}k", "tmpfs", str(mount)], capture_output=True, check=False
-        )
-    except OSError:
-        done = None
-    if done is None or done.returncode != 0:
-        pytest.skip("cannot mount a tmpfs here (needs root)")
-    try:
+    with small_disk(tmp_path / "disk", DISK_KIB) as mount:
         (mount / "filler").write_bytes(b"\xff" * ((DISK_KIB - FREE_KIB) * 1024))
         yield mount
-    finally:
-        if subprocess.run(["umount", str(mount)], check=False).returncode != 0:
-            subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
 def _noise(*shape: int) -> np.ndarray:
