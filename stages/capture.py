@@ -74,14 +74,34 @@ def capture_sources(cfg: DictConfig, subject: str) -> SourceFiles:
 
 
 def capture_checks(cfg: DictConfig) -> list[str]:
-    """What a folder capture cannot be imported with, found before any stage runs: sequence folders and camera
-    names that cannot name artifact paths (``stages.capture_folder.name_problems``)."""
+    """What the capture cannot be made or imported with, found before any stage runs: for the synthetic generator
+    a subject, scene or appearance it does not know; for a folder capture, sequence folders and camera names that
+    cannot name artifact paths (``stages.capture_folder.name_problems``)."""
     dataset = cfg.dataset
+    if dataset.get("name") == "synthetic":
+        return _synthetic_problems(cfg)
     if dataset.get("name") != "folder" or not dataset.get("root"):
         return []
     from stages.capture_folder import name_problems  # COLMAP, nerfstudio: folder captures only
 
     return name_problems(Path(str(dataset.root)) / str(cfg.subject))
+
+
+def _synthetic_problems(cfg: DictConfig) -> list[str]:
+    """``subject``, ``dataset.scene`` and ``dataset.appearance`` values the generator does not know, one line each."""
+    from avatar.synthetic.capture import APPEARANCES, SCENES, SUBJECTS
+
+    subjects = tuple(dict.fromkeys((*cfg.dataset.get("subjects", ()), *SUBJECTS)))
+    problems = [] if cfg.subject in subjects else [_choice_problem("subject", cfg.subject, subjects)]
+    for key, known in (("scene", SCENES), ("appearance", APPEARANCES)):
+        value = cfg.dataset.get(key)
+        if value is not None and value not in known:
+            problems.append(_choice_problem(f"dataset.{key}", value, known))
+    return problems
+
+
+def _choice_problem(key: str, value: object, known: tuple[str, ...]) -> str:
+    return f"{key}={value}: not in the synthetic dataset; choose one of {', '.join(known)}"
 
 
 def _files_below(folder: Path) -> tuple[Path, ...]:
@@ -139,13 +159,9 @@ def _generate_synthetic(ctx: StageContext) -> CaptureIndex:
     from avatar.synthetic import SyntheticConfig
 
     q, conf = ctx.cfg.quality, ctx.cfg.stage.capture
-    from avatar.synthetic.capture import SUBJECTS
-
-    if ctx.subject not in (*ctx.cfg.dataset.subjects, *SUBJECTS):
-        raise SchemaError(
-            f"subject={ctx.subject!r} is not in the synthetic dataset; "
-            f"choose one of {list(dict.fromkeys((*ctx.cfg.dataset.subjects, *SUBJECTS)))}"
-        )
+    problems = _synthetic_problems(ctx.cfg)  # checked before any stage ran; again for a caller of the stage alone
+    if problems:
+        raise SchemaError("; ".join(problems))
     frames_per_sequence = {"train": q.num_frames_train, "test": q.num_frames_test}
     # name -> (script, performer): the two sequences, and with stage.capture.cross_reenactment this identity
     # performing every other subject's held-out motion (the ground truth of cross-actor reenactment); every

@@ -19,6 +19,12 @@ from tests.conftest import TOY_OVERRIDES, cli_command, cli_env, compose_cfg
 
 #: (overrides, the one line that refuses them)
 BAD = [
+    (
+        ["dataset.appearance=nosuch"],
+        "dataset.appearance=nosuch: not in the synthetic dataset; choose one of full,",
+    ),
+    (["dataset.scene=nosuch"], "dataset.scene=nosuch: not in the synthetic dataset; choose one of interaction,"),
+    (["subject=synth_z"], "subject=synth_z: not in the synthetic dataset; choose one of synth_a, synth_b, synth_c"),
     (["reenact.placement=nosuch"], "reenact.placement=nosuch: choose one of contact, scaled"),
     (["stage.reenact.cameras=[cam00,cam08]"], "stage.reenact.cameras=['cam00', 'cam08']: ['cam08'] not among"),
     (["stage.compare.methods=[interactavatar,nosuch]"], "['nosuch'] are not methods; choose among ['gaussian_avatars'"),
