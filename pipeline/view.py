@@ -53,7 +53,10 @@ class FolderHandler(BaseHTTPRequestHandler):
         file = self.open_requested()
         if file is not None:
             with file:
-                shutil.copyfileobj(file, self.wfile)
+                try:
+                    shutil.copyfileobj(file, self.wfile)
+                except ConnectionError:  # the browser cancelled the load (a new frame asked for): nothing to report
+                    self.close_connection = True
 
     def do_HEAD(self) -> None:
         file = self.open_requested()
