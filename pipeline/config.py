@@ -13,6 +13,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hydra._internal.config_repository import ConfigRepository
+from hydra._internal.config_search_path_impl import ConfigSearchPathImpl
+from hydra.core.hydra_config import HydraConfig
+from hydra.core.plugins import Plugins
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
@@ -33,8 +37,15 @@ class ConfigError(ValueError):
 
 
 def group_options(group: str) -> list[str]:
-    """The options of the config group ``group`` (``conf/<group>/<option>.yaml``), e.g. the methods."""
-    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+    """The options of the config group ``group``, e.g. the methods: ``conf/<group>/<option>.yaml`` and, inside a
+    Hydra run, those of the folders and packages on its ``hydra.searchpath`` (a method defined by one YAML file
+    of the user's)."""
+    Plugins.instance()  # registers Hydra's config sources (file://, pkg://) where no Hydra app has yet
+    search_path = ConfigSearchPathImpl()
+    search_path.append("main", f"file://{CONF_DIR}")
+    for extra in HydraConfig.get().searchpath if HydraConfig.initialized() else ():
+        search_path.append("searchpath", str(extra))
+    return sorted(ConfigRepository(config_search_path=search_path).get_group_options(group))
 
 
 @dataclass

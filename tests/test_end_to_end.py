@@ -154,7 +154,8 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
     bad = run_cli(
         f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact", f"reenact.driver={driver}"
     )
-    assert bad.returncode == 1 and str(driver) in bad.stderr and "contains NaN" in bad.stderr, bad.stderr
+    # refused with the config, before any stage runs
+    assert bad.returncode == 2 and str(driver) in bad.stderr and "contains NaN" in bad.stderr, bad.stderr
     assert json.loads((stage_dir(subject, "reenact") / "_manifest.json").read_text()) == manifest
     restored = run_cli(f"paths.outputs={out}", "quality=smoke", "run.progress=false", "run.only=reenact")
     assert restored.returncode == 0, restored.stderr[-3000:]

@@ -149,3 +149,18 @@ def test_no_setting_documents_a_meaning_for_negative_values() -> None:
         if "#" in line and negative.search(line.split("#", 1)[1])
     ]
     assert not claims, claims
+
+
+def test_a_method_on_the_search_path_may_be_compared(tmp_path: Path) -> None:
+    """A method defined by one YAML file of the user's (``hydra.searchpath``) is a method to the comparison's check;
+    a name no file defines is still refused."""
+    from tests.conftest import run_cli
+    from tests.test_end_to_end import EIGHTH_METHOD
+
+    (tmp_path / "conf" / "method").mkdir(parents=True)
+    (tmp_path / "conf" / "method" / "eighth.yaml").write_text(EIGHTH_METHOD)
+    common = [f"paths.outputs={tmp_path / 'out'}", "run.dry=true", f"hydra.searchpath=[file://{tmp_path / 'conf'}]"]
+    listed = run_cli(*common, "stage.compare.methods=[interactavatar,eighth]")
+    assert listed.returncode == 0, listed.stderr
+    unknown = run_cli(*common, "stage.compare.methods=[interactavatar,ninth]")
+    assert unknown.returncode == 2 and "['ninth'] are not methods" in unknown.stderr, unknown.stderr
