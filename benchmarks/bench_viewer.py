@@ -1,6 +1,7 @@
-"""The browser viewer (stage ``viewer``) of a finished run: its data's size and quantisation error, how close the page's
-frames are to the project's own renders, and its frame time in headless Chromium (SwiftShader: a software renderer,
-so a floor, not a GPU's figure).
+"""The browser viewer (stage ``viewer``) of a finished run: data size, fidelity to the project's renders, frame time.
+
+Its data's size and quantisation error, how close the page's frames are to the project's own renders, and its frame
+time in headless Chromium (SwiftShader: a software renderer, so a floor, not a GPU's figure).
 
 Reads ``methods/<method>/viewer/`` of an outputs folder (``make run``, or ``interactavatar quality=draft``). For the
 training and held-out motions, at every capture camera and ``--frames`` frames spread over each motion, it draws the

@@ -106,11 +106,25 @@ def _markdown_table(columns: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines)
 
 
+#: an issue reference in a title, e.g. " (issue 33)" or " (issue 35, part 3)": the project's history, which the
+#: user's pages leave to docs/notes/ (tests/test_docs.py keeps them out)
+_ISSUE_REFERENCE = re.compile(r"\s*\(issues? #?\d+[^)]*\)")
+
+
+def _title(text: str) -> str:
+    """``text`` as a title: without issue references and without a final full stop."""
+    return _ISSUE_REFERENCE.sub("", text).strip().removesuffix(".")
+
+
 def _purpose(name: str) -> str:
-    """The first line of ``benchmarks/<name>.py``'s docstring."""
+    """The first sentence of ``benchmarks/<name>.py``'s docstring (its first paragraph up to the first full stop,
+    so a summary that runs over two lines is not cut mid-sentence), as a title."""
     source = ROOT / "benchmarks" / f"{name}.py"
     doc = ast.get_docstring(ast.parse(source.read_text())) if source.is_file() else None
-    return doc.splitlines()[0] if doc else name
+    if not doc:
+        return name
+    paragraph = " ".join(doc.split("\n\n", 1)[0].split())
+    return _title(re.split(r"(?<=\.)\s", paragraph, maxsplit=1)[0])
 
 
 def log_page(data: dict) -> str:
@@ -164,7 +178,7 @@ def results_pages() -> dict[Path, str]:
         "",
     ]
     titles = {p: text.split("\n\n", 1)[1].splitlines()[0].lstrip("# ").strip() for p, text in pages.items()}
-    lines += [f"- [{p.stem}]({p.name}): {titles[p].removeprefix(p.stem + ':').strip()}" for p in sorted(pages)]
+    lines += [f"- [{p.stem}]({p.name}): {_title(titles[p].removeprefix(p.stem + ':'))}" for p in sorted(pages)]
     pages[DOCS_RESULTS / "index.md"] = "\n".join(lines) + "\n"
     return pages
 
