@@ -75,16 +75,26 @@ def capture_sources(cfg: DictConfig, subject: str) -> SourceFiles:
 
 def capture_checks(cfg: DictConfig) -> list[str]:
     """What the capture cannot be made or imported with, found before any stage runs: for the synthetic generator
-    a subject, scene or appearance it does not know; for a folder capture, sequence folders and camera names that
-    cannot name artifact paths (``stages.capture_folder.name_problems``)."""
+    a subject, scene or appearance it does not know; for a capture on disk, a subject folder that is not there and,
+    for a folder capture, sequence folders and camera names that cannot name artifact paths
+    (``stages.capture_folder.name_problems``)."""
     dataset = cfg.dataset
     if dataset.get("name") == "synthetic":
         return _synthetic_problems(cfg)
-    if dataset.get("name") != "folder" or not dataset.get("root"):
+    if not dataset.get("root"):  # unset: the config check says so
         return []
-    from stages.capture_folder import name_problems  # COLMAP, nerfstudio: folder captures only
+    if dataset.get("name") == "decaf":
+        from stages.capture_decaf import decaf_subject_problem  # FLAME, torch: DECAF captures only
 
-    return name_problems(Path(str(dataset.root)) / str(cfg.subject))
+        problem = decaf_subject_problem(Path(str(dataset.root)), str(cfg.subject))
+        return [] if problem is None else [problem]
+    if dataset.get("name") != "folder":
+        return []
+    from stages.capture_folder import name_problems, subject_folder_problem  # COLMAP, nerfstudio: folder only
+
+    src = Path(str(dataset.root)) / str(cfg.subject)
+    problem = subject_folder_problem(src, str(cfg.subject))
+    return name_problems(src) if problem is None else [problem]
 
 
 def _synthetic_problems(cfg: DictConfig) -> list[str]:

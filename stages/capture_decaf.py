@@ -67,6 +67,18 @@ class _Models:
     hand: TemplateModel | None
 
 
+def decaf_subject_problem(root: Path, subject: str) -> str | None:
+    """Why the DECAF release at ``root`` has no ``subject`` to import (its ``train/videos/<subject>`` folder is
+    missing), naming the subjects it has; None when it has."""
+    if (root / "train" / "videos" / subject).is_dir():
+        return None
+    on_disk = sorted(p.name for p in (root / "train" / "videos").glob("*") if p.is_dir())
+    return (
+        f"{root / 'train' / 'videos' / subject}: missing; set dataset.root to the unpacked "
+        f"DecafDataset folder and subject to one of {on_disk or 'its subjects'}"
+    )
+
+
 def import_decaf(dataset: DictConfig, subject: str, out: Path, default_frame_rate: float) -> CaptureIndex:
     """Validate and import ``subject`` of the DECAF release at ``dataset.root`` into ``out``."""
     root = Path(dataset.root)
@@ -74,12 +86,9 @@ def import_decaf(dataset: DictConfig, subject: str, out: Path, default_frame_rat
         raise SchemaError(f"subject={subject!r} is not in dataset.subjects {list(dataset.subjects)}")
     if dataset.hand_keypoint_order not in HAND_ORDERS:
         raise SchemaError(f"dataset.hand_keypoint_order={dataset.hand_keypoint_order!r}: choose one of {HAND_ORDERS}")
-    if not (root / "train" / "videos" / subject).is_dir():
-        on_disk = sorted(p.name for p in (root / "train" / "videos").glob("*") if p.is_dir())
-        raise SchemaError(
-            f"{root / 'train' / 'videos' / subject}: missing; set dataset.root to the unpacked "
-            f"DecafDataset folder and subject to one of {on_disk or 'its subjects'}"
-        )
+    problem = decaf_subject_problem(root, subject)
+    if problem is not None:
+        raise SchemaError(problem)
     scans = {
         mode: scan_sequence(root, mode, subject)
         for mode in MODES

@@ -94,6 +94,13 @@ def _is_sequence(path: Path) -> bool:
     return (path / "videos").is_dir() or (path / "images").is_dir()
 
 
+def subject_folder_problem(src: Path, subject: str) -> str | None:
+    """Why the subject folder ``src`` (``<dataset.root>/<subject>``) cannot be imported because it is not there."""
+    if src.is_dir():
+        return None
+    return f"{src}: capture folder missing; set dataset.root so that <root>/{subject} exists"
+
+
 def name_problems(src: Path) -> list[str]:
     """The sequence folders and camera names (video stems, image folders) of the capture folder ``src`` that
     cannot name artifact paths (:mod:`data_schemas.names`), one line each naming the file and the fix; read from
@@ -117,8 +124,9 @@ def name_problems(src: Path) -> list[str]:
 def import_folder(dataset: DictConfig, subject: str, out: Path, default_frame_rate: float) -> CaptureIndex:
     """Validate ``<dataset.root>/<subject>`` and bring it into ``out`` (copies, or undistorted re-encodes)."""
     src = Path(dataset.root) / subject
-    if not src.is_dir():
-        raise SchemaError(f"{src}: capture folder missing; set dataset.root so that <root>/{subject} exists")
+    problem = subject_folder_problem(src, subject)
+    if problem is not None:
+        raise SchemaError(problem)
     if not any(src.iterdir()):
         raise SchemaError(
             f"{src}: capture folder is empty; put {PARQUET_HELP} and one video per camera in "

@@ -24,6 +24,7 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import read_table
 from data_schemas.video import read_video, write_video
 from pipeline.cli import run_app
+from pipeline.config import ConfigError
 from pipeline.runner import StageFailed
 from tests.conftest import compose_cfg
 
@@ -407,9 +408,11 @@ def test_keypoints_of_the_wrong_shape(tmp_path):
     _expect_capture_error(tmp_path, "head_keys/S1/100.npy: shape (3, 51, 2), expected (3, 68, 2 or more)")
 
 
-def test_missing_subject_lists_those_on_disk(tmp_path):
+def test_missing_subject_lists_those_on_disk_before_any_stage(tmp_path):
     make_decaf(tmp_path / "decaf", subject="S3")
-    _expect_capture_error(
-        tmp_path,
-        "train/videos/S1: missing; set dataset.root to the unpacked DecafDataset folder and subject to one of ['S3']",
+    with pytest.raises(ConfigError) as info:
+        run_app(_cfg(tmp_path, "run.dry=true"))
+    assert (
+        "train/videos/S1: missing; set dataset.root to the unpacked DecafDataset folder and subject to one of ['S3']"
+        in str(info.value)
     )

@@ -19,6 +19,7 @@ from data_schemas.images import read_png, write_png
 from data_schemas.tables import read_table
 from data_schemas.video import read_video, write_video
 from pipeline.cli import run_app
+from pipeline.config import ConfigError
 from pipeline.runner import StageFailed
 from tests.conftest import compose_cfg
 
@@ -136,8 +137,11 @@ def test_empty_mask_is_named(tmp_path):
     assert not (tmp_path / "out" / "alice" / "frames").exists()
 
 
-def test_missing_capture_folder(tmp_path):
-    _expect_capture_error(tmp_path, "capture folder missing; set dataset.root")
+def test_missing_capture_folder_is_refused_before_any_stage(tmp_path):
+    for extra in ([], ["run.dry=true"]):  # a dry run used to plan every stage as "would run"
+        with pytest.raises(ConfigError, match="capture folder missing; set dataset.root"):
+            run_app(_cfg(tmp_path, *extra))
+    assert not (tmp_path / "out" / "alice").exists()
 
 
 def _zero_middle_of_mdat(path: Path) -> None:
