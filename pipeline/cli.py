@@ -11,6 +11,7 @@ Batch (one job per subject, through any Hydra launcher)::
 
 from __future__ import annotations
 
+import shlex
 import shutil
 import sys
 import tempfile
@@ -22,7 +23,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.config import CONF_DIR, ConfigError, fix_command, validate_config
-from pipeline.registry import RegistryError, load_registry
+from pipeline.registry import RegistryError, StageRegistry, load_registry
 from pipeline.runner import Interrupted, MissingUpstream, Runner, StageFailed, StageReport
 from pipeline.summary import metrics_table, stage_table
 from pipeline.workspace import LockTimeout, outputs_problem, run_overrides
@@ -78,10 +79,25 @@ def run_app(cfg: DictConfig) -> list[StageReport]:
     print(metrics_table(reports))
     for line in comparison_fixes(cfg, reports):
         print(line)
+    results = result_lines(runner, registry)
+    if results:
+        print()
+        print("\n".join(results))
+    return reports
+
+
+def result_lines(runner: Runner, registry: StageRegistry) -> list[str]:
+    """Where to look once a run is done: the report's path, and the browser viewer's page with the command that
+    serves it (those the run's stages wrote)."""
+    lines = []
     report_html = runner.artifact_dir("report") / "report.html" if "report" in registry else None
     if report_html is not None and report_html.is_file():
-        print(f"\nreport: {report_html.resolve()}")
-    return reports
+        lines.append(f"report: {report_html.resolve()}")
+    viewer_page = runner.artifact_dir("viewer") / "index.html" if "viewer" in registry else None
+    if viewer_page is not None and viewer_page.is_file():
+        lines.append(f"viewer: {viewer_page.resolve()}")
+        lines.append(f"        or serve it: interactavatar-view {shlex.quote(str(runner.ws.root.resolve()))}")
+    return lines
 
 
 def comparison_fixes(cfg: DictConfig, reports: list[StageReport]) -> list[str]:

@@ -66,9 +66,11 @@ def test_whole_dag_runs_then_is_fully_cached(tmp_path):
         manifest = json.loads((stage_dir(subject, s.name) / "_manifest.json").read_text())
         assert manifest["stage"] == s.name and manifest["outputs"], s.name
         assert f"{log_prefix(s.name)} run" in first.stdout
-    # The metrics table and the report path end the output.
+    # The metrics table, the report's path and the viewer's end the output.
     assert "novel_view_psnr" in first.stdout and "self_reenact_lpips" in first.stdout
     assert f"report: {(stage_dir(subject, 'report') / 'report.html').resolve()}" in first.stdout
+    assert f"viewer: {(stage_dir(subject, 'viewer') / 'index.html').resolve()}" in first.stdout
+    assert f"or serve it: interactavatar-view {subject.resolve()}" in first.stdout
 
     fit = json.loads((subject / "fit" / "fit_report.json").read_text())
     assert fit["source"] == "fitted"  # the avatar stands on meshes fitted to detected keypoints
