@@ -66,3 +66,119 @@ def test_the_documentation_site_builds_strictly(tmp_path):
     )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert (tmp_path / "site" / "reference" / "config-keys" / "index.html").is_file()
+
+
+#: The user's pages: everything under docs/ but the dated notes and the benchmarks' own result pages (each a
+#: result file as its benchmark wrote it, dated and with its commit); the generated config reference and the
+#: results index are the user's and are checked.
+NOTES = REPO / "docs" / "notes"
+RESULT_PAGE_BANNER = "<!-- generated from benchmarks/results/"
+
+#: An issue number: "issue 12", "issue #12", "issues 3 and 4", "the issue-40 settings", "#12" on its own (not an
+#: HTML entity, a URL fragment or a word).
+ISSUE_NUMBER = re.compile(r"\bissues?[ -]#?\d+|(?<![\w&#/])#\d+\b", re.IGNORECASE)
+
+#: Phrases that narrate the project's history rather than say what is true now, each chosen because ordinary
+#: prose about the software has no use for it ("used to" alone is refused only as "used to be": "is used to
+#: compute" is ordinary; "the fix" alone is ordinary in "an error naming the fix", so only "before/since the fix").
+HISTORY_PHRASES = re.compile(
+    r"\b(?:"
+    r"the issue"  # "the issue asked", "the issue's goal": which issue is history; say what is wanted now
+    r"|used to be"
+    r"|no longer"  # "no longer takes the batch down": say what it does
+    r"|(?:was|were|has been|have been) (?:changed|renamed|moved|removed|replaced|reverted)"
+    r"|(?:before|since|until) the (?:fix|change|refactor|move)"
+    r"|the refactor"
+    r"|round \d+"
+    r"|(?:this|that|an earlier|a later|the previous) session"
+    r"|not (?:been )?re-?measured"
+    r"|moved from the README"
+    r"|the (?:previous|earlier) (?:build|version|code)"
+    r"|today's"  # "today's draft": name the setting
+    r")\b",
+    re.IGNORECASE,
+)
+
+
+def user_pages() -> list:
+    pages = []
+    for path in sorted((REPO / "docs").rglob("*.md")):
+        if NOTES in path.parents or path.read_text().startswith(RESULT_PAGE_BANNER):
+            continue
+        pages.append(path)
+    return pages
+
+
+def history_in(text: str) -> list[tuple[int, str]]:
+    """(line number, what matched) for every issue number and history phrase in ``text``."""
+    found = []
+    for number, line in enumerate(text.splitlines(), 1):
+        for pattern in (ISSUE_NUMBER, HISTORY_PHRASES):
+            found += [(number, m.group(0)) for m in pattern.finditer(line)]
+    return found
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "as issue 39 asked",
+        "issue #12",
+        "issues 3 and 4",
+        "the issue-40 settings",
+        "see #17",
+        "The issue's goal is met",
+        "it used to be slower",
+        "a worker no longer takes the batch down",
+        "the default was changed to 500",
+        "as before the fix",
+        "since the refactor",
+        "in round 3",
+        "measured in an earlier session",
+        "not re-measured yet",
+        "at today's draft",
+        "agrees with the previous build",
+    ],
+)
+def test_the_history_rules_catch_history(text):
+    assert history_in(text), text
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "tissue shear: neighbouring displacements alike",
+        "the key is used to compute the digest",
+        "an error naming the fix",
+        "the old artifact or none",
+        "[the report](#reading-the-report) and `.locks/<stage>#<key>.lock`",
+        "&#39; is an apostrophe",
+        "measured with the code of 75d5127 on 2026-12-03",
+        "a stage reruns when its code version changed: 7 -> 8",
+    ],
+)
+def test_the_history_rules_leave_ordinary_prose(text):
+    assert history_in(text) == [], text
+
+
+def test_the_user_pages_leave_history_to_the_notes():
+    """The manual says what the software does and what was measured; issue numbers and the story of the work
+    belong in docs/notes/ (dated), linked from where they matter."""
+    pages = user_pages()
+    assert REPO / "docs" / "index.md" in pages and REPO / "docs" / "results" / "index.md" in pages
+    found = [
+        f"{path.relative_to(REPO)}:{line}: {match!r}" for path in pages for line, match in history_in(path.read_text())
+    ]
+    assert found == [], "history in the user's pages (move it to a dated note in docs/notes/):\n" + "\n".join(found)
+
+
+def test_the_stage_lists_name_every_stage_in_order():
+    """`interactavatar --help` and the first-run tutorial list the DAG's stages, in the registry's order."""
+    from stages import REGISTRY
+
+    names = [s.name for s in REGISTRY]
+    help_page = (REPO / "conf" / "hydra" / "help" / "interactavatar.yaml").read_text()
+    listed = re.search(r"DAG of stages: ([a-z, \n]+)\.", help_page)
+    assert listed and [n.strip() for n in listed.group(1).split(",")] == names, "conf/hydra/help/interactavatar.yaml"
+    first_run = (REPO / "docs" / "tutorials" / "first-run.md").read_text()
+    listed = re.search(r"In\s+order: ((?:`[a-z]+`,?\s*)+)\.", first_run)
+    assert listed and re.findall(r"`([a-z]+)`", listed.group(1)) == names, "docs/tutorials/first-run.md"
