@@ -54,6 +54,8 @@ PARTS = ("face", "hand")
 #: crop labels of the parts (data_schemas.frames): 1 face, 2 hand, 3 foreground of unknown part
 PART_LABELS = {"face": 1, "hand": 2}
 UNKNOWN_LABEL = 3
+#: :func:`tracking_outlines`' colours (RGB) of its parameter sets, in order: red, green, blue, yellow
+OUTLINE_COLOURS: tuple[tuple[int, int, int], ...] = ((255, 64, 64), (64, 255, 64), (64, 160, 255), (255, 220, 64))
 #: a part counts as seen in a frame when its label covers at least this many crop pixels in some training view
 MIN_VISIBLE_PIXELS = 4.0
 
@@ -524,10 +526,14 @@ def tracking_outlines(
     head: TemplateModel,
     hand: TemplateModel,
     with_hand: bool = True,
+    colours: Sequence[tuple[int, int, int]] = OUTLINE_COLOURS,
 ) -> np.ndarray:
     """``image`` (S, S, 3) uint8 of one view (intrinsics ``K`` (3, 3), extrinsics ``world_to_cam`` (4, 4)), dimmed,
     with the outline of the face (and hand) mesh that each of ``param_sets`` (params.parquet columns, T rows) poses
-    at ``frame``: the first red, the second green (e.g. before and after a refinement)."""
+    at ``frame``, in the matching RGB of ``colours`` (later sets on top). By default the first red, the second green
+    (e.g. before and after a refinement), then :data:`OUTLINE_COLOURS`' blue and yellow."""
+    if len(colours) < len(param_sets):
+        raise ValueError(f"{len(param_sets)} parameter sets to outline but {len(colours)} colours")
     faces = {
         "face": torch.tensor(np.array(head.faces), dtype=torch.long),
         "hand": torch.tensor(np.array(hand.faces), dtype=torch.long),
@@ -539,7 +545,7 @@ def tracking_outlines(
         if with_hand:
             meshes["hand"] = torch.as_tensor(posed["hand_vertices"][0])
         masks.append(mesh_coverage(meshes, {p: faces[p] for p in meshes}, K, world_to_cam, image.shape[0]).numpy())
-    return outline_overlay(image, masks, [(255, 64, 64), (64, 255, 64)][: len(masks)])
+    return outline_overlay(image, masks, list(colours[: len(masks)]))
 
 
 def outline_overlay(image: np.ndarray, masks: list[np.ndarray], colours: list[tuple[int, int, int]]) -> np.ndarray:
