@@ -5,13 +5,19 @@ from __future__ import annotations
 import base64
 import io
 import json
+import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
+import torch
 
 from avatar.fitting.refine import tracking_outlines
+from avatar.posing import posed_keypoints
+from avatar.templates import TemplateModel
 from avatar.training.frame_params import parameter_movement
 from data_schemas.cameras import Camera, read_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo
@@ -25,9 +31,18 @@ from pipeline import web_escape as esc
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.stage import StageContext, stage
 from pipeline.summary import format_value
-from stages.artifacts import TRAIN_SEQUENCE, contact_frames, contact_source, load_params, load_views, read_params
+from stages.artifacts import (
+    TRAIN_SEQUENCE,
+    contact_frames,
+    contact_source,
+    load_ground_truth_params,
+    load_params,
+    load_views,
+    read_params,
+)
 from stages.dependencies import TEMPLATE_KEYS
 from stages.posing import templates
+from stages.report_figures import SPLIT_NAMES, rig_figure
 from stages.representations import representation_class
 
 UPSTREAM = (
@@ -57,7 +72,7 @@ class ReportConfig:
     inputs=UPSTREAM,
     config_keys=("quality.name", "method.name", "method.label", "stage.report", *TEMPLATE_KEYS),
     outputs=("report.html",),
-    version="17",  # 17: every name escaped (pipeline.web_escape)
+    version="18",  # 18: the rig, the fitted (and true) outlines over a training crop; the contact sheet in rows
     config_schema=ReportConfig,
     per_method=True,
     reads_manifests=True,
@@ -75,6 +90,14 @@ def report(ctx: StageContext) -> None:
     sheet = _contact_sheet(
         frames_dir, seq, [c.camera_id for c in cameras], frame, int(ctx.cfg.stage.report.thumbnail_px)
     )
+    head, hand = templates(ctx.cfg.model)
+    fit_dir = ctx.input_dir("fit")
+    fit_info = json.loads((fit_dir / "fit_report.json").read_text())
+    with_hand = bool(fit_info["sequences"].get(seq, {}).get("hand_fitted", True))  # no placeholder hand drawn
+    fitted = load_params(fit_dir, seq)
+    truth = load_ground_truth_params(cap_dir, seq) if index.sequences[seq].has_ground_truth else None
+    # the first training camera, as load_views orders them (any camera where none trains)
+    first_train = min((c for c in cameras if c.split == "train"), key=lambda c: c.camera_id, default=cameras[0])
     hand_share = float(np.mean(frames_index["hand_visible"]))
     label = str(ctx.cfg.method.label)
     sections = [
@@ -89,9 +112,20 @@ def report(ctx: StageContext) -> None:
         "<h2>Stages</h2>",
         _stages_table(manifests),
         "<h2>Cameras</h2>",
+        _rig_section(cameras, _posed_meshes(fitted, frame, head, hand, with_hand), seq, frame),
         _cameras_table(cameras),
         "<h2>Fitted meshes</h2>",
-        _fit_section(ctx.input_dir("fit")),
+        _fit_section(fit_dir),
+        _outlines_section(
+            frames_dir,
+            frames_index,
+            first_train,
+            (seq, frame, why),
+            fitted,
+            truth,
+            (head, hand, with_hand),
+            str(fit_info["source"]),
+        ),
         _trained_tracking_section(ctx, manifests),
         "<h2>Contact deformation</h2>",
         _pbd_section(ctx.input_dir("pbd")),
@@ -113,7 +147,7 @@ def report(ctx: StageContext) -> None:
             for name, curve in representation_class(str(ctx.cfg.method.representation)).train_logs.items()
         ),
         _validation_section(ctx.input_dir("warmup"), ctx.input_dir("dynamic")),
-        _contact_sheet_section(seq, frame, why, sheet),
+        _contact_sheet_section(seq, frame, why, sheet, cameras),
         _renders_section(label, ctx.input_dir("evaluate") / "grids"),
     ]
     write_bytes(ctx.out_dir / "report.html", _page(sections).encode(), "report")
@@ -124,7 +158,8 @@ def _page(sections: list[str]) -> str:
     return (
         "<!doctype html><meta charset='utf-8'><title>InteractAvatar report</title>"
         "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
-        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}</style>\n" + "\n".join(sections)
+        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}"
+        "img,video{max-width:100%;height:auto}figure{margin:1em 0}</style>\n" + "\n".join(sections)
     )
 
 
@@ -180,10 +215,14 @@ def _cameras_table(cameras: list[Camera]) -> str:
     )
 
 
-def _contact_sheet_section(seq: str, frame: int, why: str, sheet_png: str) -> str:
-    """Every camera's crop of one frame side by side (``sheet_png``: base64 PNG), with what it shows."""
-    return f"<h2>All views, sequence '{esc.text(seq)}', frame {frame} ({esc.text(why)})</h2>" + _png_image(
-        "contact sheet", sheet_png
+def _contact_sheet_section(seq: str, frame: int, why: str, sheet_png: str, cameras: Sequence[Camera] = ()) -> str:
+    """Every camera's crop of one frame in rows (``sheet_png``: base64 PNG of :func:`_contact_sheet`), with what
+    it shows and, given the ``cameras`` in the sheet's order, which tile is which."""
+    order = ", ".join(f"{c.camera_id} ({SPLIT_NAMES.get(c.split, c.split)})" for c in cameras)
+    caption = f"<figcaption>Row by row: {esc.text(order)}.</figcaption>" if order else ""
+    return (
+        f"<h2>All views, sequence '{esc.text(seq)}', frame {frame} ({esc.text(why)})</h2>"
+        f"<figure>{_png_image('contact sheet', sheet_png)}{caption}</figure>"
     )
 
 
@@ -307,6 +346,112 @@ def _contact_paragraph(counts: dict[str, tuple[int, int, str]]) -> str:
     """The paragraph of :func:`_contact_summary` from sequence -> (contact frames, frames, label source)."""
     parts = [f"{seq}: {n} of {total} frames with contact ({source})" for seq, (n, total, source) in counts.items()]
     return f"<p>{esc.text('; '.join(parts))}</p>" if parts else "<p>No contact labels in this capture.</p>"
+
+
+def _posed_meshes(
+    params: Mapping[str, np.ndarray], frame: int, head: TemplateModel, hand: TemplateModel, with_hand: bool
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Part -> ((V, 3) world vertices, (F, 3) triangles) of the face (and hand) that ``params`` pose at ``frame``."""
+    posed = posed_keypoints({k: np.asarray(v)[frame : frame + 1] for k, v in params.items()}, head, hand)
+    meshes = {"face": (np.asarray(posed["face_vertices"][0]), np.asarray(head.faces))}
+    if with_hand:
+        meshes["hand"] = (np.asarray(posed["hand_vertices"][0]), np.asarray(hand.faces))
+    return meshes
+
+
+def _rig_section(cameras: list[Camera], meshes: dict[str, tuple[np.ndarray, np.ndarray]], seq: str, frame: int) -> str:
+    """The rig from above and from the front: the cameras (train and held-out in two colours, with their ids)
+    around the fitted meshes of ``seq``'s ``frame`` (``meshes``: :func:`_posed_meshes`)."""
+    caption = (
+        f"The cameras around the fitted meshes (sequence '{seq}', frame {frame}), in world space: blue the "
+        "training cameras, orange the held-out one(s); each frustum drawn to a quarter of its distance from the "
+        "subject, an id left out where it would cover another."
+    )
+    return (
+        f"<figure>{_png_image('the capture rig', _figure_png(rig_figure(cameras, meshes)))}"
+        f"<figcaption>{esc.text(caption)}</figcaption></figure>"
+    )
+
+
+#: the outline figures are drawn at least this many pixels across: a smaller crop is upscaled first, so that the
+#: one-pixel outlines stay thin and sharp
+OUTLINE_MIN_PX = 256
+#: the outline colours (RGB) of the fitted, the true and the refined-in-training meshes
+FITTED_RGB, TRUE_RGB, REFINED_RGB = (255, 64, 64), (64, 160, 255), (64, 255, 64)
+
+
+def _outlines_image(
+    image: np.ndarray,
+    K: np.ndarray,
+    world_to_cam: np.ndarray,
+    param_sets: Sequence[Mapping[str, np.ndarray]],
+    frame: int,
+    meshes: tuple[TemplateModel, TemplateModel, bool],
+    colours: Sequence[tuple[int, int, int]],
+) -> np.ndarray:
+    """:func:`tracking_outlines` of ``param_sets`` over ``image`` (S, S, 3) uint8 (intrinsics ``K``, pixel centres
+    at integers; extrinsics ``world_to_cam``), upscaled to at least :data:`OUTLINE_MIN_PX` pixels.
+    ``meshes``: (head, hand, with_hand)."""
+    scale = max(1, math.ceil(OUTLINE_MIN_PX / image.shape[0]))
+    K = np.asarray(K, np.float64)
+    if scale > 1:
+        image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+        up = np.array([[scale, 0.0, (scale - 1) / 2], [0.0, scale, (scale - 1) / 2], [0.0, 0.0, 1.0]])
+        K = up @ K
+    head, hand, with_hand = meshes
+    return tracking_outlines(
+        image,
+        torch.from_numpy(K),
+        torch.tensor(np.asarray(world_to_cam, np.float64)),
+        param_sets,
+        frame,
+        head,
+        hand,
+        with_hand,
+        colours,
+    )
+
+
+def _outlines_section(
+    frames_dir: Path,
+    frames_index: Mapping[str, Any],
+    camera: Camera,
+    shown: tuple[str, int, str],
+    fitted: Mapping[str, np.ndarray],
+    truth: Mapping[str, np.ndarray] | None,
+    meshes: tuple[TemplateModel, TemplateModel, bool],
+    source: str,
+) -> str:
+    """The fitted meshes' outlines (red) over ``camera``'s crop (the frames stage's, ``frames_index``: its rows)
+    of ``shown`` = (sequence, frame, why that frame) and, where the capture has ground truth (``truth``), the true
+    meshes' (blue) under them. ``meshes``: (head, hand, with_hand); ``source``: fit_report.json's, where the
+    parameters came from."""
+    (seq, frame, why), camera_id = shown, camera.camera_id
+    rows = [
+        i
+        for i in range(len(frames_index["frame"]))
+        if frames_index["sequence"][i] == seq
+        and frames_index["camera_id"][i] == camera_id
+        and int(frames_index["frame"][i]) == frame
+    ]
+    if not rows:
+        return f"<p>No crop of camera {esc.text(camera_id)} in frame {frame} of '{esc.text(seq)}' to draw on.</p>"
+    image = read_png(rgb_path(frames_dir, seq, camera_id, frame), 3)
+    K = np.asarray(frames_index["K"][rows[0]], np.float64).reshape(3, 3)
+    sets, colours = ([truth, fitted], [TRUE_RGB, FITTED_RGB]) if truth is not None else ([fitted], [FITTED_RGB])
+    figure = _outlines_image(image, K, camera.world_to_cam, sets, frame, meshes, colours)
+    caption = (
+        f"Sequence '{seq}', frame {frame} ({why}), {SPLIT_NAMES.get(camera.split, 'camera')} {camera_id}: the fitted "
+        "meshes' outlines (red)"
+    )
+    if truth is not None:
+        caption += " over the true meshes' outlines (blue, the capture's ground truth)"
+        if source == "ground_truth":
+            caption += "; fit.source=ground_truth, so the two coincide"
+    return (
+        f"<figure>{_png_image('fitted mesh outlines', _image_png(figure))}"
+        f"<figcaption>{esc.text(caption)}.</figcaption></figure>"
+    )
 
 
 def _fit_section(fit_dir: Path) -> str:
@@ -436,8 +581,14 @@ def _trained_tracking_section(ctx: StageContext, manifests: dict[str, dict]) -> 
     ]
     views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), TRAIN_SEQUENCE, "train")
     frame = int(np.argmax(moved["moved_mm"]["face"] + moved["moved_mm"]["hand"]))
-    figure = tracking_outlines(
-        views.images[frame, 0].numpy(), views.K[0], views.world_to_cam[0], [fitted, after], frame, head, hand
+    figure = _outlines_image(
+        views.images[frame, 0].numpy(),
+        views.K[0].numpy(),
+        views.world_to_cam[0].numpy(),
+        [fitted, after],
+        frame,
+        (head, hand, True),
+        [FITTED_RGB, REFINED_RGB],
     )
     return (
         f"<p>Training refined the train motion's parameters with the avatar ({' and '.join(refined)}; "
@@ -742,14 +893,33 @@ def _base64_file(path: Path) -> str:
     return base64.b64encode(path.read_bytes()).decode()
 
 
+#: the contact sheet's rows hold at most this many tiles, and are at most this many pixels wide (a page of 1280
+#: CSS pixels less its margins; the page's CSS shrinks any wider image to fit as well)
+SHEET_COLUMNS, SHEET_MAX_PX = 4, 1200
+
+
 def _contact_sheet(frames_dir: Path, seq: str, camera_ids: list[str], frame: int, px: int) -> str:
-    """Base64 PNG of every camera's crop of ``frame`` of ``seq``, ``px`` square each, side by side."""
+    """Base64 PNG of every camera's crop of ``frame`` of ``seq``, ``px`` square each, in rows (:func:`tile_grid`)."""
     tiles = [
         cv2.resize(read_png(rgb_path(frames_dir, seq, cid, frame), 3), (px, px), interpolation=cv2.INTER_AREA)
         for cid in camera_ids
     ]
-    sheet = np.concatenate(tiles, axis=1)
-    return _image_png(sheet)
+    return _image_png(tile_grid(tiles))
+
+
+def tile_grid(
+    tiles: Sequence[np.ndarray], columns: int = SHEET_COLUMNS, max_px: int = SHEET_MAX_PX, gap: int = 4
+) -> np.ndarray:
+    """(H, W, 3) uint8: ``tiles`` (each (h, w, 3), one size) row by row on white, ``gap`` pixels apart, as many per
+    row as fit ``max_px`` up to ``columns`` (at least one)."""
+    h, w = tiles[0].shape[:2]
+    per_row = max(1, min(columns, len(tiles), (max_px + gap) // (w + gap)))
+    rows = math.ceil(len(tiles) / per_row)
+    grid = np.full((rows * (h + gap) - gap, per_row * (w + gap) - gap, 3), 255, np.uint8)
+    for i, tile in enumerate(tiles):
+        r, c = divmod(i, per_row)
+        grid[r * (h + gap) : r * (h + gap) + h, c * (w + gap) : c * (w + gap) + w] = tile
+    return grid
 
 
 def _image_png(image: np.ndarray) -> str:
