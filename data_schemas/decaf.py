@@ -178,6 +178,13 @@ class DecafSequence:
         return self.folder(KEYPOINT_FOLDERS[part]).is_dir()
 
 
+def ships_keypoints(root: str | Path, subject: str) -> bool:
+    """Whether the DECAF release at ``root`` has keypoint files for ``subject`` (``<mode>/head_keys/<subject>/`` or
+    ``<mode>/right_hand_keys/<subject>/`` of either split): they are optional in the release."""
+    base = Path(root)
+    return any((base / mode / part / subject).is_dir() for mode in MODES for part in ("head_keys", "right_hand_keys"))
+
+
 def camera_key(camera_id: str) -> str:
     """Numeric ids match by value (``84`` is ``084``), others literally."""
     return str(int(camera_id)) if camera_id.isdigit() else camera_id

@@ -20,12 +20,22 @@ from hydra.core.plugins import Plugins
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
+from data_schemas.decaf import ships_keypoints
 from pipeline.registry import RegistryError, StageRegistry
 from pipeline.stage import Stage
 from pipeline.workspace import method_problem, outputs_problem, seed_problem, subject_problem
 
 #: the app's config tree (Hydra's ``config_path``): ``config.yaml`` and one folder per config group
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+
+
+def decaf_detector(root: str | None, subject: str) -> str:
+    """``stage.keypoints.detector``'s default for ``dataset=decaf`` (the resolver ``decaf_detector``):
+    ``provided`` where the release ships keypoint files for ``subject``, else ``mediapipe``."""
+    return "provided" if root and ships_keypoints(root, subject) else "mediapipe"
+
+
+OmegaConf.register_new_resolver("decaf_detector", decaf_detector, replace=True)
 
 
 class ConfigError(ValueError):

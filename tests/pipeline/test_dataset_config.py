@@ -36,9 +36,10 @@ def test_bad_dataset_values_fail_in_the_dry_run_naming_the_key(
 
 
 def test_good_dataset_values_pass(tmp_path: Path) -> None:
+    (tmp_path / "data" / "synth_a").mkdir(parents=True)  # a dry run checks that the capture folder is there
     for overrides in (
         ["dataset.train_cameras=[cam04]"],
-        ["dataset=folder", "dataset.root=/nowhere", "dataset.max_frames=5", "dataset.frame_step=2"],
+        ["dataset=folder", f"dataset.root={tmp_path / 'data'}", "dataset.max_frames=5", "dataset.frame_step=2"],
     ):
         run_app(compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", *overrides]))
 
@@ -65,3 +66,21 @@ def test_a_bad_reenactment_driver_is_one_config_error_in_the_dry_run(tmp_path: P
     with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
         run_app(cfg)
     assert not (tmp_path / "out" / "synth_a" / "capture").exists()
+
+
+def test_each_dataset_defaults_to_the_detectors_its_captures_need(tmp_path: Path) -> None:
+    """The synthetic capture's own keypoints and masks; MediaPipe for a folder of footage; DECAF's shipped keypoints
+    where the release has them for the subject, else MediaPipe. A command-line value still wins."""
+
+    def detectors(*overrides: str) -> tuple[str, str]:
+        cfg = compose_cfg(list(overrides))
+        return str(cfg.stage.frames.segmenter), str(cfg.stage.keypoints.detector)
+
+    assert detectors() == ("key", "ground_truth")
+    assert detectors("dataset=folder", "dataset.root=/data") == ("mediapipe", "mediapipe")
+    assert detectors("dataset=folder", "dataset.root=/data", "stage.frames.segmenter=key") == ("key", "mediapipe")
+    (tmp_path / "test" / "right_hand_keys" / "S1").mkdir(parents=True)
+    decaf = ("dataset=decaf", f"dataset.root={tmp_path}")
+    assert detectors(*decaf, "subject=S1")[1] == "provided"
+    assert detectors(*decaf, "subject=S2")[1] == "mediapipe"
+    assert detectors(*decaf, "subject=S1", "stage.keypoints.detector=mediapipe")[1] == "mediapipe"

@@ -135,7 +135,9 @@ def test_reenact_cameras_of_a_capture_folder_are_read_from_its_listing(tmp_path:
         [*folder, "stage.reenact.cameras=[middle]"], "['middle'] not among the capture's cameras ['left', 'right']"
     )
     assert _problems([*folder, "stage.reenact.cameras=[right]"]) == ()
-    assert _problems([*folder, "subject=other", "stage.reenact.cameras=[middle]"]) == ()  # no folder: the stage says
+    assert _problems([*folder, "subject=other", "stage.reenact.cameras=[middle]"]) == (  # no folder: that alone
+        f"{tmp_path / 'root' / 'other'}: capture folder missing; set dataset.root so that <root>/other exists",
+    )
 
 
 def test_no_setting_documents_a_meaning_for_negative_values() -> None:

@@ -26,7 +26,8 @@ def _numeric_keys(node: object, prefix: str = "") -> list[str]:
 
 def test_every_numeric_setting_refuses_nan_and_negative(tmp_path) -> None:
     """The folder dataset has the most numeric dataset keys; inf takes the same path as nan (not finite)."""
-    base = compose_cfg([f"paths.outputs={tmp_path}", "dataset=folder", "dataset.root=/nowhere", "quality=draft"])
+    (tmp_path / "synth_a").mkdir()  # the capture folder a dry run checks for
+    base = compose_cfg([f"paths.outputs={tmp_path}", "dataset=folder", f"dataset.root={tmp_path}", "quality=draft"])
     registry = load_registry(base.pipeline.stages_module)
     validate_config(base, registry)  # the shipped values pass
     plain = OmegaConf.to_container(

@@ -101,6 +101,7 @@ def _run(tmp_path: Path, *extra: str) -> None:
                 f"paths.outputs={tmp_path / 'out'}",
                 "run.progress=false",
                 "run.until=frames",
+                "stage.frames.segmenter=key",
                 *extra,
             ]
         )

@@ -63,6 +63,7 @@ def _cfg(tmp_path: Path, *extra: str):
             f"paths.outputs={tmp_path / 'out'}",
             "run.progress=false",
             "run.until=frames",
+            "stage.frames.segmenter=key",  # the toy captures' plain background (MediaPipe is dataset=folder's default)
             *extra,
         ]
     )
@@ -390,12 +391,15 @@ def test_crop_padding_past_the_image_is_labelled_unobserved(tmp_path):
         assert fraction == pytest.approx(float((labels == 1).mean()), abs=1e-6)
 
 
-def test_keypoints_of_a_folder_capture_without_a_detector_name_the_keys_to_set(tmp_path):
-    """Issue 36, item 2: the default detector (the synthetic capture's own keypoints) cannot run on footage;
-    the error names the settings that can, and nothing is published."""
+def test_a_folder_capture_defaults_to_the_detectors_real_footage_needs(tmp_path):
+    """Own footage needs no detector flags: dataset=folder finds the person, hand and face with MediaPipe; the
+    synthetic capture's own keypoints (ground_truth) are refused on it with the settings that can run."""
+    cfg = compose_cfg(["dataset=folder", "dataset.root=/data"])
+    assert (cfg.stage.frames.segmenter, cfg.stage.keypoints.detector) == ("mediapipe", "mediapipe")
+    assert compose_cfg([])["stage"]["keypoints"]["detector"] == "ground_truth"  # the synthetic capture's own
     make_capture(tmp_path / "data")
     with pytest.raises(StageFailed) as info:
-        run_app(_cfg(tmp_path, "run.until=keypoints"))
+        run_app(_cfg(tmp_path, "run.until=keypoints", "stage.keypoints.detector=ground_truth"))
     message = str(info.value)
     assert "stage.keypoints.detector=mediapipe" in message and "stage.keypoints.detector=provided" in message
     assert not (tmp_path / "out" / "alice" / "keypoints").exists()
