@@ -15,6 +15,7 @@ from typing import Any
 
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import HydraException
 from hydra.experimental.callback import Callback
@@ -119,6 +120,7 @@ class BatchPreflight(Callback):
         problem = slurm_accounting_problem(config)
         if problem is not None:
             _refuse(problem)
+        HydraConfig.instance().set_config(config)  # the jobs' checks read it (hydra.searchpath: the user's methods)
         problems = batch_problems(config)
         if problems:
             listed = "\n  - ".join(problems)

@@ -166,3 +166,21 @@ def test_a_method_on_the_search_path_may_be_compared(tmp_path: Path) -> None:
     assert listed.returncode == 0, listed.stderr
     unknown = run_cli(*common, "stage.compare.methods=[interactavatar,ninth]")
     assert unknown.returncode == 2 and "['ninth'] are not methods" in unknown.stderr, unknown.stderr
+
+
+def test_a_batch_may_compare_a_method_on_the_search_path(tmp_path: Path) -> None:
+    """The batch's own check of every job (before any is started) knows the user's methods too."""
+    from tests.conftest import run_cli
+    from tests.test_end_to_end import EIGHTH_METHOD
+
+    (tmp_path / "conf" / "method").mkdir(parents=True)
+    (tmp_path / "conf" / "method" / "eighth.yaml").write_text(EIGHTH_METHOD)
+    batch = run_cli(
+        "-m",
+        f"paths.outputs={tmp_path / 'out'}",
+        "run.dry=true",
+        f"hydra.searchpath=[file://{tmp_path / 'conf'}]",
+        "stage.compare.methods=[interactavatar,eighth]",
+        "method=interactavatar,eighth",
+    )
+    assert batch.returncode == 0, batch.stderr
