@@ -74,6 +74,7 @@ QUICK: dict[str, list[list[str]]] = {
     "bench_patch_weight": [
         ["--preset", "smoke", "--weights", "0", "0.03", "--every", "50", "--outputs", "{out}", "--results", "{out}"]
     ],
+    "bench_make_run": [["--results", "{out}"]],
     "bench_reenact": [["--outputs", "{smoke}", "--sizes", "128", "--repeats", "1", "--results", "{out}"]],
     "bench_viewer": [["--outputs", "{smoke}", "--frames", "2", "--play-s", "2", "--results", "{out}"]],
     "bench_refine": [
