@@ -1,0 +1,266 @@
+"""``interactavatar-export`` on a tiny trained model (the DAG up to stage two at 32 px, 4 steps each, and the reenact
+stage driven by a params.parquet file): every file read back with ``plyfile`` as the standard 3DGS layout, each frame
+the Gaussians the pipeline poses for it (evaluate's posing of a motion of the fit, reenact's of a driver file), the
+axis conversions against their closed form, and the errors: one line, no traceback, nothing written."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData
+from scipy.spatial.transform import Rotation
+
+import stages.export_ply
+from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.posing import MeshSequence, posed_meshes
+from avatar.render.gaussians import WorldGaussians
+from avatar.templates import procedural_hand, procedural_head
+from avatar.threads import single_threaded
+from data_schemas.gaussians_ply import SH_C0
+from data_schemas.writes import WriteError
+from pipeline.cli import run_app
+from stages.artifacts import load_face_offsets, load_params, method_params
+from stages.export_ply import main
+from stages.posing import applied_deformation, load_sequence
+from stages.representations import TrainedAvatar, load_trained
+from tests.conftest import REPO, compose_cfg
+
+TINY = [
+    "quality=smoke",
+    "quality.capture_size=32",
+    "quality.image_size=32",
+    "quality.supersample=1",
+    "quality.num_frames_train=3",
+    "quality.num_frames_test=4",  # the hand touches the face in frame 1 of the held-out motion
+    "quality.warmup_steps=4",
+    "quality.dynamic_steps=4",
+    "stage.capture.num_cameras=2",
+    "stage.capture.cross_reenactment=false",
+    "fit.source=ground_truth",
+    "run.progress=false",
+]
+#: the 3DGS reference implementation's vertex properties for degree-0 colours (no f_rest_*), in its order
+LAYOUT = [
+    "x",
+    "y",
+    "z",
+    "nx",
+    "ny",
+    "nz",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "scale_2",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread(one_torch_thread: None) -> None:
+    """The exporter poses on one thread; so do the references here."""
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(the subject folder of a trained tiny model whose reenact stage was driven by a file, that file)."""
+    out = tmp_path_factory.mktemp("export")
+    with single_threaded():
+        run_app(compose_cfg([f"paths.outputs={out}", *TINY, "run.until=dynamic"]))
+        driver = out / "driver" / "params.parquet"
+        driver.parent.mkdir()
+        shutil.copy(out / "synth_a" / "fit" / "test" / "params.parquet", driver)
+        run_app(compose_cfg([f"paths.outputs={out}", *TINY, "run.only=reenact", f"reenact.driver={driver}"]))
+    return out / "synth_a", driver
+
+
+def _dynamic(subject: Path) -> Path:
+    return subject / "methods" / "interactavatar" / "dynamic"
+
+
+def _vertices(path: Path) -> dict[str, np.ndarray]:
+    """The vertex columns of a PLY read with plyfile, after checking it is the standard 3DGS layout."""
+    ply = PlyData.read(str(path))
+    assert not ply.text and ply.byte_order == "<" and [e.name for e in ply.elements] == ["vertex"]
+    vertex = ply["vertex"]
+    assert [p.name for p in vertex.properties] == LAYOUT
+    assert {p.val_dtype for p in vertex.properties} == {"f4"}
+    return {name: np.asarray(vertex[name]) for name in LAYOUT}
+
+
+def _columns(v: dict[str, np.ndarray], prefix: str, n: int) -> np.ndarray:
+    return np.stack([v[f"{prefix}{i}"] for i in range(n)], -1)
+
+
+def _assert_is(v: dict[str, np.ndarray], g: object) -> None:
+    """The file's columns are the posed Gaussians ``g``: the same positions bit for bit, log-scales, logit opacities,
+    the quaternions made unit, degree-0 colours, zero normals."""
+    means, scales, quats, opacities, colors = (
+        getattr(g, k).numpy() for k in ("means", "scales", "quats", "opacities", "colors")
+    )
+    assert len(v["x"]) == len(means)
+    np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], -1), means)
+    np.testing.assert_array_equal(np.stack([v["nx"], v["ny"], v["nz"]], -1), 0)
+    np.testing.assert_allclose(np.exp(_columns(v, "scale_", 3)), scales, rtol=1e-5)
+    np.testing.assert_allclose(1 / (1 + np.exp(-v["opacity"])), opacities.clip(1e-6, 1 - 1e-6), atol=1e-6)
+    rot = _columns(v, "rot_", 4)
+    np.testing.assert_allclose(np.linalg.norm(rot, axis=1), 1, atol=1e-6)
+    np.testing.assert_allclose(rot, quats / np.linalg.norm(quats, axis=1, keepdims=True), atol=1e-6)
+    np.testing.assert_allclose(0.5 + SH_C0 * _columns(v, "f_dc_", 3), colors, atol=1e-6)
+
+
+def _pose(model: TrainedAvatar, meshes: MeshSequence, cond: SequenceConditioning, t: int) -> WorldGaussians:
+    with torch.no_grad():
+        return model.pose(cond, meshes.vertices[t], t)
+
+
+def test_every_frame_of_the_held_out_motion_is_3dgs_posed_as_evaluate_poses_it(trained, tmp_path, capsys) -> None:
+    subject, _ = trained
+    out = tmp_path / "held_out"
+    assert main([str(subject), "--motion", "test", "--out", str(out)]) == 0
+    assert capsys.readouterr().err.count("\n") == 4  # a line per frame
+    assert sorted(p.name for p in out.iterdir()) == [f"{t:05d}.ply" for t in range(4)] + ["export.json"]
+    # evaluate's posing, with the run's own config: the fit's parameters, the pbd stage's contact offsets
+    cfg, fit, dynamic = compose_cfg(TINY), subject / "fit", _dynamic(subject)
+    params = method_params(dynamic, fit, "test")
+    meshes, cond = load_sequence(fit, "test", cfg, pbd_dir=applied_deformation(cfg, subject / "pbd"), params=params)
+    undeformed, _ = load_sequence(fit, "test", cfg, pbd_dir=None, params=params)
+    model = load_trained(dynamic)
+    offsets = load_face_offsets(subject / "pbd", "test", 4, procedural_head().num_vertices)
+    dented = [t for t in range(4) if np.abs(offsets[t]).max() > 1e-4]
+    assert dented, "no contact in the held-out motion: the test would not see the deformation"
+    for t in range(4):
+        v = _vertices(out / f"{t:05d}.ply")
+        _assert_is(v, _pose(model, meshes, cond, t))
+        if t in dented:  # the contact deformation is baked in
+            bare = _pose(model, undeformed, cond, t).means.numpy()
+            assert np.abs(np.stack([v["x"], v["y"], v["z"]], -1) - bare).max() > 1e-4
+
+
+def test_a_training_frame_is_stage_twos_own_ply_and_a_driver_file_is_the_reenactment(trained, tmp_path) -> None:
+    subject, driver = trained
+    assert main([str(subject), "--motion", "train", "--frames", "0", "--out", str(tmp_path / "train"), "--quiet"]) == 0
+    assert main([str(subject), "--motion", str(driver), "--out", str(tmp_path / "driven"), "--quiet"]) == 0
+    pairs = [(tmp_path / "train" / "00000.ply", _dynamic(subject) / "ply" / "train_0.ply")]
+    reenacted = sorted((subject / "methods" / "interactavatar" / "reenact" / "ply").glob("*.ply"))
+    assert [p.name for p in reenacted] == sorted(p.name for p in (tmp_path / "driven").glob("*.ply"))
+    pairs += [(tmp_path / "driven" / p.name, p) for p in reenacted]
+    for exported, pipelines in pairs:
+        ours, theirs = _vertices(exported), _vertices(pipelines)
+        for name in LAYOUT[:13]:  # all but the rotations: the same bytes
+            np.testing.assert_array_equal(ours[name], theirs[name], err_msg=f"{exported.name}: {name}")
+        rot = _columns(theirs, "rot_", 4)
+        np.testing.assert_allclose(_columns(ours, "rot_", 4), rot / np.linalg.norm(rot, axis=1, keepdims=True), 1e-6)
+
+
+def test_the_axes_are_the_closed_form_of_the_fitted_head(trained, tmp_path) -> None:
+    subject, _ = trained
+    files = {}
+    for axes in ("world", "opengl", "opencv"):
+        assert main([str(subject), "--frames", "1", "--axes", axes, "--out", str(tmp_path / axes), "--quiet"]) == 0
+        files[axes] = _vertices(tmp_path / axes / "00001.ply")
+    first = {k: v[:1] for k, v in load_params(subject / "fit", "train").items()}
+    R0 = Rotation.from_rotvec(first["flame_global_orient"][0].astype(np.float64)).as_matrix()
+    head = procedural_head()
+    c0 = posed_meshes(first, head, procedural_hand()).vertices[0, : head.num_vertices].double().numpy().mean(0)
+    world = files["world"]
+    p = np.stack([world["x"], world["y"], world["z"]], -1).astype(np.float64)
+    q = _columns(world, "rot_", 4)
+    for axes, A in (("opengl", R0.T), ("opencv", np.diag([1.0, -1.0, -1.0]) @ R0.T)):
+        v = files[axes]
+        np.testing.assert_allclose(np.stack([v["x"], v["y"], v["z"]], -1), (p - c0) @ A.T, atol=2e-7)
+        file_rotations = Rotation.from_quat(_columns(v, "rot_", 4)[:, [1, 2, 3, 0]]).as_matrix()
+        world_rotations = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
+        np.testing.assert_allclose(file_rotations, A @ world_rotations, atol=1e-5)
+        np.testing.assert_allclose(np.linalg.norm(_columns(v, "rot_", 4), axis=1), 1, atol=1e-6)
+        for name in ("opacity", "scale_0", "scale_1", "scale_2", "f_dc_0", "f_dc_1", "f_dc_2"):
+            np.testing.assert_array_equal(v[name], world[name])
+        info = json.loads((tmp_path / axes / "export.json").read_text())
+        np.testing.assert_allclose(np.asarray(info["world_to_file"])[:3], np.c_[A, -A @ c0], atol=1e-12)
+
+
+def _one_line_error(capsys: pytest.CaptureFixture[str], argv: list[str], expected: str, code: int = 2) -> str:
+    assert main(argv) == code
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if not line.startswith("frame ")]
+    assert len(lines) == 1 and "Traceback" not in err and lines[0].startswith("interactavatar-export: "), err
+    assert expected in lines[0], lines[0]
+    return lines[0]
+
+
+def test_each_mistake_is_one_line_that_names_the_fix_and_writes_nothing(trained, tmp_path, capsys) -> None:
+    subject, _ = trained
+    out = tmp_path / "out"
+    empty = tmp_path / "alice"
+    empty.mkdir()
+    line = _one_line_error(capsys, [str(empty), "--out", str(out)], "no trained model of method 'interactavatar'")
+    assert f"interactavatar paths.outputs={tmp_path} subject=alice method=interactavatar run.until=dynamic" in line
+    line = _one_line_error(capsys, [str(subject), "--seed", "2", "--out", str(out)], "trained here: interactavatar")
+    assert "seed=2 run.until=dynamic" in line
+    _one_line_error(capsys, [str(subject.parent), "--out", str(out)], f"give one, e.g. {subject}")
+    _one_line_error(capsys, [str(subject), "--motion", "tset", "--out", str(out)], "motions (test, train)")
+    _one_line_error(capsys, [str(subject), "--motion", str(tmp_path / "x.parquet"), "--out", str(out)], "no such")
+    _one_line_error(capsys, [str(subject), "--frames", "2-4", "--out", str(out)], "frame 4 out of range; motion 'test'")
+    _one_line_error(capsys, [str(subject), "--frames", "1,x", "--out", str(out)], "frames and ranges such as")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    _one_line_error(capsys, [str(subject), "--out", str(blocker / "ply")], f"{blocker} is not a folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "alice"]
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    _one_line_error(capsys, [str(subject), "--out", str(tmp_path / "mine")], "exists; pass --overwrite")
+    _one_line_error(capsys, [str(subject), "--out", str(tmp_path / "mine"), "--overwrite"], "notes.txt")
+    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
+
+
+@pytest.mark.parametrize("failure", ["full disk", "ctrl-c"])
+def test_a_failed_export_leaves_the_earlier_one_and_no_partial_folder(trained, tmp_path, monkeypatch, capsys, failure):
+    subject, _ = trained
+    out = tmp_path / "clip"
+    assert main([str(subject), "--frames", "0", "--out", str(out), "--quiet"]) == 0
+    before = (out / "00000.ply").read_bytes()
+    original, written = stages.export_ply.write_frame_ply, []
+
+    def failing_write(path: Path, g: WorldGaussians) -> None:  # the second frame fails
+        if written:
+            raise KeyboardInterrupt if failure == "ctrl-c" else WriteError(f"{path}: No space left on device", 28)
+        written.append(path)
+        original(path, g)
+
+    monkeypatch.setattr(stages.export_ply, "write_frame_ply", failing_write)
+    argv = [str(subject), "--frames", "1-3", "--out", str(out), "--overwrite", "--quiet"]
+    if failure == "ctrl-c":
+        _one_line_error(capsys, argv, f"interrupted; nothing written to {out}", code=130)
+    else:
+        _one_line_error(capsys, argv, "No space left on device")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip"]  # no partial folder beside it
+    assert sorted(p.name for p in out.iterdir()) == ["00000.ply", "export.json"]
+    assert (out / "00000.ply").read_bytes() == before
+
+
+def test_the_command_is_installed_and_its_help_states_the_axes_and_the_layout(capsys) -> None:
+    scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts["interactavatar-export"] == "stages.export_ply:main"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    for words in (
+        "y up, the subject facing +z",
+        "(x, y, z) -> (x, -y, -z)",
+        "x y z nx ny nz f_dc_0",
+        "unit quaternion",
+    ):
+        assert words in " ".join(text.split()), words
+    assert "`" not in text
