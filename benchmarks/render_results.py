@@ -7,7 +7,13 @@
 - ``docs/results/<name>.md`` for every ``benchmarks/results/<name>.json`` written by
   ``benchmarks.provenance.ResultLog`` (runs with tables) that has no ``.md`` of its own: every run, newest first,
   with its commit, date, preset, seeds, machine, load and wall time, its tables as Markdown tables;
-- ``docs/results/index.md`` listing them.
+- ``docs/results/index.md`` listing them;
+- from ``benchmarks/results/bench_make_run.json`` (written by ``bench_make_run.py``: what ``make run`` printed, its
+  fit errors and wall time): the README's and ``docs/tutorials/first-run.md``'s printouts of the newest ``smoke``
+  run (between ``<!-- make-run:begin -->`` and ``<!-- make-run:end -->``), first-run.md's fit errors (between
+  ``<!-- make-run-fit:begin -->`` and ``<!-- make-run-fit:end -->``) and ``docs/reference/quality-presets.md``'s
+  ``draft`` time from the newest ``draft`` run (between ``<!-- draft-time:begin -->`` and
+  ``<!-- draft-time:end -->``).
 
 ``python benchmarks/render_results.py`` rewrites them; ``--check`` exits 1 if a committed page differs
 (``tests/test_docs.py`` runs the same comparison).
@@ -20,13 +26,21 @@ import ast
 import json
 import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results" / "bench_seeds.json"
 README = ROOT / "README.md"
 DOCS_RESULTS = ROOT / "docs" / "results"
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+MAKE_RUN = ROOT / "benchmarks" / "results" / "bench_make_run.json"
+FIRST_RUN = ROOT / "docs" / "tutorials" / "first-run.md"
+PRESETS = ROOT / "docs" / "reference" / "quality-presets.md"
+PRINTOUT = ("<!-- make-run:begin -->", "<!-- make-run:end -->")
+FIT_ERRORS = ("<!-- make-run-fit:begin -->", "<!-- make-run-fit:end -->")
+DRAFT_TIME = ("<!-- draft-time:begin -->", "<!-- draft-time:end -->")
 #: the settings the README shows (bench_seeds.py's docstring defines them), and its columns: (split, region, group)
 SETTINGS = ("a", "b", "c", "d")
 COLUMNS = (
@@ -183,10 +197,168 @@ def results_pages() -> dict[Path, str]:
     return pages
 
 
+def between(text: str, markers: tuple[str, str], content: str) -> str:
+    """``text`` with what stands between its ``markers`` (kept) replaced by ``content``."""
+    start, end = text.index(markers[0]) + len(markers[0]), text.index(markers[1])
+    return text[:start] + content + text[end:]
+
+
+def newest(data: dict, preset: str) -> dict | None:
+    """The newest run of ``bench_make_run.json`` at ``preset``, if any."""
+    return next((run for run in reversed(data["runs"]) if run["preset"] == preset), None)
+
+
+def duration(seconds: float) -> str:
+    """``61.4`` -> ``61 s``, ``723`` -> ``12 min 3 s``."""
+    minutes, rest = divmod(round(seconds), 60)
+    return f"{minutes} min {rest} s" if minutes else f"{rest} s"
+
+
+def measured_on(run: dict) -> str:
+    """The machine, its load and the rasterizer of a ``bench_make_run`` run, as words."""
+    m = run["machine"]
+    rasterizer = (
+        "the compiled CPU rasterizer"
+        if run["rasterizer"].startswith("compiled CPU rasterizer ready")
+        else "the torch rasterizer (the compiled one was not built)"
+    )
+    return (
+        f"{m['cores']} cores of an {m['cpu']}, load {m['load'][0]:g} at the start and {m['load_end'][0]:g} at the "
+        f"end, with {rasterizer}; commit `{run['commit']}`, {run['date']}"
+    )
+
+
+def trimmed(lines: list[str], keep: set[int]) -> str:
+    """The lines whose index is in ``keep``, each run of the others written as one ``...``."""
+    out: list[str] = []
+    for i, line in enumerate(lines):
+        if i in keep:
+            out.append(line)
+        elif not out or out[-1] != "...":
+            out.append("...")
+    return "\n".join(out)
+
+
+class Printout:
+    """The parts of ``make run``'s printed summary: line indices of the decision lines, the stage table's header,
+    rule and rows (by stage), the metrics table's header and rows (by (stage, metric)), and the result lines."""
+
+    def __init__(self, stdout: str) -> None:
+        self.lines = stdout.rstrip("\n").split("\n")
+        self.decisions = [i for i, line in enumerate(self.lines) if line.startswith("[")]
+        header = [i for i, line in enumerate(self.lines) if line.startswith("stage ")]
+        self.stage_header, self.metrics_header = header[0], header[1]
+        self.stages = self._rows(self.stage_header, lambda w: w[0])
+        self.metrics = self._rows(self.metrics_header, lambda w: (w[0], w[1]))
+        end = max([*self.metrics.values(), self.metrics_header + 1])
+        self.results = [i for i in range(end + 1, len(self.lines)) if self.lines[i].strip()]
+
+    def _rows(self, header: int, key: Callable[[list[str]], Any]) -> dict[Any, int]:
+        rows, i = {}, header + 2
+        while i < len(self.lines) and self.lines[i].strip():
+            rows[key(self.lines[i].split())] = i
+            i += 1
+        return rows
+
+    def block(self, keep: set[int]) -> str:
+        return trimmed(self.lines, keep)
+
+
+#: the rows of the printout the README shows (the rest is trimmed)
+README_STAGES = ("fit", "dynamic")
+README_METRICS = (("evaluate", "novel_view_psnr"), ("evaluate", "self_reenact_psnr"))
+#: the metrics rows first-run.md shows, beside the whole stage table
+FIRST_RUN_METRICS = (
+    ("fit", "train_mpjpe_hand_mm"),
+    ("fit", "train_mpjpe_face_mm"),
+    ("pbd", "gt_vertex_error_mm"),
+    ("pbd", "zero_offset_error_mm"),
+    ("dynamic", "ms_per_step"),
+    ("evaluate", "novel_view_psnr"),
+    ("evaluate", "novel_view_lpips"),
+    ("evaluate", "self_reenact_psnr"),
+    ("evaluate", "self_reenact_lpips"),
+    ("reenact", "frames_per_second"),
+    ("viewer", "mb_per_100_frames"),
+)
+
+
+def source(arguments: str = "") -> str:
+    """Where a make-run figure comes from, as words."""
+    return f"`benchmarks/results/bench_make_run.json`, written by `python benchmarks/bench_make_run.py{arguments}`"
+
+
+def readme_printout(run: dict) -> str:
+    """The README's block: the newest smoke run's printout, trimmed to a few lines of each part."""
+    p = Printout(run["stdout"])
+    keep = {p.decisions[0], p.decisions[-1], p.stage_header, p.stage_header + 1, p.metrics_header, *p.results}
+    keep |= {p.stages[s] for s in README_STAGES if s in p.stages}
+    keep |= {p.metrics[k] for k in README_METRICS if k in p.metrics}
+    keep |= {i for i in range(len(p.lines)) if not p.lines[i].strip()}
+    return (
+        f"\nWhat `make run` (`quality=smoke`) printed on fresh outputs ({duration(run['app_wall_s'])} in all on "
+        f"{measured_on(run)}; {source()}), trimmed:\n\n```\n{p.block(keep)}\n```\n"
+    )
+
+
+def first_run_printout(run: dict) -> str:
+    """first-run.md's block: the newest smoke run's stage table whole, some metrics, the result lines."""
+    p = Printout(run["stdout"])
+    keep = {p.stage_header, p.stage_header + 1, *p.stages.values(), p.metrics_header, *p.results}
+    keep |= {p.metrics[k] for k in FIRST_RUN_METRICS if k in p.metrics}
+    keep |= {i for i in range(len(p.lines)) if not p.lines[i].strip()}
+    end = trimmed(p.lines[p.stage_header :], {i - p.stage_header for i in keep})
+    return (
+        f"\nWhat `make run` prints at the end (`quality=smoke` on fresh outputs: {duration(run['app_wall_s'])} in "
+        f"all on {measured_on(run)}; {source()}), trimmed where it says `...`:\n\n```\n{end}\n```\n"
+    )
+
+
+def fit_errors(run: dict) -> str:
+    """first-run.md's fit errors: the training frames' hand MPJPE and face landmark error of the newest smoke run."""
+    train = run["fit"]["train"]
+    return (
+        f"hand MPJPE {train['hand_mpjpe_mm']:.2f} mm and face landmarks {train['face_landmarks_mm']:.2f} mm on "
+        f"`make run`'s training frames"
+    )
+
+
+def draft_time(run: dict | None) -> str:
+    """quality-presets.md's paragraph on ``draft``'s wall time, from its newest run."""
+    if run is None:
+        return (
+            "\n`draft`'s wall time is not in `benchmarks/results/bench_make_run.json` yet: "
+            "`python benchmarks/bench_make_run.py --quality draft` measures it.\n"
+        )
+    wall = {r["stage"]: r["wall_s"] for r in run["reports"]}
+    parts = (("dynamic", "stage two"), ("warmup", "the warm-up"), ("fit", "the fit"), ("capture", "the capture"))
+    stages = ", ".join(f"{what} (`{s}`) {duration(wall[s])}" for s, what in parts if s in wall)
+    return (
+        f'\n`make run ARGS="quality=draft"` (the default method, InteractAvatar; every stage on fresh outputs, the '
+        f"fit to the keypoints included) took {duration(run['app_wall_s'])} on {measured_on(run)}: {stages} "
+        f"({source(' --quality draft')}).\n"
+    )
+
+
+def make_run_pages() -> dict[Path, str]:
+    """The README's, first-run.md's and quality-presets.md's text rendered from bench_make_run.json."""
+    data = json.loads(MAKE_RUN.read_text())
+    smoke = newest(data, "smoke")
+    if smoke is None:
+        raise SystemExit(f"{MAKE_RUN} has no smoke run: run `python benchmarks/bench_make_run.py`")
+    first_run = between(FIRST_RUN.read_text(), PRINTOUT, first_run_printout(smoke))
+    return {
+        README: between(README.read_text(), PRINTOUT, readme_printout(smoke)),
+        FIRST_RUN: between(first_run, FIT_ERRORS, fit_errors(smoke)),
+        PRESETS: between(PRESETS.read_text(), DRAFT_TIME, draft_time(newest(data, "draft"))),
+    }
+
+
 def rendered() -> dict[Path, str]:
     """Every generated file's path and the content it must have."""
-    readme = README.read_text()
-    return {README: replace_block(readme, render(json.loads(RESULTS.read_text()))), **results_pages()}
+    pages = make_run_pages()
+    pages[README] = replace_block(pages[README], render(json.loads(RESULTS.read_text())))
+    return {**pages, **results_pages()}
 
 
 def main() -> None:

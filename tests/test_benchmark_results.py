@@ -69,3 +69,44 @@ def test_make_bench_sends_every_result_file_to_its_scratch_folder() -> None:
         source = (REPO / "benchmarks" / f"{name}.py").read_text()
         if "add_results_argument(parser)" in source or '"--results"' in source:
             assert any("--results" in command for command in commands), name
+
+
+def test_the_make_run_printout_on_file_is_what_the_summary_formatter_prints_for_its_reports() -> None:
+    """The README and first-run.md show the newest smoke run of bench_make_run.json: its stage and metrics tables
+    must be what pipeline.summary's formatters print today for the stage reports stored beside them, so a change of
+    the formatter (or of the reports) without a new `python benchmarks/bench_make_run.py` fails here."""
+    from benchmarks.bench_make_run import DECISION, printed_tables
+    from benchmarks.render_results import MAKE_RUN, newest
+
+    run = newest(json.loads(MAKE_RUN.read_text()), "smoke")
+    assert run is not None, "bench_make_run.json has no smoke run"
+    assert printed_tables(run["reports"]) in run["stdout"]
+    decided = [m for m in map(DECISION.match, run["stdout"].splitlines()) if m]
+    assert [(m["stage"], m["action"], m["reason"]) for m in decided] == [
+        (r["stage"], r["action"], r["reason"]) for r in run["reports"]
+    ]
+    fit = next(r for r in run["reports"] if r["stage"] == "fit")["metrics"]
+    assert set(run["fit"]) >= {"train", "test"}
+    for sequence, errors in run["fit"].items():  # fit_report.json's errors are the fit stage's metrics
+        assert errors == {
+            "hand_mpjpe_mm": fit[f"{sequence}_mpjpe_hand_mm"],
+            "face_landmarks_mm": fit[f"{sequence}_mpjpe_face_mm"],
+        }
+    assert sum(r["wall_s"] for r in run["reports"]) <= run["app_wall_s"] <= run["wall_s"]
+    for key in ("commit", "date", "machine", "preset", "wall_s"):
+        assert run[key], key
+
+
+def test_the_printouts_in_the_readme_and_first_run_are_rendered_from_the_result_file() -> None:
+    from benchmarks.render_results import FIRST_RUN, PRESETS, README, make_run_pages, trimmed
+
+    assert trimmed(["a", "b", "c", "d", "e"], {0, 3}) == "a\n...\nd\n..."
+    pages = make_run_pages()
+    for path in (README, FIRST_RUN, PRESETS):
+        assert pages[path] == path.read_text(), f"{path.name} is stale: run `python benchmarks/render_results.py`"
+    readme, first_run = pages[README], pages[FIRST_RUN]
+    for text in (readme, first_run):
+        assert text.count("<!-- make-run:begin -->") == 1 and "evaluate   novel_view_psnr" in text
+        assert "report: /…/outputs/synth_a/methods/interactavatar/report/report.html" in text
+    assert "viewer     run" in first_run and "hand MPJPE" in first_run
+    assert "<!-- draft-time:begin -->" in pages[PRESETS]
