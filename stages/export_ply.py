@@ -35,7 +35,6 @@ from avatar.posing import MeshSequence, posed_meshes
 from avatar.reenact import PLACEMENTS
 from avatar.render.gaussians import WorldGaussians
 from avatar.templates.lbs import batch_rodrigues
-from avatar.threads import single_threaded
 from data_schemas.tables import SchemaError
 from data_schemas.writes import write_json
 from pipeline.manifest import MANIFEST_NAME
@@ -68,7 +67,7 @@ axes (--axes), all in metres:
           synthetic capture y up, the subject facing +z, x to the subject's left; for a folder
           capture the frame of its calibration (its cameras.parquet, COLMAP model or nerfstudio
           transforms.json), whose up is the calibration's (a COLMAP model's world is often its
-          first camera's frame: y down). The positions the pipeline renders, bit for bit.
+          first camera's frame: y down). The positions the pipeline renders.
   opengl  y up (three.js, Spark): rotated and moved so that the head of the training motion's
           first frame, as fitted, is upright at the origin: x the subject's left, y up, z the
           way the face looks; a camera on +z looking down -z sees the face. A point p of the
@@ -287,15 +286,13 @@ def export_motion(
     chosen = parse_frames(frames, num_frames, motion)
     rotation, centre = axes_frame(run, axes)
     try:
-        with single_threaded():  # small tensor operations: threads only slow them down on a busy machine
-            meshes, cond = posed_motion(run, motion, params)
+        meshes, cond = posed_motion(run, motion, params)
         model = load_trained(run.dynamic_dir)
     except SchemaError as exc:
         raise ExportError(str(exc)) from exc
     partial = _partial_folder(out)
     try:
-        with single_threaded():
-            names = _write_frames(partial, model, meshes, cond, chosen, rotation, centre, progress)
+        names = _write_frames(partial, model, meshes, cond, chosen, rotation, centre, progress)
         world_to_file = np.eye(4)
         world_to_file[:3, :3], world_to_file[:3, 3] = rotation, -rotation @ centre
         write_json(
@@ -402,7 +399,7 @@ def export_frame(
     run = trained_run(subject_dir, method, seed)
     params = motion_params(run, sequence)
     (t,) = parse_frames(str(frame), len(params["flame_global_orient"]), sequence)
-    with torch.no_grad(), single_threaded():
+    with torch.no_grad():
         meshes, cond = posed_motion(run, sequence, params)
         g = load_trained(run.dynamic_dir).pose(cond, meshes.vertices[t], t)
         write_frame_ply(out, in_axes(g, np.eye(3), np.zeros(3)))

@@ -69,7 +69,8 @@ LAYOUT = [
 
 @pytest.fixture(autouse=True)
 def _one_thread(one_torch_thread: None) -> None:
-    """The exporter poses on one thread; so do the references here."""
+    """The exporter poses with torch's threads as it finds them, and the results change in the last bit with their
+    number: the fixture's stages, the exporter and the references here all run on one thread."""
 
 
 @pytest.fixture(scope="module")
