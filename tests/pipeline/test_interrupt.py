@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 
 from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli, wait_for
@@ -18,19 +19,8 @@ def test_ctrl_c_during_a_stage_is_one_line_and_keeps_the_previous_artifact(tmp_p
     assert run_cli(*TOY, f"paths.outputs={out}").returncode == 0
     before = (out / "synth_a" / "b" / "b.txt").read_text()
     args = [*TOY, f"paths.outputs={out}", "run.force=true", "run.only=b", "++stage.b.sleep_s=60"]
-    proc = subprocess.Popen(
-        cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
-    try:
-        wait_for(lambda: any((out / "synth_a" / ".tmp").glob("b-*/parts/half.txt")))
-        proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
-    assert proc.returncode == 130, stderr
-    assert "Traceback" not in stderr
-    lines = [line for line in stderr.splitlines() if line.strip()]
-    assert len(lines) == 1, stderr
+    lines = _interrupted(args, lambda pid: any((out / "synth_a" / ".tmp").glob("b-*/parts/half.txt")))
+    assert len(lines) == 1, lines
     assert "interrupted during stage 'b'" in lines[0]
     assert "its previous artifact, if any, is kept" in lines[0]
     assert "the same command starts it over" in lines[0]
@@ -46,24 +36,12 @@ def test_ctrl_c_while_waiting_for_a_lock_is_one_line(tmp_path) -> None:
 
     out = tmp_path / "out"
     assert run_cli(*TOY, f"paths.outputs={out}").returncode == 0
-    with flock(out / "synth_a" / ".locks" / "a.lock", shared=True, timeout_s=0.0, what="a reader of stage a"):
-        proc = subprocess.Popen(
-            cli_command(*TOY, f"paths.outputs={out}", "run.only=a", "run.force=true"),
-            cwd=REPO,
-            env=cli_env(),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
+    lock = out / "synth_a" / ".locks" / "a.lock"
+    with flock(lock, shared=True, timeout_s=0.0, what="a reader of stage a"):
+        lines = _interrupted(
+            [*TOY, f"paths.outputs={out}", "run.only=a", "run.force=true"], lambda pid: _has_open(pid, lock)
         )
-        try:
-            wait_for(lambda: _has_open(proc.pid, out / "synth_a" / ".locks" / "a.lock"))
-            proc.send_signal(signal.SIGINT)
-            _, stderr = proc.communicate(timeout=60)
-        finally:
-            proc.kill()
-    assert proc.returncode == 130, stderr
-    assert "Traceback" not in stderr
-    assert [line for line in stderr.splitlines() if line.strip()] == [
+    assert lines == [
         "interactavatar: interrupted: the stages finished so far are kept and none was left half written; the same "
         "command goes on from there"
     ]
@@ -76,3 +54,20 @@ def _has_open(pid: int, path: Path) -> bool:
         return any(os.readlink(fd) == str(path) for fd in fds.iterdir())
     except OSError:  # a descriptor closed while listing
         return False
+
+
+def _interrupted(args: list[str], ready: Callable[[int], bool]) -> list[str]:
+    """The non-empty lines a CLI run with ``args`` writes to stderr when it gets SIGINT once ``ready(pid)`` holds;
+    asserts that it exits with 130 and prints no traceback."""
+    proc = subprocess.Popen(
+        cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        wait_for(lambda: ready(proc.pid))
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    return [line for line in stderr.splitlines() if line.strip()]

@@ -20,7 +20,7 @@ from data_schemas.video import write_video
 from pipeline.cli import run_app
 from pipeline.config import ConfigError
 from tests.conftest import compose_cfg
-from tests.stages.test_folder_capture import _camera, _frames, make_capture
+from tests.stages.test_folder_capture import _camera, _cfg, _frames, make_capture
 
 HOSTILE = "<img src=x onerror=alert(2)>"
 UNSAFE_CAMERA_IDS = [
@@ -92,20 +92,7 @@ def _with_camera(root: Path, camera_id: str) -> Path:
 
 
 def _run(tmp_path: Path, *extra: str) -> None:
-    run_app(
-        compose_cfg(
-            [
-                "dataset=folder",
-                f"dataset.root={tmp_path / 'data'}",
-                "subject=alice",
-                f"paths.outputs={tmp_path / 'out'}",
-                "run.progress=false",
-                "run.until=frames",
-                "stage.frames.segmenter=key",
-                *extra,
-            ]
-        )
-    )
+    run_app(_cfg(tmp_path, *extra))
 
 
 def _written(tmp_path: Path) -> list[Path]:
