@@ -248,7 +248,9 @@ def _render_sequences(ctx: StageContext, configs: dict[str, SyntheticConfig]) ->
 def _die_with_parent(parent_pid: int) -> None:
     """Worker initializer: a killed run leaves no worker writing into its scratch folder. On Linux the kernel
     sends SIGKILL to the worker when the stage's process dies (``PR_SET_PDEATHSIG``); a worker whose parent
-    is already gone exits at once. Elsewhere the pool's own shutdown is all there is."""
+    is already gone exits at once. Elsewhere the pool's own shutdown is all there is. Ctrl-C (SIGINT to the
+    terminal's process group) ends a worker at once and quietly: the stage's process says what was kept."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     if sys.platform.startswith("linux"):
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent_pid:

@@ -102,3 +102,44 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
     assert not (tmp_path / "synth_a" / "capture" / "_manifest.json").exists()
+
+
+def test_ctrl_c_while_workers_render_is_one_line(tmp_path: Path) -> None:
+    """Ctrl-C reaches the whole process group, the workers too: they end quietly (no KeyboardInterrupt traceback
+    per worker) and the run says in one line what was kept."""
+    import os
+
+    env = {**cli_env(), "OMP_NUM_THREADS": "2"}  # two workers on any machine
+    proc = subprocess.Popen(
+        cli_command(
+            f"paths.outputs={tmp_path}",
+            "quality=smoke",
+            "quality.num_frames_train=40",
+            "quality.capture_size=256",
+            "run.progress=false",
+            "run.only=capture",
+        ),
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+    try:
+        parent = psutil.Process(proc.pid)
+        wait_for(lambda: sum("spawn_main" in " ".join(c.cmdline()) for c in parent.children()) >= 2, 120)
+        workers = [c for c in parent.children(recursive=True) if "spawn_main" in " ".join(c.cmdline())]
+        os.killpg(proc.pid, signal.SIGINT)
+        _, stderr = proc.communicate(timeout=60)
+        gone, alive = psutil.wait_procs(workers, timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
+    assert [line for line in stderr.splitlines() if line.strip()][-1].startswith(
+        "interactavatar: interrupted during stage 'capture'"
+    ), stderr
+    assert alive == []
+    assert not (tmp_path / "synth_a" / "capture" / "_manifest.json").exists()
