@@ -130,6 +130,12 @@ def _title(text: str) -> str:
     return _ISSUE_REFERENCE.sub("", text).strip().removesuffix(".")
 
 
+def _titled(page: str) -> str:
+    """A benchmark's Markdown ``page`` with its first heading as a title (:func:`_title`: no issue references)."""
+    first, sep, rest = page.partition("\n")
+    return (f"# {_title(first[2:])}" if first.startswith("# ") else first) + sep + rest
+
+
 def _purpose(name: str) -> str:
     """The first sentence of ``benchmarks/<name>.py``'s docstring (its first paragraph up to the first full stop,
     so a summary that runs over two lines is not cut mid-sentence), as a title."""
@@ -177,7 +183,7 @@ def results_pages() -> dict[Path, str]:
         "<!-- generated from benchmarks/results/{} by benchmarks/render_results.py: edit the benchmark, "
         "not this page -->\n\n"
     )
-    pages = {DOCS_RESULTS / s.name: banner.format(s.name) + _fence_text_tables(s.read_text()) for s in sources}
+    pages = {DOCS_RESULTS / s.name: banner.format(s.name) + _fence_text_tables(_titled(s.read_text())) for s in sources}
     for path in sorted(folder.glob("*.json")):
         data = json.loads(path.read_text())
         if path.with_suffix(".md").is_file() or not isinstance(data, dict) or "benchmark" not in data:
