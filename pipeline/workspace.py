@@ -26,6 +26,7 @@ killed at any point leaves nothing that a later run takes for whole.
 
 from __future__ import annotations
 
+import errno
 import glob
 import json
 import os
@@ -140,6 +141,8 @@ def outputs_problem(outputs: str | Path | None) -> str | None:
     try:
         probe.mkdir()
     except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):  # a full disk: a cached run still runs, a stage says it
+            return None
         return (
             f"paths.outputs={outputs}: no folder can be made in {existing} ({exc.strerror}); choose a writable "
             f"folder, e.g. paths.outputs=$HOME/interactavatar-outputs"

@@ -75,3 +75,17 @@ def test_a_linked_leftover_in_tmp_is_removed_without_touching_its_target(tmp_pat
     ws.discard_leftovers(art)
     assert not list((tmp_path / "out" / "s" / ".tmp").iterdir())
     assert (elsewhere / "keep.txt").read_text() == "keep"
+
+
+def test_a_full_disk_is_no_outputs_problem(tmp_path: Path, monkeypatch) -> None:
+    """Where no folder can be made because the disk is full (ext4 needs a block for one; tmpfs does not), the
+    outputs are still usable for a run that finds every stage cached: the stage that must write says so."""
+    import errno
+
+    from pipeline.workspace import outputs_problem
+
+    def full(self: Path, *args: object, **kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "mkdir", full)
+    assert outputs_problem(tmp_path / "out") is None
