@@ -126,7 +126,7 @@ def report(ctx: StageContext) -> None:
             (head, hand, with_hand),
             str(fit_info["source"]),
         ),
-        _trained_tracking_section(ctx, manifests),
+        _trained_tracking_section(ctx, manifests, head, hand),
         "<h2>Contact deformation</h2>",
         _pbd_section(ctx.input_dir("pbd")),
         "<h2>Image quality (held-out camera and held-out motion)</h2>",
@@ -550,7 +550,9 @@ def _refinement_cells(refinement: dict) -> list[str]:
     return cells
 
 
-def _trained_tracking_section(ctx: StageContext, manifests: dict[str, dict]) -> str:
+def _trained_tracking_section(
+    ctx: StageContext, manifests: dict[str, dict], head: TemplateModel, hand: TemplateModel
+) -> str:
     """How training refined the train motion's parameters (``refine_params``): per frame, how far each part of the
     method's ``dynamic/params.parquet`` lies from the fit's (mean vertex displacement, change of global rotation),
     and the fitted (red) against the refined (green) meshes over the first training view, in the frame that moved
@@ -564,7 +566,6 @@ def _trained_tracking_section(ctx: StageContext, manifests: dict[str, dict]) -> 
             "<p>Training used these parameters as they are (stage.warmup.refine_params and "
             "stage.dynamic.refine_params off; <code>auto</code> is off with ground-truth tracking).</p>"
         )
-    head, hand = templates(ctx.cfg.model)
     fitted = load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE)
     after = read_params(trained)
     moved = parameter_movement(fitted, after, head, hand)
