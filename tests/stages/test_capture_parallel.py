@@ -8,6 +8,7 @@ import json
 import signal
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import psutil
 import pytest
@@ -71,11 +72,10 @@ def test_parallel_sequences_write_the_serial_files(tmp_path: Path, monkeypatch: 
     assert metrics[0] == metrics[1]
 
 
-def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
-    """SIGKILL the CLI while its workers render: the kernel takes the workers down with it, so nothing goes on
-    writing into the stage's scratch folder."""
-    env = {**cli_env(), "OMP_NUM_THREADS": "2"}  # two workers on any machine
-    proc = subprocess.Popen(
+def _parallel_capture(tmp_path: Path, **popen: Any) -> subprocess.Popen:
+    """The CLI computing a capture large enough to render in two worker processes (on any machine), into
+    ``tmp_path``; ``popen``: further arguments of :class:`subprocess.Popen` (its output, its session)."""
+    return subprocess.Popen(
         cli_command(
             f"paths.outputs={tmp_path}",
             "quality=smoke",
@@ -85,10 +85,16 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
             "run.only=capture",
         ),
         cwd=REPO,
-        env=env,
+        env={**cli_env(), "OMP_NUM_THREADS": "2"},  # two workers on any machine
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        **popen,
     )
+
+
+def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
+    """SIGKILL the CLI while its workers render: the kernel takes the workers down with it, so nothing goes on
+    writing into the stage's scratch folder."""
+    proc = _parallel_capture(tmp_path, stderr=subprocess.DEVNULL)
     try:
         parent = psutil.Process(proc.pid)
         # the workers have started once two children import the generator (the spawn helper is a third)
@@ -109,23 +115,8 @@ def test_ctrl_c_while_workers_render_is_one_line(tmp_path: Path) -> None:
     per worker) and the run says in one line what was kept."""
     import os
 
-    env = {**cli_env(), "OMP_NUM_THREADS": "2"}  # two workers on any machine
-    proc = subprocess.Popen(
-        cli_command(
-            f"paths.outputs={tmp_path}",
-            "quality=smoke",
-            "quality.num_frames_train=40",
-            "quality.capture_size=256",
-            "run.progress=false",
-            "run.only=capture",
-        ),
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,  # its own process group, as a terminal's foreground job
-    )
+    # its own process group, as a terminal's foreground job
+    proc = _parallel_capture(tmp_path, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         parent = psutil.Process(proc.pid)
         # both workers render once two sequences' folders are written (a worker still importing at Ctrl-C prints
