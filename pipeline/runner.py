@@ -465,7 +465,7 @@ class Runner:
             if isinstance(exc, KeyboardInterrupt):
                 kept = scratch if scratch is not None and scratch.is_dir() else None
                 raise Interrupted(s.name, kept) from exc
-            if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
                 fix = f"the disk of {self.ws.root} is full: free some space, then run the same command again"
                 raise StageFailed(s.name, exc, fix) from exc
             if isinstance(exc, Exception):
