@@ -24,7 +24,7 @@ from pipeline.stage import StageContext, stage
 from stages.artifacts import TRAIN_SEQUENCE, load_views, method_params
 from stages.dependencies import TEMPLATE_KEYS, model_sources, unused_training_settings
 from stages.posing import applied_deformation, posed_sequence
-from stages.representations import representation, representation_problems
+from stages.representations import VALIDATED_RUN, representation, representation_problems
 from stages.representations.bound import PRESET_ARCHITECTURE, selection_config
 from stages.training_settings import ParamsLrSchema, ValidationSchema, refinement_problems, validation_problems
 
@@ -47,6 +47,7 @@ class DynamicStageSettings:
     params_lr: ParamsLrSchema
     params_centred: bool
     select: SelectSchema
+    restarts: int
     validation: ValidationSchema
 
     @classmethod
@@ -63,6 +64,10 @@ class DynamicStageSettings:
             problems.append(
                 "select.enabled=true needs validation frames: set stage.dynamic.validation.every > 0 "
                 "(e.g. 50), or select.enabled=false"
+            )
+        if int(conf.restarts) < 1:
+            problems.append(
+                f"restarts={conf.restarts}: must be >= 1 (stage two's initialisations, the best on validation kept)"
             )
         return problems + validation_problems(conf) + refinement_problems(conf)
 
@@ -108,12 +113,14 @@ DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("st
         "curve.parquet",
         "params.parquet",
     ),
-    # 11: model.json names the representation (the registry loads the model by it); 10: issue 33's faster step
+    # 12: validation.fraction/min_train_frames/retrain (choose on withheld frames, then train on every frame),
+    # restarts, the contact emphasis cap instead of max_contact_frame_share; 11: model.json names the representation
+    # (the registry loads the model by it); 10: issue 33's faster step
     # (fused layers, fused Adam; rounding-level changes); 9: refine_params, stage two posed from the warm-up's
     # params.parquet; 8: stage.dynamic.select (the kept step and modules); 7: SSIM filtered by
     # shifted sums instead of conv2d (rounding-level changes); 6: the compiled rasterizer's alpha as a power of two
     # (rounding-level)
-    version="11",
+    version="12",
     per_method=True,
     config_schema=DynamicConfig,
     # resuming is bit-for-bit: it cannot change the result
@@ -125,19 +132,28 @@ DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("st
 def dynamic(ctx: StageContext) -> None:
     """Stage two on every train camera and frame: H, I, PointNet++, the point features and the Gaussians
     (the ablations and GaussianAvatars: what of it the method keeps), or SplattingAvatar trained on. With
-    ``stage.dynamic.validation.every`` > 0 it withholds ``validation.frames`` train frames, validates on them and
-    may stop early (``curve.parquet``; docs/how-to/quality-during-training.md). The train motion is posed with the
+    ``stage.dynamic.validation.every`` > 0 it withholds ``validation.fraction`` of the train frames (as far as
+    ``validation.min_train_frames`` stay), validates on them, may stop early (``curve.parquet``;
+    docs/how-to/quality-during-training.md) and selects (``select``, best of ``restarts`` initialisations); with
+    ``validation.retrain`` the model written then trains on every frame with what was chosen
+    (docs/explanation/selection.md). The train motion is posed with the
     warm-up's ``params.parquet`` and, with ``stage.dynamic.refine_params``, refined further; ``params.parquet`` holds
     it as trained on, which ``evaluate``, ``reenact`` and the PLY export pose the train motion with."""
     conf = ctx.cfg.stage.dynamic
     torch.manual_seed(conf.seed)
-    fit_dir, pbd_dir = ctx.input_dir("fit"), ctx.input_dir("pbd")
+    fit_dir, pbd_dir, warmup_dir = ctx.input_dir("fit"), ctx.input_dir("pbd"), ctx.input_dir("warmup")
     views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train")
+    deformation = applied_deformation(ctx.cfg, pbd_dir)
     posed = posed_sequence(
-        fit_dir,
-        TRAIN_SEQUENCE,
-        ctx.cfg,
-        applied_deformation(ctx.cfg, pbd_dir),
-        method_params(ctx.input_dir("warmup"), fit_dir, TRAIN_SEQUENCE),
+        fit_dir, TRAIN_SEQUENCE, ctx.cfg, deformation, method_params(warmup_dir, fit_dir, TRAIN_SEQUENCE)
     )
-    representation(ctx.cfg).train(ctx, views, posed)
+    validated = None
+    if (warmup_dir / VALIDATED_RUN).is_dir():  # the warm-up trained again on every frame after its validated run
+        validated = posed_sequence(
+            fit_dir,
+            TRAIN_SEQUENCE,
+            ctx.cfg,
+            deformation,
+            method_params(warmup_dir / VALIDATED_RUN, fit_dir, TRAIN_SEQUENCE),
+        )
+    representation(ctx.cfg).train(ctx, views, posed, validated)

@@ -72,7 +72,9 @@ class ReportConfig:
     inputs=UPSTREAM,
     config_keys=("quality.name", "method.name", "method.label", "stage.report", *TEMPLATE_KEYS),
     outputs=("report.html",),
-    version="18",  # 18: the rig, the fitted (and true) outlines over a training crop; the contact sheet in rows
+    # 19: what validation withheld and what the model trained on; 18: the rig, the fitted (and true) outlines over a
+    # training crop; the contact sheet in rows
+    version="19",
     config_schema=ReportConfig,
     per_method=True,
     reads_manifests=True,
@@ -275,24 +277,52 @@ def _scene_section(scene_dir: Path, manifests: dict[str, dict]) -> str:
         + f"<p>{esc.text(work)}</p>"
         + (f"<p>{esc.text(saved)}</p>" if saved else "")
         + _contact_draws_paragraph(manifests["dynamic"])
+        + _withheld_paragraph(manifests["dynamic"])
         + _selection_paragraph(dynamic)
     )
 
 
 def _contact_draws_paragraph(dynamic: dict) -> str:
     """How often stage two drew the contact frames (stage.dynamic.contact_fraction, capped by
-    max_contact_frame_share); nothing for a manifest from before the cap or without contact frames."""
+    max_contact_emphasis); nothing for a manifest from before the cap or without contact frames."""
     p = dynamic["metrics"].get("contact_draw_probability")
     conf = dynamic["config"].get("stage.dynamic", {})
     if p is None or not dynamic["metrics"].get("contact_frames") or "contact_fraction" not in conf:
         return ""
     fraction = float(conf["contact_fraction"])
     text = f"Stage two drew a contact frame first with probability {p:.2f}, else any training frame"
-    if p < fraction:
+    if p < fraction and "max_contact_emphasis" in conf:
         text += (
-            f" (contact_fraction {fraction:g}, lowered so that no contact frame takes more than "
-            f"{float(conf['max_contact_frame_share']):g} of the steps: with few contact frames the Gaussians "
-            "would fit their tracking error)"
+            f" (contact_fraction {fraction:g}, lowered so that no contact frame is drawn more than "
+            f"{float(conf['max_contact_emphasis']):g} times as often as a frame without contact: with few contact "
+            "frames the Gaussians would fit their tracking error)"
+        )
+    return f"<p>{esc.text(text)}.</p>"
+
+
+def _withheld_paragraph(dynamic: dict) -> str:
+    """What validation withheld and what the written model trained on (``validation_frames_withheld``,
+    ``final_training_frames``); nothing for a manifest from before they were recorded."""
+    metrics, conf = dynamic["metrics"], dynamic["config"].get("stage.dynamic", {})
+    withheld, final = metrics.get("validation_frames_withheld"), metrics.get("final_training_frames")
+    validation = conf.get("validation", {})
+    if withheld is None or final is None or not int(validation.get("every", 0)):
+        return ""
+    if not withheld:
+        text = (
+            f"Nothing could be withheld for validation: with {final} training frames, at least "
+            f"{validation.get('min_train_frames')} must stay to train on (stage.dynamic.validation.min_train_frames), "
+            "so stage two trained on all of them and chose nothing"
+        )
+    elif metrics.get("retrained_on_all_frames"):
+        text = (
+            f"Validation withheld {withheld} of {final} training frames (fraction {validation.get('fraction')}) to "
+            f"choose on; the model shown was then trained again on all {final} frames with what was chosen"
+        )
+    else:
+        text = (
+            f"Validation withheld {withheld} training frames (fraction {validation.get('fraction')}); the model shown "
+            f"trained on the other {final} (stage.dynamic.validation.retrain=false)"
         )
     return f"<p>{esc.text(text)}.</p>"
 
@@ -319,6 +349,11 @@ def _selection_paragraph(dynamic: dict) -> str:
         text += (
             f" {name[0].upper()}{name[1:]}: {'kept' if kept else 'switched off'} (validation PSNR without them "
             f"{without:.2f} dB)."
+        )
+    if "restarts" in dynamic:
+        text += (
+            f" Best of {dynamic['restarts']} initialisations of stage two on validation (kept: number "
+            f"{int(dynamic['selected_restart']) + 1}, seed {dynamic['selected_seed']})."
         )
     return f"<p>{esc.text(text)} Rule: docs/explanation/selection.md.</p>"
 

@@ -10,7 +10,7 @@ import torch
 from omegaconf import DictConfig
 
 from avatar.training.frame_params import FrameParams, ParamLearningRates, parameter_movement
-from avatar.training.validation import FlatStop, ValidationConfig, Validator
+from avatar.training.validation import FlatStop, ValidationConfig, Validator, withheld_count
 from data_schemas.curve import CURVE
 from data_schemas.tables import write_table
 from pipeline.stage import StageContext
@@ -118,17 +118,22 @@ class ValidationSchema:
     """Types of ``stage.<warmup|dynamic>.validation`` (docs/how-to/quality-during-training.md)."""
 
     every: int
-    frames: int
+    fraction: float
+    min_train_frames: int
+    retrain: bool
     lpips: bool
     stop_when_flat: FlatStopSchema
 
 
-def validation_config(conf: DictConfig) -> ValidationConfig:
-    """The training loops' :class:`ValidationConfig` of a ``stage.<warmup|dynamic>.validation`` block."""
+def validation_config(conf: DictConfig, num_frames: int) -> ValidationConfig:
+    """The training loops' :class:`ValidationConfig` of a ``stage.<warmup|dynamic>.validation`` block for a training
+    sequence of ``num_frames`` frames: ``fraction`` of them withheld, as far as ``min_train_frames`` stay to train on
+    (:func:`withheld_count`)."""
     stop = conf.stop_when_flat
+    frames = withheld_count(num_frames, float(conf.fraction), int(conf.min_train_frames)) if int(conf.every) > 0 else 0
     return ValidationConfig(
         int(conf.every),
-        int(conf.frames),
+        frames,
         bool(conf.lpips),
         FlatStop(bool(stop.enabled), float(stop.min_gain_db), int(stop.window)),
     )
@@ -136,10 +141,33 @@ def validation_config(conf: DictConfig) -> ValidationConfig:
 
 def validation_problems(conf: DictConfig) -> list[str]:
     """Range problems of a stage section's ``validation`` block, keyed relative to the section."""
-    return [f"validation.{problem}" for problem in validation_config(conf.validation).problems()]
+    block = conf.validation
+    problems = [f"validation.{problem}" for problem in validation_config(block, 0).problems()]
+    fraction = float(block.fraction)
+    if not 0.0 < fraction < 1.0:  # also refuses NaN
+        problems.append(
+            f"validation.fraction={fraction:g}: must lie strictly between 0 and 1 (the share of the training frames "
+            "withheld for validation, e.g. 0.15)"
+        )
+    if int(block.min_train_frames) < 1:
+        problems.append(
+            f"validation.min_train_frames={block.min_train_frames}: must be >= 1 (training frames that stay to train "
+            "on)"
+        )
+    return problems
 
 
-def record_validation(ctx: StageContext, validator: Validator) -> None:
-    """Write ``curve.parquet`` (no rows without validation) and the validation metrics of the manifest."""
+def retrains(conf: DictConfig, validator: Validator) -> bool:
+    """Whether a training stage (``conf``: ``stage.warmup`` or ``stage.dynamic``) trains again on every training frame
+    after its validated run (``validation.retrain``, and frames were withheld)."""
+    return bool(conf.validation.retrain) and validator.cfg.enabled
+
+
+def record_validation(ctx: StageContext, validator: Validator, final_frames: int) -> None:
+    """Write ``curve.parquet`` (no rows without validation) and the validation metrics of the manifest:
+    ``validation_frames_withheld`` (by the validated run) and ``final_training_frames`` (the frames the written
+    model trained on: all of them after a retrain)."""
     write_table(ctx.out_dir / "curve.parquet", CURVE, validator.table())
     ctx.metrics.update(validator.metrics())
+    ctx.metrics["validation_frames_withheld"] = int(validator.frames.size)
+    ctx.metrics["final_training_frames"] = int(final_frames)

@@ -4,20 +4,29 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
 
 from avatar.render.gaussians import resolve_backend
-from avatar.training.validation import Validator
+from avatar.training.data import ViewSet
+from avatar.training.frame_params import FrameParams
+from avatar.training.validation import ValidationConfig, Validator
 from avatar.training.warmup import WarmupTrainConfig, colors_from_views
 from data_schemas.capture import MASK_LABELS
 from pipeline.schema import section_schema
 from pipeline.stage import StageContext, stage
-from stages.artifacts import TRAIN_SEQUENCE, PosedGaussians, load_scene, load_views, write_frame_ply
+from stages.artifacts import TRAIN_SEQUENCE, PosedGaussians, load_scene, load_views, write_frame_ply, write_params
 from stages.dependencies import TEMPLATE_KEYS, model_sources, unused_training_settings
-from stages.posing import applied_deformation, posed_sequence
-from stages.representations import representation, representation_problems
+from stages.posing import PosedSequence, applied_deformation, posed_sequence
+from stages.representations import (
+    VALIDATED_RUN,
+    CanonicalGaussians,
+    representation,
+    representation_problems,
+    run_scratch,
+)
 from stages.training_settings import (
     ParamsLrSchema,
     ValidationSchema,
@@ -25,6 +34,7 @@ from stages.training_settings import (
     record_refinement,
     record_validation,
     refinement_problems,
+    retrains,
     validation_config,
     validation_problems,
 )
@@ -80,7 +90,8 @@ WarmupConfig = section_schema("WarmupConfig", WarmupTrainConfig, exclude=("steps
         "stage.keypoints.detector",
     ),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet", "params.parquet"),
-    version="9",
+    version="10",
+    # 10: validation.fraction/min_train_frames/retrain (the validated run in validation/, then every frame);
     # 9: gaussians.ply by the one PLY writer (write_frame_ply: opacity logits of the clamped opacities, equal to
     # rounding); 8: refine_params (the train motion's parameters refined with the Gaussians; params.parquet);
     # 7: SSIM filtered by shifted sums instead of conv2d (rounding-level changes); 6: the compiled
@@ -95,18 +106,53 @@ WarmupConfig = section_schema("WarmupConfig", WarmupTrainConfig, exclude=("steps
 def warmup(ctx: StageContext) -> None:
     """Stage one on every train camera and train frame: static Gaussians in the method's representation (bound to
     the triangles for GaussianAvatars and InteractAvatar's warm-up; SplattingAvatar's embedded Gaussians).
-    With ``stage.warmup.validation.every`` > 0 it withholds ``validation.frames`` train frames, validates on them
-    and may stop early (``curve.parquet``; docs/how-to/quality-during-training.md). With ``stage.warmup.refine_params``
-    (``auto``: fitted or provided tracking) each step also refines the rendered frame's FLAME/MANO parameters
-    (:mod:`avatar.training.frame_params`); ``params.parquet`` holds the train motion's parameters as trained on
-    (the fit's where nothing was refined), which stage two starts from."""
-    conf, q = ctx.cfg.stage.warmup, ctx.cfg.quality
-    torch.manual_seed(conf.seed)
-    cap_dir = ctx.input_dir("capture")
-    views = load_views(cap_dir, ctx.input_dir("frames"), "train", "train")
+    With ``stage.warmup.validation.every`` > 0 it withholds ``validation.fraction`` of the train frames (as far as
+    ``validation.min_train_frames`` stay), validates on them and may stop early (``curve.parquet``;
+    docs/how-to/quality-during-training.md); with ``validation.retrain`` it then trains again on every train frame
+    for the steps that run took (docs/explanation/selection.md) and keeps the validated run's model in
+    ``validation/`` (``gaussians.parquet``, ``params.parquet``), which stage two chooses with. With
+    ``stage.warmup.refine_params`` (``auto``: fitted or provided tracking) each step also refines the rendered frame's
+    FLAME/MANO parameters (:mod:`avatar.training.frame_params`); ``params.parquet`` holds the train motion's
+    parameters as trained on (the fit's where nothing was refined), which stage two starts from."""
+    conf = ctx.cfg.stage.warmup
+    views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train")
     posed = posed_sequence(
         ctx.input_dir("fit"), TRAIN_SEQUENCE, ctx.cfg, applied_deformation(ctx.cfg, ctx.input_dir("pbd"))
     )
+    validator = Validator(validation_config(conf.validation, views.num_frames), views)
+    retrain = retrains(conf, validator)
+    first_dir = ctx.out_dir / VALIDATED_RUN if retrain else ctx.out_dir
+    model, params, final_loss = _train(ctx, views, posed, validator, first_dir, "validated" if retrain else "")
+    if retrain:  # the validated run chose the steps; the model written trains them on every frame
+        write_params(first_dir / "params.parquet", params.arrays() if params is not None else posed.params)
+        final = Validator(ValidationConfig(), views, limit=validator.end)
+        model, params, final_loss = _train(ctx, views, posed, final, ctx.out_dir, "final")
+    meshes = posed.meshes
+    frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
+    with torch.no_grad():
+        vertices = params.vertices(frame) if params is not None else meshes.vertices[frame]
+        means, scales, quats = model.world(vertices, meshes.faces)
+        write_frame_ply(
+            ctx.out_dir / "gaussians.ply", PosedGaussians(means, scales, quats, model.opacities(), model.colors())
+        )
+    record_refinement(ctx, posed.params, posed.params, params)
+    ctx.metrics["gaussians"] = model.num_gaussians
+    ctx.metrics["final_loss"] = final_loss
+    record_validation(ctx, validator, views.num_frames if retrain else int(validator.train_frames.size))
+    ctx.metrics["steps"] = validator.end  # steps run
+    # backend=auto resolves per machine (compiled where it built, else torch; equal to float32 rounding):
+    # the manifest records which one computed this artifact.
+    ctx.metrics["rasterizer"] = resolve_backend(conf.backend, means)
+
+
+def _train(
+    ctx: StageContext, views: ViewSet, posed: PosedSequence, validator: Validator, out_dir: Path, run: str
+) -> tuple[CanonicalGaussians, FrameParams | None, float]:
+    """One warm-up run from scratch on the frames ``validator`` leaves to training, for its steps: the model
+    (written to ``out_dir`` by the representation), the refined parameters (None where nothing is refined) and the
+    final loss. ``run`` names the run's checkpoint folder in the stage's scratch (``""``: the scratch itself)."""
+    conf, q = ctx.cfg.stage.warmup, ctx.cfg.quality
+    torch.manual_seed(conf.seed)
     meshes, params = posed.meshes, frame_params(ctx.cfg, conf, posed)
     canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
     rep = representation(ctx.cfg)
@@ -125,22 +171,18 @@ def warmup(ctx: StageContext) -> None:
         means, _, _ = model.world(canonical, meshes.faces)
     part_label = torch.tensor([MASK_LABELS[name] for name in meshes.part_names])[model.part]
     model.set_colors(colors_from_views(means, part_label, views, frame=0))
-    validator = Validator(validation_config(conf.validation), views)
+    out_dir.mkdir(exist_ok=True)
+    checkpoints = run_scratch(ctx, run)
+    desc = f"warmup ({run})" if run else "warmup"
     final_loss = rep.warm_up(
-        ctx, model, views, meshes, params, validator, lambda steps: ctx.progress(steps, desc="warmup")
+        ctx,
+        model,
+        views,
+        meshes,
+        params,
+        validator,
+        lambda steps: ctx.progress(steps, desc=desc),
+        out_dir=out_dir,
+        checkpoint_dir=checkpoints,
     )
-    frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
-    with torch.no_grad():
-        vertices = params.vertices(frame) if params is not None else meshes.vertices[frame]
-        means, scales, quats = model.world(vertices, meshes.faces)
-        write_frame_ply(
-            ctx.out_dir / "gaussians.ply", PosedGaussians(means, scales, quats, model.opacities(), model.colors())
-        )
-    record_refinement(ctx, posed.params, posed.params, params)
-    ctx.metrics["gaussians"] = model.num_gaussians
-    ctx.metrics["final_loss"] = final_loss
-    record_validation(ctx, validator)
-    ctx.metrics["steps"] = validator.end  # steps run
-    # backend=auto resolves per machine (compiled where it built, else torch; equal to float32 rounding):
-    # the manifest records which one computed this artifact.
-    ctx.metrics["rasterizer"] = resolve_backend(conf.backend, means)
+    return model, params, final_loss

@@ -5,13 +5,15 @@ the visible Gaussians' local scales and positions *including their deltas*, and 
 distance on the hand's box and on the overlap of the hand and face boxes (from the part masks). Adam:
 MLPs (and PointNet++) at 1e-3 and point features at 2.5e-3, both with the 3DGS exponential decay; the
 Gaussians continue at the learning rates the warm-up ended with. Frames with contact are drawn first with
-probability ``contact_fraction`` (the paper oversamples them; how much it does not say), lowered where it would
-give one contact frame more than ``max_contact_frame_share`` of the steps (:func:`contact_draw_probability`).
+probability ``contact_fraction`` (the paper oversamples them; how much it does not say), lowered where a contact frame
+would be drawn more than ``max_contact_emphasis`` times as often as a frame without contact
+(:func:`contact_draw_probability`).
 Checkpoints resume bit for bit, like the warm-up's.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
@@ -63,9 +65,9 @@ class DynamicTrainConfig:
     # probability of drawing a contact frame first, else any frame (the paper oversamples contact frames; 0: frames
     # uniformly)
     contact_fraction: float = 0.5
-    # lowers contact_fraction so that no contact frame takes more of the steps (with few contact frames the Gaussians
-    # fit their tracking error; docs/explanation/dynamic-model.md)
-    max_contact_frame_share: float = 0.1
+    # lowers contact_fraction so that a contact frame is drawn at most this many times as often as a frame without
+    # contact (with few contact frames the Gaussians fit their tracking error; docs/explanation/dynamic-model.md)
+    max_contact_emphasis: float = 3.0
     patch_min_size: int = 32  # L_patch boxes grow to at least this many pixels a side
     checkpoint_every: int = 0
     log_every: int = 10  # steps between loss-curve points
@@ -80,10 +82,10 @@ class DynamicTrainConfig:
             problems.append(
                 f"contact_fraction={self.contact_fraction:g}: must lie in [0, 1] (the share of steps on contact frames)"
             )
-        if not 0.0 < self.max_contact_frame_share <= 1.0:
+        if not 1.0 <= self.max_contact_emphasis < math.inf:  # also refuses NaN
             problems.append(
-                f"max_contact_frame_share={self.max_contact_frame_share:g}: must lie in (0, 1] (the most steps one "
-                "contact frame may take; 1 leaves contact_fraction uncapped)"
+                f"max_contact_emphasis={self.max_contact_emphasis:g}: must be >= 1 and finite (how many times as often "
+                "as a frame without contact a contact frame may be drawn; 1 draws uniformly)"
             )
         return problems + [f"selection.{problem}" for problem in self.selection.problems()]
 
@@ -179,26 +181,25 @@ def patch_boxes(labels: np.ndarray) -> list[np.ndarray]:
 
 
 def contact_draw_probability(
-    frames: np.ndarray, contact: np.ndarray, contact_fraction: float, max_frame_share: float
+    frames: np.ndarray, contact: np.ndarray, contact_fraction: float, max_emphasis: float
 ) -> float:
     """The probability with which :func:`sample_frame` draws from the contact frames first: ``contact_fraction``,
-    lowered so that no contact frame takes more than ``max_frame_share`` of the steps.
+    lowered so that no contact frame is drawn more than ``max_emphasis`` times as often as a frame without contact.
 
-    With ``k`` contact frames among the ``K`` training frames ``frames`` (``contact``: (T,) bool over the
-    sequence) and probability ``p``, a contact frame gets ``p / k + (1 - p) / K`` of the steps. The paper
-    oversamples contact frames because they are rare in a video, to give them enough steps; it does not mean
-    to put most steps on a handful of frames. With few contact frames the uncapped rule does exactly that
-    (one contact frame of six training frames took 58 % of the steps), and with fitted tracking the Gaussians
-    then fit those frames' tracking error instead of the person. Where even uniform drawing gives every
-    frame more than the cap (``K < 1 / max_frame_share``), frames are drawn uniformly (probability 0).
+    With ``k`` contact frames among the ``K`` training frames ``frames`` (``contact``: (T,) bool over the sequence)
+    and probability ``p``, a contact frame gets ``p / k + (1 - p) / K`` of the steps and any other frame
+    ``(1 - p) / K``, so a contact frame is drawn ``e(p) = 1 + p K / ((1 - p) k)`` times as often. The paper
+    oversamples contact frames because they are rare in a video, to give them enough steps; a contact frame is still
+    one frame of the video. Uncapped, the emphasis grows with ``K / k`` (one contact frame of six took 58 % of the
+    steps, ``e`` = 7), and with fitted tracking the Gaussians then fit those frames' tracking error instead of the
+    person. The cap ``e(p) <= R`` gives ``p <= (R - 1) k / (K + (R - 1) k)``, whatever the capture's size; ``R`` = 3
+    is the emphasis ``p`` = 0.5 gives when half the frames touch (``e`` = 1 + K / k = 3), the project's captures.
     """
     k, total = int(contact[frames].sum()), len(frames)
     if k == 0 or k == total:  # nothing to oversample: every draw is uniform over the frames either way
         return contact_fraction
-    uniform = 1.0 / total
-    if max_frame_share <= uniform:
-        return 0.0
-    return min(contact_fraction, (max_frame_share - uniform) / (1.0 / k - uniform))
+    capped = (max_emphasis - 1.0) * k / (total + (max_emphasis - 1.0) * k)
+    return min(contact_fraction, capped)
 
 
 def sample_frame(gen: torch.Generator, frames: np.ndarray, contact: np.ndarray, contact_fraction: float) -> int:
@@ -282,7 +283,7 @@ def train_dynamic(
     steps = validator.begin(start, cfg.steps, 0, render)
     offer_validation()
     result.contact_probability = contact_draw_probability(
-        validator.train_frames, contact, cfg.contact_fraction, cfg.max_contact_frame_share
+        validator.train_frames, contact, cfg.contact_fraction, cfg.max_contact_emphasis
     )
     for step in progress(steps):
         frame = sample_frame(gen, validator.train_frames, contact, result.contact_probability)

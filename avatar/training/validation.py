@@ -56,8 +56,9 @@ class FlatStop:
 
 @dataclass(frozen=True)
 class ValidationConfig:
-    """``every``: steps between validations (0: none, no frame withheld); ``frames``: frames withheld;
-    ``lpips``: measure LPIPS-alex too."""
+    """``every``: steps between validations (0: none, no frame withheld); ``frames``: frames withheld (0: none,
+    as ``every`` = 0; the stages derive it from the capture's size, :func:`withheld_count`); ``lpips``: measure
+    LPIPS-alex too."""
 
     every: int = 0
     frames: int = 4
@@ -66,15 +67,16 @@ class ValidationConfig:
 
     @property
     def enabled(self) -> bool:
-        return self.every > 0
+        """Whether anything is validated: validations are due and frames are withheld for them."""
+        return self.every > 0 and self.frames > 0
 
     def problems(self) -> list[str]:
         """Range problems, one line each, keyed relative to the validation block; empty when it can run."""
         problems = []
         if self.every < 0:
             problems.append(f"every={self.every}: must be >= 0 (steps between validations; 0 = off)")
-        if self.frames < 1:
-            problems.append(f"frames={self.frames}: must be >= 1 (training frames withheld for validation)")
+        if self.frames < 0:
+            problems.append(f"frames={self.frames}: must be >= 0 (training frames withheld for validation)")
         stop = self.stop_when_flat
         if stop.window < 1:
             problems.append(f"stop_when_flat.window={stop.window}: must be >= 1 (validations)")
@@ -108,6 +110,16 @@ def withheld_frames(num_frames: int, count: int) -> np.ndarray:
     return np.floor((np.arange(1, count + 1) * num_frames / (count + 1)) + 0.5).astype(np.int64)
 
 
+def withheld_count(num_frames: int, fraction: float, min_train_frames: int) -> int:
+    """How many of ``num_frames`` training frames validation withholds: ``ceil(fraction T)``, as far as at least
+    ``min_train_frames`` stay for training (0 when not even one can be withheld).
+
+    ``fraction`` 0.15 withholds 4 of 24, 2 of 8 and 1 of 5 frames; with ``min_train_frames`` 4, none of 4.
+    """
+    wanted = math.ceil(fraction * num_frames - 1e-9)  # 1e-9: 0.25 * 8 is 2, not 3, whatever the rounding
+    return max(0, min(wanted, num_frames - min_train_frames))
+
+
 def draw_frame(gen: torch.Generator, frames: np.ndarray) -> int:
     """One of ``frames`` (K,) drawn uniformly with one ``randint`` of ``gen``: over ``arange(T)`` the very
     draw the loops made before validation existed, so runs without it are unchanged."""
@@ -137,9 +149,13 @@ class Validator:
     Args:
         cfg: the stage's validation block.
         views: the training sequence (its ground truth; the withheld frames are taken from it).
+        limit: see ``limit`` below.
 
     Attributes:
         frames: (F,) int64 withheld frames (empty when validation is off).
+        limit: end training after this step whatever the plan (None: the plan's steps), with the schedules
+            still defined over the planned steps: a retrain on every frame runs the validated run's schedule
+            to the step that run chose.
         train_frames: (T - F,) int64 frames training draws from.
         planned_steps, stop_from: the loop's steps, and the first step the stop rule looks at (set by
             :meth:`begin`).
@@ -149,9 +165,10 @@ class Validator:
             validating, including those of the run a checkpoint resumed.
     """
 
-    def __init__(self, cfg: ValidationConfig, views: ViewSet) -> None:
+    def __init__(self, cfg: ValidationConfig, views: ViewSet, limit: int | None = None) -> None:
         self.cfg, self.views = cfg, views
         self.planned_steps, self.stop_from = 0, 0
+        self.limit = limit
         self.frames = withheld_frames(views.num_frames, cfg.frames) if cfg.enabled else np.zeros(0, dtype=np.int64)
         self.train_frames = np.setdiff1d(np.arange(views.num_frames), self.frames)
         self.curve: list[CurvePoint] = []
@@ -163,8 +180,10 @@ class Validator:
 
     @property
     def end(self) -> int:
-        """The step training ends at: where it stopped, else the planned steps."""
-        return self.stopped_at if self.stopped_at is not None else self.planned_steps
+        """The step training ends at: where it stopped, else the planned steps (at most ``limit``)."""
+        if self.stopped_at is not None:
+            return self.stopped_at
+        return self.planned_steps if self.limit is None else min(self.limit, self.planned_steps)
 
     def sample_frame(self, gen: torch.Generator) -> int:
         """A training frame drawn uniformly (:func:`draw_frame`)."""

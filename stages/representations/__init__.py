@@ -37,6 +37,10 @@ BUILT_IN = {
     "embedded": "stages.representations.embedded:EmbeddedRepresentation",
 }
 
+#: The folder of a training stage's output that holds the model of its validated run when it trains again on every
+#: frame afterwards (``validation.retrain``): stage two chooses with the warm-up's (docs/explanation/selection.md).
+VALIDATED_RUN = "validation"
+
 #: A training stage's progress bar over its steps (the training loops' ``progress``: wraps the steps, yields them).
 Progress = Callable[[Iterable[int]], Iterator[int]]
 
@@ -169,15 +173,24 @@ class Representation(ABC):
         params: FrameParams | None,
         validator: Validator,
         progress: Progress,
+        *,
+        out_dir: Path,
+        checkpoint_dir: Path | None,
     ) -> float:
-        """Stage one: train ``model`` in place on ``views`` of the posed ``meshes`` for ``quality.warmup_steps``
-        (refining ``params``, the train motion's parameters, where not None); write ``gaussians.parquet`` and
-        ``train_log.parquet`` to ``ctx.out_dir``. Returns the final loss."""
+        """Stage one: train ``model`` in place on ``views`` of the posed ``meshes`` for ``quality.warmup_steps``, on the
+        frames and for the steps ``validator`` leaves to it (refining ``params``, the train motion's parameters,
+        where not None); write ``gaussians.parquet`` and ``train_log.parquet`` to ``out_dir`` (the stage's output or
+        its :data:`VALIDATED_RUN` folder), resuming from and saving checkpoints in ``checkpoint_dir``. Returns the
+        final loss."""
 
     @abstractmethod
-    def train(self, ctx: StageContext, views: ViewSet, posed: PosedSequence) -> None:
+    def train(
+        self, ctx: StageContext, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
+    ) -> None:
         """Stage two on ``views`` of the train motion ``posed`` (posed with the warm-up's parameters), starting from
-        the warm-up's ``gaussians.parquet`` (``ctx.input_dir("warmup")``): write the dynamic stage's outputs
+        the warm-up's ``gaussians.parquet`` (``ctx.input_dir("warmup")``); ``validated``: the train motion as the
+        warm-up's validated run left it, where the warm-up kept one (:data:`VALIDATED_RUN`; stage two's own validated
+        run starts from that model, which withheld the same frames). Write the dynamic stage's outputs
         (``gaussians.parquet``, ``networks.pt``, ``model.json`` through :func:`write_model_info`,
         ``train_log.parquet``, ``params.parquet``, ``ply/``) and its metrics."""
 
@@ -185,6 +198,16 @@ class Representation(ABC):
     @abstractmethod
     def load(cls, dynamic_dir: Path, info: dict) -> TrainedAvatar:
         """The trained avatar of a dynamic stage's folder (``info``: its ``model.json``)."""
+
+
+def run_scratch(ctx: StageContext, run: str) -> Path | None:
+    """The checkpoint folder of one training run of a stage that trains more than once (``run``: its name; ``""``:
+    the stage's scratch itself), created; None when the stage has no scratch."""
+    if ctx.scratch_dir is None:
+        return None
+    folder = ctx.scratch_dir / run if run else ctx.scratch_dir
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
 
 
 def representation_class(name: str) -> type[Representation]:

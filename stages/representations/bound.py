@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import io
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -20,10 +20,10 @@ from avatar.posing import MeshSequence
 from avatar.render.gaussians import resolve_backend
 from avatar.scene import SceneDecision
 from avatar.training.data import ViewSet
-from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
+from avatar.training.dynamic import DynamicTrainConfig, DynamicTrainResult, train_dynamic
 from avatar.training.frame_params import FrameParams
 from avatar.training.selection import SelectionConfig
-from avatar.training.validation import Validator
+from avatar.training.validation import ValidationConfig, Validator
 from avatar.training.warmup import WarmupTrainConfig, train_warmup
 from data_schemas.gaussians import BOUND_GAUSSIANS, DYNAMIC_TRAIN_LOG, TRAIN_LOG
 from data_schemas.tables import SchemaError, TableSchema, read_table, write_records, write_table
@@ -33,9 +33,11 @@ from pipeline.stage import StageContext
 from stages.artifacts import TRAIN_SEQUENCE, WorldGaussians, contact_flags, load_params, load_scene
 from stages.posing import PosedSequence, applied_deformation, load_sequence, templates
 from stages.representations import (
+    VALIDATED_RUN,
     CanonicalGaussians,
     Progress,
     Representation,
+    run_scratch,
     write_model_info,
     write_train_plys,
 )
@@ -106,18 +108,24 @@ def selection_config(conf: DictConfig) -> SelectionConfig:
     return SelectionConfig(bool(conf.select.enabled), float(conf.select.margin_db))
 
 
-def check_withheld_by_warmup(cfg: DictConfig) -> None:
-    """The selection judges step 0, the warm-up's model, on stage two's validation frames: the warm-up must not
-    have trained on them. ``ValueError`` naming the keys unless it withheld the same frames."""
+def withheld_problems(cfg: DictConfig) -> list[str]:
+    """The selection judges step 0, the warm-up's model, on stage two's validation frames: the warm-up must not have
+    trained on them. One line naming the keys unless it withheld the same frames (validation on, the same fraction and
+    floor), empty otherwise or without the selection."""
     warm, dyn = cfg.stage.warmup.validation, cfg.stage.dynamic.validation
-    if int(warm.every) <= 0 or int(warm.frames) != int(dyn.frames):
-        raise ValueError(
-            f"stage.dynamic.select.enabled=true: the warm-up trained on the frames stage two validates on "
-            f"(stage.warmup.validation.every={warm.every}, frames={warm.frames}; stage.dynamic.validation.frames="
-            f"{dyn.frames}), so step 0 would be judged on frames it saw; set stage.warmup.validation.every > 0 and "
-            f"stage.warmup.validation.frames={dyn.frames} (quality=draft and standard do), or "
-            f"stage.dynamic.select.enabled=false"
-        )
+    if not bool(cfg.stage.dynamic.select.enabled) or int(dyn.every) <= 0:
+        return []
+    same = all(float(warm[key]) == float(dyn[key]) for key in ("fraction", "min_train_frames"))
+    if int(warm.every) > 0 and same:
+        return []
+    return [
+        f"stage.dynamic.select.enabled=true: the warm-up trained on the frames stage two validates on "
+        f"(stage.warmup.validation.every={warm.every}, fraction={warm.fraction}, min_train_frames="
+        f"{warm.min_train_frames}; stage.dynamic.validation.fraction={dyn.fraction}, min_train_frames="
+        f"{dyn.min_train_frames}), so step 0 would be judged on frames it saw; set stage.warmup.validation.every > 0 "
+        f"and its fraction and min_train_frames to stage two's (quality=draft, standard and paper do), or "
+        f"stage.dynamic.select.enabled=false"
+    ]
 
 
 #: DynamicModelConfig's fields that the quality preset sets (``quality.dynamic_*``, ``quality.pointnet_*``,
@@ -167,6 +175,32 @@ def dynamic_train_config(cfg: DictConfig) -> DynamicTrainConfig:
     )
 
 
+def restart_seed(seed: int, restart: int) -> int:
+    """The seed of stage two's ``restart``-th initialisation (``stage.dynamic.restarts``): the run's own seed for the
+    first, so that one restart is the run without restarts."""
+    return seed + 1000 * restart
+
+
+@dataclass
+class StageTwoRun:
+    """One training run of stage two: the train motion it was posed with, the model and refined parameters it left, its
+    validator (the frames it withheld, its curve), the loop's result (what it selected), its seed and the conditioning
+    widths the model was built for."""
+
+    posed: PosedSequence
+    model: DynamicAvatar
+    params: FrameParams | None
+    validator: Validator
+    result: DynamicTrainResult
+    seed: int
+    frame_dims: dict[str, int]
+
+    @property
+    def selection_psnr(self) -> float:
+        """The validation PSNR (dB) of what the selection kept; NaN where it did not run."""
+        return self.result.selection.psnr if self.result.selection is not None else float("nan")
+
+
 @dataclass
 class BoundAvatar:
     """A trained bound model (:class:`DynamicAvatar`: the Gaussians and what of H, I and PointNet++ it keeps)."""
@@ -196,6 +230,9 @@ class BoundRepresentation(Representation):
     }
     gaussians = BoundGaussians
 
+    def problems(self) -> list[str]:
+        return withheld_problems(self.cfg)
+
     def warm_up(
         self,
         ctx: StageContext,
@@ -205,6 +242,9 @@ class BoundRepresentation(Representation):
         params: FrameParams | None,
         validator: Validator,
         progress: Progress,
+        *,
+        out_dir: Path,
+        checkpoint_dir: Path | None,
     ) -> float:
         assert isinstance(model, BoundGaussians)
         log = train_warmup(
@@ -212,48 +252,134 @@ class BoundRepresentation(Representation):
             views,
             meshes,
             warmup_train_config(self.cfg),
-            checkpoint_dir=ctx.scratch_dir,
+            checkpoint_dir=checkpoint_dir,
             progress=progress,
             validator=validator,
             params=params,
         )
-        write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
-        write_records(ctx.out_dir / "train_log.parquet", TRAIN_LOG, log)
-        return log[-1].loss
+        write_bound_gaussians(out_dir / "gaussians.parquet", model, meshes.part_names)
+        write_records(out_dir / "train_log.parquet", TRAIN_LOG, log)
+        return log[-1].loss if log else float("nan")
 
-    def train(self, ctx: StageContext, views: ViewSet, posed: PosedSequence) -> None:
+    def train(
+        self, ctx: StageContext, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
+    ) -> None:
+        """Stage two. With validation on, the validated run(s) (``stage.dynamic.restarts`` of them, from the warm-up's
+        validated run where it kept one) choose the step and the modules (:mod:`avatar.training.selection`); with
+        ``validation.retrain`` the model written then trains on every train frame, from the warm-up's final model,
+        for exactly the chosen steps and with only the chosen modules (docs/explanation/selection.md)."""
+        conf = self.cfg.stage.dynamic
+        validation = validation_config(conf.validation, views.num_frames)
+        select = bool(conf.select.enabled) and validation.enabled  # nothing withheld: nothing to choose on
+        if select and (problems := withheld_problems(self.cfg)):
+            raise ValueError(problems[0])
+        retrain = bool(conf.validation.retrain) and validation.enabled
+        # the validated run(s) start from the warm-up's validated run where it kept one (it withheld the same frames)
+        warmup_dir = ctx.input_dir("warmup")
+        first_dir = warmup_dir / VALIDATED_RUN if validation.enabled and validated is not None else warmup_dir
+        first_posed = validated if validation.enabled and validated is not None else posed
+        arch = model_config(self.cfg, load_scene(ctx.input_dir("scene")))
+        restarts = int(conf.restarts) if select else 1
+        runs = [
+            self._run(
+                ctx,
+                views,
+                first_posed,
+                first_dir,
+                arch,
+                Validator(validation, views),
+                seed=restart_seed(int(conf.seed), i),
+                select=select,
+                run=(f"restart{i}" if restarts > 1 else "validated") if retrain or restarts > 1 else "",
+            )
+            for i in range(restarts)
+        ]
+        chosen = max(runs, key=lambda r: r.selection_psnr) if select else runs[0]  # ties: the first
+        written = chosen
+        if retrain:
+            selection = chosen.result.selection
+            steps = selection.selected_step if selection is not None else chosen.validator.end
+            kept = selection.kept if selection is not None else {"hand_mlp": True, "interaction": True}
+            final_arch = replace(
+                arch, hand_mlp=arch.hand_mlp and kept["hand_mlp"], interaction=arch.interaction and kept["interaction"]
+            )
+            written = self._run(
+                ctx,
+                views,
+                posed,
+                warmup_dir,
+                final_arch,
+                Validator(ValidationConfig(), views, limit=steps),
+                seed=chosen.seed,
+                select=False,
+                run="final",
+            )
+        self._write(ctx, views, written, chosen, runs, retrain)
+
+    def _run(
+        self,
+        ctx: StageContext,
+        views: ViewSet,
+        posed: PosedSequence,
+        warmup_dir: Path,
+        arch: DynamicModelConfig,
+        validator: Validator,
+        *,
+        seed: int,
+        select: bool,
+        run: str,
+    ) -> StageTwoRun:
+        """One stage-two run from the warm-up model in ``warmup_dir`` on the frames ``validator`` leaves to training,
+        posed with ``posed`` (the parameters that warm-up trained on); ``run`` names its checkpoint folder."""
         conf = self.cfg.stage.dynamic
         meshes, cond, params = posed.meshes, posed.conditioning(self.cfg), frame_params(self.cfg, conf, posed)
-        if conf.select.enabled:
-            check_withheld_by_warmup(self.cfg)
         head, _ = templates(self.cfg.model)
-        gaussians = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
-        arch = model_config(self.cfg, load_scene(ctx.input_dir("scene")))
         frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
         model = DynamicAvatar.from_warmup(
-            gaussians,
+            load_gaussians(warmup_dir, meshes.part_names),
             meshes.vertices[0],
             meshes.faces,
             meshes.part_names,
             head.num_vertices,
             frame_dims,
             arch,
-            seed=conf.seed,
+            seed=seed,
         )
-        contact = contact_flags(ctx.input_dir("pbd"), TRAIN_SEQUENCE, views.num_frames)
-        validator = Validator(validation_config(conf.validation), views)
+        train_cfg = dynamic_train_config(self.cfg)
+        train_cfg = replace(train_cfg, seed=seed, selection=replace(train_cfg.selection, enabled=select))
         result = train_dynamic(
             model,
             views,
             meshes,
             cond,
-            contact,
-            dynamic_train_config(self.cfg),
-            checkpoint_dir=ctx.scratch_dir,
-            progress=lambda steps: ctx.progress(steps, desc="dynamic"),
+            contact_flags(ctx.input_dir("pbd"), TRAIN_SEQUENCE, views.num_frames),
+            train_cfg,
+            checkpoint_dir=run_scratch(ctx, run),
+            progress=lambda steps: ctx.progress(steps, desc=f"dynamic ({run})" if run else "dynamic"),
             validator=validator,
             params=params,
         )
+        return StageTwoRun(posed, model, params, validator, result, seed, frame_dims)
+
+    def _write(
+        self,
+        ctx: StageContext,
+        views: ViewSet,
+        written: StageTwoRun,
+        chosen: StageTwoRun,
+        runs: list[StageTwoRun],
+        retrain: bool,
+    ) -> None:
+        """The stage's outputs and metrics: the model of ``written``, what ``chosen`` (the best of ``runs``) chose."""
+        conf, model, params, result, posed = (
+            self.cfg.stage.dynamic,
+            written.model,
+            written.params,
+            written.result,
+            written.posed,
+        )
+        meshes, cond = posed.meshes, posed.conditioning(self.cfg)
+        head, _ = templates(self.cfg.model)
         fit_dir = ctx.input_dir("fit")
         record_refinement(ctx, load_params(fit_dir, TRAIN_SEQUENCE), posed.params, params)
         if params is not None:  # the PLYs pose the train motion as refined
@@ -268,7 +394,14 @@ class BoundRepresentation(Representation):
         buffer = io.BytesIO()
         torch.save(model.network_state(), buffer)
         write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "the dynamic model's networks")
-        selection = result.selection.metrics() if result.selection is not None else {}
+        selection = chosen.result.selection.metrics() if chosen.result.selection is not None else {}
+        if len(runs) > 1:
+            selection |= {
+                "restarts": len(runs),
+                "selected_restart": runs.index(chosen),
+                "selected_seed": chosen.seed,
+                **{f"restart{i}_selection_psnr": r.selection_psnr for i, r in enumerate(runs)},
+            }
         write_model_info(
             ctx.out_dir,
             self,
@@ -276,20 +409,22 @@ class BoundRepresentation(Representation):
                 "architecture": asdict(model.cfg),
                 "part_names": list(meshes.part_names),
                 "num_face_vertices": head.num_vertices,
-                "frame_dims": frame_dims,
+                "frame_dims": written.frame_dims,
                 "num_gaussians": model.gaussians.num_gaussians,
                 "selection": selection,
+                "retrained_on_all_frames": retrain,
             },
             "the dynamic model",
         )
         write_train_plys(ctx, BoundAvatar(model), cond, meshes, views.num_frames)
         log = result.log
         write_records(ctx.out_dir / "train_log.parquet", DYNAMIC_TRAIN_LOG, log)
-        record_validation(ctx, validator)
-        steps = max(validator.end, 1)
+        record_validation(ctx, chosen.validator, written.validator.train_frames.size)
+        steps = max(written.validator.end, 1)
+        contact = contact_flags(ctx.input_dir("pbd"), TRAIN_SEQUENCE, views.num_frames)
         ctx.metrics.update(
             {
-                "steps": validator.end,
+                "steps": written.validator.end,
                 "gaussians": model.gaussians.num_gaussians,
                 "final_loss": log[-1].loss if log else float("nan"),
                 "ms_per_step": 1000 * sum(result.seconds.values()) / steps,
@@ -298,6 +433,7 @@ class BoundRepresentation(Representation):
                 "interaction_steps": result.interaction_steps,
                 "contact_frames": int(contact.sum()),
                 "contact_draw_probability": result.contact_probability,
+                "retrained_on_all_frames": retrain,
                 "rasterizer": resolve_backend(conf.backend, model.mu_cano),
                 **selection,
             }

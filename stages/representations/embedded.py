@@ -21,7 +21,7 @@ from avatar.splatting import EmbeddedGaussians
 from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams
 from avatar.training.splatting import SplattingConfig, train_splatting
-from avatar.training.validation import Validator
+from avatar.training.validation import ValidationConfig, Validator
 from data_schemas.splatting import EMBEDDED_GAUSSIANS, SPLATTING_TRAIN_LOG
 from data_schemas.tables import SchemaError, TableSchema, read_table, write_records, write_table
 from data_schemas.writes import write_bytes
@@ -31,9 +31,11 @@ from pipeline.stage import StageContext
 from stages.artifacts import TRAIN_SEQUENCE, PosedGaussians, WorldGaussians, load_params
 from stages.posing import PosedSequence
 from stages.representations import (
+    VALIDATED_RUN,
     CanonicalGaussians,
     Progress,
     Representation,
+    run_scratch,
     write_model_info,
     write_train_plys,
 )
@@ -177,6 +179,9 @@ class EmbeddedRepresentation(Representation):
         params: FrameParams | None,
         validator: Validator,
         progress: Progress,
+        *,
+        out_dir: Path,
+        checkpoint_dir: Path | None,
     ) -> float:
         assert isinstance(model, EmbeddedGaussians) and params is None
         conf = self.cfg.stage.warmup
@@ -185,33 +190,37 @@ class EmbeddedRepresentation(Representation):
             views,
             meshes,
             splatting_config(self.cfg, int(self.cfg.quality.warmup_steps), conf, densify=True),
-            checkpoint_dir=ctx.scratch_dir,
+            checkpoint_dir=checkpoint_dir,
             progress=progress,
             validator=validator,
         )
-        write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
-        write_records(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
-        return log[-1].loss
+        write_embedded_gaussians(out_dir / "gaussians.parquet", model, meshes.part_names)
+        write_records(out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
+        return log[-1].loss if log else float("nan")
 
-    def train(self, ctx: StageContext, views: ViewSet, posed: PosedSequence) -> None:
+    def train(
+        self, ctx: StageContext, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
+    ) -> None:
         """SplattingAvatar continued from its warm-up for ``quality.dynamic_steps`` (no density control; walking
         goes on), so it trains as many steps as every other method. ``networks.pt`` holds its canonical mesh. Its
-        :meth:`problems` were refused before any stage ran."""
+        :meth:`problems` were refused before any stage ran. With ``validation.retrain`` the validated run (from the
+        warm-up's validated run where it kept one; ``validated``: the train motion as that run posed it) only
+        measures and may stop early; the model written trains on every frame for the steps it ran."""
         conf, meshes = self.cfg.stage.dynamic, posed.meshes
         canonical = meshes.vertices[0]
-        model = load_embedded_gaussians(ctx.input_dir("warmup"), meshes.part_names, canonical, meshes.faces)
-        validator = Validator(validation_config(conf.validation), views)
+        validation = validation_config(conf.validation, views.num_frames)
+        warmup_dir = ctx.input_dir("warmup")
+        first_dir = warmup_dir / VALIDATED_RUN if validation.enabled and validated is not None else warmup_dir
+        retrain = bool(conf.validation.retrain) and validation.enabled
+        validator = Validator(validation, views)
         start = time.perf_counter()
-        log = train_splatting(
-            model,
-            views,
-            meshes,
-            splatting_config(self.cfg, int(self.cfg.quality.dynamic_steps), conf, densify=False),
-            checkpoint_dir=ctx.scratch_dir,
-            progress=lambda s: ctx.progress(s, desc="dynamic"),
-            validator=validator,
-        )
-        steps = validator.end  # steps run
+        model, log = self._run(ctx, views, meshes, first_dir, validator, "validated" if retrain else "")
+        written = validator
+        if retrain:
+            written = Validator(ValidationConfig(), views, limit=validator.end)
+            start = time.perf_counter()
+            model, log = self._run(ctx, views, meshes, warmup_dir, written, "final")
+        steps = written.end  # steps run
         write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
         buffer = io.BytesIO()
         torch.save({"canonical_vertices": canonical.float(), "faces": meshes.faces}, buffer)
@@ -224,8 +233,8 @@ class EmbeddedRepresentation(Representation):
         )
         write_train_plys(ctx, EmbeddedAvatar(model), posed.conditioning(self.cfg), meshes, views.num_frames)
         write_records(ctx.out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
-        record_validation(ctx, validator)
-        seconds = time.perf_counter() - start - validator.validation_s
+        record_validation(ctx, validator, written.train_frames.size)
+        seconds = time.perf_counter() - start - written.validation_s
         record_refinement(ctx, load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE), posed.params, None)
         ctx.metrics.update(
             {
@@ -237,6 +246,23 @@ class EmbeddedRepresentation(Representation):
                 "rasterizer": resolve_backend(conf.backend, canonical),
             }
         )
+
+    def _run(
+        self, ctx: StageContext, views: ViewSet, meshes: MeshSequence, warmup_dir: Path, validator: Validator, run: str
+    ) -> tuple[EmbeddedGaussians, list]:
+        """One stage-two run from the warm-up model in ``warmup_dir`` on the frames and for the steps ``validator``
+        leaves to it: the model and its loss log. ``run`` names its checkpoint folder."""
+        model = load_embedded_gaussians(warmup_dir, meshes.part_names, meshes.vertices[0], meshes.faces)
+        log = train_splatting(
+            model,
+            views,
+            meshes,
+            splatting_config(self.cfg, int(self.cfg.quality.dynamic_steps), self.cfg.stage.dynamic, densify=False),
+            checkpoint_dir=run_scratch(ctx, run),
+            progress=lambda s: ctx.progress(s, desc=f"dynamic ({run})" if run else "dynamic"),
+            validator=validator,
+        )
+        return model, log
 
     @classmethod
     def load(cls, dynamic_dir: Path, info: dict) -> EmbeddedAvatar:

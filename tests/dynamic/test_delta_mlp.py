@@ -114,7 +114,7 @@ def test_nearest_distance_is_cdist_bit_for_bit() -> None:
 def test_a_short_stage_two_gives_the_reference_loss_curve(scene: Scene, monkeypatch) -> None:
     """Eight steps (contact and not) with everything issue 33 changed against the same steps with the references
     (per-head MLP forward, unfused Adam, cdist distances): the same losses to rounding."""
-    cfg = DynamicTrainConfig(steps=8, log_every=1, patch_weight=0.0, contact_fraction=0.5, max_contact_frame_share=1.0)
+    cfg = DynamicTrainConfig(steps=8, log_every=1, patch_weight=0.0, contact_fraction=0.5, max_contact_emphasis=1e9)
     contact = np.array([True, False])
     fast = train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, contact, cfg).log
     adam = torch.optim.Adam

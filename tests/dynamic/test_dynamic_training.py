@@ -45,7 +45,7 @@ def test_every_network_the_point_features_and_the_gaussians_receive_gradients(sc
         scene.meshes,
         scene.cond,
         CONTACT,
-        _cfg(2, contact_fraction=1.0, max_contact_frame_share=1.0),
+        _cfg(2, contact_fraction=1.0, max_contact_emphasis=1e9),
         lpips=lpips,
     )
     g = model(scene.cond.frame(NEAR), scene.meshes.vertices[NEAR], torch.Generator().manual_seed(0))
@@ -178,38 +178,51 @@ def test_the_selection_needs_validation_frames(scene: Scene, lpips: LPIPS) -> No
         train_dynamic(scene.model(), scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips)
 
 
+def _emphasis_cap(k: int, frames: int, cap: float) -> float:
+    """The closed form: p with 1 + p K / ((1 - p) k) = cap."""
+    return (cap - 1) * k / (frames + (cap - 1) * k)
+
+
 @pytest.mark.parametrize(
     ("contact_ids", "frames", "expected"),
     [
-        ([2, 7], 10, 0.0),  # uniform already gives each frame 1/10: nothing left to oversample under the cap
-        (list(range(15)), 20, 0.5),  # the synthetic draft captures: many contact frames, the cap does not bite
-        ([0], 6, 0.0),  # one contact frame of six (8 frames, 2 withheld): uniform
-        ([0, 1, 2], 20, (0.1 - 0.05) / (1 / 3 - 0.05)),  # the cap bites: each contact frame gets exactly 0.1
-        ([], 20, 0.5),
-        (list(range(20)), 20, 0.5),  # nothing to oversample: contact_fraction as given (no effect)
+        ([1], 4, 2 / 6),  # K = 4, one contact frame: capped to emphasis 3
+        ([0, 1], 4, 0.5),  # K = 4, half the frames touch: 1 + 0.5 * 4 / (0.5 * 2) = 3, the cap exactly
+        ([0], 8, 2 / 10),  # K = 8 (issue 53's short captures), one contact frame: 30 % of the steps, not 56 %
+        ([0, 1, 2], 8, 6 / 14),  # three of eight
+        ([0, 1, 2, 3], 8, 0.5),  # half of eight: the paper's 0.5, untouched
+        ([0, 1, 2], 24, 6 / 30),  # K = 24, a few contact frames among many
+        (list(range(12)), 24, 0.5),  # the synthetic draft captures: half the frames touch, the cap does not bite
+        (list(range(15)), 24, 0.5),
+        ([], 24, 0.5),
+        (list(range(24)), 24, 0.5),  # nothing to oversample: contact_fraction as given (no effect)
     ],
 )
-def test_contact_draw_probability_caps_each_contact_frames_share(contact_ids, frames, expected) -> None:
+def test_contact_draw_probability_caps_each_contact_frames_emphasis(contact_ids, frames, expected) -> None:
     contact = np.isin(np.arange(frames), contact_ids)
-    p = contact_draw_probability(np.arange(frames), contact, 0.5, 0.1)
+    p = contact_draw_probability(np.arange(frames), contact, 0.5, 3.0)
     assert p == pytest.approx(expected)
-    if 0 < len(contact_ids) < frames and p > 0:  # the closed form, against the share sample_frame realises
-        share = p / len(contact_ids) + (1 - p) / frames
-        assert share <= 0.1 + 1e-12
-        gen = torch.Generator().manual_seed(0)
+    k = len(contact_ids)
+    if 0 < k < frames:
+        assert p == pytest.approx(min(0.5, _emphasis_cap(k, frames, 3.0)))
+        contact_share, other_share = p / k + (1 - p) / frames, (1 - p) / frames
+        assert contact_share / other_share <= 3.0 + 1e-9  # no contact frame drawn more than 3 times as often
+        gen = torch.Generator().manual_seed(0)  # the closed form against the shares sample_frame realises
         draws = np.array([sample_frame(gen, np.arange(frames), contact, p) for _ in range(20000)])
-        assert abs(np.mean(draws == contact_ids[0]) - share) < 0.01
-    assert contact_draw_probability(np.arange(frames), contact, 0.5, 1.0) == 0.5  # cap 1: the paper's rule
+        assert abs(np.mean(draws == contact_ids[0]) - contact_share) < 0.01
+        other = int(np.setdiff1d(np.arange(frames), contact_ids)[0])
+        assert abs(np.mean(draws == other) - other_share) < 0.01
+    assert contact_draw_probability(np.arange(frames), contact, 0.5, 1.0) == (0.0 if 0 < k < frames else 0.5)
+    assert contact_draw_probability(np.arange(frames), contact, 0.5, 1e12) == pytest.approx(0.5)  # uncapped: paper
 
 
 def test_a_fully_capped_oversampling_trains_exactly_as_uniform_drawing(scene: Scene, lpips: LPIPS) -> None:
-    """Two frames: the cap (0.1 < 1/2) leaves nothing to oversample, and the run is the contact_fraction=0 run."""
+    """Emphasis cap 1 leaves nothing to oversample, and the run is the contact_fraction=0 run."""
     runs = []
     for fraction in (0.0, 0.5):
         model = scene.model()
-        log = train_dynamic(
-            model, scene.views, scene.meshes, scene.cond, CONTACT, _cfg(3, contact_fraction=fraction), lpips=lpips
-        ).log
+        cfg = _cfg(3, contact_fraction=fraction, max_contact_emphasis=1.0)
+        log = train_dynamic(model, scene.views, scene.meshes, scene.cond, CONTACT, cfg, lpips=lpips).log
         runs.append(([r.loss for r in log], model.state_dict()))
     assert runs[0][0] == runs[1][0]
     for (name, a), (_, b) in zip(runs[0][1].items(), runs[1][1].items(), strict=True):
@@ -217,7 +230,7 @@ def test_a_fully_capped_oversampling_trains_exactly_as_uniform_drawing(scene: Sc
 
 
 def test_the_cap_counts_only_the_training_frames() -> None:
-    """Contact frames withheld for validation are not drawn, so they do not spread the share."""
+    """Contact frames withheld for validation are not drawn, so they do not count."""
     contact = np.isin(np.arange(24), range(12))
     train = np.arange(8, 24)  # 4 contact frames of 16 left to training
-    assert contact_draw_probability(train, contact, 0.5, 0.1) == pytest.approx((0.1 - 1 / 16) / (1 / 4 - 1 / 16))
+    assert contact_draw_probability(train, contact, 0.5, 3.0) == pytest.approx(_emphasis_cap(4, 16, 3.0))

@@ -1,6 +1,7 @@
 """Stage two's selection wired through the DAG on an 8-frame training motion (issue 40's short capture): the
-manifest says what was kept and why, the written model is the kept one, and a selection without withheld warm-up
-frames is refused with the fix."""
+manifest says what was kept and why, the written model is the kept one (retrained on every frame with exactly the
+chosen steps and modules, issue 53), a capture too short to withhold anything trains on all of it and says so, and a
+selection without withheld warm-up frames is refused with the fix."""
 
 from __future__ import annotations
 
@@ -25,20 +26,70 @@ SMALL = [
 ]
 SELECT = [
     "stage.warmup.validation.every=20",
-    "stage.warmup.validation.frames=2",
+    "stage.warmup.validation.fraction=0.25",
     "stage.dynamic.validation.every=10",
-    "stage.dynamic.validation.frames=2",
+    "stage.dynamic.validation.fraction=0.25",
     "stage.dynamic.select.enabled=true",
 ]
 
 
+def _manifest(out: Path, stage: str) -> dict:
+    return json.loads((out / "synth_a" / "methods" / "interactavatar" / stage / "_manifest.json").read_text())
+
+
 def _dynamic(out: Path) -> dict:
-    return json.loads((out / "synth_a" / "methods" / "interactavatar" / "dynamic" / "_manifest.json").read_text())
+    return _manifest(out, "dynamic")
+
+
+def test_choosing_then_retraining_uses_exactly_the_chosen_steps_and_modules_on_every_frame(tmp_path: Path) -> None:
+    """The validated runs (two restarts) withhold 2 of 8 frames and choose; the model written trains on all 8 from the
+    warm-up's own retrain, for the chosen step and with the kept modules only."""
+    run_app(
+        compose_cfg([f"paths.outputs={tmp_path}", *SMALL, *SELECT, "stage.dynamic.restarts=2", "run.until=dynamic"])
+    )
+    warmup = _manifest(tmp_path, "warmup")["metrics"]
+    assert warmup["validation_frames_withheld"] == 2 and warmup["final_training_frames"] == 8
+    warmup_dir = tmp_path / "synth_a" / "methods" / "interactavatar" / "warmup"
+    assert (warmup_dir / "validation" / "gaussians.parquet").is_file()
+    assert (warmup_dir / "validation" / "params.parquet").is_file()
+    metrics = _dynamic(tmp_path)["metrics"]
+    assert metrics["validation_frames_withheld"] == 2 and metrics["final_training_frames"] == 8
+    assert metrics["retrained_on_all_frames"] is True
+    assert metrics["steps"] == metrics["selected_step"]  # the retrain ran exactly the chosen steps
+    assert metrics["restarts"] == 2 and metrics["selected_seed"] == 1000 * metrics["selected_restart"]
+    psnrs = [metrics[f"restart{i}_selection_psnr"] for i in range(2)]
+    assert metrics["selection_psnr"] == max(psnrs)
+    model = json.loads((tmp_path / "synth_a" / "methods" / "interactavatar" / "dynamic" / "model.json").read_text())
+    assert model["retrained_on_all_frames"] is True
+    assert model["architecture"]["hand_mlp"] == metrics["kept_hand_mlp"]  # a module not kept is not even built
+    assert model["architecture"]["interaction"] == metrics["kept_interaction"]
+    from stages.report import _withheld_paragraph
+
+    assert "withheld 2 of 8 training frames" in _withheld_paragraph(_dynamic(tmp_path))
+
+
+def test_a_capture_too_short_to_withhold_a_frame_trains_on_all_of_it_and_says_so(tmp_path: Path) -> None:
+    overrides = [*SMALL, *SELECT, "quality.num_frames_train=4", "run.until=dynamic"]
+    run_app(compose_cfg([f"paths.outputs={tmp_path}", *overrides]))
+    for stage in ("warmup", "dynamic"):
+        metrics = _manifest(tmp_path, stage)["metrics"]
+        assert metrics["validation_frames_withheld"] == 0 and metrics["final_training_frames"] == 4, stage
+    metrics = _dynamic(tmp_path)["metrics"]
+    assert "selected_step" not in metrics and metrics["steps"] == 20
+    from stages.report import _withheld_paragraph
+
+    text = _withheld_paragraph(_dynamic(tmp_path))
+    assert "Nothing could be withheld for validation: with 4 training frames, at least 4 must stay" in text
 
 
 def test_the_manifest_and_the_model_say_what_the_selection_kept(tmp_path: Path) -> None:
-    run_app(compose_cfg([f"paths.outputs={tmp_path}", *SMALL, *SELECT, "run.until=dynamic"]))
+    """Without the retrain (today's protocol before issue 53) the model written is the validated run's."""
+    overrides = [*SMALL, *SELECT, "stage.warmup.validation.retrain=false", "stage.dynamic.validation.retrain=false"]
+    run_app(compose_cfg([f"paths.outputs={tmp_path}", *overrides, "run.until=dynamic"]))
     metrics = _dynamic(tmp_path)["metrics"]
+    assert metrics["validation_frames_withheld"] == 2 and metrics["final_training_frames"] == 6
+    assert metrics["retrained_on_all_frames"] is False
+    assert not (tmp_path / "synth_a" / "methods" / "interactavatar" / "warmup" / "validation").exists()
     assert metrics["selected_step"] in (0, 10, 20) and metrics["selection_final_step"] == 20
     assert isinstance(metrics["kept_hand_mlp"], bool) and isinstance(metrics["kept_interaction"], bool)
     assert metrics["selection_selected_psnr"] >= metrics["selection_final_psnr"]
@@ -62,12 +113,14 @@ def test_the_manifest_and_the_model_say_what_the_selection_kept(tmp_path: Path) 
     assert ("hand MLPs H: kept" in text) == metrics["kept_hand_mlp"]
 
 
-def test_selection_refuses_a_warmup_that_trained_on_the_validation_frames(tmp_path: Path) -> None:
-    cfg = compose_cfg(
-        [f"paths.outputs={tmp_path}", *SMALL, *SELECT, "stage.warmup.validation.every=0", "run.until=dynamic"]
-    )
-    with pytest.raises(Exception, match="stage.warmup.validation.every > 0"):
+@pytest.mark.parametrize("override", ["stage.warmup.validation.every=0", "stage.warmup.validation.fraction=0.5"])
+def test_selection_refuses_a_warmup_that_trained_on_the_validation_frames(tmp_path: Path, override: str) -> None:
+    from pipeline.config import ConfigError
+
+    cfg = compose_cfg([f"paths.outputs={tmp_path}", *SMALL, *SELECT, override, "run.until=dynamic"])
+    with pytest.raises(ConfigError, match="stage.warmup.validation.every > 0"):
         run_app(cfg)
+    assert not (tmp_path / "synth_a" / "capture").exists()
 
 
 def test_selection_without_validation_is_refused_before_work_starts(tmp_path: Path) -> None:

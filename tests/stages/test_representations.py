@@ -99,10 +99,17 @@ class WarmupOnly(Representation):
         params: FrameParams | None,
         validator: Validator,
         progress: Progress,
+        *,
+        out_dir: Path,
+        checkpoint_dir: Path | None,
     ) -> float:
-        return BoundRepresentation(self.cfg).warm_up(ctx, model, views, meshes, params, validator, progress)
+        return BoundRepresentation(self.cfg).warm_up(
+            ctx, model, views, meshes, params, validator, progress, out_dir=out_dir, checkpoint_dir=checkpoint_dir
+        )
 
-    def train(self, ctx: StageContext, views: ViewSet, posed: PosedSequence) -> None:
+    def train(
+        self, ctx: StageContext, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
+    ) -> None:
         meshes = posed.meshes
         gaussians = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
         write_bound_gaussians(ctx.out_dir / "gaussians.parquet", gaussians, meshes.part_names)
@@ -114,7 +121,8 @@ class WarmupOnly(Representation):
             ctx, WarmupOnlyAvatar(gaussians, meshes.faces), posed.conditioning(self.cfg), meshes, views.num_frames
         )
         write_records(ctx.out_dir / "train_log.parquet", TRAIN_LOG, [])
-        record_validation(ctx, Validator(validation_config(self.cfg.stage.dynamic.validation), views))
+        validator = Validator(validation_config(self.cfg.stage.dynamic.validation, views.num_frames), views)
+        record_validation(ctx, validator, views.num_frames)
         record_refinement(ctx, load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE), posed.params, None)
         ctx.metrics.update({"steps": 0, "gaussians": gaussians.num_gaussians, "ms_per_step": 0.0})
 

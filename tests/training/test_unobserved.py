@@ -109,7 +109,7 @@ def _dynamic_loop(label: int) -> Callable[[], None]:
         patch_min_size=16,
         log_every=1,
         contact_fraction=1.0,
-        max_contact_frame_share=1.0,
+        max_contact_emphasis=1e9,
     )
     return lambda: dynamic.train_dynamic(
         scene.model(),

@@ -19,7 +19,14 @@ from avatar.training import warmup
 from avatar.training.data import ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, sample_frame, train_dynamic
 from avatar.training.splatting import SplattingConfig, train_splatting
-from avatar.training.validation import FlatStop, ValidationConfig, Validator, is_flat, withheld_frames
+from avatar.training.validation import (
+    FlatStop,
+    ValidationConfig,
+    Validator,
+    is_flat,
+    withheld_count,
+    withheld_frames,
+)
 from avatar.training.warmup import WarmupTrainConfig, train_warmup
 from pipeline.cli import run_app
 from pipeline.config import ConfigError
@@ -62,6 +69,43 @@ def test_withheld_frames_are_evenly_spaced_deterministic_and_never_frame_zero():
             assert len(set(frames.tolist())) == count and frames.min() >= 1 and frames.max() <= t - 1
     with pytest.raises(ValueError, match="at least one must stay for training"):
         withheld_frames(4, 4)
+
+
+@pytest.mark.parametrize(
+    ("frames", "fraction", "floor", "expected"),
+    [
+        (24, 0.15, 4, 4),  # draft's synthetic captures: 4 withheld, as before the fraction
+        (8, 0.15, 4, 2),  # the short captures: 2 of 8
+        (12, 0.15, 4, 2),
+        (5, 0.15, 4, 1),
+        (4, 0.15, 4, 0),  # nothing can be withheld: all four train
+        (1, 0.15, 4, 0),
+        (8, 0.25, 4, 2),  # ceil(2.0) is 2 whatever the float rounding of 0.25 * 8
+        (8, 0.9, 4, 4),  # the floor bites: 4 stay
+        (300, 0.15, 4, 45),  # the paper's captures: a fraction, not a count
+    ],
+)
+def test_withheld_count_is_a_fraction_of_the_capture_with_a_floor_on_what_trains(frames, fraction, floor, expected):
+    count = withheld_count(frames, fraction, floor)
+    assert count == expected
+    assert count == max(0, min(math.ceil(round(fraction * frames, 9)), frames - floor))  # the closed form
+    if count:
+        assert len(withheld_frames(frames, count)) == count
+
+
+def test_a_limit_ends_training_at_the_chosen_step_with_the_planned_schedule(tmp_path: Path) -> None:
+    """The retrain on every frame runs the validated run's schedule (planned over every step) to the chosen step:
+    its first steps are those of the full run, bit for bit."""
+    views, meshes = _scene(3)
+    full = _model(meshes)
+    log_full = train_warmup(full, views, meshes, CFG, validator=Validator(ValidationConfig(), views))
+    limited = _model(meshes)
+    validator = Validator(ValidationConfig(), views, limit=15)  # past the density control (until step 10)
+    log = train_warmup(limited, views, meshes, CFG, validator=validator)
+    assert validator.end == 15 and log[-1].step == 15
+    assert [(r.step, r.loss) for r in log] == [(r.step, r.loss) for r in log_full if r.step <= 15]
+    nothing = Validator(ValidationConfig(), views, limit=0)
+    assert train_warmup(_model(meshes), views, meshes, CFG, validator=nothing) == [] and nothing.end == 0
 
 
 def _scene(num_frames: int) -> tuple[ViewSet, MeshSequence]:
@@ -265,7 +309,7 @@ def test_bad_validation_settings_fail_before_any_stage(tmp_path: Path):
     overrides = [
         "stage.warmup.validation.every=-1",
         "stage.warmup.validation.stop_when_flat.window=0",
-        "stage.dynamic.validation.frames=0",
+        "stage.dynamic.validation.min_train_frames=0",
         "stage.dynamic.validation.stop_when_flat.min_gain_db=nan",
     ]
     cfg = compose_cfg([f"paths.outputs={tmp_path / 'out'}", "run.progress=false", "run.dry=true", *overrides])
@@ -275,7 +319,7 @@ def test_bad_validation_settings_fail_before_any_stage(tmp_path: Path):
     for expected in (
         "stage.warmup.validation.every=-1",
         "stage.warmup.validation.stop_when_flat.window=0",
-        "stage.dynamic.validation.frames=0",
+        "stage.dynamic.validation.min_train_frames=0",
         "stage.dynamic.validation.stop_when_flat.min_gain_db=nan",
     ):
         assert expected in message, message
