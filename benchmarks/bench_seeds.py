@@ -4,8 +4,9 @@ Settings (all at ``quality=draft``; every method trained once per seed, the shar
 
 - ``a``: today's captures: ``full`` appearance, 24 training frames, ground-truth tracking; synth_a and synth_b;
 - ``b``: ``plain`` appearance (no creases, no curl self-shadow, no contact darkening), otherwise as (a); synth_a;
-- ``c``: ``full``, 8 training frames, fitted tracking on MediaPipe detections; synth_a (2 validation frames
-  instead of 4: 4 of 8 would halve the training frames);
+- ``c``: ``full``, 8 training frames, fitted tracking on MediaPipe detections; synth_a (validation withholds 2 of 8 to
+  choose on, then both stages train again on all 8: issue 53); ``c0``: the same without validation;
+- ``e``: ``full``, 8 training frames, ground-truth tracking; synth_b (issue 53); ``e0``: the same without validation;
 - ``d``: the held-out third identity synth_c, ``full``, 24 frames, fitted tracking on MediaPipe detections;
 - ``a2``: (a) with two threads per run instead of one (thread counts change the rounding of torch's reductions,
   which acts like another seed);
@@ -56,6 +57,12 @@ METHODS = ("interactavatar", "gaussian_avatars")
 MEDIAPIPE = ["fit.source=fitted", "stage.keypoints.detector=mediapipe"]
 # (m0) and (m1) predate refine_params and were measured without it (the code path without it is unchanged)
 NO_TRAIN_REFINE = ["stage.warmup.refine_params=false", "stage.dynamic.refine_params=false"]
+# issue 53's arm without validation: every frame trains, nothing is chosen
+NO_VALIDATION = [
+    "stage.warmup.validation.every=0",
+    "stage.dynamic.validation.every=0",
+    "stage.dynamic.select.enabled=false",
+]
 SETTINGS: dict[str, dict] = {
     "a": {
         "subjects": ("synth_a", "synth_b"),
@@ -69,13 +76,23 @@ SETTINGS: dict[str, dict] = {
     },
     "c": {
         "subjects": ("synth_a",),
-        "overrides": [
-            *MEDIAPIPE,
-            "quality.num_frames_train=8",
-            "stage.warmup.validation.frames=2",
-            "stage.dynamic.validation.frames=2",
-        ],
+        "overrides": [*MEDIAPIPE, "quality.num_frames_train=8"],  # validation withholds 2 of 8 (fraction 0.15)
         "what": "full appearance, 8 frames, fitted tracking (MediaPipe)",
+    },
+    "c0": {
+        "subjects": ("synth_a",),
+        "overrides": [*MEDIAPIPE, "quality.num_frames_train=8", *NO_VALIDATION],
+        "what": "as (c), no validation: nothing withheld, nothing chosen",
+    },
+    "e": {
+        "subjects": ("synth_b",),
+        "overrides": ["fit.source=ground_truth", "quality.num_frames_train=8"],
+        "what": "full appearance, 8 frames, ground-truth tracking",
+    },
+    "e0": {
+        "subjects": ("synth_b",),
+        "overrides": ["fit.source=ground_truth", "quality.num_frames_train=8", *NO_VALIDATION],
+        "what": "as (e), no validation: nothing withheld, nothing chosen",
     },
     "d": {
         "subjects": ("synth_c",),

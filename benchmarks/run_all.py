@@ -51,6 +51,10 @@ QUICK: dict[str, list[list[str]]] = {
         ],
         ["table", "--settings", "a", "--outputs", "{out}", "--results", "{out}"],
     ],
+    "bench_small_captures": [
+        ["run", "--pair", "e", "--seeds", "0", "--quality", "smoke", "--outputs", "{out}"],
+        ["table", "--outputs", "{out}", "--results", "{out}"],
+    ],
     "bench_scene": [["--preset", "smoke", "--scenes", "face_only", "--outputs", "{out}", "--results", "{out}"]],
     "bench_quality": [
         ["--presets", "smoke", "--methods", "gaussian_avatars", "--outputs", "{out}", "--results", "{out}"]
@@ -102,6 +106,7 @@ NEEDS = {
     "bench_refine": [["--workspace", "{smoke}/synth_a"]],
     "bench_train_refine": [["--workspace", "{smoke}/synth_a"]],
     "bench_seeds": [["table"]],
+    "bench_small_captures": [["table"]],
 }
 
 

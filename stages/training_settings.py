@@ -130,7 +130,8 @@ def validation_config(conf: DictConfig, num_frames: int) -> ValidationConfig:
     sequence of ``num_frames`` frames: ``fraction`` of them withheld, as far as ``min_train_frames`` stay to train on
     (:func:`withheld_count`)."""
     stop = conf.stop_when_flat
-    frames = withheld_count(num_frames, float(conf.fraction), int(conf.min_train_frames)) if int(conf.every) > 0 else 0
+    on = int(conf.every) > 0 and num_frames > 0
+    frames = withheld_count(num_frames, float(conf.fraction), int(conf.min_train_frames)) if on else 0
     return ValidationConfig(
         int(conf.every),
         frames,

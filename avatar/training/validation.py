@@ -116,6 +116,8 @@ def withheld_count(num_frames: int, fraction: float, min_train_frames: int) -> i
 
     ``fraction`` 0.15 withholds 4 of 24, 2 of 8 and 1 of 5 frames; with ``min_train_frames`` 4, none of 4.
     """
+    if not 0.0 < fraction < 1.0:  # also refuses NaN
+        raise ValueError(f"validation fraction {fraction}: must lie strictly between 0 and 1")
     wanted = math.ceil(fraction * num_frames - 1e-9)  # 1e-9: 0.25 * 8 is 2, not 3, whatever the rounding
     return max(0, min(wanted, num_frames - min_train_frames))
 
