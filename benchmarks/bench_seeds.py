@@ -7,6 +7,7 @@ Settings (all at ``quality=draft``; every method trained once per seed, the shar
 - ``c``: ``full``, 8 training frames, fitted tracking on MediaPipe detections; synth_a (validation withholds 2 of 8 to
   choose on, then both stages train again on all 8: issue 53); ``c0``: the same without validation;
 - ``e``: ``full``, 8 training frames, ground-truth tracking; synth_b (issue 53); ``e0``: the same without validation;
+- ``ar``: (a) with ``stage.dynamic.restarts=2`` (issue 53: does the hand's seed spread shrink?);
 - ``d``: the held-out third identity synth_c, ``full``, 24 frames, fitted tracking on MediaPipe detections;
 - ``a2``: (a) with two threads per run instead of one (thread counts change the rounding of torch's reductions,
   which acts like another seed);
@@ -83,6 +84,11 @@ SETTINGS: dict[str, dict] = {
         "subjects": ("synth_a",),
         "overrides": [*MEDIAPIPE, "quality.num_frames_train=8", *NO_VALIDATION],
         "what": "as (c), no validation: nothing withheld, nothing chosen",
+    },
+    "ar": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": ["fit.source=ground_truth", "stage.dynamic.restarts=2"],
+        "what": "as (a), best of two initialisations of stage two (restarts)",
     },
     "e": {
         "subjects": ("synth_b",),

@@ -66,6 +66,12 @@ def test_choosing_then_retraining_uses_exactly_the_chosen_steps_and_modules_on_e
     from stages.report import _withheld_paragraph
 
     assert "withheld 2 of 8 training frames" in _withheld_paragraph(_dynamic(tmp_path))
+    # the warm-up's retrain is the warm-up without validation, bit for bit: the same seed, steps and frames
+    plain = tmp_path / "plain"
+    run_app(compose_cfg([f"paths.outputs={plain}", *SMALL, "run.until=warmup"]))
+    plain_dir = plain / "synth_a" / "methods" / "interactavatar" / "warmup"
+    for name in ("gaussians.parquet", "params.parquet", "gaussians.ply"):
+        assert (warmup_dir / name).read_bytes() == (plain_dir / name).read_bytes(), name
 
 
 def test_a_capture_too_short_to_withhold_a_frame_trains_on_all_of_it_and_says_so(tmp_path: Path) -> None:
