@@ -346,6 +346,12 @@ def _selection_paragraph(dynamic: dict) -> str:
             text += f" {name[0].upper()}{name[1:]}: not built."
             continue
         kept = bool(dynamic[f"kept_{module}"])
+        if dynamic.get(f"selection_judged_{module}") is False:
+            text += (
+                f" {name[0].upper()}{name[1:]}: kept without being judged (they act on none of the withheld frames: "
+                "the hand comes within d_max of the face in none of them)."
+            )
+            continue
         text += (
             f" {name[0].upper()}{name[1:]}: {'kept' if kept else 'switched off'} (validation PSNR without them "
             f"{without:.2f} dB)."

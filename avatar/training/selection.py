@@ -9,7 +9,10 @@ the same ones, so no model saw them). The rule, fixed before any held-out figure
 2. **Modules.** At that step, switch each module off in turn (H: both hand MLPs; then I), and leave it off
    when that lowers the validation PSNR by at most ``margin_db``; a module that does not pay for itself on
    frames it never saw is not kept. Switched off means its output layers are zero, which is exactly a zero
-   delta (they start at zero), so the written model renders as if the module had never been built.
+   delta (they start at zero), so the written model renders as if the module had never been built. A module
+   that acts on none of the withheld frames (I where the hand comes within ``d_max`` of the face in none of them)
+   cannot be judged there: switching it off changes no validation pixel, which is no evidence that it is worth
+   nothing, so it is kept (``judged`` False).
 
 The held-out camera and the held-out motion are never looked at.
 """
@@ -98,6 +101,8 @@ class Selection:
         psnr_without: module -> validation PSNR of the selected model with that module switched off (only the
             modules that were built).
         psnr: validation PSNR of what was written (the selected step, less what was switched off).
+        judged: module -> whether it acted on a withheld frame (only the modules that were built); one that did not
+            is kept unjudged.
     """
 
     selected_step: int
@@ -107,6 +112,7 @@ class Selection:
     kept: dict[str, bool] = field(default_factory=dict)
     psnr_without: dict[str, float] = field(default_factory=dict)
     psnr: float = float("nan")
+    judged: dict[str, bool] = field(default_factory=dict)
 
     def metrics(self) -> dict[str, float | int | bool]:
         """Manifest metrics: ``selected_step``, ``kept_hand_mlp``, ``kept_interaction`` and the figures."""
@@ -119,6 +125,7 @@ class Selection:
         }
         out |= {f"kept_{module}": kept for module, kept in self.kept.items()}
         out |= {f"selection_psnr_without_{module}": psnr for module, psnr in self.psnr_without.items()}
+        out |= {f"selection_judged_{module}": judged for module, judged in self.judged.items()}
         return out
 
 
@@ -137,7 +144,13 @@ def switch_off(nets: list[DeltaHeads]) -> None:
 
 
 def select(
-    model: nn.Module, best: BestStep, final_step: int, final_psnr: float, measure: Callable[[], float], margin_db: float
+    model: nn.Module,
+    best: BestStep,
+    final_step: int,
+    final_psnr: float,
+    measure: Callable[[], float],
+    margin_db: float,
+    acts: Callable[[str], bool] = lambda module: True,
 ) -> Selection:
     """Apply the rule of the module docstring to ``model`` in place.
 
@@ -146,6 +159,7 @@ def select(
         final_step, final_psnr: where training ended, and its validation PSNR.
         measure: ``measure()`` -> the validation PSNR (dB) of ``model`` as it is now.
         margin_db: switch a module off when that costs at most this much validation PSNR.
+        acts: ``acts(module)`` -> whether the module acts on any withheld frame; one that does not is kept unjudged.
     """
     best.restore(model)
     chosen = Selection(
@@ -157,10 +171,11 @@ def select(
             chosen.kept[module] = False
             continue
         saved = [{k: v.clone() for k, v in net.state_dict().items()} for net in nets]
+        chosen.judged[module] = acts(module)
         switch_off(nets)
         without = float(measure())
         chosen.psnr_without[module] = without
-        chosen.kept[module] = without < chosen.psnr - margin_db
+        chosen.kept[module] = without < chosen.psnr - margin_db or not chosen.judged[module]
         if chosen.kept[module]:
             for net, state in zip(nets, saved):
                 net.load_state_dict(state)

@@ -88,6 +88,29 @@ def test_a_module_the_method_never_built_is_not_kept_and_not_measured():
     assert "interaction" not in chosen.psnr_without
 
 
+def test_a_module_that_acts_on_no_withheld_frame_is_kept_unjudged():
+    """I where the hand comes near the face in none of the withheld frames: switching it off changes nothing there,
+    which is no evidence that it is worth nothing (issue 53's (c): I was switched off in every seed that way)."""
+    model, best = _Model(), BestStep()
+    best.offer(5, _psnr(model, 0.5, 0.0), model)
+    chosen = select(
+        model, best, 5, 30.5, lambda: _psnr(model, 0.5, 0.0), margin_db=0.05, acts=lambda m: m != "interaction"
+    )
+    assert chosen.kept == {"hand_mlp": True, "interaction": True}
+    assert chosen.judged == {"hand_mlp": True, "interaction": False}
+    assert _on(model, "interaction")  # restored, bit for bit, not left switched off
+    metrics = chosen.metrics()
+    assert metrics["selection_judged_interaction"] is False and metrics["kept_interaction"] is True
+    judged = select(_Model(), _best(), 5, 30.5, lambda: 30.5, margin_db=0.05)  # acting and worth nothing: off
+    assert judged.kept["interaction"] is False and judged.judged["interaction"] is True
+
+
+def _best() -> BestStep:
+    best = BestStep()
+    best.offer(5, 30.5, _Model())
+    return best
+
+
 def test_switched_off_heads_output_exactly_zero():
     net = _Model().hand_geo
     switch_off([net])
