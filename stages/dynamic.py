@@ -113,14 +113,15 @@ DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("st
         "curve.parquet",
         "params.parquet",
     ),
-    # 13: a module that acts on no withheld frame is kept unjudged (selection_judged_*); 12: validation.fraction/min_train_frames/retrain (choose on withheld frames, then train on every frame),
+    # 14: I is judged only when a withheld frame has contact (selection_judged_*); 12: validation.fraction,
+    # min_train_frames, retrain (choose on withheld frames, then train on every frame),
     # restarts, the contact emphasis cap instead of max_contact_frame_share; 11: model.json names the representation
     # (the registry loads the model by it); 10: issue 33's faster step
     # (fused layers, fused Adam; rounding-level changes); 9: refine_params, stage two posed from the warm-up's
     # params.parquet; 8: stage.dynamic.select (the kept step and modules); 7: SSIM filtered by
     # shifted sums instead of conv2d (rounding-level changes); 6: the compiled rasterizer's alpha as a power of two
     # (rounding-level)
-    version="13",
+    version="14",
     per_method=True,
     config_schema=DynamicConfig,
     # resuming is bit-for-bit: it cannot change the result

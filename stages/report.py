@@ -348,8 +348,8 @@ def _selection_paragraph(dynamic: dict) -> str:
         kept = bool(dynamic[f"kept_{module}"])
         if dynamic.get(f"selection_judged_{module}") is False:
             text += (
-                f" {name[0].upper()}{name[1:]}: kept without being judged (they act on none of the withheld frames: "
-                "the hand comes within d_max of the face in none of them)."
+                f" {name[0].upper()}{name[1:]}: kept without being judged (none of the withheld frames has "
+                "contact, which they model)."
             )
             continue
         text += (

@@ -352,18 +352,9 @@ def train_dynamic(
             validator.curve[-1].psnr,
             lambda: validator.measure(render),
             cfg.selection.margin_db,
-            lambda module: module != "interaction" or _interaction_acts(model, inputs, validator.frames),
+            lambda module: module != "interaction" or bool(contact[validator.frames].any()),
         )
     return result
-
-
-def _interaction_acts(
-    model: DynamicAvatar, inputs: Callable[[int], tuple[Conditioning, Tensor]], frames: np.ndarray
-) -> bool:
-    """Whether I evaluates any Gaussian in any of ``frames`` (F,) (the hand within ``d_max`` of the face), posed by
-    ``inputs(frame)`` -> (conditioning, vertices) as evaluated."""
-    with torch.no_grad():
-        return any(model(*inputs(int(t))).interaction_evaluations > 0 for t in frames)
 
 
 _CHECKPOINT_KEYS = ("step", "model", "optimizer", "rng", "log", "interaction", "validation", "best", "params")

@@ -10,9 +10,10 @@ the same ones, so no model saw them). The rule, fixed before any held-out figure
    when that lowers the validation PSNR by at most ``margin_db``; a module that does not pay for itself on
    frames it never saw is not kept. Switched off means its output layers are zero, which is exactly a zero
    delta (they start at zero), so the written model renders as if the module had never been built. A module
-   that acts on none of the withheld frames (I where the hand comes within ``d_max`` of the face in none of them)
-   cannot be judged there: switching it off changes no validation pixel, which is no evidence that it is worth
-   nothing, so it is kept (``judged`` False).
+   is judged only where a withheld frame is one it is for: I, which models contact, only when a withheld frame
+   has contact (the ``pbd`` stage's flags). Without one, switching it off changes next to nothing on the
+   validation frames (on issue 53's setting (c), not the last digit of the PSNR), which is no evidence that it
+   is worth nothing, so it is kept (``judged`` False).
 
 The held-out camera and the held-out motion are never looked at.
 """
@@ -101,7 +102,7 @@ class Selection:
         psnr_without: module -> validation PSNR of the selected model with that module switched off (only the
             modules that were built).
         psnr: validation PSNR of what was written (the selected step, less what was switched off).
-        judged: module -> whether it acted on a withheld frame (only the modules that were built); one that did not
+        judged: module -> whether a withheld frame is one it is for (only the modules that were built); one without
             is kept unjudged.
     """
 
@@ -159,7 +160,7 @@ def select(
         final_step, final_psnr: where training ended, and its validation PSNR.
         measure: ``measure()`` -> the validation PSNR (dB) of ``model`` as it is now.
         margin_db: switch a module off when that costs at most this much validation PSNR.
-        acts: ``acts(module)`` -> whether the module acts on any withheld frame; one that does not is kept unjudged.
+        acts: ``acts(module)`` -> whether any withheld frame is one the module is for; one without is kept unjudged.
     """
     best.restore(model)
     chosen = Selection(

@@ -88,9 +88,9 @@ def test_a_module_the_method_never_built_is_not_kept_and_not_measured():
     assert "interaction" not in chosen.psnr_without
 
 
-def test_a_module_that_acts_on_no_withheld_frame_is_kept_unjudged():
-    """I where the hand comes near the face in none of the withheld frames: switching it off changes nothing there,
-    which is no evidence that it is worth nothing (issue 53's (c): I was switched off in every seed that way)."""
+def test_a_module_with_no_withheld_frame_it_is_for_is_kept_unjudged():
+    """I when no withheld frame has contact: switching it off changes next to nothing there, which is no evidence
+    that it is worth nothing (issue 53's (c): I was switched off in every seed that way)."""
     model, best = _Model(), BestStep()
     best.offer(5, _psnr(model, 0.5, 0.0), model)
     chosen = select(
