@@ -7,6 +7,7 @@ Settings (all at ``quality=draft``; every method trained once per seed, the shar
 - ``c``: ``full``, 8 training frames, fitted tracking on MediaPipe detections; synth_a (validation withholds 2 of 8 to
   choose on, then both stages train again on all 8: issue 53); ``c0``: the same without validation;
 - ``e``: ``full``, 8 training frames, ground-truth tracking; synth_b (issue 53); ``e0``: the same without validation;
+- ``a1``: (a) with ``validation.retrain=false`` (the validated runs written: the protocol before issue 53);
 - ``ar``: (a) with ``stage.dynamic.restarts=2`` (issue 53: does the hand's seed spread shrink?);
 - ``d``: the held-out third identity synth_c, ``full``, 24 frames, fitted tracking on MediaPipe detections;
 - ``a2``: (a) with two threads per run instead of one (thread counts change the rounding of torch's reductions,
@@ -64,6 +65,8 @@ NO_VALIDATION = [
     "stage.dynamic.validation.every=0",
     "stage.dynamic.select.enabled=false",
 ]
+# the protocol before issue 53: the validated runs are written
+NO_RETRAIN = ["stage.warmup.validation.retrain=false", "stage.dynamic.validation.retrain=false"]
 SETTINGS: dict[str, dict] = {
     "a": {
         "subjects": ("synth_a", "synth_b"),
@@ -84,6 +87,11 @@ SETTINGS: dict[str, dict] = {
         "subjects": ("synth_a",),
         "overrides": [*MEDIAPIPE, "quality.num_frames_train=8", *NO_VALIDATION],
         "what": "as (c), no validation: nothing withheld, nothing chosen",
+    },
+    "a1": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": ["fit.source=ground_truth", *NO_RETRAIN],
+        "what": "as (a), the validated runs written (withheld frames never trained on)",
     },
     "ar": {
         "subjects": ("synth_a", "synth_b"),
