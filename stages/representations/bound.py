@@ -279,6 +279,7 @@ class BoundRepresentation(Representation):
         first_dir = warmup_dir / VALIDATED_RUN if validation.enabled and validated is not None else warmup_dir
         first_posed = validated if validation.enabled and validated is not None else posed
         arch = model_config(self.cfg, load_scene(ctx.input_dir("scene")))
+        contact = contact_flags(ctx.input_dir("pbd"), TRAIN_SEQUENCE, views.num_frames)
         restarts = int(conf.restarts) if select else 1
         runs = [
             self._run(
@@ -287,6 +288,7 @@ class BoundRepresentation(Representation):
                 first_posed,
                 first_dir,
                 arch,
+                contact,
                 Validator(validation, views),
                 seed=restart_seed(int(conf.seed), i),
                 select=select,
@@ -309,12 +311,13 @@ class BoundRepresentation(Representation):
                 posed,
                 warmup_dir,
                 final_arch,
+                contact,
                 Validator(ValidationConfig(), views, limit=steps),
                 seed=chosen.seed,
                 select=False,
                 run="final",
             )
-        self._write(ctx, views, written, chosen, runs, retrain)
+        self._write(ctx, views, written, chosen, runs, retrain, contact)
 
     def _run(
         self,
@@ -323,6 +326,7 @@ class BoundRepresentation(Representation):
         posed: PosedSequence,
         warmup_dir: Path,
         arch: DynamicModelConfig,
+        contact: np.ndarray,
         validator: Validator,
         *,
         seed: int,
@@ -330,7 +334,7 @@ class BoundRepresentation(Representation):
         run: str,
     ) -> StageTwoRun:
         """One stage-two run from the warm-up model in ``warmup_dir`` on the frames ``validator`` leaves to training,
-        posed with ``posed`` (the parameters that warm-up trained on); ``run`` names its checkpoint folder."""
+        posed with ``posed`` (the parameters that warm-up trained on), drawing the ``contact`` (T,) frames first; ``run`` names its checkpoint folder."""
         conf = self.cfg.stage.dynamic
         meshes, cond, params = posed.meshes, posed.conditioning(self.cfg), frame_params(self.cfg, conf, posed)
         head, _ = templates(self.cfg.model)
@@ -352,7 +356,7 @@ class BoundRepresentation(Representation):
             views,
             meshes,
             cond,
-            contact_flags(ctx.input_dir("pbd"), TRAIN_SEQUENCE, views.num_frames),
+            contact,
             train_cfg,
             checkpoint_dir=run_scratch(ctx, run),
             progress=lambda steps: ctx.progress(steps, desc=f"dynamic ({run})" if run else "dynamic"),
@@ -369,6 +373,7 @@ class BoundRepresentation(Representation):
         chosen: StageTwoRun,
         runs: list[StageTwoRun],
         retrain: bool,
+        contact: np.ndarray,
     ) -> None:
         """The stage's outputs and metrics: the model of ``written``, what ``chosen`` (the best of ``runs``) chose."""
         conf, model, params, result, posed = (
@@ -421,7 +426,6 @@ class BoundRepresentation(Representation):
         write_records(ctx.out_dir / "train_log.parquet", DYNAMIC_TRAIN_LOG, log)
         record_validation(ctx, chosen.validator, written.validator.train_frames.size)
         steps = max(written.validator.end, 1)
-        contact = contact_flags(ctx.input_dir("pbd"), TRAIN_SEQUENCE, views.num_frames)
         ctx.metrics.update(
             {
                 "steps": written.validator.end,
