@@ -334,7 +334,8 @@ class BoundRepresentation(Representation):
         run: str,
     ) -> StageTwoRun:
         """One stage-two run from the warm-up model in ``warmup_dir`` on the frames ``validator`` leaves to training,
-        posed with ``posed`` (the parameters that warm-up trained on), drawing the ``contact`` (T,) frames first; ``run`` names its checkpoint folder."""
+        posed with ``posed`` (the parameters that warm-up trained on), drawing the ``contact`` (T,) frames first;
+        ``run`` names its checkpoint folder."""
         conf = self.cfg.stage.dynamic
         meshes, cond, params = posed.meshes, posed.conditioning(self.cfg), frame_params(self.cfg, conf, posed)
         head, _ = templates(self.cfg.model)
