@@ -2,7 +2,9 @@
 the methods side by side.
 
 ``split``: ``novel_view`` (held-out camera, train motion), ``self_reenact``
-(train cameras, held-out test motion) or ``cross_reenact`` (train cameras, another subject's held-out
+(train cameras, held-out test motion posed as the fit tracked it), ``self_reenact_tracked`` (the held-out motion
+tracked by the trained avatar on some training cameras, scored on the others: ``stage.evaluate.test_tracking``)
+or ``cross_reenact`` (train cameras, another subject's held-out
 motion transferred onto this one, against the synthetic ground truth of this identity performing it).
 ``region``: ``full``, ``hand``, ``face``, ``interaction`` (the overlap of the hand and face boxes). A metric
 is NaN where the region is absent from the ground-truth frame.
@@ -29,7 +31,8 @@ METRICS = TableSchema(
         Column("lpips", "float32", finite=False),
     ),
 )
-SPLITS = ("novel_view", "self_reenact", "cross_reenact")  # cross_reenact: when reenact.driver names another subject
+TRACKED_SPLIT = "self_reenact_tracked"  # with stage.evaluate.test_tracking=avatar
+SPLITS = ("novel_view", "self_reenact", TRACKED_SPLIT, "cross_reenact")  # cross_reenact: when reenact.driver names one
 REGIONS = ("full", "hand", "face", "interaction")
 #: split -> (sequence it renders, camera split it renders from)
 SPLIT_SOURCES = {"novel_view": ("train", "test"), "self_reenact": ("test", "train")}

@@ -1,13 +1,13 @@
 """The defaults in ``conf/`` of the settings the core's config dataclasses define, generated from the dataclasses.
 
 Each such setting is defined once, in its dataclass (the training loops' WarmupTrainConfig, DynamicTrainConfig and
-SplattingConfig, the model's DynamicModelConfig, the fitting's FitConfig and RefineConfig, the contact solver's
-PBDConfig, the viewer's CodecConfig): its name, type, default and documentation (the comment at or above its field).
-The YAML files hold a generated block of those defaults and comments between two marker lines, beside the settings of
-their own (the stages' own, and where the pipeline chooses otherwise: checkpoints, the run's seed). ``python -m
-stages.config_defaults`` rewrites the blocks; ``--check`` fails where one is out of date, as
-``tests/test_config_schemas.py`` does. The config reference (``pipeline.config_reference``) reads the YAML, so it
-shows the dataclasses' words.
+SplattingConfig, the model's DynamicModelConfig, the fitting's FitConfig and RefineConfig, the evaluation's
+AvatarTrackingConfig, the contact solver's PBDConfig, the viewer's CodecConfig): its name, type, default and
+documentation (the comment at or above its field). The YAML files hold a generated block of those defaults and
+comments between two marker lines, beside the settings of their own (the stages' own, and where the pipeline chooses
+otherwise: checkpoints, the run's seed). ``python -m stages.config_defaults`` rewrites the blocks; ``--check`` fails
+where one is out of date, as ``tests/test_config_schemas.py`` does. The config reference
+(``pipeline.config_reference``) reads the YAML, so it shows the dataclasses' words.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from avatar.dynamic.model import DynamicModelConfig
 from avatar.fitting.fit import FitConfig
 from avatar.fitting.refine import RefineConfig
 from avatar.pbd import PBDConfig
+from avatar.training.avatar_tracking import AvatarTrackingConfig
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.warmup import WarmupTrainConfig
@@ -50,6 +51,7 @@ BLOCKS = (
     GeneratedDefaults("config.yaml", SplattingConfig, SHARED_SCHEDULE),
     GeneratedDefaults("stage/fit.yaml", FitConfig, ("face_shape_columns",)),
     GeneratedDefaults("stage/fit.yaml", RefineConfig, ()),
+    GeneratedDefaults("stage/evaluate.yaml", AvatarTrackingConfig, ()),
     GeneratedDefaults("stage/pbd.yaml", PBDConfig, ()),
     GeneratedDefaults("stage/viewer.yaml", CodecConfig, ()),
 )

@@ -1,10 +1,22 @@
-"""Stage ``evaluate``: held-out camera (novel view) and held-out motion (self-reenactment) metrics."""
+"""Stage ``evaluate``: held-out camera (novel view) and held-out motion (self-reenactment) metrics.
+
+The held-out motion is scored under one or two tracking protocols (``stage.evaluate.test_tracking``):
+
+* ``tracker`` (split ``self_reenact``): posed with the fit's parameters, scored on every training camera;
+* ``avatar`` (adds split ``self_reenact_tracked``): each frame's parameters first refined with the trained model
+  frozen (:func:`avatar.training.avatar_tracking.track_with_avatar`) on the *tuning* training cameras
+  (``stage.evaluate.tuning_cameras``), then scored on the *other* training cameras only: no view that tuned a
+  frame scores it, and the held-out camera is never read. The ``self_reenact`` rows of those scoring cameras
+  are the tracker protocol on the same views (``self_reenact_scoring_psnr``).
+"""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -15,21 +27,35 @@ from avatar.metrics import LPIPS, image_metrics
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import resolve_backend
+from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar
 from avatar.training.data import ViewSet
 from avatar.training.dynamic import rasterize
+from avatar.training.frame_params import parameter_movement
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
 from data_schemas.frames import UNOBSERVED
 from data_schemas.images import to_uint8, write_png
-from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, showcase_path
+from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, TRACKED_SPLIT, showcase_path
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.writes import write_json
+from pipeline.schema import core_config
 from pipeline.stage import StageContext, stage
-from stages.artifacts import contact_frames, load_params, load_scene, load_views, method_params
+from stages.artifacts import (
+    contact_frames,
+    load_params,
+    load_scene,
+    load_views,
+    method_params,
+    write_params,
+)
 from stages.dependencies import contact_sources, unused_driving_settings
 from stages.driving import drive, driver_subject, transfer_summary, transferred_params
-from stages.posing import applied_deformation, load_sequence
+from stages.posing import applied_deformation, load_sequence, posed_sequence, posed_with_offsets, templates
 from stages.representations import TrainedAvatar, load_trained
+
+TEST_TRACKING = ("tracker", "avatar")
+#: folder of the held-out motion's parameters as the avatar tracked it (``tracking/<sequence>/params.parquet``)
+TRACKING_DIR = "tracking"
 
 
 @dataclass
@@ -39,6 +65,24 @@ class EvaluateConfig:
     grid_samples: int
     showcase_frames: int
     backend: str
+    test_tracking: str
+    tuning_cameras: Any  # "auto" or a list of training camera ids
+    tracking: AvatarTrackingConfig
+
+    @classmethod
+    def validate(cls, conf: Any) -> list[str]:
+        """Range problems of a ``stage.evaluate`` section, one line each, keyed relative to it."""
+        problems = (
+            []
+            if conf.test_tracking in TEST_TRACKING
+            else [f"test_tracking={conf.test_tracking}: choose one of {', '.join(TEST_TRACKING)}"]
+        )
+        cams = conf.tuning_cameras
+        listed = not isinstance(cams, str) and len(cams) > 0 and all(isinstance(c, str) for c in cams)
+        if not (cams == "auto" or listed):
+            problems.append(f"tuning_cameras={cams}: 'auto' or a non-empty list of training camera ids")
+        problems += [f"tracking.{p}" for p in core_config(AvatarTrackingConfig, conf.tracking).problems()]
+        return problems
 
 
 Renderer = Callable[[int, int], torch.Tensor]
@@ -49,8 +93,8 @@ Renderer = Callable[[int, int], torch.Tensor]
     "evaluate",
     inputs=("capture", "frames", "fit", "scene", "pbd", "dynamic"),
     config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
-    outputs=("metrics.parquet", "grids", "renders", "splits.json"),
-    version="11",
+    outputs=("metrics.parquet", "grids", "renders", "splits.json", TRACKING_DIR),
+    version="12",  # 12: stage.evaluate.test_tracking (the held-out motion tracked by the avatar)
     config_schema=EvaluateConfig,
     sources=contact_sources,
     per_method=True,
@@ -61,7 +105,8 @@ Renderer = Callable[[int, int], torch.Tensor]
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion (and, when reenact.driver names another subject
     whose motion the capture has this identity perform, that cross-actor reenactment) with the method's
-    trained model; PSNR/SSIM/LPIPS per region; image grids; the renders of the showcase contact frames."""
+    trained model; PSNR/SSIM/LPIPS per region; image grids; the renders of the showcase contact frames. With
+    ``test_tracking=avatar`` the held-out motion also tracked by the avatar (module docstring)."""
     conf, method = ctx.cfg.stage.evaluate, str(ctx.cfg.method.name)
     cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
     rows: dict[str, list] = {c.name: [] for c in METRICS.columns}
@@ -69,6 +114,7 @@ def evaluate(ctx: StageContext) -> None:
     ctx.metrics["rasterizer"] = resolve_backend(conf.backend, torch.zeros(0, 3))  # what backend=auto chose here
     model = load_trained(ctx.input_dir("dynamic"))
     (ctx.out_dir / "grids").mkdir()
+    (ctx.out_dir / TRACKING_DIR).mkdir()
     splits = _splits(ctx)
     for split, why in _unmeasurable(cap_dir, splits).items():  # e.g. a monocular capture has no held-out camera
         del splits[split]
@@ -80,7 +126,13 @@ def evaluate(ctx: StageContext) -> None:
     )
     for split, (sequence, camera_split) in splits.items():
         views = load_views(cap_dir, frames_dir, sequence, camera_split)
-        meshes, cond = _split_sequence(ctx, split, sequence, views.num_frames)
+        if split == TRACKED_SPLIT:
+            tuning, scoring = tracking_cameras(conf.tuning_cameras, views.camera_ids)
+            ctx.metrics["tracking_scoring_cameras"] = ",".join(scoring)
+            meshes, cond = _tracked_sequence(ctx, model, sequence, views.cameras(tuning))
+            views = views.cameras(scoring)
+        else:
+            meshes, cond = _split_sequence(ctx, split, sequence, views.num_frames)
         render = _renderer(model, cond, meshes, views, conf.backend)
         contact = contact_frames(cap_dir, sequence, views.num_frames)
         showcase = set(showcase_pairs(contact, int(conf.showcase_frames)))
@@ -117,6 +169,95 @@ def evaluate(ctx: StageContext) -> None:
         {k: (v if METRICS.column(k).kind == "string" else np.asarray(v)) for k, v in rows.items()},
     )
     ctx.metrics.update(_summary(rows))
+    if TRACKED_SPLIT in splits:
+        ctx.metrics.update(_scoring_summary(rows, str(ctx.metrics["tracking_scoring_cameras"]).split(",")))
+
+
+def tracking_cameras(setting: Any, camera_ids: list[str]) -> tuple[list[str], list[str]]:
+    """(tuning, scoring) training cameras of ``stage.evaluate.tuning_cameras`` = ``setting``: ``auto`` takes every
+    other training camera by sorted id (the 1st, 3rd, ...) to tune and leaves the rest to score; a list names the
+    tuning ones. Both must be non-empty (SchemaError naming the key otherwise)."""
+    ordered = sorted(camera_ids)
+    tuning = ordered[::2] if setting == "auto" else [str(c) for c in setting]
+    unknown = sorted(set(tuning) - set(ordered))
+    if unknown:
+        raise SchemaError(
+            f"stage.evaluate.tuning_cameras: {unknown} are not training cameras of this capture ({ordered})"
+        )
+    scoring = [c for c in ordered if c not in tuning]
+    if not scoring:
+        raise SchemaError(
+            f"stage.evaluate.tuning_cameras={list(tuning)}: leaves no training camera to score the avatar-tracked "
+            "motion on; name fewer, or set stage.evaluate.test_tracking=tracker"
+        )
+    return tuning, scoring
+
+
+def _tracked_sequence(
+    ctx: StageContext, model: TrainedAvatar, sequence: str, tuning: ViewSet
+) -> tuple[MeshSequence, SequenceConditioning]:
+    """The held-out motion's meshes and conditioning after :func:`track_with_avatar` refined each frame's parameters
+    with ``model`` frozen, from the ``tuning`` views alone (the fit's parameters and the pbd stage's offsets to
+    start from; the offsets stay). Writes ``tracking/<sequence>/params.parquet`` and the manifest's ``tracking_*``."""
+    cfg = ctx.cfg
+    fit_dir = ctx.input_dir("fit")
+    posed = posed_sequence(
+        fit_dir,
+        sequence,
+        cfg,
+        applied_deformation(cfg, ctx.input_dir("pbd")),
+        method_params(ctx.input_dir("dynamic"), fit_dir, sequence),
+    )
+    head, hand = templates(cfg.model)
+    started = time.perf_counter()
+    tracked = track_with_avatar(
+        lambda frame_cond, vertices: model.pose(frame_cond.as_sequence(), vertices, 0),
+        posed.params,
+        head,
+        hand,
+        torch.from_numpy(posed.offsets).float(),
+        tuning,
+        core_config(AvatarTrackingConfig, cfg.stage.evaluate.tracking),
+        str(cfg.stage.evaluate.backend),
+        progress=lambda frames: ctx.progress(frames, desc=f"track {sequence} with the avatar"),
+    )
+    seconds = time.perf_counter() - started
+    (ctx.out_dir / TRACKING_DIR / sequence).mkdir()
+    write_params(ctx.out_dir / TRACKING_DIR / sequence / "params.parquet", tracked.params)
+    ctx.metrics.update(_tracking_summary(tracked, posed.params, tuning, seconds, head, hand))
+    retracked = posed_with_offsets(tracked.params, cfg, posed.offsets)
+    return retracked.meshes, retracked.conditioning(cfg)
+
+
+def _tracking_summary(
+    tracked: TrackedMotion, before: dict[str, np.ndarray], tuning: ViewSet, seconds: float, head, hand
+) -> dict[str, Any]:
+    """The manifest's ``tracking_*`` entries: cameras, losses before and after, how far the parts moved, the frames
+    that kept a part as tracked, and the time per frame and tuning view."""
+    moved = parameter_movement(before, tracked.params, head, hand)
+    out: dict[str, Any] = {
+        "tracking_tuning_cameras": ",".join(tuning.camera_ids),
+        "tracking_loss_before": float(tracked.loss_before.mean()),
+        "tracking_loss_after": float(tracked.loss_after.mean()),
+        "tracking_seconds": seconds,
+        "tracking_ms_per_frame_view": 1e3 * seconds / max(tuning.num_frames * tuning.num_cameras, 1),
+    }
+    for part in ("face", "hand"):
+        out[f"tracking_moved_{part}_mm_mean"] = float(moved["moved_mm"][part].mean())
+        out[f"tracking_moved_{part}_mm_max"] = float(moved["moved_mm"][part].max())
+        out[f"tracking_held_{part}_frames"] = int(tracked.held[part].sum())
+    return out
+
+
+def _scoring_summary(rows: dict[str, list], scoring: list[str]) -> dict[str, float]:
+    """The tracker protocol's full-image PSNR/LPIPS of the held-out motion on the scoring cameras alone (the views
+    the avatar-tracked split is scored on)."""
+    keep = [
+        i
+        for i, (s, r, c) in enumerate(zip(rows["split"], rows["region"], rows["camera_id"]))
+        if s == "self_reenact" and r == "full" and c in scoring
+    ]
+    return {f"self_reenact_scoring_{m}": float(np.nanmean([rows[m][i] for i in keep])) for m in ("psnr", "lpips")}
 
 
 def _renderer(
@@ -133,20 +274,26 @@ def _renderer(
 def _unmeasurable(cap_dir: Path, splits: dict[str, tuple[str, str]]) -> dict[str, str]:
     """split -> why it cannot be measured on this capture: its sequence or its cameras are missing."""
     sequences = CaptureIndex.read(cap_dir).sequences
-    camera_splits = {c.split for c in read_cameras(cap_dir / "cameras.parquet")}
+    cameras = read_cameras(cap_dir / "cameras.parquet")
+    camera_splits = {c.split for c in cameras}
     why = {}
     for split, (sequence, camera_split) in splits.items():
         if sequence not in sequences:
             why[split] = f"the capture has no '{sequence}' sequence"
         elif camera_split not in camera_splits:
             why[split] = f"the capture has no '{camera_split}' camera (a held-out view)"
+        elif split == TRACKED_SPLIT and sum(c.split == camera_split for c in cameras) < 2:
+            why[split] = "one training camera: none is left to score the motion the avatar tracked on it"
     return why
 
 
 def _splits(ctx: StageContext) -> dict[str, tuple[str, str]]:
-    """split -> (sequence, camera split): novel view and self-reenactment, and cross-actor reenactment when
-    ``reenact.driver`` names another subject and the capture holds its ground truth."""
+    """split -> (sequence, camera split): novel view and self-reenactment (with ``test_tracking=avatar`` also
+    the avatar-tracked self-reenactment), and cross-actor reenactment when ``reenact.driver`` names another subject
+    and the capture holds its ground truth."""
     splits = dict(SPLIT_SOURCES)
+    if ctx.cfg.stage.evaluate.test_tracking == "avatar":
+        splits[TRACKED_SPLIT] = SPLIT_SOURCES["self_reenact"]
     driver = driver_subject(ctx.cfg)
     if driver is not None:
         sequence = cross_sequence(driver)

@@ -70,6 +70,10 @@ class Conditioning:
         """Frame ``t`` of a sequence."""
         return Conditioning(**{f.name: getattr(self, f.name)[t] for f in fields(self)})
 
+    def as_sequence(self) -> Conditioning:
+        """One frame as a sequence of one frame (a leading axis of 1 on every field)."""
+        return Conditioning(**{f.name: getattr(self, f.name)[None] for f in fields(self)})
+
     def to_head(self, points: Tensor) -> Tensor:
         """World points (N, 3) -> the head frame (N, 3), metres (one frame)."""
         return (points - self.head_origin) @ self.head_rotation

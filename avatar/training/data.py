@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -58,3 +58,19 @@ class ViewSet:
         would have seen there)."""
         gt = self.image(frame, camera).to(pred.dtype)
         return gt, torch.where(self.observed(frame, camera)[..., None], pred, gt)
+
+    def cameras(self, camera_ids: list[str]) -> ViewSet:
+        """The crops of the cameras ``camera_ids`` alone, in that order (the same tensors' rows, not copies of
+        the whole set); an unknown id is a ValueError."""
+        unknown = sorted(set(camera_ids) - set(self.camera_ids))
+        if unknown:
+            raise ValueError(f"cameras {unknown} are not among {self.camera_ids}")
+        index = torch.tensor([self.camera_ids.index(c) for c in camera_ids], dtype=torch.long)
+        return replace(
+            self,
+            images=self.images[:, index],
+            labels=self.labels[:, index],
+            K=self.K[index],
+            world_to_cam=self.world_to_cam[index],
+            camera_ids=list(camera_ids),
+        )

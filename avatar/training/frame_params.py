@@ -74,8 +74,9 @@ class FrameAdam:
         self.steps = torch.zeros(num_frames, dtype=torch.long)
 
     @torch.no_grad()
-    def step(self, frame: int) -> None:
-        """Update row ``frame`` of every parameter with a gradient, then clear the gradients."""
+    def step(self, frame: int, lr_scale: float = 1.0) -> None:
+        """Update row ``frame`` of every parameter with a gradient, then clear the gradients; ``lr_scale``
+        multiplies every group's rate for this update (a schedule)."""
         beta1, beta2 = self.betas
         self.steps[frame] += 1
         n = int(self.steps[frame])
@@ -86,7 +87,7 @@ class FrameAdam:
             m[frame].mul_(beta1).add_(g, alpha=1 - beta1)
             v[frame].mul_(beta2).addcmul_(g, g, value=1 - beta2)
             denom = (v[frame] / (1 - beta2**n)).sqrt_().add_(self.eps)
-            p[frame] -= lr / (1 - beta1**n) * m[frame] / denom
+            p[frame] -= lr * lr_scale / (1 - beta1**n) * m[frame] / denom
             p.grad = None
 
     def state_dict(self) -> dict[str, Any]:

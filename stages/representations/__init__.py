@@ -100,7 +100,8 @@ class GaussianPopulation(Protocol):
 
 
 class TrainedAvatar(Protocol):
-    """A method's final model, loaded from its dynamic stage's folder."""
+    """A method's final model, loaded from its dynamic stage's folder, frozen (no parameter of it requires a
+    gradient: a pose may be differentiated in the vertices, e.g. to track a motion with the avatar)."""
 
     @property
     def num_gaussians(self) -> int: ...

@@ -446,4 +446,4 @@ class BoundRepresentation(Representation):
 
     @classmethod
     def load(cls, dynamic_dir: Path, info: dict) -> BoundAvatar:
-        return BoundAvatar(load_dynamic(dynamic_dir))
+        return BoundAvatar(load_dynamic(dynamic_dir).requires_grad_(False))

@@ -268,5 +268,7 @@ class EmbeddedRepresentation(Representation):
     def load(cls, dynamic_dir: Path, info: dict) -> EmbeddedAvatar:
         state = torch.load(dynamic_dir / "networks.pt", weights_only=True)
         return EmbeddedAvatar(
-            load_embedded_gaussians(dynamic_dir, tuple(info["part_names"]), state["canonical_vertices"], state["faces"])
+            load_embedded_gaussians(
+                dynamic_dir, tuple(info["part_names"]), state["canonical_vertices"], state["faces"]
+            ).requires_grad_(False)
         )

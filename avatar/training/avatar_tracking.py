@@ -1,0 +1,161 @@
+"""A motion tracked by a trained avatar held frozen: each frame's FLAME/MANO parameters refined so that the
+avatar's renders match that frame's images from a set of cameras.
+
+Avatar papers with test motions of their own (InstantAvatar, ARAH, HumanNeRF) refine each test frame's pose with
+the trained model frozen before they measure: a tracker's error on a motion the avatar never saw is not the
+avatar's, and left in place it dominates every image metric. Here each frame of the motion starts from the
+tracker's parameters and an Adam of its own (:class:`~avatar.training.frame_params.FrameAdam`, its rates decayed
+geometrically over the steps) moves that frame's rotations, translations, articulation and expression
+(:data:`~avatar.training.frame_params.REFINED_COLUMNS`; the shapes stay) to lower the L1 error between the
+avatar's renders and the crops of every camera of the given views, on the pixels the cameras saw. A part that
+none of those views shows in a frame (fewer than :data:`MIN_VISIBLE_PIXELS` pixels of its label) keeps the
+tracker's parameters there. The face's contact offsets (the pbd stage's, simulated on the tracker's meshes) are
+added to the refined face unchanged, as in training.
+
+Which cameras it may look at is the caller's choice and the protocol's core: a frame tuned on a camera and scored
+on the same camera measures the refinement, not the avatar (see ``stages.evaluate``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from avatar.dynamic.conditioning import FrameConditioning
+from avatar.render.gaussians.world import WorldGaussians
+from avatar.templates import TemplateModel
+from avatar.training.data import ViewSet
+from avatar.training.dynamic import FACE_LABEL, HAND_LABEL, rasterize
+from avatar.training.frame_params import REFINED_COLUMNS, FrameParams, ParamLearningRates
+
+#: a part counts as seen in a frame when its label covers at least this many crop pixels in one of the views
+MIN_VISIBLE_PIXELS = 4
+#: part -> the prefix of its params.parquet columns and its crop label
+PARTS: dict[str, tuple[str, int]] = {"face": ("flame_", FACE_LABEL), "hand": ("mano_", HAND_LABEL)}
+
+#: The frozen avatar of one frame: (the frame's conditioning, its posed vertices (V, 3)) -> world Gaussians.
+PoseFrame = Callable[[FrameConditioning, Tensor], WorldGaussians]
+
+
+@dataclass
+class AvatarTrackingConfig:
+    """Settings of :func:`track_with_avatar` (``stage.evaluate.tracking``). Rates are Adam's per step at the first
+    step, in the parameters' own units, decayed geometrically to ``final_rate`` times that at the last."""
+
+    steps: int = 40  # Adam steps per frame (each renders every tuning camera of the frame once)
+    lr_rotation: float = 0.004  # of the global rotations (rad)
+    lr_pose: float = 0.004  # of the neck, jaw, eye and finger poses (rad)
+    lr_translation_mm: float = 0.5  # of the translations (mm)
+    lr_expression: float = 0.02  # of the expression coefficients
+    final_rate: float = 0.1  # the rates at the last step, as a multiple of the first step's
+
+    def rates(self) -> ParamLearningRates:
+        """The first step's rates in :class:`ParamLearningRates`' units (radians, metres, expression units)."""
+        return ParamLearningRates(
+            rotation=self.lr_rotation,
+            pose=self.lr_pose,
+            translation=self.lr_translation_mm * 1e-3,
+            expression=self.lr_expression,
+        )
+
+    def problems(self) -> list[str]:
+        """Range problems, one line each, keyed relative to the block; empty when it can run."""
+        out = [] if self.steps >= 0 else [f"steps={self.steps}: must be >= 0 (0: the tracker's parameters as they are)"]
+        out += [
+            f"{f.name}={getattr(self, f.name):g}: must be a finite rate >= 0 (0 holds the group)"
+            for f in fields(self)
+            if f.name.startswith("lr_") and not (math.isfinite(getattr(self, f.name)) and getattr(self, f.name) >= 0)
+        ]
+        if not (0 < self.final_rate <= 1):
+            out.append(f"final_rate={self.final_rate:g}: must be in (0, 1] (1: no decay)")
+        return out
+
+
+@dataclass
+class TrackedMotion:
+    """What :func:`track_with_avatar` returns.
+
+    Attributes:
+        params: the refined params.parquet columns, (T, D) float32 each (every column, the shapes as given).
+        loss_before: (T,) the L1 error of each frame's renders with the tracker's parameters.
+        loss_after: (T,) and with the refined ones (the last step's parameters, rendered again).
+        held: part -> (T,) bool, the frames in which that part kept the tracker's parameters (not seen).
+    """
+
+    params: dict[str, np.ndarray]
+    loss_before: np.ndarray
+    loss_after: np.ndarray
+    held: dict[str, np.ndarray]
+
+
+def track_with_avatar(
+    pose: PoseFrame,
+    params: Mapping[str, np.ndarray],
+    head: TemplateModel,
+    hand: TemplateModel,
+    face_offsets: Tensor | None,
+    views: ViewSet,
+    config: AvatarTrackingConfig,
+    backend: str = "auto",
+    progress: Callable[[Iterable[int]], Iterable[int]] = lambda frames: frames,
+) -> TrackedMotion:
+    """Refine every frame of a motion with the avatar ``pose`` frozen, from ``views`` alone.
+
+    Args:
+        pose: the trained avatar of one frame (its parameters must not require gradients: nothing of it moves).
+        params: the tracker's params.parquet columns, T rows each; T must equal ``views.num_frames``.
+        head, hand: the templates the avatar was trained on.
+        face_offsets: (T, V_face, 3) world-frame contact offsets added to the posed face (None: none).
+        views: the crops the refinement may look at: every camera of it is used, and no other.
+        config: steps and rates.
+        backend: the rasterizer.
+        progress: wraps the loop over the frames (a progress bar).
+    """
+    num_frames = len(next(iter(params.values())))
+    if num_frames != views.num_frames:
+        raise ValueError(f"{num_frames} frames of parameters but {views.num_frames} of images")
+    frames = FrameParams(params, head, hand, face_offsets, config.rates())
+    held = {part: ~_seen(views, label) for part, (_, label) in PARTS.items()}
+    before, after = np.zeros(num_frames), np.zeros(num_frames)
+    decay = config.final_rate ** (1 / max(config.steps - 1, 1))
+    for t in progress(range(num_frames)):
+        with torch.no_grad():
+            before[t] = _loss(pose, frames, views, t, backend).item()
+        for step in range(config.steps):
+            _loss(pose, frames, views, t, backend).backward()
+            frames.optimizer.step(t, lr_scale=decay**step)
+        _hold(frames, t, [part for part in PARTS if held[part][t]])
+        with torch.no_grad():
+            after[t] = _loss(pose, frames, views, t, backend).item()
+    return TrackedMotion(frames.arrays(), before, after, held)
+
+
+def _loss(pose: PoseFrame, frames: FrameParams, views: ViewSet, t: int, backend: str) -> Tensor:
+    """The mean L1 error of frame ``t``'s renders over every camera of ``views`` (observed pixels only)."""
+    gaussians = pose(frames.conditioning(t), frames.vertices(t))
+    total = torch.zeros(())
+    for c in range(views.num_cameras):
+        gt, render = views.target_and_render(rasterize(gaussians, views, c, backend).rgb, t, c)
+        total = total + (render - gt).abs().mean()
+    return total / views.num_cameras
+
+
+def _seen(views: ViewSet, label: int) -> np.ndarray:
+    """(T,) bool: frames in which some camera of ``views`` shows at least :data:`MIN_VISIBLE_PIXELS` of ``label``."""
+    counts = (views.labels == label).flatten(2).sum(-1)  # (T, C)
+    return (counts >= MIN_VISIBLE_PIXELS).any(1).numpy()
+
+
+def _hold(frames: FrameParams, t: int, parts: list[str]) -> None:
+    """Put the tracker's parameters of ``parts`` back into frame ``t``."""
+    prefixes = tuple(PARTS[part][0] for part in parts)
+    refined = {c for columns in REFINED_COLUMNS.values() for c in columns}
+    with torch.no_grad():
+        for column in refined:
+            if column.startswith(prefixes) and column in frames.rows:
+                frames.rows[column][t] = frames.start[column][t]
