@@ -15,6 +15,7 @@ from avatar.fitting.fit import FitConfig
 from avatar.fitting.refine import RefineConfig
 from avatar.pbd import PBDConfig
 from avatar.scene import SceneDecision
+from avatar.training.avatar_tracking import AvatarTrackingConfig
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.warmup import WarmupTrainConfig
@@ -41,6 +42,7 @@ SECTIONS = [
     (RefineConfig, "stage.fit.refinement", (), RefineConfig),
     (PBDConfig, "stage.pbd.solver", (), PBDConfig),
     (CodecConfig, "stage.viewer", (), ViewerConfig),
+    (AvatarTrackingConfig, "stage.evaluate.tracking", (), AvatarTrackingConfig),
 ]
 
 

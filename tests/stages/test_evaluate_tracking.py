@@ -1,0 +1,107 @@
+"""stage.evaluate.test_tracking=avatar on a small smoke capture: the held-out motion is tracked by the frozen avatar on
+the tuning training cameras and scored on the others only; the refinement never sees a view that scores it nor the
+held-out camera; both protocols are reported, and the tracked parameters are written."""
+
+from __future__ import annotations
+
+import importlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from data_schemas.cameras import read_cameras
+from data_schemas.metrics import METRICS, TRACKED_SPLIT
+from data_schemas.tables import SchemaError, read_table
+from pipeline.cli import run_app
+from pipeline.config import ConfigError, validate_config
+from stages import REGISTRY
+from stages.artifacts import load_params, read_params
+from stages.evaluate import tracking_cameras
+from tests.conftest import compose_cfg
+
+#: the module (``stages.evaluate`` is the registered stage of the same name)
+EVALUATE = importlib.import_module("stages.evaluate")
+SMALL = [
+    "quality=smoke",
+    "quality.capture_size=48",
+    "stage.capture.num_cameras=5",
+    "fit.source=ground_truth",
+    "run.progress=false",
+    "stage.capture.cross_reenactment=false",
+    "quality.warmup_steps=60",
+    "quality.dynamic_steps=10",
+    "stage.evaluate.tracking.steps=8",
+]
+
+
+def test_the_avatar_tracked_motion_is_scored_only_on_cameras_that_did_not_tune_it(tmp_path: Path, monkeypatch) -> None:
+    run_app(compose_cfg([f"paths.outputs={tmp_path}", *SMALL, "run.until=dynamic"]))
+    root = tmp_path / "synth_a"
+    cameras = read_cameras(root / "capture" / "cameras.parquet")
+    train = sorted(c.camera_id for c in cameras if c.split == "train")
+    held_out = [c.camera_id for c in cameras if c.split == "test"]
+    assert len(train) == 4 and held_out
+    seen: list[list[str]] = []
+    track = EVALUATE.track_with_avatar
+
+    def recording_track(pose, params, head, hand, offsets, views, config, *args, **kwargs):
+        seen.append(list(views.camera_ids))  # what the refinement was given: every image it can look at
+        return track(pose, params, head, hand, offsets, views, config, *args, **kwargs)
+
+    monkeypatch.setattr(EVALUATE, "track_with_avatar", recording_track)
+    run_app(
+        compose_cfg([f"paths.outputs={tmp_path}", *SMALL, "run.only=evaluate", "stage.evaluate.test_tracking=avatar"])
+    )
+    evaluate = root / "methods" / "interactavatar" / "evaluate"
+    rows = read_table(evaluate / "metrics.parquet", METRICS)
+    scored = {s: sorted(set(np.asarray(rows["camera_id"])[np.asarray(rows["split"]) == s])) for s in set(rows["split"])}
+    assert seen == [train[::2]], seen  # auto: the 1st and 3rd training camera tune, one call for the held-out motion
+    assert scored[TRACKED_SPLIT] == train[1::2]
+    assert not set(seen[0]) & set(scored[TRACKED_SPLIT]), "a camera tuned the frames it scores"
+    assert not set(seen[0]) & set(held_out), "the refinement saw the held-out camera"
+    assert scored["self_reenact"] == train  # the tracker protocol, as before, on every training camera
+    metrics = json.loads((evaluate / "_manifest.json").read_text())["metrics"]
+    assert metrics["tracking_tuning_cameras"] == ",".join(train[::2])
+    assert metrics["tracking_scoring_cameras"] == ",".join(train[1::2])
+    assert metrics["tracking_loss_after"] < metrics["tracking_loss_before"], metrics
+    for key in ("self_reenact_scoring_psnr", "self_reenact_tracked_psnr", "tracking_moved_hand_mm_mean"):
+        assert np.isfinite(metrics[key]), key
+    tracked, fitted = read_params(evaluate / "tracking" / "test" / "params.parquet"), load_params(root / "fit", "test")
+    np.testing.assert_array_equal(tracked["flame_shape"], fitted["flame_shape"])  # the identity stays
+    assert not np.array_equal(tracked["flame_transl"], fitted["flame_transl"])  # the frames were refined
+
+    # the tracker protocol alone (the default) writes no tracked split and an empty tracking folder
+    seen.clear()
+    run_app(compose_cfg([f"paths.outputs={tmp_path}", *SMALL, "run.only=evaluate"]))
+    assert not seen and not any((evaluate / "tracking").iterdir())
+    assert TRACKED_SPLIT not in set(read_table(evaluate / "metrics.parquet", METRICS)["split"])
+
+
+def test_tuning_cameras_auto_alternate_and_a_list_names_the_tuning_ones() -> None:
+    ids = ["cam04", "cam00", "cam02", "cam01"]
+    assert tracking_cameras("auto", ids) == (["cam00", "cam02"], ["cam01", "cam04"])
+    assert tracking_cameras(["cam04"], ids) == (["cam04"], ["cam00", "cam01", "cam02"])
+    with pytest.raises(SchemaError, match=r"\['cam09'\] are not training cameras"):
+        tracking_cameras(["cam09"], ids)
+    with pytest.raises(SchemaError, match="leaves no training camera to score"):
+        tracking_cameras(ids, ids)
+    with pytest.raises(SchemaError, match="leaves no training camera to score"):
+        tracking_cameras("auto", ["cam00"])
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("stage.evaluate.test_tracking=both", "stage.evaluate.test_tracking=both: choose one of tracker, avatar"),
+        ("stage.evaluate.tuning_cameras=[]", "stage.evaluate.tuning_cameras=[]: 'auto' or a non-empty list"),
+        ("stage.evaluate.tracking.final_rate=2", "stage.evaluate.tracking.final_rate=2: must be in (0, 1]"),
+    ],
+)
+def test_bad_tracking_settings_are_refused_before_any_stage_runs(override: str, message: str) -> None:
+    with pytest.raises(ConfigError) as caught:
+        validate_config(compose_cfg([override]), REGISTRY)
+    assert message in str(caught.value), str(caught.value)
+    assert OmegaConf.select(compose_cfg([]), "stage.evaluate.test_tracking") == "tracker"
