@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.fitting.errors import tracking_errors
 from avatar.metrics import LPIPS, image_metrics
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
@@ -42,6 +43,7 @@ from pipeline.schema import core_config
 from pipeline.stage import StageContext, stage
 from stages.artifacts import (
     contact_frames,
+    load_ground_truth_params,
     load_params,
     load_scene,
     load_views,
@@ -198,7 +200,8 @@ def _tracked_sequence(
 ) -> tuple[MeshSequence, SequenceConditioning]:
     """The held-out motion's meshes and conditioning after :func:`track_with_avatar` refined each frame's parameters
     with ``model`` frozen, from the ``tuning`` views alone (the fit's parameters and the pbd stage's offsets to
-    start from; the offsets stay). Writes ``tracking/<sequence>/params.parquet`` and the manifest's ``tracking_*``."""
+    start from; the offsets stay). Writes ``tracking/<sequence>/params.parquet`` and the manifest's ``tracking_*``
+    (on a capture with ground truth also the 3D errors of the fit's and the refined parameters, mm)."""
     cfg = ctx.cfg
     fit_dir = ctx.input_dir("fit")
     posed = posed_sequence(
@@ -225,6 +228,11 @@ def _tracked_sequence(
     (ctx.out_dir / TRACKING_DIR / sequence).mkdir()
     write_params(ctx.out_dir / TRACKING_DIR / sequence / "params.parquet", tracked.params)
     ctx.metrics.update(_tracking_summary(tracked, posed.params, tuning, seconds, head, hand))
+    if CaptureIndex.read(ctx.input_dir("capture")).sequences[sequence].has_ground_truth:  # synthetic: how far off
+        truth = load_ground_truth_params(ctx.input_dir("capture"), sequence)
+        for name, values in (("before", posed.params), ("after", tracked.params)):
+            errors = tracking_errors(values, truth, head, hand)
+            ctx.metrics.update({f"tracking_{name}_{k}": v for k, v in errors.items()})
     retracked = posed_with_offsets(tracked.params, cfg, posed.offsets)
     return retracked.meshes, retracked.conditioning(cfg)
 

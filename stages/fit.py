@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from avatar.fitting.errors import landmark_error, mpjpe, per_vertex_error
+from avatar.fitting.errors import tracking_errors
 from avatar.fitting.fit import FitConfig, FitResult, WorldScaleError, fit_sequence
 from avatar.fitting.refine import (
     REFINE_MODES,
@@ -23,7 +23,6 @@ from avatar.fitting.refine import (
     evidence_from_views,
     tracking_outlines,
 )
-from avatar.posing import posed_keypoints
 from avatar.templates import TemplateModel
 from avatar.training.data import ViewSet
 from data_schemas.cameras import read_cameras
@@ -172,7 +171,7 @@ def fit(ctx: StageContext) -> None:
                     keypoint_params = (
                         result.keypoint_params if hand_fitted else _placeholder_hand(result.keypoint_params)
                     )
-                    errors = _errors(keypoint_params, load_ground_truth_params(cap_dir, seq), head, hand)
+                    errors = tracking_errors(keypoint_params, load_ground_truth_params(cap_dir, seq), head, hand)
                     keypoint_only.update({k: v for k, v in errors.items() if hand_fitted or "hand" not in k})
                 entry["keypoint_fit"] = keypoint_only
                 ctx.metrics[f"{seq}_refine_ms_per_frame_per_view"] = (
@@ -184,7 +183,7 @@ def fit(ctx: StageContext) -> None:
             )
         entry["hand_fitted"] = hand_fitted
         if info.has_ground_truth:
-            errors = _errors(params, load_ground_truth_params(cap_dir, seq), head, hand)
+            errors = tracking_errors(params, load_ground_truth_params(cap_dir, seq), head, hand)
             entry.update({k: v for k, v in errors.items() if hand_fitted or "hand" not in k})
         write_table(
             ctx.out_dir / seq / "params.parquet",
@@ -359,12 +358,3 @@ def _placeholder_hand(params: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {**params, **rest, "mano_transl": params["flame_transl"] - np.array([0.0, ABSENT_HAND_DROP_M, 0.0])}
 
 
-def _errors(params: dict, gt: dict, head: TemplateModel, hand: TemplateModel) -> dict[str, float]:
-    """Hand MPJPE (21 keypoints), face landmark error and mean per-vertex errors, in mm."""
-    pred, true = posed_keypoints(params, head, hand), posed_keypoints(gt, head, hand)
-    return {
-        "mpjpe_hand_mm": mpjpe(pred["hand"], true["hand"]),
-        "mpjpe_face_mm": landmark_error(pred["face"], true["face"]),
-        "vertex_error_hand_mm": float(per_vertex_error(pred["hand_vertices"], true["hand_vertices"]).mean()),
-        "vertex_error_face_mm": float(per_vertex_error(pred["face_vertices"], true["face_vertices"]).mean()),
-    }

@@ -67,7 +67,13 @@ def test_the_avatar_tracked_motion_is_scored_only_on_cameras_that_did_not_tune_i
     assert metrics["tracking_tuning_cameras"] == ",".join(train[::2])
     assert metrics["tracking_scoring_cameras"] == ",".join(train[1::2])
     assert metrics["tracking_loss_after"] < metrics["tracking_loss_before"], metrics
-    for key in ("self_reenact_scoring_psnr", "self_reenact_tracked_psnr", "tracking_moved_hand_mm_mean"):
+    for key in (
+        "self_reenact_scoring_psnr",
+        "self_reenact_tracked_psnr",
+        "tracking_moved_hand_mm_mean",
+        "tracking_before_mpjpe_hand_mm",  # the capture's ground truth: the fit's error and the refined one
+        "tracking_after_vertex_error_face_mm",
+    ):
         assert np.isfinite(metrics[key]), key
     tracked, fitted = read_params(evaluate / "tracking" / "test" / "params.parquet"), load_params(root / "fit", "test")
     np.testing.assert_array_equal(tracked["flame_shape"], fitted["flame_shape"])  # the identity stays
