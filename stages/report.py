@@ -6,7 +6,7 @@ import base64
 import io
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -72,9 +72,9 @@ class ReportConfig:
     inputs=UPSTREAM,
     config_keys=("quality.name", "method.name", "method.label", "stage.report", *TEMPLATE_KEYS),
     outputs=("report.html",),
-    # 19: what validation withheld and what the model trained on; 18: the rig, the fitted (and true) outlines over a
-    # training crop; the contact sheet in rows
-    version="19",
+    # 20: the held-out motion tracked by the avatar; 19: what validation withheld and what the model trained on;
+    # 18: the rig, the fitted (and true) outlines over a training crop; the contact sheet in rows
+    version="20",
     config_schema=ReportConfig,
     per_method=True,
     reads_manifests=True,
@@ -133,6 +133,13 @@ def report(ctx: StageContext) -> None:
         _pbd_section(ctx.input_dir("pbd")),
         "<h2>Image quality (held-out camera and held-out motion)</h2>",
         _metrics_section(ctx.input_dir("evaluate")),
+        _test_tracking_section(
+            ctx,
+            manifests["evaluate"],
+            head,
+            hand,
+            lambda s: load_ground_truth_params(cap_dir, s) if index.sequences[s].has_ground_truth else None,
+        ),
         "<h2>Reenactment</h2>",
         _reenact_section(ctx.input_dir("reenact")),
         "<h2>In 3D, in the browser</h2>",
@@ -643,6 +650,67 @@ def _trained_tracking_section(
         + f"<figcaption>Train frame {frame}, camera "
         f"{esc.text(views.camera_ids[0])}: fitted (red) and refined in training (green) mesh outlines"
         f"</figcaption></figure>"
+    )
+
+
+def _test_tracking_section(
+    ctx: StageContext, evaluate: dict, head: TemplateModel, hand: TemplateModel, truth_of: Callable[[str], Any]
+) -> str:
+    """How the avatar tracked the held-out motion (``stage.evaluate.test_tracking=avatar``): the cameras that tuned
+    and scored it, its PSNR under both protocols on the scoring cameras, the 3D errors before and after (synthetic),
+    per frame how far each part moved from the fit, and the fitted (red), avatar-tracked (green) and, where known,
+    true (blue) meshes over the first tuning camera in the frame that moved most. Empty for the tracker protocol."""
+    m = evaluate["metrics"]
+    sequence_dirs = sorted(p for p in (ctx.input_dir("evaluate") / "tracking").glob("*") if p.is_dir())
+    if not sequence_dirs:
+        return ""
+    seq = sequence_dirs[0].name
+    fitted, after = load_params(ctx.input_dir("fit"), seq), read_params(sequence_dirs[0] / "params.parquet")
+    moved = parameter_movement(fitted, after, head, hand)
+    rows = [
+        (t, *(format_value(float(moved[k][part][t])) for part in ("face", "hand") for k in ("moved_mm", "rotated_deg")))
+        for t in range(len(moved["moved_mm"]["face"]))
+    ]
+    errors = [
+        (label, format_value(m[f"tracking_before_{key}"]), format_value(m[f"tracking_after_{key}"]))
+        for key, label in (
+            ("mpjpe_hand_mm", "hand MPJPE"),
+            ("mpjpe_face_mm", "face landmarks"),
+            ("vertex_error_face_mm", "face vertices"),
+        )
+        if f"tracking_before_{key}" in m
+    ]
+    tuning = str(m["tracking_tuning_cameras"]).split(",")
+    views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), seq, "train").cameras(tuning[:1])
+    frame = int(np.argmax(moved["moved_mm"]["face"] + moved["moved_mm"]["hand"]))
+    truth = truth_of(seq)
+    sets, colours = [fitted, after], [FITTED_RGB, REFINED_RGB]
+    if truth is not None:
+        sets, colours = [*sets, truth], [*colours, TRUE_RGB]
+    figure = _outlines_image(
+        views.images[frame, 0].numpy(),
+        views.K[0].numpy(),
+        views.world_to_cam[0].numpy(),
+        sets,
+        frame,
+        (head, hand, True),
+        colours,
+    )
+    return (
+        f"<h3>The held-out motion tracked by the avatar</h3><p>Each frame of '{esc.text(seq)}' was refined with the "
+        f"trained model frozen on the training cameras {esc.text(', '.join(tuning))} and scored on the others "
+        f"({esc.text(str(m['tracking_scoring_cameras']).replace(',', ', '))}; never the held-out camera): full-image "
+        f"PSNR {format_value(m['self_reenact_scoring_psnr'])} dB posed as the fit tracked it, "
+        f"{format_value(m['self_reenact_tracked_psnr'])} dB as the avatar tracked it (split self_reenact_tracked), "
+        f"in {format_value(m['tracking_seconds'])} s.</p>"
+        + (_table(("3D error (mm)", "fit", "tracked by the avatar"), errors) if errors else "")
+        + "<p>Per frame, how far each part moved from the fit (mean vertex displacement, mm; change of global "
+        "rotation, degrees):</p>"
+        + _table(("frame", "face mm", "face deg", "hand mm", "hand deg"), rows)
+        + "<figure>"
+        + _png_image(f"fitted and avatar-tracked meshes, {seq} frame {frame}", _image_png(figure))
+        + f"<figcaption>Frame {frame} of '{esc.text(seq)}', camera {esc.text(tuning[0])}: fitted (red), tracked by "
+        f"the avatar (green){' and true (blue)' if truth is not None else ''} mesh outlines</figcaption></figure>"
     )
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -18,8 +19,10 @@ from data_schemas.tables import SchemaError, read_table
 from pipeline.cli import run_app
 from pipeline.config import ConfigError, validate_config
 from stages import REGISTRY
-from stages.artifacts import load_params, read_params
+from stages.artifacts import load_ground_truth_params, load_params, read_params
 from stages.evaluate import tracking_cameras
+from stages.posing import templates
+from stages.report import _test_tracking_section
 from tests.conftest import compose_cfg
 
 #: the module (``stages.evaluate`` is the registered stage of the same name)
@@ -78,6 +81,19 @@ def test_the_avatar_tracked_motion_is_scored_only_on_cameras_that_did_not_tune_i
     tracked, fitted = read_params(evaluate / "tracking" / "test" / "params.parquet"), load_params(root / "fit", "test")
     np.testing.assert_array_equal(tracked["flame_shape"], fitted["flame_shape"])  # the identity stays
     assert not np.array_equal(tracked["flame_transl"], fitted["flame_transl"])  # the frames were refined
+
+    # the report says what was tuned and scored, the errors against the truth, and draws the three meshes
+    cfg = compose_cfg([f"paths.outputs={tmp_path}", *SMALL])
+    method = root / "methods" / "interactavatar"
+    ctx = SimpleNamespace(cfg=cfg, input_dir=lambda name: method / name if name == "evaluate" else root / name)
+    manifest = json.loads((evaluate / "_manifest.json").read_text())
+    page = _test_tracking_section(
+        ctx, manifest, *templates(cfg.model), lambda s: load_ground_truth_params(root / "capture", s)
+    )
+    assert f"on the training cameras {', '.join(train[::2])} and scored on the others ({', '.join(train[1::2])}" in page
+    assert "face landmarks" in page and "true (blue)" in page and "data:image/png;base64" in page
+    num_frames = len(fitted["flame_shape"])
+    assert page.count("<tr>") == 1 + 3 + 1 + num_frames  # the 3D errors (header + 3), the frames (header + T)
 
     # the tracker protocol alone (the default) writes no tracked split and an empty tracking folder
     seen.clear()
