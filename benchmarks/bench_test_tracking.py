@@ -56,7 +56,7 @@ from stages.posing import posed_with_offsets  # noqa: E402
 from stages.representations import TrainedAvatar, load_trained  # noqa: E402
 
 METHODS = ("interactavatar", "gaussian_avatars")
-#: (steps, rate multiple) of the default sweep
+#: (steps, rate multiple of the defaults) of the default sweep
 SWEEP = ((40, 1.0), (20, 1.0), (80, 1.0), (40, 0.5), (40, 2.0))
 #: what posing reads of a run's config: the procedural templates (the synthetic captures')
 _CFG = OmegaConf.create({"model": {"flame_path": None, "mano_path": None, "face_stiffness_path": None}})
@@ -88,7 +88,7 @@ def rates(args: argparse.Namespace) -> None:
     head, hand = procedural_head(), procedural_hand()
     dynamic = root / "methods" / method_run(args.method, args.seed) / "dynamic"
     model = load_trained(dynamic)
-    uses_pbd = bool(json.loads((dynamic / "_manifest.json").read_text())["config"]["method"]["pbd"])
+    uses_pbd = bool(json.loads((dynamic / "_manifest.json").read_text())["config"]["method.pbd"])
     views = load_views(root / "capture", root / "frames", TRAIN_SEQUENCE, "train")
     frames = np.unique(np.linspace(0, views.num_frames - 1, args.frames).round().astype(int))
     fitted = {k: v[frames] for k, v in load_params(root / "fit", TRAIN_SEQUENCE).items()}
@@ -103,7 +103,8 @@ def rates(args: argparse.Namespace) -> None:
     before = _scoring_psnr(model, fitted, offsets, subset.cameras(scoring))
     errors0 = tracking_errors(fitted, truth, head, hand)
     rows = [["fit", "-", "-", f"{before:.2f}", "-", "-", *(f"{errors0[k]:.2f}" for k in ERROR_KEYS)]]
-    for steps, multiple in SWEEP:
+    sweep = [(int(a), float(b)) for a, b in (item.split("x") for item in args.sweep)] if args.sweep else SWEEP
+    for steps, multiple in sweep:
         started = time.perf_counter()
         tracked = track_with_avatar(
             lambda cond, vertices: model.pose(cond.as_sequence(), vertices, 0),
@@ -231,6 +232,7 @@ def main() -> None:
     r.add_argument("--method", default="interactavatar")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--frames", type=int, default=6, help="train-motion frames, evenly spaced")
+    r.add_argument("--sweep", nargs="*", help="settings STEPSxMULTIPLE of the defaults (default: 40x1 20x1 ...)")
     add_results_argument(r)
     t = sub.add_parser("table", help="table the evaluated workspaces")
     t.add_argument("--arm", action="append", required=True, help="LABEL=OUTPUTS of a bench_seeds setting")

@@ -47,11 +47,12 @@ class AvatarTrackingConfig:
     """Settings of :func:`track_with_avatar` (``stage.evaluate.tracking``). Rates are Adam's per step at the first
     step, in the parameters' own units, decayed geometrically to ``final_rate`` times that at the last."""
 
+    # chosen on the train motion's training views (benchmarks/bench_test_tracking.py rates; docs: tracking-refinement)
     steps: int = 40  # Adam steps per frame (each renders every tuning camera of the frame once)
-    lr_rotation: float = 0.004  # of the global rotations (rad)
-    lr_pose: float = 0.004  # of the neck, jaw, eye and finger poses (rad)
-    lr_translation_mm: float = 0.5  # of the translations (mm)
-    lr_expression: float = 0.02  # of the expression coefficients
+    lr_rotation: float = 0.008  # of the global rotations (rad)
+    lr_pose: float = 0.008  # of the neck, jaw, eye and finger poses (rad)
+    lr_translation_mm: float = 1.0  # of the translations (mm)
+    lr_expression: float = 0.04  # of the expression coefficients
     final_rate: float = 0.1  # the rates at the last step, as a multiple of the first step's
 
     def rates(self) -> ParamLearningRates:
