@@ -6,17 +6,22 @@ workspace it tracks frames of the **train motion** with the method's final model
 parameters (not the ones training refined: the analogue of the held-out motion, which is posed as the fit left it),
 on the tuning training cameras, and scores the other training cameras: full-image PSNR before and after, per setting
 (steps, a multiple of every default rate), with the time per frame and the 3D errors against the synthetic truth
-(information only). Interleaved settings; one thread.
+(information only). One setting after the other, one thread.
+
+``cross``: the diagnosis. A ground-truth-trained avatar tracks the held-out motion from a fitted workspace's fit (its
+poses with its shapes, then with the truth's shapes): how much of the gap the tracking closes when the avatar is not to
+blame, and what is left to the identity.
 
 ``table``: reads evaluate's manifests of workspaces trained by ``benchmarks/bench_seeds.py`` (an arm each, e.g.
 ground-truth tracking and MediaPipe tracking) and evaluated with ``stage.evaluate.test_tracking=avatar``, and prints per
 subject, method and arm (mean ± sd over the seeds found): the held-out camera (NV), the held-out motion posed as the
 fit tracked it on every training camera (SR tracker) and on the scoring cameras alone (SR tracker, scoring), and as
 the avatar tracked it (SR avatar), full image; the fitted arm against the ground-truth arm; the held-out motion's 3D
-errors before and after the avatar's tracking. Both write ``benchmarks/results/bench_test_tracking.json``.
+errors before and after the avatar's tracking. Each writes a run to ``benchmarks/results/bench_test_tracking.json``.
 
 Usage:
     python benchmarks/bench_test_tracking.py rates --workspace OUT/m2/synth_a --method interactavatar [--frames 6]
+    python benchmarks/bench_test_tracking.py cross --trained OUT/a/synth_a --fitted OUT/m2/synth_a [--method M]
     python benchmarks/bench_test_tracking.py table --arm "ground truth=OUT/a" --arm "MediaPipe=OUT/m2" \\
         --subject synth_a [--reference "ground truth"]
 """
@@ -69,7 +74,8 @@ def _scaled(steps: int, multiple: float) -> AvatarTrackingConfig:
 
 
 def _scoring_psnr(model: TrainedAvatar, params: dict[str, np.ndarray], offsets: np.ndarray, views: ViewSet) -> float:
-    """Mean full-image PSNR (dB) of the frames posed with ``params`` over every camera of ``views``."""
+    """Mean full-image PSNR (dB, the observed pixels) of the frames posed with ``params`` over every camera of
+    ``views``."""
     posed = posed_with_offsets(params, _CFG, offsets)
     cond = posed.conditioning(_CFG)
     values = []
@@ -78,7 +84,8 @@ def _scoring_psnr(model: TrainedAvatar, params: dict[str, np.ndarray], offsets: 
             gaussians = model.pose(cond, posed.meshes.vertices[t], t)
             for c in range(views.num_cameras):
                 gt, pred = views.target_and_render(rasterize(gaussians, views, c).rgb.clamp(0, 1), t, c)
-                values.append(float(psnr(pred.permute(2, 0, 1), gt.permute(2, 0, 1))))
+                observed = views.observed(t, c)  # as evaluate's full region: the pixels the camera saw
+                values.append(float(psnr(pred.permute(2, 0, 1), gt.permute(2, 0, 1), observed)))
     return float(np.mean(values))
 
 
@@ -138,6 +145,53 @@ def rates(args: argparse.Namespace) -> None:
     headers = ("tracking", "steps", "rates", "PSNR scoring", "gain", "s/frame", *ERROR_LABELS)
     print(title)
     print(log.table(title, headers, rows))
+    log.write(args.results)
+
+
+def cross(args: argparse.Namespace) -> None:
+    """A ground-truth-trained avatar tracks the held-out motion from another workspace's fit (its poses, with its
+    shapes or the truth's): how much of the fit's gap the avatar tracking closes when the avatar is not to blame."""
+    torch.set_num_threads(1)
+    trained, fitted_root = args.trained.resolve(), args.fitted.resolve()
+    head, hand = procedural_head(), procedural_hand()
+    dynamic = trained / "methods" / method_run(args.method, args.seed) / "dynamic"
+    model = load_trained(dynamic)
+    uses_pbd = bool(json.loads((dynamic / "_manifest.json").read_text())["config"]["method.pbd"])
+    views = load_views(trained / "capture", trained / "frames", "test", "train")
+    tuning, scoring = tracking_cameras("auto", views.camera_ids)
+    truth = load_ground_truth_params(trained / "capture", "test")
+
+    def offsets(root: Path) -> np.ndarray:
+        shape = (views.num_frames, head.num_vertices, 3)
+        return load_face_offsets(root / "pbd", "test", *shape[:2]) if uses_pbd else np.zeros(shape)
+
+    at_truth = _scoring_psnr(model, truth, offsets(trained), views.cameras(scoring))
+    rows = [["truth", "the truth's", f"{at_truth:.2f}", "0.00", "0.00", "0.00"]]
+    for shapes in ("the fit's", "the truth's"):
+        fitted = load_params(fitted_root / "fit", "test")
+        if shapes == "the truth's":
+            fitted = {**fitted, "flame_shape": truth["flame_shape"], "mano_shape": truth["mano_shape"]}
+        start = _scoring_psnr(model, fitted, offsets(fitted_root), views.cameras(scoring))
+        tracked = track_with_avatar(
+            lambda cond, vertices: model.pose(cond.as_sequence(), vertices, 0),
+            fitted,
+            head,
+            hand,
+            torch.from_numpy(offsets(fitted_root)).float(),
+            views.cameras(tuning),
+            AvatarTrackingConfig(),
+        )
+        after = _scoring_psnr(model, tracked.params, offsets(fitted_root), views.cameras(scoring))
+        for label, params, value in (("fit", fitted, start), ("avatar", tracked.params, after)):
+            errors = tracking_errors(params, truth, head, hand)
+            rows.append([label, shapes, f"{value:.2f}", *(f"{errors[k]:.2f}" for k in ERROR_KEYS)])
+        print(rows[-2:], flush=True)
+    log = ResultLog("bench_test_tracking", preset=trained.parent.name)
+    title = (
+        f"cross: {trained.name} {args.method} seed {args.seed} trained on ground-truth tracking, the held-out motion "
+        f"from {fitted_root.parent.name}'s fit; tuning {','.join(tuning)}, scoring {','.join(scoring)}"
+    )
+    print(log.table(title, ("poses", "shapes", "PSNR scoring", *ERROR_LABELS), rows))
     log.write(args.results)
 
 
@@ -239,8 +293,14 @@ def main() -> None:
     t.add_argument("--subject", action="append", required=True)
     t.add_argument("--reference", help="the arm the others are compared with (default: the first)")
     add_results_argument(t)
+    c = sub.add_parser("cross", help="a ground-truth-trained avatar tracks another workspace's fitted motion")
+    c.add_argument("--trained", type=Path, required=True, help="OUT/<ground-truth setting>/<subject>")
+    c.add_argument("--fitted", type=Path, required=True, help="OUT/<fitted setting>/<subject>")
+    c.add_argument("--method", default="interactavatar")
+    c.add_argument("--seed", type=int, default=0)
+    add_results_argument(c)
     args = parser.parse_args()
-    rates(args) if args.command == "rates" else table(args)
+    {"rates": rates, "table": table, "cross": cross}[args.command](args)
 
 
 if __name__ == "__main__":
