@@ -1,5 +1,6 @@
-"""The held-out motion tracked by the avatar (``stage.evaluate.test_tracking=avatar``, issue 54): its settings chosen
-on the training views, and what it is worth against ground-truth tracking.
+"""The held-out motion tracked by the avatar: its settings chosen on the training views, and what it is worth.
+
+``stage.evaluate.test_tracking=avatar`` (issue 54) against ground-truth tracking.
 
 ``rates``: chooses ``stage.evaluate.tracking`` without the held-out motion or the held-out camera. On a trained
 workspace it tracks frames of the **train motion** with the method's final model frozen, starting from the fit's
@@ -47,6 +48,7 @@ from avatar.templates import procedural_hand, procedural_head  # noqa: E402
 from avatar.training.avatar_tracking import AvatarTrackingConfig, track_with_avatar  # noqa: E402
 from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.dynamic import rasterize  # noqa: E402
+from benchmarks.bench_seeds import QUALITY_FILE  # noqa: E402
 from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from pipeline.workspace import method_run  # noqa: E402
 from stages.artifacts import (  # noqa: E402
@@ -71,6 +73,12 @@ def _scaled(steps: int, multiple: float) -> AvatarTrackingConfig:
     base = AvatarTrackingConfig()
     rates = {f.name: getattr(base, f.name) * multiple for f in dataclasses.fields(base) if f.name.startswith("lr_")}
     return dataclasses.replace(base, steps=steps, **rates)
+
+
+def _preset(subject_dir: Path) -> str:
+    """The preset a bench_seeds setting's runs used (its ``quality.txt``; draft where absent)."""
+    path = subject_dir.parent / QUALITY_FILE
+    return path.read_text().strip() if path.is_file() else "draft"
 
 
 def _scoring_psnr(model: TrainedAvatar, params: dict[str, np.ndarray], offsets: np.ndarray, views: ViewSet) -> float:
@@ -137,7 +145,7 @@ def rates(args: argparse.Namespace) -> None:
             ]
         )
         print(rows[-1], flush=True)
-    log = ResultLog("bench_test_tracking", preset=root.parent.name)
+    log = ResultLog("bench_test_tracking", preset=_preset(root))
     title = (
         f"rates: {root.name} {args.method} seed {args.seed}, train motion frames {frames.tolist()} from the fit's "
         f"parameters; tuning {','.join(tuning)}, scoring {','.join(scoring)}"
@@ -186,7 +194,7 @@ def cross(args: argparse.Namespace) -> None:
             errors = tracking_errors(params, truth, head, hand)
             rows.append([label, shapes, f"{value:.2f}", *(f"{errors[k]:.2f}" for k in ERROR_KEYS)])
         print(rows[-2:], flush=True)
-    log = ResultLog("bench_test_tracking", preset=trained.parent.name)
+    log = ResultLog("bench_test_tracking", preset=_preset(trained))
     title = (
         f"cross: {trained.name} {args.method} seed {args.seed} trained on ground-truth tracking, the held-out motion "
         f"from {fitted_root.parent.name}'s fit; tuning {','.join(tuning)}, scoring {','.join(scoring)}"
@@ -227,7 +235,7 @@ def _evaluations(outputs: Path, subject: str, method: str) -> list[dict]:
 def table(args: argparse.Namespace) -> None:
     arms = dict(a.split("=", 1) for a in args.arm)
     reference = args.reference or next(iter(arms))
-    log = ResultLog("bench_test_tracking", preset="draft")
+    log = ResultLog("bench_test_tracking", preset=_preset(Path(next(iter(arms.values()))) / args.subject[0]))
     rows, gaps, errors = [], [], []
     for subject in args.subject:
         for method in METHODS:
