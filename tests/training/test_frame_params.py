@@ -77,6 +77,25 @@ def test_frame_adam_is_torch_adam_on_each_row_alone():
     assert frame_adam.steps.tolist() == [2, 1, 4]
 
 
+def test_a_scaled_step_is_adam_at_the_scaled_rate():
+    gen = torch.Generator().manual_seed(1)
+    rows = torch.randn(2, 4, generator=gen)
+    param = torch.nn.Parameter(rows.clone())
+    frame_adam = FrameAdam([(param, 0.01)], num_frames=2)
+    reference = torch.nn.Parameter(rows[1].clone())
+    adam = torch.optim.Adam([reference], lr=0.01, eps=1e-15)
+    for scale in (1.0, 0.5, 0.25):  # a schedule: each update at its own rate, the moments as Adam keeps them
+        grad = torch.randn(4, generator=gen)
+        param.grad = torch.zeros_like(param)
+        param.grad[1] = grad
+        frame_adam.step(1, lr_scale=scale)
+        reference.grad = grad.clone()
+        adam.param_groups[0]["lr"] = 0.01 * scale
+        adam.step()
+        torch.testing.assert_close(param.detach()[1], reference.detach(), rtol=0, atol=1e-7)
+    torch.testing.assert_close(param.detach()[0], rows[0], rtol=0, atol=0)
+
+
 def test_posing_and_conditioning_match_the_sequence_posing():
     params = _params()
     offsets = 1e-3 * torch.randn(4, HEAD.num_vertices, 3, generator=torch.Generator().manual_seed(1))
