@@ -356,5 +356,3 @@ def _placeholder_hand(params: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     without hand keypoints (see :data:`ABSENT_HAND_DROP_M`)."""
     rest = {k: np.zeros_like(params[k]) for k in ("mano_shape", "mano_hand_pose", "mano_global_orient")}
     return {**params, **rest, "mano_transl": params["flame_transl"] - np.array([0.0, ABSENT_HAND_DROP_M, 0.0])}
-
-
