@@ -9,7 +9,7 @@ import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
-from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, run_cli, wait_for
+from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, default_sigint, run_cli, wait_for
 
 TOY = [*TOY_OVERRIDES, "run.progress=false"]
 
@@ -60,7 +60,13 @@ def _interrupted(args: list[str], ready: Callable[[int], bool]) -> list[str]:
     """The non-empty lines a CLI run with ``args`` writes to stderr when it gets SIGINT once ``ready(pid)`` holds;
     asserts that it exits with 130 and prints no traceback."""
     proc = subprocess.Popen(
-        cli_command(*args), cwd=REPO, env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        cli_command(*args),
+        cwd=REPO,
+        env=cli_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=default_sigint,
     )
     try:
         wait_for(lambda: ready(proc.pid))

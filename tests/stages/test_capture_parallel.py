@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from pipeline.cli import run_app
-from tests.conftest import REPO, cli_command, cli_env, compose_cfg, wait_for
+from tests.conftest import REPO, cli_command, cli_env, compose_cfg, default_sigint, wait_for
 
 CAPTURE = importlib.import_module("stages.capture")  # the module (the package exports the stage under its name)
 
@@ -87,6 +87,7 @@ def _parallel_capture(tmp_path: Path, **popen: Any) -> subprocess.Popen:
         cwd=REPO,
         env={**cli_env(), "OMP_NUM_THREADS": "2"},  # two workers on any machine
         stdout=subprocess.DEVNULL,
+        preexec_fn=default_sigint,
         **popen,
     )
 
