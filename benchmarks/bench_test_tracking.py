@@ -76,9 +76,9 @@ def _scaled(steps: int, multiple: float) -> AvatarTrackingConfig:
 
 
 def _preset(subject_dir: Path) -> str:
-    """The preset a bench_seeds setting's runs used (its ``quality.txt``; draft where absent)."""
+    """The preset a bench_seeds setting's runs used (its ``quality.txt``), or ``unknown`` for another workspace."""
     path = subject_dir.parent / QUALITY_FILE
-    return path.read_text().strip() if path.is_file() else "draft"
+    return path.read_text().strip() if path.is_file() else "unknown"
 
 
 def _scoring_psnr(model: TrainedAvatar, params: dict[str, np.ndarray], offsets: np.ndarray, views: ViewSet) -> float:

@@ -4,8 +4,8 @@ status, wall time, and the machine's load.
 
 Quick modes write under a temporary folder (``--keep DIR`` keeps it), never over the committed
 ``benchmarks/results/``. The benchmarks that read a finished run (``bench_reenact``, ``bench_viewer``, ``bench_refine``,
-``bench_train_refine``) get one ``quality=smoke`` DAG made first. ``--full`` runs each with its own defaults
-instead (hours; those that need a run get the same smoke DAG, so pass a bigger one by hand for real
+``bench_train_refine``, ``bench_test_tracking``) get one ``quality=smoke`` DAG made first. ``--full`` runs each with
+its own defaults instead (hours; those that need a run get the same smoke DAG, so pass a bigger one by hand for real
 figures). A benchmark's full mode is always ``python benchmarks/<name>.py`` with its own arguments
 (``--help``).
 
@@ -97,6 +97,9 @@ QUICK: dict[str, list[list[str]]] = {
     "bench_train_refine": [
         ["--workspace", "{smoke}/synth_a", "--scales", "0", "3", "--steps", "50", "--results", "{out}"]
     ],
+    "bench_test_tracking": [
+        ["rates", "--workspace", "{smoke}/synth_a", "--frames", "2", "--sweep", "5x1", "--results", "{out}"]
+    ],
     "bench_gpu": [["--quick", "--skip-dag", "--json", "{out}/bench_gpu.json"]],
 }
 #: the arguments a benchmark needs even in its full mode
@@ -107,6 +110,7 @@ NEEDS = {
     "bench_train_refine": [["--workspace", "{smoke}/synth_a"]],
     "bench_seeds": [["table"]],
     "bench_small_captures": [["table"]],
+    "bench_test_tracking": [["rates", "--workspace", "{smoke}/synth_a"]],
 }
 
 

@@ -71,6 +71,12 @@ def test_make_bench_sends_every_result_file_to_its_scratch_folder() -> None:
             assert any("--results" in command for command in commands), name
 
 
+def test_every_benchmark_has_a_quick_mode() -> None:
+    """``make bench`` refuses to start while a benchmark has none."""
+    names = {p.stem for p in (REPO / "benchmarks").glob("bench_*.py")}
+    assert names <= set(QUICK), sorted(names - set(QUICK))
+
+
 def test_the_make_run_printout_on_file_is_what_the_summary_formatter_prints_for_its_reports() -> None:
     """The README and first-run.md show the newest smoke run of bench_make_run.json: its stage and metrics tables
     must be what pipeline.summary's formatters print today for the stage reports stored beside them, so a change of
