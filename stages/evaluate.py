@@ -28,6 +28,7 @@ from avatar.metrics import LPIPS, image_metrics
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import resolve_backend
+from avatar.templates import TemplateModel
 from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar
 from avatar.training.data import ViewSet
 from avatar.training.dynamic import rasterize
@@ -126,8 +127,11 @@ def evaluate(ctx: StageContext) -> None:
         {split: sequence for split, (sequence, _) in splits.items()},
         "the sequence each split renders",
     )
+    loaded: dict[tuple[str, str], ViewSet] = {}  # the held-out motion's crops serve both of its protocols
     for split, (sequence, camera_split) in splits.items():
-        views = load_views(cap_dir, frames_dir, sequence, camera_split)
+        if (sequence, camera_split) not in loaded:
+            loaded[sequence, camera_split] = load_views(cap_dir, frames_dir, sequence, camera_split)
+        views = loaded[sequence, camera_split]
         if split == TRACKED_SPLIT:
             tuning, scoring = tracking_cameras(conf.tuning_cameras, views.camera_ids)
             ctx.metrics["tracking_scoring_cameras"] = ",".join(scoring)
@@ -238,7 +242,12 @@ def _tracked_sequence(
 
 
 def _tracking_summary(
-    tracked: TrackedMotion, before: dict[str, np.ndarray], tuning: ViewSet, seconds: float, head, hand
+    tracked: TrackedMotion,
+    before: dict[str, np.ndarray],
+    tuning: ViewSet,
+    seconds: float,
+    head: TemplateModel,
+    hand: TemplateModel,
 ) -> dict[str, Any]:
     """The manifest's ``tracking_*`` entries: cameras, losses before and after, how far the parts moved, the frames
     that kept a part as tracked, and the time per frame and tuning view."""

@@ -31,7 +31,7 @@ from avatar.render.gaussians.world import WorldGaussians
 from avatar.templates import TemplateModel
 from avatar.training.data import ViewSet
 from avatar.training.dynamic import FACE_LABEL, HAND_LABEL, rasterize
-from avatar.training.frame_params import REFINED_COLUMNS, FrameParams, ParamLearningRates
+from avatar.training.frame_params import FrameParams, ParamLearningRates
 
 #: a part counts as seen in a frame when its label covers at least this many crop pixels in one of the views
 MIN_VISIBLE_PIXELS = 4
@@ -155,8 +155,7 @@ def _seen(views: ViewSet, label: int) -> np.ndarray:
 def _hold(frames: FrameParams, t: int, parts: list[str]) -> None:
     """Put the tracker's parameters of ``parts`` back into frame ``t``."""
     prefixes = tuple(PARTS[part][0] for part in parts)
-    refined = {c for columns in REFINED_COLUMNS.values() for c in columns}
     with torch.no_grad():
-        for column in refined:
-            if column.startswith(prefixes) and column in frames.rows:
-                frames.rows[column][t] = frames.start[column][t]
+        for column, rows in frames.rows.items():  # the refined columns (REFINED_COLUMNS)
+            if column.startswith(prefixes):
+                rows[t] = frames.start[column][t]
