@@ -2,7 +2,7 @@
 
 A frame of any representation is given as its world-space Gaussians (what ``TrainedAvatar.pose`` returns) and the
 posed mesh they ride on, each Gaussian on one triangle. The codec expresses each Gaussian in its triangle's local
-frame (:func:`avatar.gaussians.frames.triangle_frames`: ``mu = k R mu_i + T``, ``s = k s_i``, ``q = R q_i``) and
+frame (:func:`avatar.geometry.frames.triangle_frames`: ``mu = k R mu_i + T``, ``s = k s_i``, ``q = R q_i``) and
 stores:
 
 - once (:class:`StaticGaussians`): per Gaussian its triangle, mesh part, local mean, log-scale and rotation, colour
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from avatar.gaussians.frames import quaternion_multiply, rotation_to_quaternion, triangle_frames
+from avatar.geometry.frames import quaternion_multiply, rotation_to_quaternion, triangle_frames
 from avatar.render.gaussians.world import WorldGaussians
 
 #: 16-bit quantisation of the vertices over their motion's bounding box.

@@ -27,8 +27,8 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from avatar.fitting.fit import FitConfig, fit_sequence  # noqa: E402
 from avatar.fitting.refine import REFINE_MODES, RefineConfig, evidence_from_views  # noqa: E402
+from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.templates import procedural_hand, procedural_head  # noqa: E402
-from avatar.training.data import ViewSet  # noqa: E402
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.cameras import read_cameras  # noqa: E402
 from data_schemas.capture import CaptureIndex  # noqa: E402

@@ -43,10 +43,10 @@ from omegaconf import OmegaConf
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from avatar.fitting.errors import tracking_errors  # noqa: E402
+from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.metrics.psnr import psnr  # noqa: E402
 from avatar.templates import procedural_hand, procedural_head  # noqa: E402
 from avatar.training.avatar_tracking import AvatarTrackingConfig, track_with_avatar  # noqa: E402
-from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.dynamic import rasterize  # noqa: E402
 from benchmarks.bench_seeds import QUALITY_FILE  # noqa: E402
 from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402

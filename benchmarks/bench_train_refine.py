@@ -36,8 +36,8 @@ from omegaconf import OmegaConf
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from avatar.gaussians.model import BoundGaussians  # noqa: E402
+from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.posing import posed_keypoints  # noqa: E402
-from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.frame_params import FrameParams, ParamLearningRates  # noqa: E402
 from avatar.training.validation import ValidationConfig, Validator  # noqa: E402
 from avatar.training.warmup import WarmupTrainConfig, colors_from_views, render_frame, train_warmup  # noqa: E402

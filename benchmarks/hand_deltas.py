@@ -41,8 +41,8 @@ sys.path.insert(0, str(REPO))
 from hydra import compose, initialize_config_dir  # noqa: E402
 
 from avatar.dynamic import DynamicAvatar  # noqa: E402
+from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.metrics import image_metrics  # noqa: E402
-from avatar.training.data import ViewSet  # noqa: E402
 from avatar.training.dynamic import rasterize  # noqa: E402
 from avatar.training.warmup import render_frame  # noqa: E402
 from data_schemas.cameras import Camera, read_cameras  # noqa: E402

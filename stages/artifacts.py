@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from avatar.geometry.views import ViewSet
 from avatar.render.gaussians import WorldGaussians
 from avatar.scene import SceneDecision
-from avatar.training.data import ViewSet
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, provided_path
 from data_schemas.deform import CONTACTS, DEFORM

@@ -24,13 +24,13 @@ import torch
 
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.fitting.errors import tracking_errors
+from avatar.geometry.views import ViewSet
 from avatar.metrics import LPIPS, image_metrics
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import resolve_backend
 from avatar.templates import TemplateModel
 from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar
-from avatar.training.data import ViewSet
 from avatar.training.dynamic import rasterize
 from avatar.training.frame_params import parameter_movement
 from data_schemas.cameras import read_cameras

@@ -30,7 +30,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from avatar.dynamic.conditioning import SequenceConditioning
-from avatar.gaussians.frames import quaternion_multiply, rotation_to_quaternion
+from avatar.geometry.frames import quaternion_multiply, rotation_to_quaternion
 from avatar.posing import MeshSequence, posed_meshes
 from avatar.reenact import PLACEMENTS
 from avatar.render.gaussians import WorldGaussians

@@ -23,8 +23,8 @@ from avatar.fitting.refine import (
     evidence_from_views,
     tracking_outlines,
 )
+from avatar.geometry.views import ViewSet
 from avatar.templates import TemplateModel
-from avatar.training.data import ViewSet
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
 from data_schemas.images import write_png

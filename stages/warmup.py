@@ -9,8 +9,8 @@ from typing import Any
 
 import torch
 
+from avatar.geometry.views import ViewSet
 from avatar.render.gaussians import resolve_backend
-from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams
 from avatar.training.validation import ValidationConfig, Validator
 from avatar.training.warmup import WarmupTrainConfig, colors_from_views

@@ -8,7 +8,7 @@ renders the posed meshes and compares them with the frames stage's crops:
 * ``silhouette``: the part silhouettes of the posed meshes, compared (squared error) with the crops' part
   labels, area-averaged to ``render_size``. Their values come from the exact z-buffer rasterizer, their
   gradients from one flat Gaussian per triangle (a disc in the triangle's plane, ``proxy_sigma`` times its
-  frame scale k, see :mod:`avatar.gaussians.frames`) coloured by its part on the project's differentiable
+  frame scale k, see :mod:`avatar.geometry.frames`) coloured by its part on the project's differentiable
   rasterizer (see :class:`_Renderer` for why both). Pixels of an unknown foreground part compare nothing: on
   real footage that label is the rest of the person (keyed masks, MediaPipe's selfie segmentation: hair,
   neck, torso, arm), not a mesh's. Pixels no camera saw (crop padding) compare nothing either. Background
@@ -41,13 +41,13 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from avatar.fitting.models import FaceParams, HandParams
-from avatar.gaussians.frames import place_gaussians, triangle_frames
+from avatar.geometry.frames import place_gaussians, triangle_frames
+from avatar.geometry.rotations import rotation_angle_deg
+from avatar.geometry.views import UNOBSERVED_LABEL, ViewSet
 from avatar.posing import posed_keypoints
 from avatar.render.gaussians import render_gaussians
 from avatar.render.mesh_raster import Mesh, PinholeCamera, box_downsample, interpolate, rasterize
 from avatar.templates import TemplateModel
-from avatar.training.data import UNOBSERVED_LABEL, ViewSet
-from avatar.training.frame_params import rotation_angle_deg
 
 REFINE_MODES = ("none", "silhouette", "photometric")
 PARTS = ("face", "hand")

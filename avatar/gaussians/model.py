@@ -1,7 +1,7 @@
 """Static Gaussians bound to the triangles of one or more meshes (the GaussianAvatars model).
 
 Each Gaussian stores its parameters in the local frame of its parent triangle
-(see :mod:`avatar.gaussians.frames`): ``local_means`` and ``log_scales`` in units
+(see :mod:`avatar.geometry.frames`): ``local_means`` and ``log_scales`` in units
 of the frame scale k, ``quats`` relative to the frame, plus an opacity logit and
 a degree-0 SH colour. ``binding`` (N,) holds the parent triangle index into the
 concatenation of all meshes' faces, and ``part`` (N,) which mesh it belongs to.
@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from avatar.gaussians.frames import place_gaussians, triangle_frames
+from avatar.geometry.frames import place_gaussians, triangle_frames
 
 SH_C0 = 0.28209479177387814
 PARAM_NAMES = ("local_means", "log_scales", "quats", "opacity_logits", "sh_dc")

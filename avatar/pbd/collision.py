@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import torch
 
-from avatar.synthetic.geometry import winding_number
+from avatar.geometry.winding import winding_number
 
 #: Points this close to the hand surface (metres) always take the winding-number test.
 AMBIGUOUS_BAND_M = 0.005

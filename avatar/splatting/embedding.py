@@ -20,7 +20,7 @@ normals ``n``, both of the frame):
   code blends per-vertex quaternions (area-weighted averages over the adjacent faces of the rotation
   from each face's canonical tangent frame to its posed one, ``utils/map.py``, ``PerVertQuaternion``)
   with the barycentrics. Here: per face ``R_f = P_f C_f^T`` from the triangle frames of
-  :mod:`avatar.gaussians.frames` (first edge, normal) on the posed and canonical mesh; per vertex the
+  :mod:`avatar.geometry.frames` (first edge, normal) on the posed and canonical mesh; per vertex the
   canonical-area-weighted mean matrix of its faces' ``R_f`` (matrices, not quaternions, so no sign
   alignment is needed); at the Gaussian the barycentric blend ``M`` of its vertices' matrices,
   orthonormalised (Gram-Schmidt: first column, then second), then turned by the smallest rotation
@@ -55,8 +55,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from avatar.gaussians.frames import quaternion_multiply, rotation_to_quaternion, triangle_frames
 from avatar.gaussians.model import SH_C0, check_initial_population, inverse_sigmoid
+from avatar.geometry.frames import quaternion_multiply, rotation_to_quaternion, triangle_frames
 from avatar.splatting.walking import WalkTable, build_walk_table, full_barycentric, walk
 
 PARAM_NAMES = ("barycentric", "displacement", "log_scales", "quats", "opacity_logits", "sh_dc")
@@ -123,7 +123,7 @@ class CanonicalMesh(nn.Module):
         vertices: (V, 3), faces: (F, 3) int64.
         areas: (F,) canonical face areas; ``area_damping`` the damping of the area ratio.
         normals: (V, 3) canonical unit vertex normals.
-        frames: (F, 3, 3) canonical triangle frames (:func:`avatar.gaussians.frames.triangle_frames`).
+        frames: (F, 3, 3) canonical triangle frames (:func:`avatar.geometry.frames.triangle_frames`).
         face_weights: (F,) area weights of faces in the per-vertex rotations; ``vertex_weights`` (V,)
             their sum per vertex.
         walk_*: the :class:`avatar.splatting.walking.WalkTable` fields.

@@ -1,7 +1,7 @@
 """Mesh queries used by the generator: normals, closest points, inside tests.
 
 All functions take float64 CPU torch tensors in metres; vertices (V, 3), faces
-(F, 3) int64. The all-pairs winding number is chunked over points to bound memory.
+(F, 3) int64. The winding number is :mod:`avatar.geometry.winding`'s.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-_CHUNK_PAIRS = 1 << 21
+from avatar.geometry.winding import winding_number
 
 
 def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -78,23 +78,6 @@ def closest_points(
     best = d2.argmin(dim=1)
     rows = torch.arange(points.shape[0])
     return cand[rows, best], d2[rows, best].sqrt(), idx[rows, best]
-
-
-def winding_number(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Generalised winding number (N,) of the mesh at the points (Jacobson et al.
-    2013): ~1 inside a closed outward-oriented mesh, ~0 outside, graceful for
-    meshes with holes (such as the open wrist of a hand)."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    step = max(1, _CHUNK_PAIRS // max(1, faces.shape[0]))
-    out = []
-    for start in range(0, points.shape[0], step):
-        p = points[start : start + step, None]
-        ra, rb, rc = a - p, b - p, c - p
-        la, lb, lc = ra.norm(dim=-1), rb.norm(dim=-1), rc.norm(dim=-1)
-        det = (ra * torch.linalg.cross(rb, rc, dim=-1)).sum(-1)
-        den = la * lb * lc + (ra * rb).sum(-1) * lc + (rb * rc).sum(-1) * la + (rc * ra).sum(-1) * lb
-        out.append(torch.atan2(det, den).sum(dim=1) / (2 * torch.pi))
-    return torch.cat(out) if out else points.new_zeros((0,))
 
 
 def signed_distance(

@@ -27,9 +27,9 @@ import torch
 from torch import Tensor
 
 from avatar.dynamic.conditioning import FrameConditioning
+from avatar.geometry.views import ViewSet
 from avatar.render.gaussians.world import WorldGaussians
 from avatar.templates import TemplateModel
-from avatar.training.data import ViewSet
 from avatar.training.dynamic import FACE_LABEL, HAND_LABEL, rasterize
 from avatar.training.frame_params import FrameParams, ParamLearningRates
 

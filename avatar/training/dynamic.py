@@ -25,13 +25,13 @@ from torch import Tensor
 
 from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
 from avatar.dynamic.model import DynamicAvatar, DynamicFrame
+from avatar.geometry.views import ViewSet
 from avatar.losses import patch_perceptual_loss, reconstruction_loss, reconstruction_terms
 from avatar.metrics.lpips import LPIPS
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.render.gaussians import WorldGaussians, render_gaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
-from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams
 from avatar.training.schedule import exponential_lr
 from avatar.training.selection import BestStep, Selection, SelectionConfig, select
@@ -39,7 +39,7 @@ from avatar.training.validation import ValidationConfig, Validator, draw_frame
 from avatar.training.warmup import gaussian_param_groups
 
 CHECKPOINT = "dynamic.pt"
-FACE_LABEL, HAND_LABEL = 1, 2  # part labels of the crops' masks (see avatar.training.data.ViewSet)
+FACE_LABEL, HAND_LABEL = 1, 2  # part labels of the crops' masks (see avatar.geometry.views.ViewSet)
 
 
 @dataclass(frozen=True)

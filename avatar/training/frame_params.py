@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 from torch import Tensor, nn
 
 from avatar.dynamic.conditioning import Conditioning, conditioning_from_posed
+from avatar.geometry.rotations import rotation_angle_deg
 from avatar.posing import posed_keypoints, run_layers, template_layers
 from avatar.templates import TemplateModel
 
@@ -228,8 +228,3 @@ def parameter_movement(
         for part, prefix in (("face", "flame"), ("hand", "mano"))
     }
     return {"moved_mm": moved, "rotated_deg": rotated}
-
-
-def rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(T,) angle of R(a)^T R(b) for axis-angle rows (T, 3), degrees."""
-    return np.degrees((Rotation.from_rotvec(a).inv() * Rotation.from_rotvec(b)).magnitude())

@@ -43,6 +43,7 @@ from typing import cast
 import torch
 from torch import Tensor
 
+from avatar.geometry.views import ViewSet
 from avatar.metrics import LPIPS, dssim_loss
 from avatar.metrics.lpips_weights import Net
 from avatar.posing import MeshSequence
@@ -50,7 +51,6 @@ from avatar.render.gaussians import RenderOutput, render_gaussians
 from avatar.splatting.density import EmbeddedDensityConfig, EmbeddedDensityController
 from avatar.splatting.embedding import EmbeddedGaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
-from avatar.training.data import ViewSet
 from avatar.training.schedule import exponential_lr, scaled_interval
 from avatar.training.validation import ValidationConfig, Validator
 

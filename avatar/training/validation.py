@@ -34,9 +34,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from avatar.geometry.views import ViewSet
 from avatar.metrics import psnr
 from avatar.metrics.evaluation import default_lpips
-from avatar.training.data import ViewSet
 
 log = logging.getLogger(__name__)
 

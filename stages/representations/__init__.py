@@ -21,8 +21,8 @@ import torch
 from omegaconf import DictConfig
 
 from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
-from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams
 from avatar.training.validation import Validator
 from data_schemas.tables import TableSchema

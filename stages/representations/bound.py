@@ -16,10 +16,10 @@ from omegaconf import DictConfig
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.gaussians.model import BoundGaussians
+from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import resolve_backend
 from avatar.scene import SceneDecision
-from avatar.training.data import ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, DynamicTrainResult, train_dynamic
 from avatar.training.frame_params import FrameParams
 from avatar.training.selection import SelectionConfig

@@ -15,10 +15,10 @@ import torch
 from omegaconf import DictConfig
 
 from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import resolve_backend
 from avatar.splatting import EmbeddedGaussians
-from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams
 from avatar.training.splatting import SplattingConfig, train_splatting
 from avatar.training.validation import ValidationConfig, Validator

@@ -11,9 +11,9 @@ import torch
 
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig, SequenceConditioning, sequence_conditioning
 from avatar.gaussians.model import PARAM_NAMES, BoundGaussians
+from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence, posed_meshes
 from avatar.templates import procedural_hand, procedural_head
-from avatar.training.data import ViewSet
 
 SIZE = 32
 GAUSSIAN_STRIDE = 6

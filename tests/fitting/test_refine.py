@@ -16,9 +16,9 @@ from avatar.fitting.refine import (
     scaled_intrinsics,
     silhouette_error,
 )
+from avatar.geometry.views import ViewSet
 from avatar.synthetic import SyntheticCapture
 from avatar.templates import procedural_hand, procedural_head
-from avatar.training.data import ViewSet
 
 HEAD, HAND = procedural_head(), procedural_hand()
 FRAMES = [1, 4]  # a frame without and one with contact (synth_a, 6 frames)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from avatar.geometry.winding import winding_number
 from avatar.pbd.collision import closest_on_mesh, closest_on_triangles, query_hand
 from avatar.synthetic.geometry import _closest_on_triangles as ericson_closest  # an independent formulation
-from avatar.synthetic.geometry import winding_number
 from avatar.templates.layers import MANOLayer
 from avatar.templates.procedural import procedural_hand
 

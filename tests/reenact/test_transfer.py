@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from avatar.geometry.winding import winding_number
 from avatar.posing import pose_layers
 from avatar.reenact import MotionTransferError, head_size, transfer_motion
 from avatar.reenact.contact import surface_twins, twin_points
-from avatar.synthetic.geometry import closest_points, vertex_normals, winding_number
+from avatar.synthetic.geometry import closest_points, vertex_normals
 from avatar.templates import procedural_hand, procedural_head
 from avatar.templates.layers import hand_frame
 from avatar.templates.lbs import batch_rodrigues

@@ -10,12 +10,12 @@ import math
 import pytest
 import torch
 
+from avatar.geometry.views import ViewSet
 from avatar.metrics import LPIPSWeightsNotFoundError
 from avatar.metrics.lpips_weights import weight_file
 from avatar.posing import MeshSequence
 from avatar.splatting import EmbeddedGaussians
 from avatar.training import splatting
-from avatar.training.data import ViewSet
 from avatar.training.splatting import SplattingConfig, render_splatting, scale_penalty, train_splatting
 from tests.splatting.meshes import bumpy, grid
 

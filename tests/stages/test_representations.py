@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from avatar.gaussians.model import BoundGaussians
+from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
-from avatar.training.data import ViewSet
 from avatar.training.frame_params import FrameParams
 from avatar.training.validation import Validator
 from data_schemas.gaussians import TRAIN_LOG

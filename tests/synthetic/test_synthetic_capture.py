@@ -7,8 +7,9 @@ import pytest
 import torch
 from scipy.ndimage import binary_erosion
 
+from avatar.geometry.winding import winding_number
 from avatar.synthetic import SyntheticCapture, SyntheticConfig, generate
-from avatar.synthetic.geometry import closest_points, winding_number
+from avatar.synthetic.geometry import closest_points
 from avatar.synthetic.shading import BACKGROUND_LINEAR, srgb_encode
 from avatar.templates.layers import FLAMELayer, MANOLayer
 from avatar.templates.procedural import procedural_hand, procedural_head

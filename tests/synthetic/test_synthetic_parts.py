@@ -8,7 +8,8 @@ import scipy.optimize
 import torch
 import trimesh
 
-from avatar.synthetic.geometry import signed_distance, winding_number
+from avatar.geometry.winding import winding_number
+from avatar.synthetic.geometry import signed_distance
 from avatar.synthetic.keypoints import project_keypoints
 from avatar.synthetic.noise import fbm, value_noise
 from avatar.synthetic.rig import make_rig

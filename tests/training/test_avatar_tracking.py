@@ -12,12 +12,12 @@ import torch
 from torch import Tensor
 
 from avatar.dynamic.conditioning import FrameConditioning
-from avatar.gaussians.frames import place_gaussians, triangle_frames
+from avatar.geometry.frames import place_gaussians, triangle_frames
+from avatar.geometry.views import ViewSet
 from avatar.posing import posed_keypoints, posed_meshes
 from avatar.synthetic import SyntheticCapture, SyntheticConfig, generate
 from avatar.templates import procedural_hand, procedural_head
 from avatar.training.avatar_tracking import HAND_LABEL, AvatarTrackingConfig, track_with_avatar
-from avatar.training.data import ViewSet
 from avatar.training.dynamic import rasterize
 
 HEAD, HAND = procedural_head(), procedural_hand()

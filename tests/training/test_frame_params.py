@@ -13,11 +13,11 @@ import torch
 
 from avatar.dynamic.conditioning import sequence_conditioning
 from avatar.gaussians.model import BoundGaussians
+from avatar.geometry.views import ViewSet
 from avatar.posing import posed_meshes
 from avatar.synthetic import SyntheticCapture, SyntheticConfig, generate
 from avatar.templates import procedural_hand, procedural_head
 from avatar.training import warmup
-from avatar.training.data import ViewSet
 from avatar.training.frame_params import (
     REFINED_COLUMNS,
     FrameAdam,

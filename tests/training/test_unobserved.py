@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
+from avatar.geometry.views import UNOBSERVED_LABEL, ViewSet
 from avatar.metrics.lpips import LPIPS
 from avatar.metrics.ssim import dssim_loss
 from avatar.training import dynamic, splatting, warmup
-from avatar.training.data import UNOBSERVED_LABEL, ViewSet
 from avatar.training.validation import ValidationConfig, Validator
 from data_schemas.frames import UNOBSERVED
 from stages.evaluate import _regions

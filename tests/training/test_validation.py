@@ -12,11 +12,11 @@ import pytest
 import torch
 
 from avatar.gaussians.model import BoundGaussians
+from avatar.geometry.views import ViewSet
 from avatar.metrics.lpips import LPIPS
 from avatar.posing import MeshSequence
 from avatar.splatting import EmbeddedGaussians
 from avatar.training import warmup
-from avatar.training.data import ViewSet
 from avatar.training.dynamic import DynamicTrainConfig, sample_frame, train_dynamic
 from avatar.training.splatting import SplattingConfig, train_splatting
 from avatar.training.validation import (

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from avatar.gaussians.model import BoundGaussians
+from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
 from avatar.training import warmup
-from avatar.training.data import ViewSet
 from avatar.training.validation import ValidationConfig, Validator
 from avatar.training.warmup import WarmupTrainConfig, train_warmup
 

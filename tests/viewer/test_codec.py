@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from avatar.gaussians.frames import place_gaussians, triangle_frames
+from avatar.geometry.frames import place_gaussians, triangle_frames
 from avatar.viewer_codec import (
     STEPS,
     CodecConfig,

@@ -1,5 +1,5 @@
 // Posing the avatar's Gaussians for one frame: the browser's half of avatar/viewer_codec.py, step by step the same
-// as its decode_frame (triangle_frames of avatar/gaussians/frames.py, then the frame's geometry and appearance
+// as its decode_frame (triangle_frames of avatar/geometry/frames.py, then the frame's geometry and appearance
 // overrides).
 
 const EPS = 1e-12;

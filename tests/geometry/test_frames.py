@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from avatar.gaussians.frames import place_gaussians, quaternion_multiply, rotation_to_quaternion, triangle_frames
+from avatar.geometry.frames import place_gaussians, quaternion_multiply, rotation_to_quaternion, triangle_frames
 
 RNG = np.random.default_rng(0)
 
