@@ -20,7 +20,7 @@ from hydra.core.plugins import Plugins
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
-from data_schemas.decaf import ships_keypoints
+from importers.decaf import ships_keypoints
 from pipeline.registry import RegistryError, StageRegistry
 from pipeline.stage import Stage
 from pipeline.workspace import method_problem, outputs_problem, seed_problem, subject_problem

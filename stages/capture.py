@@ -1,5 +1,5 @@
 """Stage ``capture``: generate the synthetic capture, or validate and import one on disk (a folder in the
-capture layout, or the DECAF release: ``stages.capture_decaf``)."""
+capture layout, or the DECAF release: ``importers.decaf_capture``)."""
 
 from __future__ import annotations
 
@@ -77,20 +77,20 @@ def capture_checks(cfg: DictConfig) -> list[str]:
     """What the capture cannot be made or imported with, found before any stage runs: for the synthetic generator
     a subject, scene or appearance it does not know; for a capture on disk, a subject folder that is not there and,
     for a folder capture, sequence folders and camera names that cannot name artifact paths
-    (``stages.capture_folder.name_problems``)."""
+    (``importers.folder.name_problems``)."""
     dataset = cfg.dataset
     if dataset.get("name") == "synthetic":
         return _synthetic_problems(cfg)
     if not dataset.get("root"):  # unset: the config check says so
         return []
     if dataset.get("name") == "decaf":
-        from stages.capture_decaf import decaf_subject_problem  # FLAME, torch: DECAF captures only
+        from importers.decaf_capture import decaf_subject_problem  # FLAME, torch: DECAF captures only
 
         problem = decaf_subject_problem(Path(str(dataset.root)), str(cfg.subject))
         return [] if problem is None else [problem]
     if dataset.get("name") != "folder":
         return []
-    from stages.capture_folder import name_problems, subject_folder_problem  # COLMAP, nerfstudio: folder only
+    from importers.folder import name_problems, subject_folder_problem  # COLMAP, nerfstudio: folder only
 
     src = Path(str(dataset.root)) / str(cfg.subject)
     problem = subject_folder_problem(src, str(cfg.subject))
@@ -140,11 +140,11 @@ def capture(ctx: StageContext) -> None:
     if dataset.name == "synthetic":
         index = _generate_synthetic(ctx)
     elif dataset.name == "folder":
-        from stages.capture_folder import import_folder  # COLMAP, nerfstudio, undistortion: folder captures only
+        from importers.folder import import_folder  # COLMAP, nerfstudio, undistortion: folder captures only
 
         index = import_folder(dataset, ctx.subject, ctx.out_dir, float(ctx.cfg.stage.capture.default_frame_rate))
     elif dataset.name == "decaf":
-        from stages.capture_decaf import import_decaf  # pulls in torch (FLAME), which folder captures never need
+        from importers.decaf_capture import import_decaf  # pulls in torch (FLAME), which folder captures never need
 
         index = import_decaf(dataset, ctx.subject, ctx.out_dir, float(ctx.cfg.stage.capture.default_frame_rate))
     else:

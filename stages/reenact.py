@@ -127,7 +127,7 @@ def capture_camera_ids(cfg: DictConfig) -> list[str] | None:
         return synthetic_camera_ids(cfg)
     if dataset.name != "folder":
         return None
-    from stages.capture_folder import view_sources  # COLMAP, nerfstudio: folder captures only
+    from importers.folder import view_sources  # COLMAP, nerfstudio: folder captures only
 
     src = Path(str(dataset.root)) / str(cfg.subject)
     try:

@@ -8,7 +8,7 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-PACKAGES = ("avatar", "data_schemas", "pipeline", "stages")
+PACKAGES = ("avatar", "data_schemas", "importers", "pipeline", "stages")
 
 
 def _module_name(path: Path) -> str:

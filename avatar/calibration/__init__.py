@@ -1,2 +1,2 @@
-"""Calibrations people already have -> this project's cameras (OpenCV pinhole and distortion,
-world-to-camera in OpenCV axes, metres): COLMAP sparse models, nerfstudio ``transforms.json``."""
+"""Lens distortion: undistorting the frames of a calibrated camera into the pinhole model the renderer uses (the
+calibrations themselves are read by :mod:`importers`)."""

@@ -128,7 +128,7 @@ def test_the_adapter_itself_refuses_unsafe_names_before_writing(tmp_path) -> Non
     """The capture stage refuses too (a config check can be bypassed by a caller of the adapter)."""
     from omegaconf import OmegaConf
 
-    from stages.capture_folder import import_folder
+    from importers.folder import import_folder
 
     _with_camera(tmp_path / "data", "..")
     out = tmp_path / "capture"

@@ -7,7 +7,7 @@ COLMAP workflows write them), and optionally ``<sequence>/masks/``, with one cal
 
 * ``cameras.parquet`` (``parquet``): this project's own, in metres;
 * a COLMAP sparse model (``colmap``): ``cameras.bin``/``images.bin`` or ``.txt``, in the subject folder,
-  ``sparse/0/`` or ``sparse/``; image names map to cameras by folder or stem (``avatar.calibration.images``);
+  ``sparse/0/`` or ``sparse/``; image names map to cameras by folder or stem (``importers.calibrated_images``);
 * a nerfstudio ``transforms.json`` (``nerfstudio``);
 * ``auto`` (default): the first of these that exists.
 
@@ -27,9 +27,6 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from avatar.calibration.colmap import find_model, read_colmap
-from avatar.calibration.images import rig_cameras
-from avatar.calibration.nerfstudio import read_transforms
 from avatar.calibration.undistort import Undistorter, is_distorted
 from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, copy_into_capture, mask_path, video_path
@@ -38,7 +35,10 @@ from data_schemas.names import camera_id_problem, folder_name_problem
 from data_schemas.tables import SchemaError
 from data_schemas.video import check_fully_decoded, iter_video, video_fps, write_video_stream
 from data_schemas.writes import write_json
-from stages.frame_selection import selected_frames
+from importers.calibrated_images import rig_cameras
+from importers.colmap import find_model, read_colmap
+from importers.frame_selection import selected_frames
+from importers.nerfstudio import read_transforms
 
 CALIBRATIONS = ("auto", "parquet", "colmap", "nerfstudio")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")

@@ -16,13 +16,13 @@ from scipy.spatial.transform import Rotation
 from avatar.templates import FLAMELayer, TemplateModel, load_official_model, procedural_hand, procedural_head
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex, mask_path, provided_path, video_path
-from data_schemas.decaf import read_calibration
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.images import read_png
 from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import read_table
 from data_schemas.video import read_video, write_video
+from importers.decaf import read_calibration
 from pipeline.cli import run_app
 from pipeline.config import ConfigError
 from pipeline.runner import StageFailed

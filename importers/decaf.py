@@ -108,7 +108,7 @@ class _DataUnpickler(pickle.Unpickler):
 def load_pickle(path: Path) -> Any:
     """A DECAF pickle (dicts, lists, numpy arrays; Python 2 or 3), or one clear error."""
     if not path.is_file():
-        raise SchemaError(f"{path}: missing; the DECAF layout needs it (see data_schemas/decaf.py)")
+        raise SchemaError(f"{path}: missing; the DECAF layout needs it (see importers/decaf.py)")
     try:
         with path.open("rb") as stream:
             return _DataUnpickler(stream, encoding="latin1").load()

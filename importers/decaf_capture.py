@@ -1,6 +1,6 @@
 """The capture stage's DECAF importer (a helper of ``stages.capture``, not a stage).
 
-Reads one subject of the DECAF release (layout and format: :mod:`data_schemas.decaf`) into the
+Reads one subject of the DECAF release (layout and format: :mod:`importers.decaf`) into the
 capture layout (:mod:`data_schemas.capture`):
 
 * DECAF ``train``/``test`` -> sequences ``train``/``test`` (the paper's self-reenactment split);
@@ -34,7 +34,13 @@ from avatar.templates.layers import OPENPOSE_FROM_MANO
 from avatar.templates.loaders import ModelKind
 from data_schemas.cameras import Camera, write_cameras
 from data_schemas.capture import CaptureIndex, SequenceInfo, copy_into_capture, mask_path, provided_path, video_path
-from data_schemas.decaf import (
+from data_schemas.deform import CONTACTS, DEFORM
+from data_schemas.images import write_png
+from data_schemas.keypoints import write_keypoints
+from data_schemas.params import PARAM_COLUMNS, PARAMS
+from data_schemas.tables import SchemaError, write_table
+from data_schemas.video import iter_video, write_video_stream
+from importers.decaf import (
     MODES,
     DecafParams,
     DecafSequence,
@@ -48,13 +54,7 @@ from data_schemas.decaf import (
     read_params,
     scan_sequence,
 )
-from data_schemas.deform import CONTACTS, DEFORM
-from data_schemas.images import write_png
-from data_schemas.keypoints import write_keypoints
-from data_schemas.params import PARAM_COLUMNS, PARAMS
-from data_schemas.tables import SchemaError, write_table
-from data_schemas.video import iter_video, write_video_stream
-from stages.frame_selection import selected_frames
+from importers.frame_selection import selected_frames
 
 HAND_ORDERS = ("mediapipe", "mano")
 

@@ -13,11 +13,11 @@ import numpy as np
 import pycolmap
 import pytest
 
-from avatar.calibration.colmap import OPENCV_MODELS, find_model, read_colmap
-from avatar.calibration.images import CalibratedImage, camera_id_of, rig_cameras
-from avatar.calibration.nerfstudio import OPENGL_TO_OPENCV, read_transforms
 from avatar.calibration.undistort import Undistorter
 from data_schemas.tables import SchemaError
+from importers.calibrated_images import CalibratedImage, camera_id_of, rig_cameras
+from importers.colmap import OPENCV_MODELS, find_model, read_colmap
+from importers.nerfstudio import OPENGL_TO_OPENCV, read_transforms
 
 W, H = 64, 48
 POINTS = np.array([[0.02, -0.01, 0.05], [-0.03, 0.02, -0.04], [0.0, 0.0, 0.0], [0.04, 0.03, 0.02]])

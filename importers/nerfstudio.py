@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from avatar.calibration.images import CalibratedImage, camera_id_of, pinhole
 from data_schemas.tables import SchemaError
+from importers.calibrated_images import CalibratedImage, camera_id_of, pinhole
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: flip y and z (right-multiplied on cam_to_world)
 PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from avatar.calibration.images import CalibratedImage, pinhole
 from data_schemas.tables import SchemaError
+from importers.calibrated_images import CalibratedImage, pinhole
 
 Intrinsics = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
