@@ -147,7 +147,7 @@ bench: $(STAMP) ext
 ## The generated files are rewritten first: conf/'s blocks of dataclass defaults, the config reference and the
 ## README's results table.
 docs: $(STAMP)
-	$(PY) -m stages.config_defaults
+	$(PY) -m avatar.config_defaults
 	$(PY) -m pipeline.config_reference
 	$(PY) benchmarks/render_results.py
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict

@@ -51,8 +51,11 @@ import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 from torch.optim.optimizer import register_optimizer_step_post_hook, register_optimizer_step_pre_hook  # noqa: E402
 
+from avatar.artifacts import TRAIN_SEQUENCE, contact_flags, load_scene, load_views, method_params  # noqa: E402
+from avatar.artifacts.motion import applied_deformation, posed_sequence, templates  # noqa: E402
 from avatar.dynamic import DynamicAvatar  # noqa: E402
 from avatar.metrics.lpips import LPIPS  # noqa: E402
+from avatar.representations.bound import load_gaussians, model_config  # noqa: E402
 from avatar.training.dynamic import DynamicTrainConfig, train_dynamic  # noqa: E402
 from avatar.training.warmup import WarmupTrainConfig, train_warmup  # noqa: E402
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
@@ -64,9 +67,6 @@ from pipeline.config import validate_config  # noqa: E402
 from pipeline.runner import Runner  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from stages import REGISTRY  # noqa: E402
-from stages.artifacts import TRAIN_SEQUENCE, contact_flags, load_scene, load_views, method_params  # noqa: E402
-from stages.posing import applied_deformation, posed_sequence, templates  # noqa: E402
-from stages.representations.bound import load_gaussians, model_config  # noqa: E402
 
 #: variant -> (method name, overrides): the static variant is a method defined on the command line (the
 #: full model's warm-up and PBD, H and I off, no patch loss), so it shares the full model's warm-up.

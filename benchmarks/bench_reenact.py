@@ -27,14 +27,14 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 
+from avatar.artifacts import load_params, load_scene  # noqa: E402
 from avatar.reenact.cameras import orbit, orbit_intrinsics  # noqa: E402
+from avatar.reenact.driving import drive  # noqa: E402
 from avatar.render.gaussians import render_gaussians, resolve_backend  # noqa: E402
+from avatar.representations import load_trained  # noqa: E402
 from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from pipeline.config import validate_config  # noqa: E402
 from stages import REGISTRY  # noqa: E402
-from stages.artifacts import load_params, load_scene  # noqa: E402
-from stages.driving import drive  # noqa: E402
-from stages.representations import load_trained  # noqa: E402
 
 
 def main() -> None:

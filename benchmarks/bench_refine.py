@@ -25,6 +25,7 @@ import torch
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from avatar.artifacts import load_ground_truth_params, load_views  # noqa: E402
 from avatar.fitting.fit import FitConfig, fit_sequence  # noqa: E402
 from avatar.fitting.refine import REFINE_MODES, RefineConfig, evidence_from_views  # noqa: E402
 from avatar.geometry.views import ViewSet  # noqa: E402
@@ -35,7 +36,6 @@ from data_schemas.capture import CaptureIndex  # noqa: E402
 from data_schemas.keypoints import KEYPOINTS  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
-from stages.artifacts import load_ground_truth_params, load_views  # noqa: E402
 from stages.fit import _errors, _keypoints_by_camera, face_shape_columns  # noqa: E402
 
 ERRORS = ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_hand_mm", "vertex_error_face_mm")

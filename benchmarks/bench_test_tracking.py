@@ -42,25 +42,25 @@ from omegaconf import OmegaConf
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
-from avatar.fitting.errors import tracking_errors  # noqa: E402
-from avatar.geometry.views import ViewSet  # noqa: E402
-from avatar.metrics.psnr import psnr  # noqa: E402
-from avatar.templates import procedural_hand, procedural_head  # noqa: E402
-from avatar.training.avatar_tracking import AvatarTrackingConfig, track_with_avatar  # noqa: E402
-from avatar.training.dynamic import rasterize  # noqa: E402
-from benchmarks.bench_seeds import QUALITY_FILE  # noqa: E402
-from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
-from pipeline.workspace import method_run  # noqa: E402
-from stages.artifacts import (  # noqa: E402
+from avatar.artifacts import (  # noqa: E402
     TRAIN_SEQUENCE,
     load_face_offsets,
     load_ground_truth_params,
     load_params,
     load_views,
 )
+from avatar.artifacts.motion import posed_with_offsets  # noqa: E402
+from avatar.fitting.errors import tracking_errors  # noqa: E402
+from avatar.geometry.views import ViewSet  # noqa: E402
+from avatar.metrics.psnr import psnr  # noqa: E402
+from avatar.representations import TrainedAvatar, load_trained  # noqa: E402
+from avatar.templates import procedural_hand, procedural_head  # noqa: E402
+from avatar.training.avatar_tracking import AvatarTrackingConfig, track_with_avatar  # noqa: E402
+from avatar.training.dynamic import rasterize  # noqa: E402
+from benchmarks.bench_seeds import QUALITY_FILE  # noqa: E402
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
+from pipeline.workspace import method_run  # noqa: E402
 from stages.evaluate import tracking_cameras  # noqa: E402
-from stages.posing import posed_with_offsets  # noqa: E402
-from stages.representations import TrainedAvatar, load_trained  # noqa: E402
 
 METHODS = ("interactavatar", "gaussian_avatars")
 #: (steps, rate multiple of the defaults) of the default sweep

@@ -35,6 +35,8 @@ from omegaconf import OmegaConf
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from avatar.artifacts import load_ground_truth_params, load_views  # noqa: E402
+from avatar.artifacts.motion import posed_sequence, templates  # noqa: E402
 from avatar.gaussians.model import BoundGaussians  # noqa: E402
 from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.posing import posed_keypoints  # noqa: E402
@@ -44,8 +46,6 @@ from avatar.training.warmup import WarmupTrainConfig, colors_from_views, render_
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.capture import MASK_LABELS, CaptureIndex  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
-from stages.artifacts import load_ground_truth_params, load_views  # noqa: E402
-from stages.posing import posed_sequence, templates  # noqa: E402
 
 DRAFT = WarmupTrainConfig(steps=2000, opacity_reset_interval=0.25, max_gaussians=100_000, seed=0)  # conf/quality/draft
 GAUSSIANS_PER_TRIANGLE, INIT_OPACITY, VALIDATION = 2, 0.3, ValidationConfig(every=200, frames=4)

@@ -40,9 +40,12 @@ sys.path.insert(0, str(REPO))
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
+from avatar.artifacts import load_views, method_params  # noqa: E402
+from avatar.artifacts.motion import applied_deformation, load_sequence, templates  # noqa: E402
 from avatar.dynamic import DynamicAvatar  # noqa: E402
 from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.metrics import image_metrics  # noqa: E402
+from avatar.representations.bound import load_dynamic, load_gaussians  # noqa: E402
 from avatar.training.dynamic import rasterize  # noqa: E402
 from avatar.training.warmup import render_frame  # noqa: E402
 from data_schemas.cameras import Camera, read_cameras  # noqa: E402
@@ -50,9 +53,6 @@ from data_schemas.capture import MASK_LABELS  # noqa: E402
 from data_schemas.metrics import SPLIT_SOURCES  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from pipeline.workspace import method_run  # noqa: E402
-from stages.artifacts import load_views, method_params  # noqa: E402
-from stages.posing import applied_deformation, load_sequence, templates  # noqa: E402
-from stages.representations.bound import load_dynamic, load_gaussians  # noqa: E402
 
 #: variant -> {module of the dynamic model: its heads switched off}; ``None``: the warm-up model instead
 VARIANTS: dict[str, dict[str, tuple[str, ...]] | None] = {

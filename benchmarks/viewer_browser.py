@@ -23,8 +23,11 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from avatar.artifacts import HELD_OUT_SEQUENCE, TRAIN_SEQUENCE, method_params
+from avatar.artifacts.motion import applied_deformation, posed_sequence
 from avatar.render.gaussians import render_gaussians
-from avatar.viewer_codec import (
+from avatar.representations import load_trained
+from avatar.viewer.codec import (
     FrameGaussians,
     Overrides,
     Ranges,
@@ -34,9 +37,6 @@ from avatar.viewer_codec import (
     sums_in_time,
     unpack_sections,
 )
-from stages.artifacts import HELD_OUT_SEQUENCE, TRAIN_SEQUENCE, method_params
-from stages.posing import applied_deformation, posed_sequence
-from stages.representations import load_trained
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 INSTALL_HINT = "needs Debian's chromium (apt-get install chromium, or make browser as root) and playwright"
@@ -138,7 +138,7 @@ def read_data(path: Path) -> dict[str, np.ndarray]:
 
 
 def decoded_frame(viewer_dir: Path, motion: str, frame: int) -> tuple[FrameGaussians, Overrides]:
-    """Frame ``frame`` of ``motion`` as :func:`avatar.viewer_codec.decode_frame` decodes it from the page's files
+    """Frame ``frame`` of ``motion`` as :func:`avatar.viewer.codec.decode_frame` decodes it from the page's files
     (the reference of the page's pose.js), and the frame's overrides."""
     data = read_data(viewer_dir / "data" / "avatar.js")
     arrays = read_data(viewer_dir / "data" / f"motion-{motion}.js")

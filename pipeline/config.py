@@ -20,6 +20,7 @@ from hydra.core.plugins import Plugins
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
+from data_schemas.config_sections import check_section
 from importers.decaf import ships_keypoints
 from pipeline.registry import RegistryError, StageRegistry
 from pipeline.stage import Stage
@@ -154,43 +155,6 @@ def _range_problem(key: str, value: float, low: float, high: float | None) -> st
     return f"{key}={value}: must be {bound}"
 
 
-def _check_schema(section: Any, schema: type, where: str, errors: list[str]) -> DictConfig | None:
-    """``section`` merged onto the structured ``schema`` (defaults filled, types converted).
-
-    Unknown keys, wrong types and fields left without a value are appended to
-    ``errors`` and give ``None``. Real stages keep their values in
-    ``conf/stage/<name>.yaml`` and declare only types (no defaults) in the schema.
-    """
-    try:
-        if OmegaConf.is_config(section):  # interpolations (stage.*.seed: ${seed}) resolve in the whole config first
-            section = OmegaConf.to_container(section, resolve=True)
-        merged = OmegaConf.merge(OmegaConf.structured(schema), section)
-    except OmegaConfBaseException as exc:
-        msg = str(exc).splitlines()[0]
-        key = getattr(exc, "full_key", None)
-        errors.append(f"{where}.{key}: {msg}" if key else f"{where}: {msg}")
-        return None
-    missing = sorted(OmegaConf.missing_keys(merged))
-    if missing:
-        errors.append(f"{where}: missing value for {', '.join(missing)}")
-        return None
-    assert isinstance(merged, DictConfig)  # merged onto a structured dataclass
-    validate = getattr(schema, "validate", None)
-    problems = validate(merged) if callable(validate) else []
-    errors.extend(f"{where}.{problem}" for problem in problems)
-    return None if problems else merged
-
-
-def schema_problems(section: Any, schema: type, where: str) -> list[str]:
-    """The problems :func:`_check_schema` finds in ``section`` (at ``where``) against ``schema``, one line each
-    (a missing section is one)."""
-    if section is None:
-        return [f"{where}: missing (expected the fields of {schema.__name__})"]
-    errors: list[str] = []
-    _check_schema(section, schema, where, errors)
-    return errors
-
-
 def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
     """``cfg`` with every stage section completed by its schema's defaults.
 
@@ -206,7 +170,7 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
         if not isinstance(run_values, dict):
             raise ConfigError(f"run: must be a mapping of run.* settings, got {run_values!r}")
         run_plain = {k: v for k, v in run_values.items() if k != "from"}
-        _check_schema(run_plain, RunConfig, "run", errors)
+        check_section(run_plain, RunConfig, "run", errors)
         known = registry.names()
         for key in ("only", "from", "until"):
             name = run.get(key)
@@ -214,13 +178,13 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
                 errors.append(f"run.{key}={name}: unknown stage; choose one of {', '.join(known)}")
         if run.get("only") is not None and (run.get("from") is not None or run.get("until") is not None):
             errors.append("run.only cannot be combined with run.from or run.until")
-    paths = _check_schema(cfg.get("paths", {}), PathsConfig, "paths", errors)
+    paths = check_section(cfg.get("paths", {}), PathsConfig, "paths", errors)
     if paths is not None and (problem := outputs_problem(paths.outputs)):
         errors.append(problem)
     if cfg.get("quality") is None:
         errors.append("missing section 'quality'; choose a preset, e.g. quality=smoke")
     else:
-        _check_schema(cfg.quality, QualityConfig, "quality", errors)
+        check_section(cfg.quality, QualityConfig, "quality", errors)
     problem = subject_problem(cfg.get("subject"))
     if problem:
         errors.append(problem)
@@ -261,7 +225,7 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
             if section is None:
                 errors.append(f"stage.{s.name}: missing (expected fields of {s.config_schema.__name__})")
             else:
-                typed = _check_schema(section, s.config_schema, f"stage.{s.name}", errors)
+                typed = check_section(section, s.config_schema, f"stage.{s.name}", errors)
                 if typed is not None:
                     with open_dict(cfg):
                         cfg.stage[s.name] = typed

@@ -55,7 +55,7 @@ def _commented_keys(path: Path) -> Iterator[tuple[str, str]]:
     prefix = _package(path)
     for number, line in enumerate(path.read_text().splitlines()):
         stripped = line.strip()
-        if stripped.startswith(("# >>> generated", "# <<< generated")):  # stages.config_defaults' block markers
+        if stripped.startswith(("# >>> generated", "# <<< generated")):  # avatar.config_defaults' block markers
             above = []
             continue
         if stripped.startswith("#"):

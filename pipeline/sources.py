@@ -13,30 +13,10 @@ from __future__ import annotations
 import json
 import os
 import uuid
-from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
-from omegaconf import DictConfig
-
+from data_schemas.sources import SourceFiles
 from pipeline.manifest import sha256_file
-
-
-@dataclass(frozen=True)
-class SourceFiles:
-    """Files a stage reads from outside the artifact tree.
-
-    Attributes:
-        root: the folder they are named relative to in manifests and messages.
-        files: absolute paths of every file read (named by their absolute path when outside ``root``).
-    """
-
-    root: Path
-    files: tuple[Path, ...]
-
-
-#: what a stage declares: (resolved config, subject) -> its source files (empty when it reads none)
-SourceLister = Callable[[DictConfig, str], SourceFiles]
 
 
 def _stamp(st: os.stat_result) -> list[int]:

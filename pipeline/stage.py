@@ -46,7 +46,7 @@ from typing import TypeVar
 from omegaconf import DictConfig
 from tqdm import tqdm
 
-from pipeline.sources import SourceLister
+from data_schemas.sources import SourceLister
 
 T = TypeVar("T")
 

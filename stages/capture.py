@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig
 
+from avatar.artifacts.dependencies import model_files
 from data_schemas.cameras import Camera, read_cameras, write_cameras
 from data_schemas.capture import (
     CaptureIndex,
@@ -29,11 +30,10 @@ from data_schemas.deform import DEFORM
 from data_schemas.images import write_png
 from data_schemas.keypoints import write_keypoints
 from data_schemas.params import PARAM_COLUMNS, PARAMS
+from data_schemas.sources import SourceFiles
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.video import write_video
-from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
-from stages.dependencies import model_files
 
 if TYPE_CHECKING:
     from avatar.synthetic import SyntheticCapture, SyntheticConfig

@@ -1,6 +1,6 @@
 """Stage ``dynamic``: stage two of the paper, the hand MLPs H, the interaction MLPs I and PointNet++ on top
 of the warm-up Gaussians (docs/explanation/dynamic-model.md), trained by the method's representation
-(:mod:`stages.representations`; SplattingAvatar's continues its own recipe).
+(:mod:`avatar.representations`; SplattingAvatar's continues its own recipe).
 
 For the bound representation it writes ``gaussians.parquet`` (the fine-tuned Gaussians, the warm-up's schema),
 ``networks.pt`` (a torch state dict of the MLPs, PointNet++, the point features and the canonical positions; load
@@ -16,17 +16,17 @@ from dataclasses import dataclass, fields
 import torch
 from omegaconf import DictConfig
 
+from avatar.artifacts import TRAIN_SEQUENCE, load_views, method_params
+from avatar.artifacts.dependencies import TEMPLATE_KEYS, model_sources
+from avatar.artifacts.motion import applied_deformation, posed_sequence
 from avatar.dynamic.model import DynamicModelConfig
+from avatar.representations import VALIDATED_RUN, representation, representation_problems, unused_training_settings
+from avatar.representations.bound import PRESET_ARCHITECTURE, selection_config
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.selection import SelectionConfig
-from pipeline.schema import core_config, section_schema
+from avatar.training.settings import ParamsLrSchema, ValidationSchema, refinement_problems, validation_problems
+from data_schemas.config_sections import core_config, section_schema
 from pipeline.stage import StageContext, stage
-from stages.artifacts import TRAIN_SEQUENCE, load_views, method_params
-from stages.dependencies import TEMPLATE_KEYS, model_sources, unused_training_settings
-from stages.posing import applied_deformation, posed_sequence
-from stages.representations import VALIDATED_RUN, representation, representation_problems
-from stages.representations.bound import PRESET_ARCHITECTURE, selection_config
-from stages.training_settings import ParamsLrSchema, ValidationSchema, refinement_problems, validation_problems
 
 
 @dataclass

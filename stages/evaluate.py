@@ -22,27 +22,7 @@ import cv2
 import numpy as np
 import torch
 
-from avatar.dynamic.conditioning import SequenceConditioning
-from avatar.fitting.errors import tracking_errors
-from avatar.geometry.views import ViewSet
-from avatar.metrics import LPIPS, image_metrics
-from avatar.posing import MeshSequence
-from avatar.preprocess.crops import label_box, overlap_box
-from avatar.render.gaussians import resolve_backend
-from avatar.templates import TemplateModel
-from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar
-from avatar.training.dynamic import rasterize
-from avatar.training.frame_params import parameter_movement
-from data_schemas.cameras import read_cameras
-from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
-from data_schemas.frames import UNOBSERVED
-from data_schemas.images import to_uint8, write_png
-from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, TRACKED_SPLIT, showcase_path
-from data_schemas.tables import SchemaError, write_table
-from data_schemas.writes import write_json
-from pipeline.schema import core_config
-from pipeline.stage import StageContext, stage
-from stages.artifacts import (
+from avatar.artifacts import (
     contact_frames,
     load_ground_truth_params,
     load_params,
@@ -51,10 +31,30 @@ from stages.artifacts import (
     method_params,
     write_params,
 )
-from stages.dependencies import contact_sources, unused_driving_settings
-from stages.driving import drive, driver_subject, transfer_summary, transferred_params
-from stages.posing import applied_deformation, load_sequence, posed_sequence, posed_with_offsets, templates
-from stages.representations import TrainedAvatar, load_trained
+from avatar.artifacts.dependencies import contact_sources, unused_driving_settings
+from avatar.artifacts.motion import applied_deformation, load_sequence, posed_sequence, posed_with_offsets, templates
+from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.fitting.errors import tracking_errors
+from avatar.geometry.views import ViewSet
+from avatar.metrics import LPIPS, image_metrics
+from avatar.posing import MeshSequence
+from avatar.preprocess.crops import label_box, overlap_box
+from avatar.reenact.driving import drive, driver_subject, transfer_summary, transferred_params
+from avatar.render.gaussians import resolve_backend
+from avatar.representations import TrainedAvatar, load_trained
+from avatar.templates import TemplateModel
+from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar
+from avatar.training.dynamic import rasterize
+from avatar.training.frame_params import parameter_movement
+from data_schemas.cameras import read_cameras
+from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
+from data_schemas.config_sections import core_config
+from data_schemas.frames import UNOBSERVED
+from data_schemas.images import to_uint8, write_png
+from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, TRACKED_SPLIT, showcase_path
+from data_schemas.tables import SchemaError, write_table
+from data_schemas.writes import write_json
+from pipeline.stage import StageContext, stage
 
 TEST_TRACKING = ("tracker", "avatar")
 #: folder of the held-out motion's parameters as the avatar tracked it (``tracking/<sequence>/params.parquet``)

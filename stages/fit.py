@@ -14,6 +14,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from avatar.artifacts import load_ground_truth_params, load_provided_params, load_views
+from avatar.artifacts.dependencies import TEMPLATE_KEYS, model_file_problems, model_sources
+from avatar.artifacts.motion import templates
 from avatar.fitting.errors import tracking_errors
 from avatar.fitting.fit import FitConfig, FitResult, WorldScaleError, fit_sequence
 from avatar.fitting.refine import (
@@ -27,17 +30,14 @@ from avatar.geometry.views import ViewSet
 from avatar.templates import TemplateModel
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import CaptureIndex
+from data_schemas.config_sections import core_config, section_schema
 from data_schemas.images import write_png
 from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.manifest import hash_outputs
-from pipeline.schema import core_config, section_schema
 from pipeline.stage import StageContext, stage
-from stages.artifacts import load_ground_truth_params, load_provided_params, load_views
-from stages.dependencies import TEMPLATE_KEYS, model_file_problems, model_sources
-from stages.posing import templates
 
 SOURCES = ("ground_truth", "provided", "fitted")
 #: stage.fit.refine: a mode of avatar.fitting.refine, or auto (see :func:`refine_mode`)

@@ -21,6 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from avatar.artifacts import load_scene
+from avatar.artifacts.dependencies import contact_sources, stiffness_file_problems, unused_solver_settings
+from avatar.artifacts.motion import templates
 from avatar.pbd import (
     PBDConfig,
     SequenceDeformation,
@@ -30,6 +33,7 @@ from avatar.pbd import (
     single_threaded,
 )
 from avatar.posing import posed_keypoints
+from avatar.reenact.driving import face_stiffness, pbd_solver_config
 from avatar.templates import TemplateModel
 from data_schemas.capture import CaptureIndex, SequenceInfo, gt_path, provided_path
 from data_schemas.deform import CONTACTS, DEFORM
@@ -37,10 +41,6 @@ from data_schemas.params import PARAM_COLUMNS, PARAMS
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
-from stages.artifacts import load_scene
-from stages.dependencies import contact_sources, stiffness_file_problems, unused_solver_settings
-from stages.driving import face_stiffness, pbd_solver_config
-from stages.posing import templates
 
 SOURCES = ("simulate", "ground_truth", "provided", "none")
 

@@ -28,22 +28,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from avatar.reenact.cameras import framed_intrinsics, orbit, orbit_intrinsics, reframe
-from avatar.render.gaussians import render_gaussians, resolve_backend
-from avatar.templates.lbs import batch_rodrigues
-from data_schemas.cameras import read_cameras
-from data_schemas.capture import CaptureIndex, cross_sequence, mask_path, video_path
-from data_schemas.deform import DEFORM
-from data_schemas.images import read_png, to_uint8, write_png
-from data_schemas.params import PARAM_COLUMNS, PARAMS
-from data_schemas.tables import SchemaError, read_table, write_table
-from data_schemas.video import iter_video
-from data_schemas.web_video import write_web_video
-from data_schemas.writes import write_json
-from pipeline.config import synthetic_camera_ids
-from pipeline.sources import SourceFiles
-from pipeline.stage import StageContext, stage
-from stages.artifacts import (
+from avatar.artifacts import (
     HELD_OUT_SEQUENCE,
     TRAIN_SEQUENCE,
     load_params,
@@ -51,8 +36,9 @@ from stages.artifacts import (
     method_params,
     write_frame_ply,
 )
-from stages.dependencies import contact_sources, unused_driving_settings
-from stages.driving import (
+from avatar.artifacts.dependencies import contact_sources, unused_driving_settings
+from avatar.reenact.cameras import framed_intrinsics, orbit, orbit_intrinsics, reframe
+from avatar.reenact.driving import (
     DRIVER_CHOICES,
     drive,
     driver_file_problem,
@@ -62,7 +48,21 @@ from stages.driving import (
     transfer_summary,
     transferred_params,
 )
-from stages.representations import load_trained
+from avatar.render.gaussians import render_gaussians, resolve_backend
+from avatar.representations import load_trained
+from avatar.templates.lbs import batch_rodrigues
+from data_schemas.cameras import read_cameras
+from data_schemas.capture import CaptureIndex, cross_sequence, mask_path, video_path
+from data_schemas.deform import DEFORM
+from data_schemas.images import read_png, to_uint8, write_png
+from data_schemas.params import PARAM_COLUMNS, PARAMS
+from data_schemas.sources import SourceFiles
+from data_schemas.tables import SchemaError, read_table, write_table
+from data_schemas.video import iter_video
+from data_schemas.web_video import write_web_video
+from data_schemas.writes import write_json
+from pipeline.config import synthetic_camera_ids
+from pipeline.stage import StageContext, stage
 
 
 @dataclass

@@ -15,23 +15,7 @@ import cv2
 import numpy as np
 import torch
 
-from avatar.fitting.refine import tracking_outlines
-from avatar.posing import posed_keypoints
-from avatar.templates import TemplateModel
-from avatar.training.frame_params import parameter_movement
-from data_schemas.cameras import Camera, read_cameras
-from data_schemas.capture import CaptureIndex, SequenceInfo
-from data_schemas.curve import CURVE
-from data_schemas.frames import FRAMES_INDEX, rgb_path
-from data_schemas.images import read_png
-from data_schemas.metrics import COMPARISON, METRICS, REGIONS, SPLITS
-from data_schemas.tables import TableSchema, read_table
-from data_schemas.writes import write_bytes
-from pipeline import web_escape as esc
-from pipeline.manifest import MANIFEST_NAME
-from pipeline.stage import StageContext, stage
-from pipeline.summary import format_value
-from stages.artifacts import (
+from avatar.artifacts import (
     TRAIN_SEQUENCE,
     contact_frames,
     contact_source,
@@ -40,10 +24,26 @@ from stages.artifacts import (
     load_views,
     read_params,
 )
-from stages.dependencies import TEMPLATE_KEYS
-from stages.posing import templates
-from stages.report_figures import SPLIT_NAMES, rig_figure
-from stages.representations import representation_class
+from avatar.artifacts.dependencies import TEMPLATE_KEYS
+from avatar.artifacts.motion import templates
+from avatar.fitting.refine import tracking_outlines
+from avatar.posing import posed_keypoints
+from avatar.render.rig_figure import SPLIT_NAMES, rig_figure
+from avatar.representations import representation_class
+from avatar.templates import TemplateModel
+from avatar.training.frame_params import parameter_movement
+from data_schemas import web_escape as esc
+from data_schemas.cameras import Camera, read_cameras
+from data_schemas.capture import CaptureIndex, SequenceInfo
+from data_schemas.curve import CURVE
+from data_schemas.frames import FRAMES_INDEX, rgb_path
+from data_schemas.images import read_png
+from data_schemas.metrics import COMPARISON, METRICS, REGIONS, SPLITS
+from data_schemas.tables import TableSchema, read_table
+from data_schemas.writes import write_bytes
+from pipeline.manifest import MANIFEST_NAME
+from pipeline.stage import StageContext, stage
+from pipeline.summary import format_value
 
 UPSTREAM = (
     "capture",

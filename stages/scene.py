@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from avatar.artifacts.dependencies import TEMPLATE_KEYS, model_sources
+from avatar.artifacts.motion import templates
 from avatar.posing import posed_keypoints
 from avatar.scene import DECISIONS, SceneFacts, decide, deforming_triangles, hand_face_distances, scene_facts
 from data_schemas.capture import MASK_LABELS
@@ -24,8 +26,6 @@ from data_schemas.scene import SCENE_FRAMES
 from data_schemas.tables import SchemaError, read_table, write_table
 from data_schemas.writes import write_json
 from pipeline.stage import StageContext, stage
-from stages.dependencies import TEMPLATE_KEYS, model_sources
-from stages.posing import templates
 
 DECIDED_ON = "train"
 

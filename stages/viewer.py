@@ -2,7 +2,7 @@
 
 It writes ``methods/<method>/viewer/``: ``index.html`` and ``viewer.js`` (the bundle ``make viewer`` builds from
 ``viewer/``), and ``data/``: the avatar's Gaussians once and, per motion, the posed vertices of every frame and the
-Gaussians the frame changes beyond the codec's tolerances (:mod:`avatar.viewer_codec`), as scripts the page loads
+Gaussians the frame changes beyond the codec's tolerances (:mod:`avatar.viewer.codec`), as scripts the page loads
 from ``file://`` as well as from ``interactavatar-view``; the ground-truth crops of the capture cameras as JPEG;
 ``viewer.json``: sizes per frame and the quantisation error.
 """
@@ -18,19 +18,19 @@ import cv2
 import numpy as np
 from omegaconf import DictConfig
 
-from avatar.viewer_codec import CodecConfig
+from avatar.artifacts import HELD_OUT_SEQUENCE, TRAIN_SEQUENCE, contact_flags, load_views, method_params, read_params
+from avatar.artifacts.dependencies import TEMPLATE_KEYS, model_files
+from avatar.artifacts.motion import applied_deformation, posed_sequence, posed_with_offsets
+from avatar.representations import load_trained
+from avatar.viewer.codec import CodecConfig
+from avatar.viewer.page import BUNDLE, PAGE_DIR, Motion, PageSettings, write_viewer
 from data_schemas.capture import CaptureIndex
+from data_schemas.config_sections import core_config, section_schema
 from data_schemas.deform import DEFORM
 from data_schemas.frames import FRAMES_INDEX
+from data_schemas.sources import SourceFiles
 from data_schemas.tables import SchemaError, read_table
-from pipeline.schema import core_config, section_schema
-from pipeline.sources import SourceFiles
 from pipeline.stage import StageContext, stage
-from stages.artifacts import HELD_OUT_SEQUENCE, TRAIN_SEQUENCE, contact_flags, load_views, method_params, read_params
-from stages.dependencies import TEMPLATE_KEYS, model_files
-from stages.posing import applied_deformation, posed_sequence, posed_with_offsets
-from stages.representations import load_trained
-from stages.viewer_page import BUNDLE, PAGE_DIR, Motion, PageSettings, write_viewer
 
 #: what stage reenact renders on by default (its report does not record stage.reenact.background); the page's
 #: background is the first motion's, the capture's for the train and held-out motions
@@ -81,7 +81,7 @@ def page_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # the SourceLis
     inputs=("capture", "frames", "fit", "pbd", "dynamic", "reenact"),
     config_keys=(*TEMPLATE_KEYS, "method", "stage.viewer"),
     outputs=("index.html", "data", "viewer.json"),
-    version="2",  # 2: names escaped in the page's data (pipeline.web_escape)
+    version="2",  # 2: names escaped in the page's data (data_schemas.web_escape)
     config_schema=ViewerConfig,
     sources=page_sources,
     per_method=True,

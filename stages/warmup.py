@@ -1,5 +1,5 @@
 """Stage ``warmup``: stage one, static Gaussians on the FLAME and MANO triangles in the method's representation
-(:mod:`stages.representations`; bound to them for GaussianAvatars and InteractAvatar)."""
+(:mod:`avatar.representations`; bound to them for GaussianAvatars and InteractAvatar)."""
 
 from __future__ import annotations
 
@@ -9,25 +9,21 @@ from typing import Any
 
 import torch
 
+from avatar.artifacts import TRAIN_SEQUENCE, PosedGaussians, load_scene, load_views, write_frame_ply, write_params
+from avatar.artifacts.dependencies import TEMPLATE_KEYS, model_sources
+from avatar.artifacts.motion import PosedSequence, applied_deformation, posed_sequence
 from avatar.geometry.views import ViewSet
 from avatar.render.gaussians import resolve_backend
-from avatar.training.frame_params import FrameParams
-from avatar.training.validation import ValidationConfig, Validator
-from avatar.training.warmup import WarmupTrainConfig, colors_from_views
-from data_schemas.capture import MASK_LABELS
-from pipeline.schema import section_schema
-from pipeline.stage import StageContext, stage
-from stages.artifacts import TRAIN_SEQUENCE, PosedGaussians, load_scene, load_views, write_frame_ply, write_params
-from stages.dependencies import TEMPLATE_KEYS, model_sources, unused_training_settings
-from stages.posing import PosedSequence, applied_deformation, posed_sequence
-from stages.representations import (
+from avatar.representations import (
     VALIDATED_RUN,
     CanonicalGaussians,
     representation,
     representation_problems,
     run_scratch,
+    unused_training_settings,
 )
-from stages.training_settings import (
+from avatar.training.frame_params import FrameParams
+from avatar.training.settings import (
     ParamsLrSchema,
     ValidationSchema,
     frame_params,
@@ -38,6 +34,11 @@ from stages.training_settings import (
     validation_config,
     validation_problems,
 )
+from avatar.training.validation import ValidationConfig, Validator
+from avatar.training.warmup import WarmupTrainConfig, colors_from_views
+from data_schemas.capture import MASK_LABELS
+from data_schemas.config_sections import section_schema
+from pipeline.stage import StageContext, stage
 
 
 @dataclass
@@ -153,9 +154,9 @@ def _train(
     final loss. ``run`` names the run's checkpoint folder in the stage's scratch (``""``: the scratch itself)."""
     conf, q = ctx.cfg.stage.warmup, ctx.cfg.quality
     torch.manual_seed(conf.seed)
-    meshes, params = posed.meshes, frame_params(ctx.cfg, conf, posed)
-    canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
     rep = representation(ctx.cfg)
+    meshes, params = posed.meshes, frame_params(ctx.cfg, conf, posed, rep.refines_tracking)
+    canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
     populate = None  # every triangle; without a hand in the scene, only the face's (a face-only avatar)
     if not load_scene(ctx.input_dir("scene")).model_hand:
         populate = meshes.face_part != meshes.part_names.index("hand")

@@ -82,9 +82,9 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float = 60.0) -> None:
 
 
 def record_crop_reads(monkeypatch: pytest.MonkeyPatch, capture_dir: Path) -> tuple[list[Path], list[str]]:
-    """(every image path the stages read through ``stages.artifacts.read_png`` from now on, the capture's held-out
+    """(every image path the stages read through ``avatar.artifacts.read_png`` from now on, the capture's held-out
     camera ids): a test that the held-out camera is never read checks that no path names one of them."""
-    import stages.artifacts
+    import avatar.artifacts
     from data_schemas.cameras import read_cameras
     from data_schemas.images import read_png
 
@@ -96,7 +96,7 @@ def record_crop_reads(monkeypatch: pytest.MonkeyPatch, capture_dir: Path) -> tup
         read.append(Path(path))
         return read_png(path, channels)
 
-    monkeypatch.setattr(stages.artifacts, "read_png", recording_read_png)
+    monkeypatch.setattr(avatar.artifacts, "read_png", recording_read_png)
     return read, held_out
 
 

@@ -1,6 +1,6 @@
 """One definition per setting (issue 37): the config sections that feed a training loop or the dynamic model are
 typed by its own config dataclass and set every one of its settings, and their YAML defaults and descriptions are
-generated from the dataclass (stages.config_defaults), except the pipeline's own choices."""
+generated from the dataclass (avatar.config_defaults), except the pipeline's own choices."""
 
 from __future__ import annotations
 
@@ -10,24 +10,24 @@ from dataclasses import dataclass
 import pytest
 from omegaconf import OmegaConf
 
+from avatar.config_defaults import BLOCKS, CONF_DIR, PIPELINE_CHOICES, rendered
 from avatar.dynamic.model import DynamicModelConfig
 from avatar.fitting.fit import FitConfig
 from avatar.fitting.refine import RefineConfig
 from avatar.pbd import PBDConfig
+from avatar.representations.bound import PRESET_ARCHITECTURE, dynamic_train_config, model_config, warmup_train_config
+from avatar.representations.embedded import SHARED_SCHEDULE, SplattingSchema, splatting_config
 from avatar.scene import SceneDecision
 from avatar.training.avatar_tracking import AvatarTrackingConfig
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.warmup import WarmupTrainConfig
-from avatar.viewer_codec import CodecConfig
+from avatar.viewer.codec import CodecConfig
+from data_schemas.config_sections import core_config, core_fields, section_schema, yaml_defaults, yaml_value
 from pipeline.config import ConfigError, validate_config
-from pipeline.schema import core_config, core_fields, section_schema, yaml_defaults, yaml_value
 from stages import REGISTRY
-from stages.config_defaults import BLOCKS, CONF_DIR, PIPELINE_CHOICES, rendered
 from stages.dynamic import DynamicConfig
 from stages.fit import FitStageConfig
-from stages.representations.bound import PRESET_ARCHITECTURE, dynamic_train_config, model_config, warmup_train_config
-from stages.representations.embedded import SHARED_SCHEDULE, SplattingSchema, splatting_config
 from stages.viewer import ViewerConfig
 from stages.warmup import WarmupConfig
 from tests.conftest import compose_cfg
@@ -61,7 +61,7 @@ def test_the_yaml_defaults_are_generated_from_the_dataclasses() -> None:
     """One default and one description per setting: conf/'s blocks are what the dataclasses generate, and every
     block is declared (the settings outside the blocks are the stages' own or the pipeline's choices)."""
     stale = [str(path) for path, text in rendered().items() if path.read_text() != text]
-    assert not stale, f"{stale}: run python -m stages.config_defaults"
+    assert not stale, f"{stale}: run python -m avatar.config_defaults"
     excluded = {core: set(exclude) | set(PIPELINE_CHOICES) for core, _, exclude, _ in SECTIONS}
     assert {b.core for b in BLOCKS} == set(excluded)
     for block in BLOCKS:  # a block leaves out only what its section does not hold and the pipeline's choices

@@ -18,8 +18,8 @@ from data_schemas.images import read_png
 from data_schemas.metrics import COMPARISON, METRICS
 from data_schemas.tables import read_table
 from data_schemas.web_video import read_web_video
+from pipeline.export_ply import export_frame
 from stages import REGISTRY
-from stages.export_ply import export_frame
 from tests.conftest import run_cli
 
 #: every method of the comparison, the test-only one included

@@ -21,15 +21,16 @@ from urllib.parse import unquote
 import numpy as np
 import pytest
 
-from avatar.viewer_codec import CodecConfig
+from avatar.artifacts.motion import PosedSequence
+from avatar.viewer.codec import CodecConfig
+from avatar.viewer.page import Motion, PageSettings, write_viewer
 from benchmarks.viewer_browser import ViewerPage, chromium, manifest, open_viewer
 from data_schemas.cameras import Camera
 from data_schemas.capture import SequenceInfo
 from data_schemas.metrics import COMPARISON, METRICS
 from data_schemas.tables import write_table
+from data_schemas.web_escape import url_path
 from pipeline.manifest import MANIFEST_NAME
-from pipeline.web_escape import url_path
-from stages.posing import PosedSequence
 from stages.report import (
     _cameras_table,
     _comparison_section,
@@ -49,7 +50,6 @@ from stages.report import (
     _stages_table,
     _viewer_section,
 )
-from stages.viewer_page import Motion, PageSettings, write_viewer
 from tests.viewer.conftest import NEEDS_BROWSER
 from tests.viewer.toy_viewer import BACKGROUND, CAMERAS, SIZE, K, toy_avatar, toy_meshes
 

@@ -16,19 +16,19 @@ import torch
 from plyfile import PlyData
 from scipy.spatial.transform import Rotation
 
-import stages.export_ply
+import pipeline.export_ply
+from avatar.artifacts import load_face_offsets, load_params, method_params
+from avatar.artifacts.motion import applied_deformation, load_sequence
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.posing import MeshSequence, posed_meshes
 from avatar.render.gaussians import WorldGaussians
+from avatar.representations import TrainedAvatar, load_trained
 from avatar.templates import procedural_hand, procedural_head
 from avatar.threads import single_threaded
 from data_schemas.gaussians_ply import SH_C0
 from data_schemas.writes import WriteError
 from pipeline.cli import run_app
-from stages.artifacts import load_face_offsets, load_params, method_params
-from stages.export_ply import main
-from stages.posing import applied_deformation, load_sequence
-from stages.representations import TrainedAvatar, load_trained
+from pipeline.export_ply import main
 from tests.conftest import REPO, compose_cfg
 
 TINY = [
@@ -231,7 +231,7 @@ def test_a_failed_export_leaves_the_earlier_one_and_no_partial_folder(trained, t
     out = tmp_path / "clip"
     assert main([str(subject), "--frames", "0", "--out", str(out), "--quiet"]) == 0
     before = (out / "00000.ply").read_bytes()
-    original, written = stages.export_ply.write_frame_ply, []
+    original, written = pipeline.export_ply.write_frame_ply, []
 
     def failing_write(path: Path, g: WorldGaussians) -> None:  # the second frame fails
         if written:
@@ -239,7 +239,7 @@ def test_a_failed_export_leaves_the_earlier_one_and_no_partial_folder(trained, t
         written.append(path)
         original(path, g)
 
-    monkeypatch.setattr(stages.export_ply, "write_frame_ply", failing_write)
+    monkeypatch.setattr(pipeline.export_ply, "write_frame_ply", failing_write)
     argv = [str(subject), "--frames", "1-3", "--out", str(out), "--overwrite", "--quiet"]
     if failure == "ctrl-c":
         _one_line_error(capsys, argv, f"interrupted; nothing written to {out}", code=130)
@@ -252,7 +252,7 @@ def test_a_failed_export_leaves_the_earlier_one_and_no_partial_folder(trained, t
 
 def test_the_command_is_installed_and_its_help_states_the_axes_and_the_layout(capsys) -> None:
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts["interactavatar-export"] == "stages.export_ply:main"
+    assert scripts["interactavatar-export"] == "pipeline.export_ply:main"
     with pytest.raises(SystemExit) as exit_info:
         main(["--help"])
     assert exit_info.value.code == 0

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import stages.artifacts
+import avatar.artifacts
 from data_schemas.images import read_png
 from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAM_COLUMNS, PARAMS
@@ -105,7 +105,7 @@ def test_empty_masks_are_one_clear_error(tmp_path, monkeypatch):
         image = read_png(path, channels)
         return np.zeros_like(image) if Path(path).parent.name == "mask" else image
 
-    monkeypatch.setattr(stages.artifacts, "read_png", empty_masks)
+    monkeypatch.setattr(avatar.artifacts, "read_png", empty_masks)
     with pytest.raises(StageFailed) as info:
         run_app(_refine_cfg(tmp_path, "run.only=fit"))
     message = str(info.value)

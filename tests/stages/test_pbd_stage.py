@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from avatar.artifacts.motion import posed_sequence, templates
 from data_schemas.deform import CONTACTS, DEFORM
 from data_schemas.tables import read_table
 from pipeline.cli import run_app
-from stages.posing import posed_sequence, templates
 from tests.conftest import compose_cfg
 
 SMALL = [

@@ -14,10 +14,26 @@ import numpy as np
 import pytest
 import torch
 
+from avatar.artifacts import TRAIN_SEQUENCE, WorldGaussians, load_params
+from avatar.artifacts.motion import PosedSequence
 from avatar.gaussians.model import BoundGaussians
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
+from avatar.representations import (
+    CanonicalGaussians,
+    Progress,
+    Representation,
+    load_trained,
+    representation,
+    representation_class,
+    unused_training_settings,
+    write_model_info,
+    write_train_plys,
+)
+from avatar.representations.bound import BoundRepresentation, load_gaussians, write_bound_gaussians
+from avatar.representations.embedded import EmbeddedRepresentation
 from avatar.training.frame_params import FrameParams
+from avatar.training.settings import record_refinement, record_validation, validation_config
 from avatar.training.validation import Validator
 from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.gaussians_ply import read_gaussians_ply
@@ -26,25 +42,9 @@ from data_schemas.tables import TableSchema, read_table, write_records
 from data_schemas.writes import write_bytes
 from pipeline.cli import run_app
 from pipeline.config import ConfigError, validate_config
+from pipeline.export_ply import export_frame
 from pipeline.stage import StageContext
 from stages import REGISTRY
-from stages.artifacts import TRAIN_SEQUENCE, WorldGaussians, load_params
-from stages.dependencies import unused_training_settings
-from stages.export_ply import export_frame
-from stages.posing import PosedSequence
-from stages.representations import (
-    CanonicalGaussians,
-    Progress,
-    Representation,
-    load_trained,
-    representation,
-    representation_class,
-    write_model_info,
-    write_train_plys,
-)
-from stages.representations.bound import BoundRepresentation, load_gaussians, write_bound_gaussians
-from stages.representations.embedded import EmbeddedRepresentation
-from stages.training_settings import record_refinement, record_validation, validation_config
 from tests.conftest import compose_cfg
 
 PLUGIN = f"{__name__}:WarmupOnly"

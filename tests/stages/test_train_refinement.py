@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from avatar.artifacts import load_params, read_params
+from avatar.artifacts.motion import templates
+from avatar.representations import representation_class
+from avatar.training.settings import refines_params
 from data_schemas.gaussians_ply import read_gaussians_ply
 from pipeline.cli import run_app
-from stages.artifacts import load_params, read_params
-from stages.export_ply import export_frame
-from stages.posing import templates
+from pipeline.export_ply import export_frame
 from stages.report import _trained_tracking_section
-from stages.training_settings import refines_params
 from tests.conftest import compose_cfg, record_crop_reads
 
 
@@ -101,12 +102,13 @@ def _rule_cfg(source: str, detector: str = "mediapipe", representation: str = "b
     ],
 )
 def test_auto_refines_detected_or_provided_tracking_of_bound_gaussians(cfg, setting, expected):
-    assert refines_params(cfg, OmegaConf.create({"refine_params": setting})) is expected
+    can_refine = representation_class(str(cfg.method.representation)).refines_tracking
+    assert refines_params(cfg, OmegaConf.create({"refine_params": setting}), can_refine) is expected
 
 
 def test_refining_splatting_avatar_or_an_unknown_setting_is_one_clear_error():
     cfg = _rule_cfg("fitted", representation="embedded")
     with pytest.raises(ValueError, match="method.representation=embedded does not refine the tracking"):
-        refines_params(cfg, OmegaConf.create({"refine_params": "true"}))
+        refines_params(cfg, OmegaConf.create({"refine_params": "true"}), can_refine=False)
     with pytest.raises(ValueError, match="use one of auto, true, false"):
-        refines_params(cfg, OmegaConf.create({"refine_params": "maybe"}))
+        refines_params(cfg, OmegaConf.create({"refine_params": "maybe"}), can_refine=False)

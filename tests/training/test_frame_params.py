@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from avatar.artifacts import read_params, write_params
 from avatar.dynamic.conditioning import sequence_conditioning
 from avatar.gaussians.model import BoundGaussians
 from avatar.geometry.views import ViewSet
@@ -26,7 +27,6 @@ from avatar.training.frame_params import (
     parameter_movement,
 )
 from avatar.training.warmup import WarmupTrainConfig, train_warmup
-from stages.artifacts import read_params, write_params
 
 HEAD, HAND = procedural_head(), procedural_hand()
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from avatar.viewer.page import BUNDLE
 from benchmarks.viewer_browser import CHROMIUM, INSTALL_HINT, ViewerPage, chromium, decoded_frame, open_viewer
-from stages.viewer_page import BUNDLE
 
 #: the browser tests' marks: skipped, saying how to get them, without chromium or the page's bundle
 NEEDS_BROWSER = [
@@ -34,7 +34,7 @@ def page(browser: object, viewer_dir: Path) -> Iterator[ViewerPage]:
 
 
 def assert_posed_as_decoded(page: ViewerPage, viewer_dir: Path, motion: str, frame: int, camera: str) -> None:
-    """pose.js against avatar/viewer_codec.py's decode_frame, the reference it follows, on a frame with overrides of
+    """pose.js against avatar/viewer/codec.py's decode_frame, the reference it follows, on a frame with overrides of
     both kinds: the same Gaussians."""
     page.show(motion, frame, camera)
     shown = page.posed()

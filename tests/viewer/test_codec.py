@@ -1,4 +1,4 @@
-"""The viewer's codec (avatar/viewer_codec.py) against independent references: GaussianAvatars' placement for the
+"""The viewer's codec (avatar/viewer/codec.py) against independent references: GaussianAvatars' placement for the
 local frames, closed forms for the quantisers and rotations, and round trips of every encoding."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from avatar.geometry.frames import place_gaussians, triangle_frames
-from avatar.viewer_codec import (
+from avatar.viewer.codec import (
     STEPS,
     CodecConfig,
     FrameGaussians,

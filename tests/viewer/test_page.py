@@ -77,7 +77,7 @@ def test_a_frame_matches_the_projects_own_render_of_it(
 
 
 def test_the_pages_posing_is_the_codecs_decoding(page: ViewerPage, viewer_dir: Path) -> None:
-    """pose.js against avatar/viewer_codec.py's decode_frame, the reference it follows, on a frame with overrides of
+    """pose.js against avatar/viewer/codec.py's decode_frame, the reference it follows, on a frame with overrides of
     both kinds: the same Gaussians."""
     assert_posed_as_decoded(page, viewer_dir, "train", 5, "front")
 

@@ -81,7 +81,7 @@ def test_a_frame_matches_the_projects_own_render_of_it(
 
 
 def test_the_pages_posing_is_the_codecs_decoding(page: ViewerPage, viewer_dir: Path) -> None:
-    """pose.js against avatar/viewer_codec.py's decode_frame on the real avatar, whose H changes the hand."""
+    """pose.js against avatar/viewer/codec.py's decode_frame on the real avatar, whose H changes the hand."""
     assert_posed_as_decoded(page, viewer_dir, "train", 3, manifest(viewer_dir)["motions"][0]["cameras"][0]["id"])
 
 

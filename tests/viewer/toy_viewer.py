@@ -1,6 +1,6 @@
 """A viewer folder made in a second, without the DAG: a toy avatar of bound Gaussians on two bent grids (``face`` and a
 smaller ``hand`` that moves in front of it), whose hand changes with the frame as H makes it change (a pose-dependent
-offset and colour), written by the stage's own writer (:func:`stages.viewer_page.write_viewer`)."""
+offset and colour), written by the stage's own writer (:func:`avatar.viewer.page.write_viewer`)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from avatar.artifacts import PosedGaussians
+from avatar.artifacts.motion import PosedSequence
 from avatar.gaussians.model import BoundGaussians
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import render_gaussians
-from avatar.viewer_codec import CodecConfig
-from stages.artifacts import PosedGaussians
-from stages.posing import PosedSequence
-from stages.viewer_page import Motion, PageSettings, write_viewer
+from avatar.viewer.codec import CodecConfig
+from avatar.viewer.page import Motion, PageSettings, write_viewer
 
 SIZE = 96
 BACKGROUND = [0.3, 0.35, 0.4]

@@ -1,6 +1,6 @@
 // Loading the viewer's data files. They are scripts (data/*.js), not fetched binaries, so that the page works from
 // file:// as well as from a server: each assigns {sections, data} into window.IAV: a base64, zlib-compressed buffer
-// of byte-shuffled arrays and its table of typed arrays (avatar/viewer_codec.py's pack_sections).
+// of byte-shuffled arrays and its table of typed arrays (avatar/viewer/codec.py's pack_sections).
 
 import { unzlibSync } from "fflate";
 

@@ -30,7 +30,7 @@ function pad(frame) {
 }
 
 // A relative URL of path components (names from the manifest: motions, camera ids), each percent-encoded whole so
-// that no "#", "?", "/" or "%" in a name changes the URL (pipeline/web_escape.py's url_path on the Python side).
+// that no "#", "?", "/" or "%" in a name changes the URL (data_schemas/web_escape.py's url_path on the Python side).
 function urlPath(...components) {
   return components.map(encodeURIComponent).join("/");
 }
@@ -41,7 +41,7 @@ async function main() {
   const avatarEntry = await loadScript(manifest.avatar.file).then(() => window.IAV.avatar);
   const statics = unpack(avatarEntry);
   const N = statics.triangle.length;
-  // the quantisation of the vertices and the overrides' steps (avatar/viewer_codec.py's POSITION_LEVELS and STEPS)
+  // the quantisation of the vertices and the overrides' steps (avatar/viewer/codec.py's POSITION_LEVELS and STEPS)
   const avatar = {
     statics,
     steps: manifest.steps,
@@ -62,7 +62,7 @@ async function main() {
       const meta = manifest.motions.find((m) => m.name === name);
       await loadScript(meta.file);
       const sections = unpack(window.IAV.motions[name]);
-      // the vertices come as differences between frames (avatar/viewer_codec.py's differences_in_time)
+      // the vertices come as differences between frames (avatar/viewer/codec.py's differences_in_time)
       const stride = sections.vertices.length / meta.frames;
       for (let i = stride; i < sections.vertices.length; i++) sections.vertices[i] += sections.vertices[i - stride];
       motions[name] = { ...meta, sections };
@@ -334,7 +334,7 @@ async function main() {
 
   const first = manifest.motions.find((m) => m.name === params.get("motion")) ?? manifest.motions[0];
   const ready = selectMotion(first.name, Number(params.get("frame") || 0), params.get("camera")).then(settle);
-  // posed(): the current frame's Gaussians as the page computed them (for tests against avatar/viewer_codec.py)
+  // posed(): the current frame's Gaussians as the page computed them (for tests against avatar/viewer/codec.py)
   const posedArrays = () => Object.fromEntries(Object.entries(posed).map(([k, v]) => [k, Array.from(v)]));
   window.viewer = { ready, show, settle, state, stats, gaussians: N, posed: posedArrays, draws: () => frameCount };
   ready.then(() => {

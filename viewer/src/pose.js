@@ -1,4 +1,4 @@
-// Posing the avatar's Gaussians for one frame: the browser's half of avatar/viewer_codec.py, step by step the same
+// Posing the avatar's Gaussians for one frame: the browser's half of avatar/viewer/codec.py, step by step the same
 // as its decode_frame (triangle_frames of avatar/geometry/frames.py, then the frame's geometry and appearance
 // overrides).
 
@@ -160,7 +160,7 @@ export function poseFrame(avatar, motion, t, out) {
     }
   }
   const s = motion.sections;
-  const STEPS = avatar.steps; // the steps of the overrides' int16 deltas (avatar/viewer_codec.py's STEPS)
+  const STEPS = avatar.steps; // the steps of the overrides' int16 deltas (avatar/viewer/codec.py's STEPS)
   const bytes = Math.ceil(N / 8);
   const turn = new Float64Array(4);
   forEachSet(s.geometry_mask, bytes * t, N, s.geometry_start[t], (i, j) => {

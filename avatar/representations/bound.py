@@ -13,26 +13,16 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from avatar.artifacts import TRAIN_SEQUENCE, WorldGaussians, contact_flags, load_params, load_scene
+from avatar.artifacts.motion import PosedSequence, applied_deformation, load_sequence, templates
+from avatar.artifacts.stage_run import StageRun
 from avatar.dynamic import DynamicAvatar, DynamicModelConfig
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.gaussians.model import BoundGaussians
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import resolve_backend
-from avatar.scene import SceneDecision
-from avatar.training.dynamic import DynamicTrainConfig, DynamicTrainResult, train_dynamic
-from avatar.training.frame_params import FrameParams
-from avatar.training.selection import SelectionConfig
-from avatar.training.validation import ValidationConfig, Validator
-from avatar.training.warmup import WarmupTrainConfig, train_warmup
-from data_schemas.gaussians import BOUND_GAUSSIANS, DYNAMIC_TRAIN_LOG, TRAIN_LOG
-from data_schemas.tables import SchemaError, TableSchema, read_table, write_records, write_table
-from data_schemas.writes import write_bytes
-from pipeline.schema import core_config
-from pipeline.stage import StageContext
-from stages.artifacts import TRAIN_SEQUENCE, WorldGaussians, contact_flags, load_params, load_scene
-from stages.posing import PosedSequence, applied_deformation, load_sequence, templates
-from stages.representations import (
+from avatar.representations import (
     VALIDATED_RUN,
     CanonicalGaussians,
     Progress,
@@ -41,7 +31,17 @@ from stages.representations import (
     write_model_info,
     write_train_plys,
 )
-from stages.training_settings import frame_params, record_refinement, record_validation, validation_config
+from avatar.scene import SceneDecision
+from avatar.training.dynamic import DynamicTrainConfig, DynamicTrainResult, train_dynamic
+from avatar.training.frame_params import FrameParams
+from avatar.training.selection import SelectionConfig
+from avatar.training.settings import frame_params, record_refinement, record_validation, validation_config
+from avatar.training.validation import ValidationConfig, Validator
+from avatar.training.warmup import WarmupTrainConfig, train_warmup
+from data_schemas.config_sections import core_config
+from data_schemas.gaussians import BOUND_GAUSSIANS, DYNAMIC_TRAIN_LOG, TRAIN_LOG
+from data_schemas.tables import SchemaError, TableSchema, read_table, write_records, write_table
+from data_schemas.writes import write_bytes
 
 
 def load_gaussians(warmup_dir: Path, part_names: tuple[str, ...]) -> BoundGaussians:
@@ -235,7 +235,7 @@ class BoundRepresentation(Representation):
 
     def warm_up(
         self,
-        ctx: StageContext,
+        ctx: StageRun,
         model: CanonicalGaussians,
         views: ViewSet,
         meshes: MeshSequence,
@@ -262,7 +262,7 @@ class BoundRepresentation(Representation):
         return log[-1].loss if log else float("nan")
 
     def train(
-        self, ctx: StageContext, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
+        self, ctx: StageRun, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
     ) -> None:
         """Stage two. With validation on, the validated run(s) (``stage.dynamic.restarts`` of them, from the warm-up's
         validated run where it kept one) choose the step and the modules (:mod:`avatar.training.selection`); with
@@ -321,7 +321,7 @@ class BoundRepresentation(Representation):
 
     def _run(
         self,
-        ctx: StageContext,
+        ctx: StageRun,
         views: ViewSet,
         posed: PosedSequence,
         warmup_dir: Path,
@@ -337,7 +337,11 @@ class BoundRepresentation(Representation):
         posed with ``posed`` (the parameters that warm-up trained on), drawing the ``contact`` (T,) frames first;
         ``run`` names its checkpoint folder."""
         conf = self.cfg.stage.dynamic
-        meshes, cond, params = posed.meshes, posed.conditioning(self.cfg), frame_params(self.cfg, conf, posed)
+        meshes, cond, params = (
+            posed.meshes,
+            posed.conditioning(self.cfg),
+            frame_params(self.cfg, conf, posed, self.refines_tracking),
+        )
         head, _ = templates(self.cfg.model)
         frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
         model = DynamicAvatar.from_warmup(
@@ -368,7 +372,7 @@ class BoundRepresentation(Representation):
 
     def _write(
         self,
-        ctx: StageContext,
+        ctx: StageRun,
         views: ViewSet,
         written: StageTwoRun,
         chosen: StageTwoRun,

@@ -29,17 +29,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from avatar.dynamic.conditioning import SequenceConditioning
-from avatar.geometry.frames import quaternion_multiply, rotation_to_quaternion
-from avatar.posing import MeshSequence, posed_meshes
-from avatar.reenact import PLACEMENTS
-from avatar.render.gaussians import WorldGaussians
-from avatar.templates.lbs import batch_rodrigues
-from data_schemas.tables import SchemaError
-from data_schemas.writes import write_json
-from pipeline.manifest import MANIFEST_NAME
-from pipeline.workspace import METHODS_DIR, method_run
-from stages.artifacts import (
+from avatar.artifacts import (
     HELD_OUT_SEQUENCE,
     TRAIN_SEQUENCE,
     PosedGaussians,
@@ -49,9 +39,19 @@ from stages.artifacts import (
     read_params,
     write_frame_ply,
 )
-from stages.driving import drive, is_parameter_file, transferred_params
-from stages.posing import applied_deformation, load_sequence, templates
-from stages.representations import TrainedAvatar, load_trained
+from avatar.artifacts.motion import applied_deformation, load_sequence, templates
+from avatar.dynamic.conditioning import SequenceConditioning
+from avatar.geometry.frames import quaternion_multiply, rotation_to_quaternion
+from avatar.posing import MeshSequence, posed_meshes
+from avatar.reenact import PLACEMENTS
+from avatar.reenact.driving import drive, is_parameter_file, transferred_params
+from avatar.render.gaussians import WorldGaussians
+from avatar.representations import TrainedAvatar, load_trained
+from avatar.templates.lbs import batch_rodrigues
+from data_schemas.tables import SchemaError
+from data_schemas.writes import write_json
+from pipeline.manifest import MANIFEST_NAME
+from pipeline.workspace import METHODS_DIR, method_run
 
 PROG = "interactavatar-export"
 #: --axes: the frame the files are written in (:func:`axes_frame`)

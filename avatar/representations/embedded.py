@@ -14,23 +14,14 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from avatar.artifacts import TRAIN_SEQUENCE, PosedGaussians, WorldGaussians, load_params
+from avatar.artifacts.motion import PosedSequence
+from avatar.artifacts.stage_run import StageRun
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import resolve_backend
-from avatar.splatting import EmbeddedGaussians
-from avatar.training.frame_params import FrameParams
-from avatar.training.splatting import SplattingConfig, train_splatting
-from avatar.training.validation import ValidationConfig, Validator
-from data_schemas.splatting import EMBEDDED_GAUSSIANS, SPLATTING_TRAIN_LOG
-from data_schemas.tables import SchemaError, TableSchema, read_table, write_records, write_table
-from data_schemas.writes import write_bytes
-from pipeline.config import schema_problems
-from pipeline.schema import core_config, section_schema
-from pipeline.stage import StageContext
-from stages.artifacts import TRAIN_SEQUENCE, PosedGaussians, WorldGaussians, load_params
-from stages.posing import PosedSequence
-from stages.representations import (
+from avatar.representations import (
     VALIDATED_RUN,
     CanonicalGaussians,
     Progress,
@@ -39,7 +30,15 @@ from stages.representations import (
     write_model_info,
     write_train_plys,
 )
-from stages.training_settings import record_refinement, record_validation, validation_config
+from avatar.splatting import EmbeddedGaussians
+from avatar.training.frame_params import FrameParams
+from avatar.training.settings import record_refinement, record_validation, validation_config
+from avatar.training.splatting import SplattingConfig, train_splatting
+from avatar.training.validation import ValidationConfig, Validator
+from data_schemas.config_sections import core_config, schema_problems, section_schema
+from data_schemas.splatting import EMBEDDED_GAUSSIANS, SPLATTING_TRAIN_LOG
+from data_schemas.tables import SchemaError, TableSchema, read_table, write_records, write_table
+from data_schemas.writes import write_bytes
 
 #: SplattingConfig's fields that ``splatting`` does not hold: the schedule every method shares.
 SHARED_SCHEDULE = (
@@ -172,7 +171,7 @@ class EmbeddedRepresentation(Representation):
 
     def warm_up(
         self,
-        ctx: StageContext,
+        ctx: StageRun,
         model: CanonicalGaussians,
         views: ViewSet,
         meshes: MeshSequence,
@@ -199,7 +198,7 @@ class EmbeddedRepresentation(Representation):
         return log[-1].loss if log else float("nan")
 
     def train(
-        self, ctx: StageContext, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
+        self, ctx: StageRun, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
     ) -> None:
         """SplattingAvatar continued from its warm-up for ``quality.dynamic_steps`` (no density control; walking
         goes on), so it trains as many steps as every other method. ``networks.pt`` holds its canonical mesh. Its
@@ -248,7 +247,7 @@ class EmbeddedRepresentation(Representation):
         )
 
     def _run(
-        self, ctx: StageContext, views: ViewSet, meshes: MeshSequence, warmup_dir: Path, validator: Validator, run: str
+        self, ctx: StageRun, views: ViewSet, meshes: MeshSequence, warmup_dir: Path, validator: Validator, run: str
     ) -> tuple[EmbeddedGaussians, list]:
         """One stage-two run from the warm-up model in ``warmup_dir`` on the frames and for the steps ``validator``
         leaves to it: the model and its loss log. ``run`` names its checkpoint folder."""

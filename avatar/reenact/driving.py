@@ -10,6 +10,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from avatar.artifacts import load_params
+from avatar.artifacts.motion import templates
 from avatar.dynamic import sequence_conditioning
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.pbd import PBDConfig, StiffnessFileError, face_relative_stiffness, simulate_sequence
@@ -19,8 +21,6 @@ from avatar.scene import SceneDecision
 from avatar.templates import TemplateModel
 from data_schemas.params import PARAMS
 from data_schemas.tables import SchemaError, read_table
-from stages.artifacts import load_params
-from stages.posing import templates
 
 
 def driver_subject(cfg: DictConfig) -> str | None:

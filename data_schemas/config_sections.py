@@ -21,7 +21,8 @@ import typing
 from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
-from omegaconf import ListConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 T = TypeVar("T")
 
@@ -130,7 +131,7 @@ def generated_block_markers(core: type) -> tuple[str, str]:
     """The comment lines that open and close the YAML block generated from ``core``."""
     name = f"{core.__module__}.{core.__qualname__}"
     return (
-        f"# >>> generated from {name} (python -m stages.config_defaults): edit the dataclass, not this block",
+        f"# >>> generated from {name} (python -m avatar.config_defaults): edit the dataclass, not this block",
         f"# <<< generated from {name}",
     )
 
@@ -147,3 +148,40 @@ def with_generated_block(text: str, core: type, exclude: Iterable[str] = (), whe
     indent = lines[starts[0]][: len(lines[starts[0]]) - len(lines[starts[0]].lstrip())]
     block = yaml_defaults(core, exclude, indent)
     return "\n".join([*lines[: starts[0] + 1], *block, *lines[ends[0] :]]) + "\n"
+
+
+def check_section(section: Any, schema: type, where: str, errors: list[str]) -> DictConfig | None:
+    """``section`` merged onto the structured ``schema`` (defaults filled, types converted).
+
+    Unknown keys, wrong types and fields left without a value are appended to
+    ``errors`` and give ``None``. Real stages keep their values in
+    ``conf/stage/<name>.yaml`` and declare only types (no defaults) in the schema.
+    """
+    try:
+        if OmegaConf.is_config(section):  # interpolations (stage.*.seed: ${seed}) resolve in the whole config first
+            section = OmegaConf.to_container(section, resolve=True)
+        merged = OmegaConf.merge(OmegaConf.structured(schema), section)
+    except OmegaConfBaseException as exc:
+        msg = str(exc).splitlines()[0]
+        key = getattr(exc, "full_key", None)
+        errors.append(f"{where}.{key}: {msg}" if key else f"{where}: {msg}")
+        return None
+    missing = sorted(OmegaConf.missing_keys(merged))
+    if missing:
+        errors.append(f"{where}: missing value for {', '.join(missing)}")
+        return None
+    assert isinstance(merged, DictConfig)  # merged onto a structured dataclass
+    validate = getattr(schema, "validate", None)
+    problems = validate(merged) if callable(validate) else []
+    errors.extend(f"{where}.{problem}" for problem in problems)
+    return None if problems else merged
+
+
+def schema_problems(section: Any, schema: type, where: str) -> list[str]:
+    """The problems :func:`check_section` finds in ``section`` (at ``where``) against ``schema``, one line each
+    (a missing section is one)."""
+    if section is None:
+        return [f"{where}: missing (expected the fields of {schema.__name__})"]
+    errors: list[str] = []
+    check_section(section, schema, where, errors)
+    return errors

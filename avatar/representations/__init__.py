@@ -20,6 +20,9 @@ from typing import ClassVar, Protocol
 import torch
 from omegaconf import DictConfig
 
+from avatar.artifacts import WorldGaussians, write_frame_ply
+from avatar.artifacts.motion import PosedSequence
+from avatar.artifacts.stage_run import StageRun
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
@@ -27,14 +30,11 @@ from avatar.training.frame_params import FrameParams
 from avatar.training.validation import Validator
 from data_schemas.tables import TableSchema
 from data_schemas.writes import write_json
-from pipeline.stage import StageContext
-from stages.artifacts import WorldGaussians, write_frame_ply
-from stages.posing import PosedSequence
 
 #: The representations that ship with the project: name -> ``module:Class``.
 BUILT_IN = {
-    "bound": "stages.representations.bound:BoundRepresentation",
-    "embedded": "stages.representations.embedded:EmbeddedRepresentation",
+    "bound": "avatar.representations.bound:BoundRepresentation",
+    "embedded": "avatar.representations.embedded:EmbeddedRepresentation",
 }
 
 #: The folder of a training stage's output that holds the model of its validated run when it trains again on every
@@ -109,7 +109,7 @@ class TrainedAvatar(Protocol):
     @property
     def triangles(self) -> torch.Tensor:
         """(N,) int64: the triangle (a row of the posed meshes' faces) each Gaussian rides on; the browser viewer
-        poses the Gaussians with that triangle's frame (:mod:`avatar.viewer_codec`)."""
+        poses the Gaussians with that triangle's frame (:mod:`avatar.viewer.codec`)."""
         ...
 
     def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:
@@ -123,7 +123,7 @@ class Representation(ABC):
     saved, loaded and posed. One instance per run, built from the run's config (``cfg``)."""
 
     #: Config sections only this representation reads (its own recipe): kept in the training stages' cache keys
-    #: only when it is the method's (:func:`stages.dependencies.unused_training_settings`).
+    #: only when it is the method's (:func:`unused_training_settings`).
     own_settings: ClassVar[tuple[str, ...]] = ()
     #: Whether the training stages may refine the train motion's parameters with it (``refine_params``).
     refines_tracking: ClassVar[bool] = True
@@ -167,7 +167,7 @@ class Representation(ABC):
     @abstractmethod
     def warm_up(
         self,
-        ctx: StageContext,
+        ctx: StageRun,
         model: CanonicalGaussians,
         views: ViewSet,
         meshes: MeshSequence,
@@ -186,7 +186,7 @@ class Representation(ABC):
 
     @abstractmethod
     def train(
-        self, ctx: StageContext, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
+        self, ctx: StageRun, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
     ) -> None:
         """Stage two on ``views`` of the train motion ``posed`` (posed with the warm-up's parameters), starting from
         the warm-up's ``gaussians.parquet`` (``ctx.input_dir("warmup")``); ``validated``: the train motion as the
@@ -201,7 +201,7 @@ class Representation(ABC):
         """The trained avatar of a dynamic stage's folder (``info``: its ``model.json``)."""
 
 
-def run_scratch(ctx: StageContext, run: str) -> Path | None:
+def run_scratch(ctx: StageRun, run: str) -> Path | None:
     """The checkpoint folder of one training run of a stage that trains more than once (``run``: its name; ``""``:
     the stage's scratch itself), created; None when the stage has no scratch."""
     if ctx.scratch_dir is None:
@@ -225,9 +225,17 @@ def representation_class(name: str) -> type[Representation]:
         raise ValueError(f"method.representation={name}: cannot import {target} ({exc}); {choices}") from exc
     if not (isinstance(cls, type) and issubclass(cls, Representation)):
         raise ValueError(
-            f"method.representation={name}: {target} is not a subclass of stages.representations.Representation"
+            f"method.representation={name}: {target} is not a subclass of avatar.representations.Representation"
         )
     return cls
+
+
+def unused_training_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """What the training stages never read for this method: the other representations' own settings (e.g.
+    SplattingAvatar's recipe, ``splatting``, unless the method's representation is ``embedded``)."""
+    chosen = representation_class(str(cfg.method.representation))
+    others = (representation_class(name) for name in BUILT_IN)
+    return tuple(dict.fromkeys(key for cls in others for key in cls.own_settings if key not in chosen.own_settings))
 
 
 def representation(cfg: DictConfig) -> Representation:
@@ -260,7 +268,7 @@ def load_trained(dynamic_dir: Path) -> TrainedAvatar:
 
 
 def write_train_plys(
-    ctx: StageContext, avatar: TrainedAvatar, cond: SequenceConditioning, meshes: MeshSequence, num_frames: int
+    ctx: StageRun, avatar: TrainedAvatar, cond: SequenceConditioning, meshes: MeshSequence, num_frames: int
 ) -> None:
     """World-space 3DGS PLYs of the train frames ``stage.dynamic.ply_frames`` asks for (``ply/train_<frame>.ply``)."""
     (ctx.out_dir / "ply").mkdir()

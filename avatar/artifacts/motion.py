@@ -10,11 +10,11 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from avatar.artifacts import load_face_offsets, load_params
 from avatar.dynamic import sequence_conditioning
 from avatar.dynamic.conditioning import Conditioning
 from avatar.posing import MeshSequence, posed_meshes
 from avatar.templates import TemplateModel, load_official_model, procedural_hand, procedural_head
-from stages.artifacts import load_face_offsets, load_params
 
 
 def templates(model_cfg: DictConfig) -> tuple[TemplateModel, TemplateModel]:

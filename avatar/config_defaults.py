@@ -5,7 +5,7 @@ SplattingConfig, the model's DynamicModelConfig, the fitting's FitConfig and Ref
 AvatarTrackingConfig, the contact solver's PBDConfig, the viewer's CodecConfig): its name, type, default and
 documentation (the comment at or above its field). The YAML files hold a generated block of those defaults and
 comments between two marker lines, beside the settings of their own (the stages' own, and where the pipeline chooses
-otherwise: checkpoints, the run's seed). ``python -m stages.config_defaults`` rewrites the blocks; ``--check`` fails
+otherwise: checkpoints, the run's seed). ``python -m avatar.config_defaults`` rewrites the blocks; ``--check`` fails
 where one is out of date, as ``tests/test_config_schemas.py`` does. The config reference
 (``pipeline.config_reference``) reads the YAML, so it shows the dataclasses' words.
 """
@@ -21,14 +21,14 @@ from avatar.dynamic.model import DynamicModelConfig
 from avatar.fitting.fit import FitConfig
 from avatar.fitting.refine import RefineConfig
 from avatar.pbd import PBDConfig
+from avatar.representations.bound import PRESET_ARCHITECTURE
+from avatar.representations.embedded import SHARED_SCHEDULE
 from avatar.training.avatar_tracking import AvatarTrackingConfig
 from avatar.training.dynamic import DynamicTrainConfig
 from avatar.training.splatting import SplattingConfig
 from avatar.training.warmup import WarmupTrainConfig
-from avatar.viewer_codec import CodecConfig
-from pipeline.schema import with_generated_block
-from stages.representations.bound import PRESET_ARCHITECTURE
-from stages.representations.embedded import SHARED_SCHEDULE
+from avatar.viewer.codec import CodecConfig
+from data_schemas.config_sections import with_generated_block
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 #: the settings whose YAML default the pipeline chooses itself (written by hand beside the block, with why)
@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     stale = [path for path, text in rendered().items() if path.read_text() != text]
     if args.check:
         for path in stale:
-            print(f"{path}: its generated defaults are out of date; run python -m stages.config_defaults")
+            print(f"{path}: its generated defaults are out of date; run python -m avatar.config_defaults")
         return 1 if stale else 0
     for path, text in rendered().items():
         if path in stale:

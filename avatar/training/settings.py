@@ -9,30 +9,29 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from avatar.artifacts import write_params
+from avatar.artifacts.motion import PosedSequence, templates
+from avatar.artifacts.stage_run import StageRun
 from avatar.training.frame_params import FrameParams, ParamLearningRates, parameter_movement
 from avatar.training.validation import FlatStop, ValidationConfig, Validator, withheld_count
 from data_schemas.curve import CURVE
 from data_schemas.tables import write_table
-from pipeline.stage import StageContext
-from stages.artifacts import write_params
-from stages.posing import PosedSequence, templates
-from stages.representations import representation_class
 
 REFINE_PARAMS = ("auto", "true", "false")
 
 
-def refines_params(cfg: DictConfig, section: DictConfig) -> bool:
+def refines_params(cfg: DictConfig, section: DictConfig, can_refine: bool) -> bool:
     """Whether a training stage (``section``: ``stage.warmup`` or ``stage.dynamic``) refines the train motion's
     parameters (``refine_params``). ``auto``: for parameters a real detector's keypoints were fitted to
     (``fit.source=fitted`` with ``stage.keypoints.detector`` other than ``ground_truth``) or that a dataset provides
     (``fit.source=provided``); not with the ground truth, which has nothing to correct, nor with the synthetic
     ground-truth keypoints, whose fit is finer than what the refinement reaches (measured: their train frames' 3D
     errors grew, hand 1.4 -> 2.0 mm, docs/explanation/tracking-refinement.md); never for a representation that
-    cannot (:attr:`Representation.refines_tracking`: SplattingAvatar's; ``true`` is an error there)."""
+    cannot (``can_refine``: the method's :attr:`Representation.refines_tracking`, false for SplattingAvatar's;
+    ``true`` is an error there)."""
     value = str(section.refine_params).lower()
     if value not in REFINE_PARAMS:
         raise ValueError(f"refine_params={section.refine_params}: use one of {', '.join(REFINE_PARAMS)}")
-    can_refine = representation_class(str(cfg.method.representation)).refines_tracking
     if value == "auto":
         source = str(cfg.fit.source)
         detected = source == "fitted" and str(cfg.stage.keypoints.detector) != "ground_truth"
@@ -71,7 +70,7 @@ class ParamsLrSchema:
 
 
 def record_refinement(
-    ctx: StageContext, fitted: dict[str, np.ndarray], trained_on: dict[str, np.ndarray], params: FrameParams | None
+    ctx: StageRun, fitted: dict[str, np.ndarray], trained_on: dict[str, np.ndarray], params: FrameParams | None
 ) -> None:
     """Write the stage's ``params.parquet``: the train motion as this stage left it (``params`` refined here, or
     ``trained_on`` unchanged when None), and the manifest's summary of how far it lies from the fit's ``fitted``
@@ -88,10 +87,10 @@ def record_refinement(
         ctx.metrics[f"params_rotated_{part}_deg_max"] = float(np.max(moved["rotated_deg"][part]))
 
 
-def frame_params(cfg: DictConfig, section: DictConfig, posed: PosedSequence) -> FrameParams | None:
+def frame_params(cfg: DictConfig, section: DictConfig, posed: PosedSequence, can_refine: bool) -> FrameParams | None:
     """The train motion's parameters to refine while training (:class:`FrameParams`), or None when
-    :func:`refines_params` says no."""
-    if not refines_params(cfg, section):
+    :func:`refines_params` says no (``can_refine``: whether the method's representation can)."""
+    if not refines_params(cfg, section, can_refine):
         return None
     head, hand = templates(cfg.model)
     return FrameParams(
@@ -164,7 +163,7 @@ def retrains(conf: DictConfig, validator: Validator) -> bool:
     return bool(conf.validation.retrain) and validator.cfg.enabled
 
 
-def record_validation(ctx: StageContext, validator: Validator, final_frames: int) -> None:
+def record_validation(ctx: StageRun, validator: Validator, final_frames: int) -> None:
     """Write ``curve.parquet`` (no rows without validation) and the validation metrics of the manifest:
     ``validation_frames_withheld`` (by the validated run) and ``final_training_frames`` (the frames the written
     model trained on: all of them after a retrain)."""

@@ -8,8 +8,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from avatar.pbd.problem import unused_settings as unused_pbd_settings
-from pipeline.sources import SourceFiles
-from stages.representations import BUILT_IN, representation_class
+from data_schemas.sources import SourceFiles
 
 #: The ``model`` settings a stage that poses the templates reads: all of ``model`` but the face stiffness, which
 #: only the stages that simulate contact read (pbd, and evaluate and reenact for methods with PBD). Such a
@@ -72,11 +71,3 @@ def unused_driving_settings(cfg: DictConfig) -> tuple[str, ...]:
     """What of ``stage.pbd.solver`` a stage that drives the avatar (:func:`drive`) never reads: all of it for a
     method without PBD (and the face stiffness), else the settings of the solvers not chosen."""
     return unused_solver_settings(cfg) if bool(cfg.method.pbd) else ("stage.pbd.solver", "model.face_stiffness_path")
-
-
-def unused_training_settings(cfg: DictConfig) -> tuple[str, ...]:
-    """What the training stages never read for this method: the other representations' own settings (e.g.
-    SplattingAvatar's recipe, ``splatting``, unless the method's representation is ``embedded``)."""
-    chosen = representation_class(str(cfg.method.representation))
-    others = (representation_class(name) for name in BUILT_IN)
-    return tuple(dict.fromkeys(key for cls in others for key in cls.own_settings if key not in chosen.own_settings))

@@ -15,8 +15,10 @@ import cv2
 import numpy as np
 import torch
 
+from avatar.artifacts.motion import PosedSequence
 from avatar.dynamic.conditioning import SequenceConditioning
-from avatar.viewer_codec import (
+from avatar.representations import TrainedAvatar
+from avatar.viewer.codec import (
     POSITION_LEVELS,
     STEPS,
     CodecConfig,
@@ -35,10 +37,8 @@ from avatar.viewer_codec import (
     quantise_vertices,
     static_gaussians,
 )
+from data_schemas.web_escape import script_json, url_path
 from data_schemas.writes import write_json
-from pipeline.web_escape import script_json, url_path
-from stages.posing import PosedSequence
-from stages.representations import TrainedAvatar
 
 #: the page's source: index.html and the bundle ``make viewer`` builds (``npm ci && npm run build`` in viewer/)
 PAGE_DIR = Path(__file__).resolve().parent.parent / "viewer"
@@ -255,7 +255,7 @@ def _reference_samples(
 
 
 def _write_script(path: Path, target: str, arrays: dict[str, np.ndarray]) -> int:
-    """Write ``arrays`` packed (:func:`avatar.viewer_codec.pack_sections`) as a script assigning them to
+    """Write ``arrays`` packed (:func:`avatar.viewer.codec.pack_sections`) as a script assigning them to
     ``target`` (a JavaScript expression, its names escaped by the caller); returns the file's size in bytes."""
     buffer, sections = pack_sections(arrays)
     text = (

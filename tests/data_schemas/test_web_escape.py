@@ -1,4 +1,4 @@
-"""pipeline.web_escape: the one escaping of names where they reach HTML, URLs and scripts (issue 52)."""
+"""data_schemas.web_escape: the one escaping of names where they reach HTML, URLs and scripts (issue 52)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from urllib.parse import unquote
 
 import pytest
 
-from pipeline.web_escape import script_json, text, url_path
+from data_schemas.web_escape import script_json, text, url_path
 
 #: strings a capture, a config or a file could hold, each trying to leave its context
 HOSTILE = (
