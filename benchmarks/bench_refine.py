@@ -26,7 +26,13 @@ import torch
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from avatar.artifacts import load_ground_truth_params, load_views  # noqa: E402
-from avatar.fitting.fit import FitConfig, fit_sequence  # noqa: E402
+from avatar.fitting.errors import tracking_errors  # noqa: E402
+from avatar.fitting.fit import (  # noqa: E402
+    FitConfig,
+    face_shape_columns,
+    fit_sequence,
+)
+from avatar.fitting.observations import keypoints_by_camera  # noqa: E402
 from avatar.fitting.refine import REFINE_MODES, RefineConfig, evidence_from_views  # noqa: E402
 from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.templates import procedural_hand, procedural_head  # noqa: E402
@@ -36,7 +42,6 @@ from data_schemas.capture import CaptureIndex  # noqa: E402
 from data_schemas.keypoints import KEYPOINTS  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
-from stages.fit import _errors, _keypoints_by_camera, face_shape_columns  # noqa: E402
 
 ERRORS = ("mpjpe_hand_mm", "mpjpe_face_mm", "vertex_error_hand_mm", "vertex_error_face_mm")
 
@@ -63,7 +68,7 @@ def measure(workspace: Path, sequence: str, modes: list[str], cameras: list[str]
         for c in read_cameras(cap / "cameras.parquet")
         if c.split == "train" and (cameras is None or c.camera_id in cameras)
     ]
-    keypoints = _keypoints_by_camera(
+    keypoints = keypoints_by_camera(
         read_table(workspace / "keypoints" / sequence / "keypoints.parquet", KEYPOINTS), info.num_frames
     )
     keypoints = {c.camera_id: keypoints[c.camera_id] for c in train if c.camera_id in keypoints}
@@ -75,7 +80,7 @@ def measure(workspace: Path, sequence: str, modes: list[str], cameras: list[str]
     rows = []
     for mode in modes:
         result = fit_sequence(keypoints, train, head, hand, fit_cfg, evidence, mode, settings)
-        errors = _errors(result.params, truth, head, hand)
+        errors = tracking_errors(result.params, truth, head, hand)
         row = {"mode": mode, **{k: round(v, 2) for k, v in errors.items()}, "views": len(train)}
         if result.refinement is not None:
             iou = result.refinement.silhouette_iou

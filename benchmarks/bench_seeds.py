@@ -48,12 +48,12 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from avatar.metrics.stats import welch_p  # noqa: E402
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.metrics import COMPARISON  # noqa: E402
 from data_schemas.tables import read_table  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402
 from pipeline.workspace import method_run  # noqa: E402
-from stages.compare import welch_p  # noqa: E402
 
 METHODS = ("interactavatar", "gaussian_avatars")
 MEDIAPIPE = ["fit.source=fitted", "stage.keypoints.detector=mediapipe"]

@@ -30,8 +30,8 @@ from typing import Any
 import cv2
 import numpy as np
 from omegaconf import DictConfig
-from scipy.stats import ttest_ind
 
+from avatar.metrics.stats import welch_p
 from avatar.preprocess.crops import label_box, overlap_box
 from data_schemas.capture import MASK_LABELS
 from data_schemas.frames import crop_mask_path, rgb_path
@@ -306,15 +306,6 @@ def _lookup(rows: dict[str, list], method: str, split: str, region: str, group: 
         m: float(np.nanmean(v)) if v.size and np.isfinite(v).any() else float("nan")
         for m, v in _seed_values(rows, method, split, region, group).items()
     }
-
-
-def welch_p(a: np.ndarray, b: np.ndarray) -> float:
-    """Two-sided p-value of Welch's t-test (unequal variances) of the means of ``a`` (n,) and ``b`` (m,); NaN
-    with fewer than two values on a side or no spread at all."""
-    a, b = a[np.isfinite(a)], b[np.isfinite(b)]
-    if a.size < 2 or b.size < 2 or (np.ptp(a) == 0 and np.ptp(b) == 0):
-        return float("nan")
-    return float(ttest_ind(a, b, equal_var=False).pvalue)
 
 
 def _spread(values: np.ndarray) -> float:

@@ -43,7 +43,7 @@ from avatar.reenact.driving import drive, driver_subject, transfer_summary, tran
 from avatar.render.gaussians import resolve_backend
 from avatar.representations import TrainedAvatar, load_trained
 from avatar.templates import TemplateModel
-from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar
+from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar, tracking_cameras
 from avatar.training.dynamic import rasterize
 from avatar.training.frame_params import parameter_movement
 from data_schemas.cameras import read_cameras
@@ -177,26 +177,6 @@ def evaluate(ctx: StageContext) -> None:
     ctx.metrics.update(_summary(rows))
     if TRACKED_SPLIT in splits:
         ctx.metrics.update(_scoring_summary(rows, str(ctx.metrics["tracking_scoring_cameras"]).split(",")))
-
-
-def tracking_cameras(setting: Any, camera_ids: list[str]) -> tuple[list[str], list[str]]:
-    """(tuning, scoring) training cameras of ``stage.evaluate.tuning_cameras`` = ``setting``: ``auto`` takes every
-    other training camera by sorted id (the 1st, 3rd, ...) to tune and leaves the rest to score; a list names the
-    tuning ones. Both must be non-empty (SchemaError naming the key otherwise)."""
-    ordered = sorted(camera_ids)
-    tuning = ordered[::2] if setting == "auto" else [str(c) for c in setting]
-    unknown = sorted(set(tuning) - set(ordered))
-    if unknown:
-        raise SchemaError(
-            f"stage.evaluate.tuning_cameras: {unknown} are not training cameras of this capture ({ordered})"
-        )
-    scoring = [c for c in ordered if c not in tuning]
-    if not scoring:
-        raise SchemaError(
-            f"stage.evaluate.tuning_cameras={list(tuning)}: leaves no training camera to score the avatar-tracked "
-            "motion on; name fewer, or set stage.evaluate.test_tracking=tracker"
-        )
-    return tuning, scoring
 
 
 def _tracked_sequence(

@@ -6,7 +6,6 @@ import json
 import logging
 import os
 import shutil
-from collections import defaultdict
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -18,7 +17,8 @@ from avatar.artifacts import load_ground_truth_params, load_provided_params, loa
 from avatar.artifacts.dependencies import TEMPLATE_KEYS, model_file_problems, model_sources
 from avatar.artifacts.motion import templates
 from avatar.fitting.errors import tracking_errors
-from avatar.fitting.fit import FitConfig, FitResult, WorldScaleError, fit_sequence
+from avatar.fitting.fit import FitConfig, FitResult, WorldScaleError, face_shape_columns, fit_sequence
+from avatar.fitting.observations import keypoints_by_camera
 from avatar.fitting.refine import (
     REFINE_MODES,
     RefineConfig,
@@ -44,10 +44,6 @@ SOURCES = ("ground_truth", "provided", "fitted")
 REFINE_CHOICES = ("auto", *REFINE_MODES)
 #: <sequence>/refinement.png: the keypoint fit's and the refined meshes' outlines over a training crop
 REFINEMENT_FIGURE = "refinement.png"
-IDENTITY_SPACES = ("auto", "full", "core")
-#: keypoint detectors whose landmarks sit where the template's embedding puts them, up to noise (the synthetic
-#: ground truth); identity_space=auto fits the full identity space only to these (docs/explanation/built-in-head.md).
-UNBIASED_DETECTORS = ("ground_truth",)
 #: fit.source=fitted, a sequence without any hand keypoint in the train views (a capture without a hand, e.g. the
 #: synthetic face_only scene; fit_report.json: "hand_fitted": false) gets a placeholder hand, not a fit: MANO's
 #: mean shape in its flat rest pose, unrotated, this far (metres) below the fitted head's translation (world -y):
@@ -135,7 +131,7 @@ def fit(ctx: StageContext) -> None:
             params = load_provided_params(cap_dir, seq)
             entry = {}
         else:
-            kp = _keypoints_by_camera(
+            kp = keypoints_by_camera(
                 read_table(ctx.input_dir("keypoints") / seq / "keypoints.parquet", KEYPOINTS), info.num_frames
             )
             # Only the train views: the held-out camera's detections would leak the novel view into the fit.
@@ -321,28 +317,6 @@ def _check_evidence(labels: torch.Tensor, frames_dir: Path, sequence: str) -> No
             f"(no face, hand or foreground label): check the segmentation (stage.frames.segmenter, "
             f"stage.frames.key_threshold) and rerun frames, or set stage.fit.refine=none"
         )
-
-
-def face_shape_columns(head: TemplateModel, identity_space: str, detector: str) -> int | None:
-    """How many identity columns the face fit frees: all (None) for ``full``, the template's core space for
-    ``core``, and for ``auto`` the full space only with an unbiased detector (:data:`UNBIASED_DETECTORS`): the
-    procedural head's landmark-region offsets would follow a real detector's systematic offsets."""
-    if identity_space not in IDENTITY_SPACES:
-        raise SchemaError(f"stage.fit.identity_space={identity_space!r}: choose one of {IDENTITY_SPACES}")
-    if identity_space == "full" or (identity_space == "auto" and detector in UNBIASED_DETECTORS):
-        return None
-    return None if head.num_core_shape is None else int(head.num_core_shape)
-
-
-def _keypoints_by_camera(table: dict, num_frames: int) -> dict[str, dict[str, np.ndarray]]:
-    """keypoints.parquet rows -> camera_id -> part -> (T, K, 3)."""
-    out: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
-    for frame, cam, part, uvc in zip(table["frame"], table["camera_id"], table["part"], table["uvc"]):
-        rows = np.asarray(uvc, np.float64).reshape(-1, 3)
-        if part not in out[cam]:
-            out[cam][part] = np.zeros((num_frames, len(rows), 3))
-        out[cam][part][int(frame)] = rows
-    return dict(out)
 
 
 def _sees_hand(keypoints: dict[str, dict[str, np.ndarray]]) -> bool:

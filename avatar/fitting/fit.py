@@ -43,8 +43,14 @@ from avatar.fitting.rigid import MIN_RIGID_POINTS
 from avatar.fitting.triangulation import projection_matrices, triangulate
 from avatar.templates import TemplateModel
 from data_schemas.cameras import Camera
+from data_schemas.tables import SchemaError
 
 MM_PER_M = 1000.0
+#: stage.fit.identity_space: which identity columns of the head the face fit frees (:func:`face_shape_columns`)
+IDENTITY_SPACES = ("auto", "full", "core")
+#: keypoint detectors whose landmarks sit where the template's embedding puts them, up to noise (the synthetic
+#: ground truth); identity_space=auto fits the full identity space only to these (docs/explanation/built-in-head.md).
+UNBIASED_DETECTORS = ("ground_truth",)
 
 
 @dataclass(frozen=True)
@@ -415,3 +421,14 @@ def _result(
     if not all(np.isfinite(v).all() for v in params.values()):
         raise FloatingPointError("fit produced non-finite parameters")
     return params, reprojection
+
+
+def face_shape_columns(head: TemplateModel, identity_space: str, detector: str) -> int | None:
+    """How many identity columns the face fit frees: all (None) for ``full``, the template's core space for
+    ``core``, and for ``auto`` the full space only with an unbiased detector (:data:`UNBIASED_DETECTORS`): the
+    procedural head's landmark-region offsets would follow a real detector's systematic offsets."""
+    if identity_space not in IDENTITY_SPACES:
+        raise SchemaError(f"stage.fit.identity_space={identity_space!r}: choose one of {IDENTITY_SPACES}")
+    if identity_space == "full" or (identity_space == "auto" and detector in UNBIASED_DETECTORS):
+        return None
+    return None if head.num_core_shape is None else int(head.num_core_shape)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -48,3 +49,14 @@ def pack_part(
         uvc[:, c] = arr
     uv, conf = clean_observations(uvc)
     return Observations(uv, conf)
+
+
+def keypoints_by_camera(table: dict, num_frames: int) -> dict[str, dict[str, np.ndarray]]:
+    """keypoints.parquet rows -> camera_id -> part -> (T, K, 3)."""
+    out: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
+    for frame, cam, part, uvc in zip(table["frame"], table["camera_id"], table["part"], table["uvc"]):
+        rows = np.asarray(uvc, np.float64).reshape(-1, 3)
+        if part not in out[cam]:
+            out[cam][part] = np.zeros((num_frames, len(rows), 3))
+        out[cam][part][int(frame)] = rows
+    return dict(out)

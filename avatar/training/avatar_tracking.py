@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 import torch
@@ -32,6 +33,7 @@ from avatar.render.gaussians.world import WorldGaussians
 from avatar.templates import TemplateModel
 from avatar.training.dynamic import FACE_LABEL, HAND_LABEL, rasterize
 from avatar.training.frame_params import FrameParams, ParamLearningRates
+from data_schemas.tables import SchemaError
 
 #: a part counts as seen in a frame when its label covers at least this many crop pixels in one of the views
 MIN_VISIBLE_PIXELS = 4
@@ -159,3 +161,23 @@ def _hold(frames: FrameParams, t: int, parts: list[str]) -> None:
         for column, rows in frames.rows.items():  # the refined columns (REFINED_COLUMNS)
             if column.startswith(prefixes):
                 rows[t] = frames.start[column][t]
+
+
+def tracking_cameras(setting: Any, camera_ids: list[str]) -> tuple[list[str], list[str]]:
+    """(tuning, scoring) training cameras of ``stage.evaluate.tuning_cameras`` = ``setting``: ``auto`` takes every
+    other training camera by sorted id (the 1st, 3rd, ...) to tune and leaves the rest to score; a list names the
+    tuning ones. Both must be non-empty (SchemaError naming the key otherwise)."""
+    ordered = sorted(camera_ids)
+    tuning = ordered[::2] if setting == "auto" else [str(c) for c in setting]
+    unknown = sorted(set(tuning) - set(ordered))
+    if unknown:
+        raise SchemaError(
+            f"stage.evaluate.tuning_cameras: {unknown} are not training cameras of this capture ({ordered})"
+        )
+    scoring = [c for c in ordered if c not in tuning]
+    if not scoring:
+        raise SchemaError(
+            f"stage.evaluate.tuning_cameras={list(tuning)}: leaves no training camera to score the avatar-tracked "
+            "motion on; name fewer, or set stage.evaluate.test_tracking=tracker"
+        )
+    return tuning, scoring

@@ -41,7 +41,7 @@ from data_schemas.web_escape import script_json, url_path
 from data_schemas.writes import write_json
 
 #: the page's source: index.html and the bundle ``make viewer`` builds (``npm ci && npm run build`` in viewer/)
-PAGE_DIR = Path(__file__).resolve().parent.parent / "viewer"
+PAGE_DIR = Path(__file__).resolve().parents[2] / "viewer"
 BUNDLE = PAGE_DIR / "dist" / "viewer.js"
 BUILD_COMMAND = "make viewer"
 log = logging.getLogger(__name__)

@@ -9,6 +9,7 @@ import pytest
 from omegaconf import OmegaConf
 from scipy.stats import ttest_ind
 
+from avatar.metrics.stats import welch_p
 from data_schemas.metrics import CONTACT_GROUPS
 from stages.compare import (
     SHARED_STAGES,
@@ -19,7 +20,6 @@ from stages.compare import (
     _lookup,
     _tables,
     stale_reason,
-    welch_p,
 )
 from stages.evaluate import showcase_pairs
 from tests.conftest import CONF_DIR

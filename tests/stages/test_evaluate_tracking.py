@@ -15,13 +15,13 @@ from omegaconf import OmegaConf
 
 from avatar.artifacts import load_ground_truth_params, load_params, read_params
 from avatar.artifacts.motion import templates
+from avatar.training.avatar_tracking import tracking_cameras
 from data_schemas.cameras import read_cameras
 from data_schemas.metrics import METRICS, TRACKED_SPLIT
 from data_schemas.tables import SchemaError, read_table
 from pipeline.cli import run_app
 from pipeline.config import ConfigError, validate_config
 from stages import REGISTRY
-from stages.evaluate import tracking_cameras
 from stages.report import _test_tracking_section
 from tests.conftest import compose_cfg
 
