@@ -1,6 +1,9 @@
 """The package's import graph: no cycle between modules or between the subpackages of ``avatar``, and the
-layering the design keeps (``avatar`` imports neither ``pipeline`` nor ``stages``; no stage imports another;
-the schemas are leaves). Every import counts, those inside functions and under ``TYPE_CHECKING`` too."""
+layering the design keeps (docs/development/architecture.md): ``avatar`` imports neither ``pipeline`` nor
+``stages`` nor ``importers``; ``stages/`` holds only stage modules and no stage imports another; nothing imports a
+stage module but the runner (by name, from ``pipeline.stages_module``), the tests and the benchmarks that run the
+DAG; the schemas are leaves; the readers of outside data (``importers``) sit beside the core, below the stages;
+fitting sits below training. Every import counts, those inside functions and under ``TYPE_CHECKING`` too."""
 
 from __future__ import annotations
 
@@ -112,6 +115,48 @@ def test_the_layering_holds() -> None:
             assert all(t.startswith("data_schemas") for t in targets), module
         if module in stage_modules:
             assert not targets & (stage_modules - {module}), module
+
+
+def test_stages_holds_only_stage_modules() -> None:
+    helpers = sorted(f"stages.{p.stem}" for p in (REPO / "stages").rglob("*.py") if p.name != "__init__.py") + sorted(
+        f"stages.{p.name}" for p in (REPO / "stages").iterdir() if p.is_dir() and p.name != "__pycache__"
+    )
+    assert set(helpers) - _stage_modules() == set(), "stages/ holds only @stage modules: move helpers to a room"
+
+
+def test_nothing_imports_a_stage_but_the_runner() -> None:
+    """The runner loads ``stages`` by name; the core, the readers, the schemas and the pipeline never import it, and
+    a benchmark takes at most the registry (``from stages import REGISTRY``) to run stages, never a stage's
+    internals."""
+    for module, targets in import_graph().items():
+        if module.split(".")[0] != "stages":
+            assert not {t for t in targets if t.split(".")[0] == "stages"}, module
+    for path in sorted((REPO / "benchmarks").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("stages"):
+                assert node.module == "stages" and [a.name for a in node.names] == ["REGISTRY"], path.name
+            if isinstance(node, ast.Import):
+                assert not any(a.name.startswith("stages") for a in node.names), path.name
+
+
+def test_the_rooms_keep_their_direction() -> None:
+    """``importers`` (DECAF, folders, COLMAP, nerfstudio) read outside data with the core's and the schemas' help
+    and know nothing of the pipeline; the pipeline's runner knows no model: only its PLY export command reads a
+    trained avatar, and its config only asks the DECAF reader (itself a pure reader) what a release ships; fitting
+    runs before training and imports none of it (both share ``avatar.geometry``)."""
+    graph = import_graph()
+    for module, targets in graph.items():
+        tops = {t.split(".")[0] for t in targets}
+        if module.startswith("importers"):
+            assert not tops & {"pipeline", "stages"}, module
+        if module.startswith("avatar"):
+            assert "importers" not in tops, module
+        if module.startswith("pipeline") and module != "pipeline.export_ply":
+            assert "avatar" not in tops, module
+            assert {t for t in targets if t.startswith("importers")} <= {"importers.decaf"}, module
+        if module.startswith("avatar.fitting"):
+            assert not {t for t in targets if t.startswith("avatar.training")}, module
+    assert {t.split(".")[0] for t in graph["importers.decaf"]} <= {"data_schemas"}
 
 
 def test_the_cycle_finder_finds_a_cycle() -> None:
