@@ -2,34 +2,55 @@
 
 Run it on the commit before a refactor and on the commit after, then compare::
 
-    python -m tests.smoke_digests run /tmp/before.json            # on the old commit
-    python -m tests.smoke_digests run /tmp/after.json             # on the new one
+    python -m tests.smoke_digests run /tmp/before.json --commit HEAD~3
+    python -m tests.smoke_digests run /tmp/after.json --commit HEAD
     python -m tests.smoke_digests compare /tmp/before.json /tmp/after.json
+
+``--commit`` runs a clean clone of that commit, always at the same path (some cache keys name the checkout's files,
+e.g. the viewer's page), so the two runs differ only by their code; without it the working tree runs as it is.
 
 ``run`` runs the whole DAG at ``quality=smoke`` for one method of each representation and for the
 GaussianAvatars baseline (``--methods``) through the CLI into a fresh directory, then reads every stage's
 manifest: the sha256 of each output file (the manifest's own record, checked against the bytes) and the
-stage's cache key. Files that record when or how fast something ran (the report's page, timing logs) differ
-between any two runs and are listed apart by name, never compared. ``compare`` prints every difference and
-exits 1 when there is one.
+stage's cache key. Files that record when or how fast something ran (the report's page, timing logs, the
+comparison's text tables) differ between any two runs and are listed apart by name, never compared; a Parquet table
+with a wall-time column (the comparison's ``train_wall_s``) is compared without it. ``compare`` prints every
+difference and exits 1 when there is one.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import os
+import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
+import pyarrow.parquet as pq
+
 from pipeline.manifest import MANIFEST_NAME, sha256_file
-from tests.conftest import REPO, cli_command, cli_env
+from tests.conftest import REPO, cli_command
 
 #: one method per representation (bound with every module, embedded) and the static baseline
 DEFAULT_METHODS = ("interactavatar", "gaussian_avatars", "splatting_avatar")
 #: output files whose bytes carry wall times or dates, so two runs of the same code never agree on them
-TIMED = ("report.html", "report.md", "timings.json", "train_log.parquet", "profile.json")
+TIMED = ("report.html", "train_log.parquet", "tables.json", "tables.md")
+#: columns of a Parquet output that hold wall times: the table is compared without them
+WALL_TIME_COLUMNS = ("train_wall_s",)
+
+
+def content_digest(path: Path) -> str:
+    """sha256 of a file's bytes; of a Parquet table's values without its wall-time columns where it has any."""
+    if path.suffix == ".parquet":
+        table = pq.read_table(path)
+        timed = [c for c in WALL_TIME_COLUMNS if c in table.column_names]
+        if timed:
+            return hashlib.sha256(json.dumps(table.drop_columns(timed).to_pydict(), default=str).encode()).hexdigest()
+    return sha256_file(path)
 
 
 def collect(outputs: Path) -> dict[str, dict[str, str]]:
@@ -46,19 +67,33 @@ def collect(outputs: Path) -> dict[str, dict[str, str]]:
             path = stage_dir / rel
             if sha256_file(path) != digest:
                 raise SystemExit(f"{path}: its bytes disagree with {manifest_path}; rerun on a fresh directory")
-            name = (stage_dir / rel).relative_to(outputs).as_posix()
-            (timed if Path(rel).name in TIMED else files)[name] = "" if Path(rel).name in TIMED else digest
+            name = path.relative_to(outputs).as_posix()
+            if Path(rel).name in TIMED:
+                timed[name] = ""
+            else:
+                files[name] = content_digest(path)
     return {"files": files, "keys": keys, "timed": timed}
 
 
-def run(destination: Path, methods: list[str], workdir: Path | None) -> None:
+def checkout(commit: str, workdir: Path | None) -> Path:
+    """A clean clone of this repository at ``commit``, always at ``<workdir>/smoke-digests-checkout``."""
+    path = Path(workdir or tempfile.gettempdir()) / "smoke-digests-checkout"
+    shutil.rmtree(path, ignore_errors=True)
+    subprocess.run(["git", "clone", "-q", str(REPO), str(path)], check=True)
+    subprocess.run(["git", "-C", str(path), "checkout", "-q", commit], check=True)
+    return path
+
+
+def run(destination: Path, methods: list[str], workdir: Path | None, commit: str | None) -> None:
     """Run the smoke DAG for each method into a fresh directory and write its digests to ``destination``."""
+    code = checkout(commit, workdir) if commit else REPO
+    env = {**os.environ, "PYTHONPATH": str(code), "PYTHONUNBUFFERED": "1"}
     root = Path(tempfile.mkdtemp(prefix="smoke-digests-", dir=workdir))
     for method in methods:
         done = subprocess.run(
             cli_command(f"paths.outputs={root}", "quality=smoke", f"method={method}", "run.progress=false"),
-            cwd=REPO,
-            env=cli_env(),
+            cwd=code,
+            env=env,
             capture_output=True,
             text=True,
             check=False,
@@ -89,12 +124,13 @@ def main(argv: list[str] | None = None) -> int:
     run_parser.add_argument("destination", type=Path)
     run_parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS))
     run_parser.add_argument("--workdir", type=Path, default=None, help="where the outputs go (default: the temp dir)")
+    run_parser.add_argument("--commit", default=None, help="run a clean clone of this commit (default: the tree)")
     compare_parser = sub.add_parser("compare", help="compare two digest files; exit 1 on any difference")
     compare_parser.add_argument("before", type=Path)
     compare_parser.add_argument("after", type=Path)
     args = parser.parse_args(argv)
     if args.command == "run":
-        run(args.destination, args.methods, args.workdir)
+        run(args.destination, args.methods, args.workdir, args.commit)
         return 0
     differences = compare(json.loads(args.before.read_text()), json.loads(args.after.read_text()))
     print("\n".join(differences) if differences else "identical: every file and every cache key")
