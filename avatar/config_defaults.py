@@ -17,16 +17,16 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from avatar.dynamic.model import DynamicModelConfig
 from avatar.fitting.fit import FitConfig
 from avatar.fitting.refine import RefineConfig
 from avatar.pbd import PBDConfig
-from avatar.representations.bound import PRESET_ARCHITECTURE
-from avatar.representations.embedded import SHARED_SCHEDULE
+from avatar.representations.bound.dynamic_model import DynamicModelConfig
+from avatar.representations.bound.representation import PRESET_ARCHITECTURE
+from avatar.representations.bound.stage_two import DynamicTrainConfig
+from avatar.representations.bound.warmup import WarmupTrainConfig
+from avatar.representations.embedded.representation import SHARED_SCHEDULE
+from avatar.representations.embedded.training import SplattingConfig
 from avatar.training.avatar_tracking import AvatarTrackingConfig
-from avatar.training.dynamic import DynamicTrainConfig
-from avatar.training.splatting import SplattingConfig
-from avatar.training.warmup import WarmupTrainConfig
 from avatar.viewer.codec import CodecConfig
 from data_schemas.config_sections import with_generated_block
 

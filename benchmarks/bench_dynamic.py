@@ -53,11 +53,11 @@ from torch.optim.optimizer import register_optimizer_step_post_hook, register_op
 
 from avatar.artifacts import TRAIN_SEQUENCE, contact_flags, load_scene, load_views, method_params  # noqa: E402
 from avatar.artifacts.motion import applied_deformation, posed_sequence, templates  # noqa: E402
-from avatar.dynamic import DynamicAvatar  # noqa: E402
 from avatar.metrics.lpips import LPIPS  # noqa: E402
-from avatar.representations.bound import load_gaussians, model_config  # noqa: E402
-from avatar.training.dynamic import DynamicTrainConfig, train_dynamic  # noqa: E402
-from avatar.training.warmup import WarmupTrainConfig, train_warmup  # noqa: E402
+from avatar.representations.bound.dynamic_model import DynamicAvatar  # noqa: E402
+from avatar.representations.bound.representation import load_gaussians, model_config  # noqa: E402
+from avatar.representations.bound.stage_two import DynamicTrainConfig, train_dynamic  # noqa: E402
+from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup  # noqa: E402
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.capture import MASK_LABELS  # noqa: E402
 from data_schemas.frames import UNOBSERVED  # noqa: E402

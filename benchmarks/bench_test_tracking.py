@@ -56,7 +56,7 @@ from avatar.metrics.psnr import psnr  # noqa: E402
 from avatar.representations import TrainedAvatar, load_trained  # noqa: E402
 from avatar.templates import procedural_hand, procedural_head  # noqa: E402
 from avatar.training.avatar_tracking import AvatarTrackingConfig, track_with_avatar, tracking_cameras  # noqa: E402
-from avatar.training.dynamic import rasterize  # noqa: E402
+from avatar.training.rendering import rasterize  # noqa: E402
 from benchmarks.bench_seeds import QUALITY_FILE  # noqa: E402
 from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 from pipeline.workspace import method_run  # noqa: E402

@@ -37,12 +37,12 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from avatar.artifacts import load_ground_truth_params, load_views  # noqa: E402
 from avatar.artifacts.motion import posed_sequence, templates  # noqa: E402
-from avatar.gaussians.model import BoundGaussians  # noqa: E402
 from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.posing import posed_keypoints  # noqa: E402
+from avatar.representations.bound.gaussians import BoundGaussians  # noqa: E402
+from avatar.representations.bound.warmup import WarmupTrainConfig, colors_from_views, render_frame, train_warmup  # noqa: E402
 from avatar.training.frame_params import FrameParams, ParamLearningRates  # noqa: E402
 from avatar.training.validation import ValidationConfig, Validator  # noqa: E402
-from avatar.training.warmup import WarmupTrainConfig, colors_from_views, render_frame, train_warmup  # noqa: E402
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.capture import MASK_LABELS, CaptureIndex  # noqa: E402
 from pipeline.summary import format_table  # noqa: E402

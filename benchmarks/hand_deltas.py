@@ -42,12 +42,12 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 
 from avatar.artifacts import load_views, method_params  # noqa: E402
 from avatar.artifacts.motion import applied_deformation, load_sequence, templates  # noqa: E402
-from avatar.dynamic import DynamicAvatar  # noqa: E402
 from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.metrics import image_metrics  # noqa: E402
-from avatar.representations.bound import load_dynamic, load_gaussians  # noqa: E402
-from avatar.training.dynamic import rasterize  # noqa: E402
-from avatar.training.warmup import render_frame  # noqa: E402
+from avatar.representations.bound.dynamic_model import DynamicAvatar  # noqa: E402
+from avatar.representations.bound.representation import load_dynamic, load_gaussians  # noqa: E402
+from avatar.representations.bound.warmup import render_frame  # noqa: E402
+from avatar.training.rendering import rasterize  # noqa: E402
 from data_schemas.cameras import Camera, read_cameras  # noqa: E402
 from data_schemas.capture import MASK_LABELS  # noqa: E402
 from data_schemas.metrics import SPLIT_SOURCES  # noqa: E402

@@ -19,10 +19,10 @@ from omegaconf import DictConfig
 from avatar.artifacts import TRAIN_SEQUENCE, load_views, method_params
 from avatar.artifacts.dependencies import TEMPLATE_KEYS, model_sources
 from avatar.artifacts.motion import applied_deformation, posed_sequence
-from avatar.dynamic.model import DynamicModelConfig
 from avatar.representations import VALIDATED_RUN, representation, representation_problems, unused_training_settings
-from avatar.representations.bound import PRESET_ARCHITECTURE, selection_config
-from avatar.training.dynamic import DynamicTrainConfig
+from avatar.representations.bound.dynamic_model import DynamicModelConfig
+from avatar.representations.bound.representation import PRESET_ARCHITECTURE, selection_config
+from avatar.representations.bound.stage_two import DynamicTrainConfig
 from avatar.training.selection import SelectionConfig
 from avatar.training.settings import ParamsLrSchema, ValidationSchema, refinement_problems, validation_problems
 from data_schemas.config_sections import core_config, section_schema

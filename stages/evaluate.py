@@ -44,8 +44,8 @@ from avatar.render.gaussians import resolve_backend
 from avatar.representations import TrainedAvatar, load_trained
 from avatar.templates import TemplateModel
 from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar, tracking_cameras
-from avatar.training.dynamic import rasterize
 from avatar.training.frame_params import parameter_movement
+from avatar.training.rendering import rasterize
 from data_schemas.cameras import read_cameras
 from data_schemas.capture import MASK_LABELS, CaptureIndex, cross_sequence
 from data_schemas.config_sections import core_config

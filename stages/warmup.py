@@ -22,6 +22,7 @@ from avatar.representations import (
     run_scratch,
     unused_training_settings,
 )
+from avatar.representations.bound.warmup import WarmupTrainConfig, colors_from_views
 from avatar.training.frame_params import FrameParams
 from avatar.training.settings import (
     ParamsLrSchema,
@@ -35,7 +36,6 @@ from avatar.training.settings import (
     validation_problems,
 )
 from avatar.training.validation import ValidationConfig, Validator
-from avatar.training.warmup import WarmupTrainConfig, colors_from_views
 from data_schemas.capture import MASK_LABELS
 from data_schemas.config_sections import section_schema
 from pipeline.stage import StageContext, stage

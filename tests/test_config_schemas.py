@@ -11,17 +11,22 @@ import pytest
 from omegaconf import OmegaConf
 
 from avatar.config_defaults import BLOCKS, CONF_DIR, PIPELINE_CHOICES, rendered
-from avatar.dynamic.model import DynamicModelConfig
 from avatar.fitting.fit import FitConfig
 from avatar.fitting.refine import RefineConfig
 from avatar.pbd import PBDConfig
-from avatar.representations.bound import PRESET_ARCHITECTURE, dynamic_train_config, model_config, warmup_train_config
-from avatar.representations.embedded import SHARED_SCHEDULE, SplattingSchema, splatting_config
+from avatar.representations.bound.dynamic_model import DynamicModelConfig
+from avatar.representations.bound.representation import (
+    PRESET_ARCHITECTURE,
+    dynamic_train_config,
+    model_config,
+    warmup_train_config,
+)
+from avatar.representations.bound.stage_two import DynamicTrainConfig
+from avatar.representations.bound.warmup import WarmupTrainConfig
+from avatar.representations.embedded.representation import SHARED_SCHEDULE, SplattingSchema, splatting_config
+from avatar.representations.embedded.training import SplattingConfig
 from avatar.scene import SceneDecision
 from avatar.training.avatar_tracking import AvatarTrackingConfig
-from avatar.training.dynamic import DynamicTrainConfig
-from avatar.training.splatting import SplattingConfig
-from avatar.training.warmup import WarmupTrainConfig
 from avatar.viewer.codec import CodecConfig
 from data_schemas.config_sections import core_config, core_fields, section_schema, yaml_defaults, yaml_value
 from pipeline.config import ConfigError, validate_config

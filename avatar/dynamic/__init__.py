@@ -1,14 +1,7 @@
-"""The InteractAvatar model after the warm-up: pose-dependent hand MLPs and hand-face interaction MLPs."""
+"""What drives the pose-dependent modules of a frame: the conditioning of the hand and face poses and the hand's
+relation to the face, per frame and per sequence (InteractAvatar's H and I modules themselves are
+:mod:`avatar.representations.bound.dynamic_model`)."""
 
 from avatar.dynamic.conditioning import FrameConditioning, SequenceConditioning, sequence_conditioning
-from avatar.dynamic.model import DynamicAvatar, DynamicFrame, DynamicModelConfig, interaction_weights
 
-__all__ = [
-    "DynamicAvatar",
-    "DynamicFrame",
-    "DynamicModelConfig",
-    "FrameConditioning",
-    "SequenceConditioning",
-    "interaction_weights",
-    "sequence_conditioning",
-]
+__all__ = ["FrameConditioning", "SequenceConditioning", "sequence_conditioning"]

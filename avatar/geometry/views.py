@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+FACE_LABEL, HAND_LABEL = 1, 2  # part labels of the crops' masks (see ViewSet)
 UNOBSERVED_LABEL = 4  # crop padding past the camera image (data_schemas.frames.UNOBSERVED)
 
 

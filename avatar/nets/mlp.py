@@ -13,8 +13,9 @@ On a CPU these networks are bound by memory traffic over (N, width) tensors as m
 each layer makes as few passes as it can: the per-frame term is the bias of the point product (``addmm``),
 the skip's product is the input of the middle layer's (no separate sums), the leaky ReLU works in place on
 the layer norm's fresh output, and point inputs that need no gradient are multiplied apart from those that
-do. Same function, to rounding (tests/dynamic/test_delta_mlp.py); evaluating a module's heads as one batched
-network (stacked weights, ``baddbmm``) measured no faster and was dropped (docs/notes/2026-12-04-stage-two-speed.md).
+do. Same function, to rounding (tests/representations/bound/test_delta_mlp.py); evaluating a module's heads as one
+batched network (stacked weights, ``baddbmm``) measured no faster and was dropped
+(docs/notes/2026-12-04-stage-two-speed.md).
 """
 
 from __future__ import annotations

@@ -33,8 +33,8 @@ from data_schemas.writes import write_json
 
 #: The representations that ship with the project: name -> ``module:Class``.
 BUILT_IN = {
-    "bound": "avatar.representations.bound:BoundRepresentation",
-    "embedded": "avatar.representations.embedded:EmbeddedRepresentation",
+    "bound": "avatar.representations.bound.representation:BoundRepresentation",
+    "embedded": "avatar.representations.embedded.representation:EmbeddedRepresentation",
 }
 
 #: The folder of a training stage's output that holds the model of its validated run when it trains again on every
@@ -46,8 +46,8 @@ Progress = Callable[[Iterable[int]], Iterator[int]]
 
 
 class CanonicalGaussians(Protocol):
-    """The warm-up's Gaussians on the canonical mesh (``avatar.gaussians.model.BoundGaussians``,
-    ``avatar.splatting.EmbeddedGaussians``): N Gaussians, each on one triangle of one mesh part."""
+    """The warm-up's Gaussians on the canonical mesh (``avatar.representations.bound.gaussians.BoundGaussians``,
+    ``avatar.representations.embedded.EmbeddedGaussians``): N Gaussians, each on one triangle of one mesh part."""
 
     @property
     def part(self) -> torch.Tensor:

@@ -28,11 +28,11 @@ import torch
 from torch import Tensor
 
 from avatar.dynamic.conditioning import FrameConditioning
-from avatar.geometry.views import ViewSet
+from avatar.geometry.views import FACE_LABEL, HAND_LABEL, ViewSet
 from avatar.render.gaussians.world import WorldGaussians
 from avatar.templates import TemplateModel
-from avatar.training.dynamic import FACE_LABEL, HAND_LABEL, rasterize
 from avatar.training.frame_params import FrameParams, ParamLearningRates
+from avatar.training.rendering import rasterize
 from data_schemas.tables import SchemaError
 
 #: a part counts as seen in a frame when its label covers at least this many crop pixels in one of the views

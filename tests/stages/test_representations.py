@@ -16,7 +16,6 @@ import torch
 
 from avatar.artifacts import TRAIN_SEQUENCE, WorldGaussians, load_params
 from avatar.artifacts.motion import PosedSequence
-from avatar.gaussians.model import BoundGaussians
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
 from avatar.representations import (
@@ -30,8 +29,9 @@ from avatar.representations import (
     write_model_info,
     write_train_plys,
 )
-from avatar.representations.bound import BoundRepresentation, load_gaussians, write_bound_gaussians
-from avatar.representations.embedded import EmbeddedRepresentation
+from avatar.representations.bound.gaussians import BoundGaussians
+from avatar.representations.bound.representation import BoundRepresentation, load_gaussians, write_bound_gaussians
+from avatar.representations.embedded.representation import EmbeddedRepresentation
 from avatar.training.frame_params import FrameParams
 from avatar.training.settings import record_refinement, record_validation, validation_config
 from avatar.training.validation import Validator

@@ -8,7 +8,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from avatar.gaussians.model import BoundGaussians
+from avatar.representations.bound.gaussians import BoundGaussians
 from pipeline.cli import run_app
 from pipeline.config import ConfigError
 from stages.warmup import WarmupConfig

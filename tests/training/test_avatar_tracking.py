@@ -13,12 +13,12 @@ from torch import Tensor
 
 from avatar.dynamic.conditioning import FrameConditioning
 from avatar.geometry.frames import place_gaussians, triangle_frames
-from avatar.geometry.views import ViewSet
+from avatar.geometry.views import HAND_LABEL, ViewSet
 from avatar.posing import posed_keypoints, posed_meshes
 from avatar.synthetic import SyntheticCapture, SyntheticConfig, generate
 from avatar.templates import procedural_hand, procedural_head
-from avatar.training.avatar_tracking import HAND_LABEL, AvatarTrackingConfig, track_with_avatar
-from avatar.training.dynamic import rasterize
+from avatar.training.avatar_tracking import AvatarTrackingConfig, track_with_avatar
+from avatar.training.rendering import rasterize
 
 HEAD, HAND = procedural_head(), procedural_hand()
 SIZE = 64

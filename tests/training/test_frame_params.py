@@ -13,12 +13,13 @@ import torch
 
 from avatar.artifacts import read_params, write_params
 from avatar.dynamic.conditioning import sequence_conditioning
-from avatar.gaussians.model import BoundGaussians
 from avatar.geometry.views import ViewSet
 from avatar.posing import posed_meshes
+from avatar.representations.bound import warmup
+from avatar.representations.bound.gaussians import BoundGaussians
+from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup
 from avatar.synthetic import SyntheticCapture, SyntheticConfig, generate
 from avatar.templates import procedural_hand, procedural_head
-from avatar.training import warmup
 from avatar.training.frame_params import (
     REFINED_COLUMNS,
     FrameAdam,
@@ -26,7 +27,6 @@ from avatar.training.frame_params import (
     ParamLearningRates,
     parameter_movement,
 )
-from avatar.training.warmup import WarmupTrainConfig, train_warmup
 
 HEAD, HAND = procedural_head(), procedural_hand()
 

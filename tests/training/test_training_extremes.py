@@ -10,10 +10,10 @@ import math
 import numpy as np
 import torch
 
-from avatar.gaussians.model import BoundGaussians
-from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
-from avatar.training.warmup import WarmupTrainConfig, train_warmup
-from tests.dynamic.conftest import make_scene
+from avatar.representations.bound.gaussians import BoundGaussians
+from avatar.representations.bound.stage_two import DynamicTrainConfig, train_dynamic
+from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup
+from tests.representations.bound.conftest import make_scene
 from tests.training.test_validation import _scene
 
 

@@ -15,12 +15,14 @@ import torch
 from avatar.geometry.views import UNOBSERVED_LABEL, ViewSet
 from avatar.metrics.lpips import LPIPS
 from avatar.metrics.ssim import dssim_loss
-from avatar.training import dynamic, splatting, warmup
+from avatar.representations.bound import stage_two as dynamic
+from avatar.representations.bound import warmup
+from avatar.representations.embedded import training as splatting
 from avatar.training.validation import ValidationConfig, Validator
 from data_schemas.frames import UNOBSERVED
 from stages.evaluate import _regions
-from tests.dynamic.conftest import make_scene
-from tests.splatting import test_training as splatting_case
+from tests.representations.bound.conftest import make_scene
+from tests.representations.embedded import test_training as splatting_case
 from tests.training import test_warmup_training as static_case
 
 BAND = 3  # padded columns on the left of every crop

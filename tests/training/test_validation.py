@@ -11,14 +11,15 @@ import numpy as np
 import pytest
 import torch
 
-from avatar.gaussians.model import BoundGaussians
 from avatar.geometry.views import ViewSet
 from avatar.metrics.lpips import LPIPS
 from avatar.posing import MeshSequence
-from avatar.splatting import EmbeddedGaussians
-from avatar.training import warmup
-from avatar.training.dynamic import DynamicTrainConfig, sample_frame, train_dynamic
-from avatar.training.splatting import SplattingConfig, train_splatting
+from avatar.representations.bound import warmup
+from avatar.representations.bound.gaussians import BoundGaussians
+from avatar.representations.bound.stage_two import DynamicTrainConfig, sample_frame, train_dynamic
+from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup
+from avatar.representations.embedded import EmbeddedGaussians
+from avatar.representations.embedded.training import SplattingConfig, train_splatting
 from avatar.training.validation import (
     FlatStop,
     ValidationConfig,
@@ -27,11 +28,10 @@ from avatar.training.validation import (
     withheld_count,
     withheld_frames,
 )
-from avatar.training.warmup import WarmupTrainConfig, train_warmup
 from pipeline.cli import run_app
 from pipeline.config import ConfigError
 from tests.conftest import compose_cfg
-from tests.dynamic.conftest import make_scene
+from tests.representations.bound.conftest import make_scene
 
 WINDOW, MIN_GAIN = 3, 0.05
 

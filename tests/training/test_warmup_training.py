@@ -8,12 +8,12 @@ import math
 import pytest
 import torch
 
-from avatar.gaussians.model import BoundGaussians
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
-from avatar.training import warmup
+from avatar.representations.bound import warmup
+from avatar.representations.bound.gaussians import BoundGaussians
+from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup
 from avatar.training.validation import ValidationConfig, Validator
-from avatar.training.warmup import WarmupTrainConfig, train_warmup
 
 
 def _scene() -> tuple[ViewSet, MeshSequence]:

@@ -12,9 +12,9 @@ import torch
 
 from avatar.artifacts import PosedGaussians
 from avatar.artifacts.motion import PosedSequence
-from avatar.gaussians.model import BoundGaussians
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import render_gaussians
+from avatar.representations.bound.gaussians import BoundGaussians
 from avatar.viewer.codec import CodecConfig
 from avatar.viewer.page import Motion, PageSettings, write_viewer
 

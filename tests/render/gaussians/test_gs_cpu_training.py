@@ -15,7 +15,7 @@ import torch
 
 from avatar.metrics.psnr import psnr
 from avatar.render.gaussians.extension import cpu_extension_available, unavailable_reason
-from avatar.training.warmup import render_frame, train_warmup
+from avatar.representations.bound.warmup import render_frame, train_warmup
 from data_schemas.metrics import METRICS
 from data_schemas.tables import read_table
 from tests.conftest import run_cli

@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from avatar.splatting import EmbeddedGaussians
-from avatar.splatting.embedding import PARAM_NAMES
-from avatar.splatting.walking import build_walk_table, edge_neighbours, full_barycentric, walk
-from tests.splatting.meshes import bumpy, deform, grid, hand_and_head, template
+from avatar.representations.embedded import EmbeddedGaussians
+from avatar.representations.embedded.embedding import PARAM_NAMES
+from avatar.representations.embedded.walking import build_walk_table, edge_neighbours, full_barycentric, walk
+from tests.representations.embedded.meshes import bumpy, deform, grid, hand_and_head, template
 
 
 def _model(

@@ -11,11 +11,11 @@ import pytest
 import torch
 from torch import Tensor
 
-from avatar.dynamic import model as dynamic_model
-from avatar.dynamic.model import nearest_distance
 from avatar.nets.mlp import DeltaHeads, DeltaMLP, SplitLinear
-from avatar.training.dynamic import DynamicTrainConfig, train_dynamic
-from tests.dynamic.conftest import Scene
+from avatar.representations.bound import dynamic_model
+from avatar.representations.bound.dynamic_model import nearest_distance
+from avatar.representations.bound.stage_two import DynamicTrainConfig, train_dynamic
+from tests.representations.bound.conftest import Scene
 
 # float32 rounding of a few layers of 16-128 units: relative to the largest entry of each compared tensor
 RTOL = 1e-5

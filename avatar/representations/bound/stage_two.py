@@ -24,22 +24,21 @@ import torch
 from torch import Tensor
 
 from avatar.dynamic.conditioning import Conditioning, SequenceConditioning
-from avatar.dynamic.model import DynamicAvatar, DynamicFrame
-from avatar.geometry.views import ViewSet
+from avatar.geometry.views import FACE_LABEL, HAND_LABEL, ViewSet
 from avatar.losses import patch_perceptual_loss, reconstruction_loss, reconstruction_terms
 from avatar.metrics.lpips import LPIPS
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
-from avatar.render.gaussians import WorldGaussians, render_gaussians
+from avatar.representations.bound.dynamic_model import DynamicAvatar, DynamicFrame
+from avatar.representations.bound.warmup import gaussian_param_groups
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.frame_params import FrameParams
+from avatar.training.rendering import rasterize
 from avatar.training.schedule import exponential_lr
 from avatar.training.selection import BestStep, Selection, SelectionConfig, select
 from avatar.training.validation import ValidationConfig, Validator, draw_frame
-from avatar.training.warmup import gaussian_param_groups
 
 CHECKPOINT = "dynamic.pt"
-FACE_LABEL, HAND_LABEL = 1, 2  # part labels of the crops' masks (see avatar.geometry.views.ViewSet)
 
 
 @dataclass(frozen=True)
@@ -154,23 +153,6 @@ def render_dynamic(
     PointNet++ sample)."""
     g = model(cond.frame(frame), meshes.vertices[frame])
     return rasterize(g, views, camera, backend), g
-
-
-def rasterize(g: WorldGaussians, views: ViewSet, camera: int, backend: str = "auto"):  # RenderOutput
-    """Render the Gaussians of one frame from view ``camera`` of ``views``."""
-    return render_gaussians(
-        g.means,
-        g.quats,
-        g.scales,
-        g.opacities,
-        g.colors,
-        views.K[camera],
-        views.world_to_cam[camera],
-        views.size,
-        views.size,
-        views.background,
-        backend=backend,
-    )
 
 
 def patch_boxes(labels: np.ndarray) -> list[np.ndarray]:

@@ -14,10 +14,10 @@ from avatar.geometry.views import ViewSet
 from avatar.metrics import LPIPSWeightsNotFoundError
 from avatar.metrics.lpips_weights import weight_file
 from avatar.posing import MeshSequence
-from avatar.splatting import EmbeddedGaussians
-from avatar.training import splatting
-from avatar.training.splatting import SplattingConfig, render_splatting, scale_penalty, train_splatting
-from tests.splatting.meshes import bumpy, grid
+from avatar.representations.embedded import EmbeddedGaussians
+from avatar.representations.embedded import training as splatting
+from avatar.representations.embedded.training import SplattingConfig, render_splatting, scale_penalty, train_splatting
+from tests.representations.embedded.meshes import bumpy, grid
 
 try:
     weight_file("alex")

@@ -31,13 +31,13 @@ normals ``n``, both of the frame):
   canonical mesh (``q`` is the canonical world rotation) and exactly ``R0`` for a mesh moved
   rigidly by ``R0``.
 - colour: ``rgb = max(0.5 + C0 * sh_dc, 0)`` and opacity ``sigmoid(logit)``, as
-  :class:`avatar.gaussians.model.BoundGaussians`.
+  :class:`avatar.representations.bound.gaussians.BoundGaussians`.
 
 ``u, v, d, q, s``, opacity and colour are optimised; ``u, v`` are true parameters with gradients
 (in the public code the rendered position depends only on the buffer ``sample_bary``, so the ``uv``
 part of ``_xyz`` never receives a gradient, ``walking_on_triangles`` walks by a zero shift, and only
 split children move to other triangles). After a step, :meth:`walk` moves every
-Gaussian that left its triangle onto its neighbour (:mod:`avatar.splatting.walking`). Parts (face,
+Gaussian that left its triangle onto its neighbour (:mod:`avatar.representations.embedded.walking`). Parts (face,
 hand) are separate vertex sets, so a Gaussian never walks onto another part.
 
 Initialisation (:meth:`EmbeddedGaussians.on_triangles`): ``per_triangle`` Gaussians per face (the
@@ -55,9 +55,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from avatar.gaussians.model import SH_C0, check_initial_population, inverse_sigmoid
 from avatar.geometry.frames import quaternion_multiply, rotation_to_quaternion, triangle_frames
-from avatar.splatting.walking import WalkTable, build_walk_table, full_barycentric, walk
+from avatar.representations.bound.gaussians import SH_C0, check_initial_population, inverse_sigmoid
+from avatar.representations.embedded.walking import WalkTable, build_walk_table, full_barycentric, walk
 
 PARAM_NAMES = ("barycentric", "displacement", "log_scales", "quats", "opacity_logits", "sh_dc")
 STATE_NAMES = ("triangle", "part", *PARAM_NAMES)
@@ -126,7 +126,7 @@ class CanonicalMesh(nn.Module):
         frames: (F, 3, 3) canonical triangle frames (:func:`avatar.geometry.frames.triangle_frames`).
         face_weights: (F,) area weights of faces in the per-vertex rotations; ``vertex_weights`` (V,)
             their sum per vertex.
-        walk_*: the :class:`avatar.splatting.walking.WalkTable` fields.
+        walk_*: the :class:`avatar.representations.embedded.walking.WalkTable` fields.
     """
 
     vertices: Tensor

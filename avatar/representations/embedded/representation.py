@@ -30,10 +30,10 @@ from avatar.representations import (
     write_model_info,
     write_train_plys,
 )
-from avatar.splatting import EmbeddedGaussians
+from avatar.representations.embedded import EmbeddedGaussians
+from avatar.representations.embedded.training import SplattingConfig, train_splatting
 from avatar.training.frame_params import FrameParams
 from avatar.training.settings import record_refinement, record_validation, validation_config
-from avatar.training.splatting import SplattingConfig, train_splatting
 from avatar.training.validation import ValidationConfig, Validator
 from data_schemas.config_sections import core_config, schema_problems, section_schema
 from data_schemas.splatting import EMBEDDED_GAUSSIANS, SPLATTING_TRAIN_LOG

@@ -6,11 +6,11 @@ import math
 
 import torch
 
-from avatar.splatting import EmbeddedGaussians
-from avatar.splatting.density import EmbeddedDensityConfig, EmbeddedDensityController
-from avatar.splatting.embedding import PARAM_NAMES
-from avatar.training.splatting import SplattingConfig, splatting_param_groups
-from tests.splatting.meshes import hand_and_head
+from avatar.representations.embedded import EmbeddedGaussians
+from avatar.representations.embedded.density import EmbeddedDensityConfig, EmbeddedDensityController
+from avatar.representations.embedded.embedding import PARAM_NAMES
+from avatar.representations.embedded.training import SplattingConfig, splatting_param_groups
+from tests.representations.embedded.meshes import hand_and_head
 
 EXTENT = 1.0
 

@@ -6,8 +6,8 @@ import math
 
 import torch
 
-from avatar.gaussians.density import DensityConfig, DensityController, reset_opacity
-from avatar.gaussians.model import BoundGaussians
+from avatar.representations.bound.density import DensityConfig, DensityController, reset_opacity
+from avatar.representations.bound.gaussians import BoundGaussians
 
 CFG = DensityConfig(densify_from=1, densify_until=100, densify_interval=1, opacity_reset_interval=1000)
 

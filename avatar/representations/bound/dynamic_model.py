@@ -40,11 +40,11 @@ import torch
 from torch import Tensor, nn
 
 from avatar.dynamic.conditioning import FrameConditioning
-from avatar.gaussians.model import SH_C0, BoundGaussians
 from avatar.geometry.frames import place_gaussians, place_means, triangle_frames
 from avatar.nets.encoding import encoded_dim, positional_encoding
 from avatar.nets.mlp import DeltaHeads
 from avatar.nets.pointnet2 import PointNet2Encoder
+from avatar.representations.bound.gaussians import SH_C0, BoundGaussians
 
 HAND_GEO = {"mu": 3, "s": 3, "q": 4}
 HAND_APP = {"c": 3, "o": 1}

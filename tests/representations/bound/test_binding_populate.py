@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from avatar.gaussians.model import BoundGaussians
-from avatar.splatting import EmbeddedGaussians
+from avatar.representations.bound.gaussians import BoundGaussians
+from avatar.representations.embedded import EmbeddedGaussians
 
 
 def _mesh() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -15,12 +15,12 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from avatar.gaussians.density import DensityConfig, DensityController
-from avatar.gaussians.model import BoundGaussians
 from avatar.geometry.views import ViewSet
 from avatar.losses import reconstruction_loss, reconstruction_terms
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import render_gaussians
+from avatar.representations.bound.density import DensityConfig, DensityController
+from avatar.representations.bound.gaussians import BoundGaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.frame_params import FrameParams
 from avatar.training.schedule import exponential_lr, scaled_interval

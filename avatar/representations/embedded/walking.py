@@ -1,6 +1,6 @@
 """Edge adjacency of a triangle mesh and triangle walking of barycentric points (SplattingAvatar).
 
-A Gaussian of :class:`avatar.splatting.EmbeddedGaussians` lives at barycentric ``(u, v, w = 1 - u - v)``
+A Gaussian of :class:`avatar.representations.embedded.EmbeddedGaussians` lives at barycentric ``(u, v, w = 1 - u - v)``
 of its triangle ``(v0, v1, v2)``. When an optimiser step takes it out of the triangle (a coordinate
 below zero) :func:`walk` moves it across the crossed edge into the neighbouring triangle and
 re-expresses its barycentrics there, hop after hop, until it lies inside.

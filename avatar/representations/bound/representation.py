@@ -16,9 +16,7 @@ from omegaconf import DictConfig
 from avatar.artifacts import TRAIN_SEQUENCE, WorldGaussians, contact_flags, load_params, load_scene
 from avatar.artifacts.motion import PosedSequence, applied_deformation, load_sequence, templates
 from avatar.artifacts.stage_run import StageRun
-from avatar.dynamic import DynamicAvatar, DynamicModelConfig
 from avatar.dynamic.conditioning import SequenceConditioning
-from avatar.gaussians.model import BoundGaussians
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import resolve_backend
@@ -31,13 +29,15 @@ from avatar.representations import (
     write_model_info,
     write_train_plys,
 )
+from avatar.representations.bound.dynamic_model import DynamicAvatar, DynamicModelConfig
+from avatar.representations.bound.gaussians import BoundGaussians
+from avatar.representations.bound.stage_two import DynamicTrainConfig, DynamicTrainResult, train_dynamic
+from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup
 from avatar.scene import SceneDecision
-from avatar.training.dynamic import DynamicTrainConfig, DynamicTrainResult, train_dynamic
 from avatar.training.frame_params import FrameParams
 from avatar.training.selection import SelectionConfig
 from avatar.training.settings import frame_params, record_refinement, record_validation, validation_config
 from avatar.training.validation import ValidationConfig, Validator
-from avatar.training.warmup import WarmupTrainConfig, train_warmup
 from data_schemas.config_sections import core_config
 from data_schemas.gaussians import BOUND_GAUSSIANS, DYNAMIC_TRAIN_LOG, TRAIN_LOG
 from data_schemas.tables import SchemaError, TableSchema, read_table, write_records, write_table
@@ -221,8 +221,9 @@ class BoundAvatar:
 
 class BoundRepresentation(Representation):
     """GaussianAvatars' binding (``method.representation=bound``): stage one trains static Gaussians bound to the
-    triangles (:func:`avatar.training.warmup.train_warmup`); stage two adds InteractAvatar's MLPs and PointNet++
-    (:func:`avatar.training.dynamic.train_dynamic`), as far as ``stage.dynamic`` and the scene analysis keep them."""
+    triangles (:func:`~avatar.representations.bound.warmup.train_warmup`); stage two adds InteractAvatar's MLPs
+    and PointNet++ (:func:`~avatar.representations.bound.stage_two.train_dynamic`), as far as ``stage.dynamic`` and
+    the scene analysis keep them."""
 
     train_logs: ClassVar[dict[str, tuple[TableSchema, tuple[str, ...]]]] = {
         "warmup": (TRAIN_LOG, ("loss", "l1", "dssim")),

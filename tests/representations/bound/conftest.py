@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from avatar.dynamic import DynamicAvatar, DynamicModelConfig, SequenceConditioning, sequence_conditioning
-from avatar.gaussians.model import PARAM_NAMES, BoundGaussians
+from avatar.dynamic import SequenceConditioning, sequence_conditioning
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence, posed_meshes
+from avatar.representations.bound.dynamic_model import DynamicAvatar, DynamicModelConfig
+from avatar.representations.bound.gaussians import PARAM_NAMES, BoundGaussians
 from avatar.templates import procedural_hand, procedural_head
 
 SIZE = 32

@@ -10,16 +10,21 @@ import pytest
 import torch
 from torch import nn
 
-from avatar.dynamic import DynamicModelConfig, interaction_weights, sequence_conditioning
-from avatar.dynamic.model import nearest_distance, sample_one_per_triangle
-from avatar.gaussians.model import SH_C0
+from avatar.dynamic import sequence_conditioning
 from avatar.nets.encoding import encoded_dim, positional_encoding
 from avatar.nets.mlp import DeltaMLP
 from avatar.posing import pose_layers
+from avatar.representations.bound.dynamic_model import (
+    DynamicModelConfig,
+    interaction_weights,
+    nearest_distance,
+    sample_one_per_triangle,
+)
+from avatar.representations.bound.gaussians import SH_C0
+from avatar.representations.bound.warmup import render_frame
 from avatar.templates import procedural_hand, procedural_head
-from avatar.training.dynamic import rasterize
-from avatar.training.warmup import render_frame
-from tests.dynamic.conftest import FAR, NEAR, TINY, Scene, make_scene, scene_params
+from avatar.training.rendering import rasterize
+from tests.representations.bound.conftest import FAR, NEAR, TINY, Scene, make_scene, scene_params
 
 
 @pytest.mark.parametrize("backend", ["torch", "cpu"])
@@ -221,8 +226,8 @@ def test_extremes_stay_finite(case: str) -> None:
 
 def _only(scene: Scene, model, keep: torch.Tensor, cfg: DynamicModelConfig):
     """A model of the face Gaussians only (no hand Gaussian at all)."""
-    from avatar.dynamic import DynamicAvatar
-    from avatar.gaussians.model import BoundGaussians
+    from avatar.representations.bound.dynamic_model import DynamicAvatar
+    from avatar.representations.bound.gaussians import BoundGaussians
 
     g = model.gaussians
     sub = BoundGaussians(

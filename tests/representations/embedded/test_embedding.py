@@ -7,11 +7,11 @@ import pytest
 import torch
 from torch.func import functional_call
 
-from avatar.splatting import EmbeddedGaussians
-from avatar.splatting.embedding import STATE_NAMES
+from avatar.representations.embedded import EmbeddedGaussians
+from avatar.representations.embedded.embedding import STATE_NAMES
 from data_schemas.splatting import EMBEDDED_GAUSSIANS
 from data_schemas.tables import read_table, write_table
-from tests.splatting.meshes import bumpy, deform, grid, rotation_z, template
+from tests.representations.embedded.meshes import bumpy, deform, grid, rotation_z, template
 
 
 def _model(verts: torch.Tensor, faces: torch.Tensor, per_triangle: int = 3, seed: int = 0) -> EmbeddedGaussians:

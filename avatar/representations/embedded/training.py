@@ -18,17 +18,17 @@ The recipe of the public code (``initialneil/SplattingAvatar``):
   1.6e-4 decayed exponentially to 1.6e-6 over the run (``scheduler_args``; ``lr_delay_mult`` has no
   effect without delay steps), colour 2.5e-3, opacity 0.05, scaling 5e-3, rotation 1e-3;
 - density control from step 100 every 100 until 15 000 of 30 000, opacity reset every 3 000,
-  gradient threshold 2e-4, min opacity 0.005, ``percent_dense`` 0.01 (:mod:`avatar.splatting.density`);
+  gradient threshold 2e-4, min opacity 0.005, ``percent_dense`` 0.01 (:mod:`avatar.representations.embedded.density`);
   here as fractions of the run. The scene extent is 2.0: ``train_splatting_avatar.py`` calls
   ``adaptive_density_control(render_pkg, iteration)``, whose ``cameras_extent`` defaults to 2.0 (the
   dataset's ``cameras_extent: 1.0`` is not passed on). ``optim.max_n_gauss`` is 150 000, but
   ``densify_and_prune`` reads ``model.max_n_gauss`` (commented out, so no cap); the cap here is
   150 000;
 - triangle walk every ``triangle_walk_interval = 100`` steps (``update_trangle_walk``); here every
-  Gaussian that left its triangle walks (:mod:`avatar.splatting.walking`) and the Adam moments of the
+  Gaussian that left its triangle walks (:mod:`avatar.representations.embedded.walking`) and the Adam moments of the
   walked Gaussians' ``(u, v)`` are zeroed (the public code zeroes those of all Gaussians).
 
-Structure as :mod:`avatar.training.warmup`: one random (frame, camera) per step, verified checkpoints
+Structure as :mod:`avatar.representations.bound.warmup`: one random (frame, camera) per step, verified checkpoints
 that resume bit for bit, a :class:`LogRow` list. Calling :func:`train_splatting` again on a trained
 model with ``densify_until = 0`` continues without density control (walking goes on).
 """
@@ -48,8 +48,8 @@ from avatar.metrics import LPIPS, dssim_loss
 from avatar.metrics.lpips_weights import Net
 from avatar.posing import MeshSequence
 from avatar.render.gaussians import RenderOutput, render_gaussians
-from avatar.splatting.density import EmbeddedDensityConfig, EmbeddedDensityController
-from avatar.splatting.embedding import EmbeddedGaussians
+from avatar.representations.embedded.density import EmbeddedDensityConfig, EmbeddedDensityController
+from avatar.representations.embedded.embedding import EmbeddedGaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.schedule import exponential_lr, scaled_interval
 from avatar.training.validation import ValidationConfig, Validator

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import torch
 
-from avatar.gaussians.model import SH_C0
+from avatar.representations.bound.gaussians import SH_C0
 from benchmarks.hand_deltas import heads_off
-from tests.dynamic.conftest import NEAR, Scene
+from tests.representations.bound.conftest import NEAR, Scene
 
 
 def test_heads_off_zeroes_one_head_and_restores_the_model(scene: Scene) -> None:

@@ -11,7 +11,7 @@ from ``densify_from`` on, Gaussians whose mean gradient reaches ``grad_threshold
   Gaussian (``N(0, diag(s^2))`` rotated by it) and written as barycentric and displacement steps on
   the parent's canonical triangle (least squares in the triangle's plane, the rest along the
   interpolated normal); children start on the parent's triangle and then walk
-  (:mod:`avatar.splatting.walking`), so they always end on a valid triangle. The public code projects
+  (:mod:`avatar.representations.embedded.walking`), so they always end on a valid triangle. The public code projects
   split children onto the mesh with its Phong-surface solver instead.
 
 Then Gaussians are pruned when their opacity is below ``min_opacity`` (0.005) or any parameter is
@@ -35,9 +35,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from avatar.gaussians.model import inverse_sigmoid
-from avatar.splatting.embedding import PARAM_NAMES, EmbeddedGaussians, barycentric_blend
-from avatar.splatting.walking import full_barycentric
+from avatar.representations.bound.gaussians import inverse_sigmoid
+from avatar.representations.embedded.embedding import PARAM_NAMES, EmbeddedGaussians, barycentric_blend
+from avatar.representations.embedded.walking import full_barycentric
 
 SPLIT_CHILDREN = 2
 SPLIT_SCALE_DIVISOR = 0.8 * SPLIT_CHILDREN  # 3DGS: children's scales are the parent's / (0.8 N)

@@ -8,7 +8,7 @@ import torch
 
 from avatar.losses import patch_perceptual_loss
 from avatar.metrics.lpips import LPIPS
-from avatar.training.dynamic import (
+from avatar.representations.bound.stage_two import (
     DynamicTrainConfig,
     contact_draw_probability,
     patch_boxes,
@@ -18,7 +18,7 @@ from avatar.training.dynamic import (
 )
 from avatar.training.selection import SelectionConfig
 from avatar.training.validation import ValidationConfig, Validator
-from tests.dynamic.conftest import NEAR, Scene
+from tests.representations.bound.conftest import NEAR, Scene
 
 CONTACT = np.array([True, False])
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from avatar.gaussians.model import PARAM_NAMES, BoundGaussians, inverse_sigmoid
+from avatar.representations.bound.gaussians import PARAM_NAMES, BoundGaussians, inverse_sigmoid
 
 
 @dataclass(frozen=True)

@@ -1,1 +1,0 @@
-"""Gaussians bound to mesh triangles: local frames, initialisation, density control."""
