@@ -14,7 +14,9 @@ GaussianAvatars baseline (``--methods``) through the CLI into a fresh directory,
 manifest: the sha256 of each output file (the manifest's own record, checked against the bytes) and the
 stage's cache key. Files that record when or how fast something ran (the report's page, timing logs, the
 comparison's text tables) differ between any two runs and are listed apart by name, never compared; a Parquet table
-with a wall-time column (the comparison's ``train_wall_s``) is compared without it. ``compare`` prints every
+with a wall-time column (the comparison's ``train_wall_s``) is compared without it. The cache keys of the stages
+that show their inputs' run records (compare, report: their keys cover those manifests' timings and commit) are
+listed apart the same way. ``compare`` prints every
 difference and exits 1 when there is one.
 """
 
@@ -33,6 +35,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 
 from pipeline.manifest import MANIFEST_NAME, sha256_file
+from stages import REGISTRY
 from tests.conftest import REPO, cli_command
 
 #: one method per representation (bound with every module, embedded) and the static baseline
@@ -62,7 +65,11 @@ def collect(outputs: Path) -> dict[str, dict[str, str]]:
     for manifest_path in sorted(outputs.rglob(MANIFEST_NAME)):
         stage_dir = manifest_path.parent
         manifest = json.loads(manifest_path.read_text())
-        keys[stage_dir.relative_to(outputs).as_posix()] = manifest["key"]
+        where = stage_dir.relative_to(outputs).as_posix()
+        if REGISTRY[manifest["stage"]].reads_manifests:
+            timed[f"key of {where}"] = ""
+        else:
+            keys[where] = manifest["key"]
         for rel, digest in sorted(manifest["outputs"].items()):
             path = stage_dir / rel
             if sha256_file(path) != digest:

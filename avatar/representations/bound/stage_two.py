@@ -33,6 +33,7 @@ from avatar.representations.bound.dynamic_model import DynamicAvatar, DynamicFra
 from avatar.representations.bound.warmup import gaussian_param_groups
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.frame_params import FrameParams
+from avatar.training.loop import run_steps
 from avatar.training.rendering import rasterize
 from avatar.training.schedule import exponential_lr
 from avatar.training.selection import BestStep, Selection, SelectionConfig, select
@@ -267,7 +268,8 @@ def train_dynamic(
     result.contact_probability = contact_draw_probability(
         validator.train_frames, contact, cfg.contact_fraction, cfg.max_contact_emphasis
     )
-    for step in progress(steps):
+
+    def train_step(step: int) -> tuple[Tensor, dict[str, Tensor], int]:
         frame = sample_frame(gen, validator.train_frames, contact, result.contact_probability)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         _set_learning_rates(optimizer, cfg, step)
@@ -293,38 +295,50 @@ def train_dynamic(
             result.seconds[key] += seconds
         result.interaction_evaluations += g.interaction_evaluations
         result.interaction_steps += int(g.interaction_evaluations > 0)
-        stop = validator.after_step(step, render)
-        offer_validation()
-        if step % cfg.log_every == 0 or step == validator.end:
-            result.log.append(
-                DynamicLogRow(
-                    step,
-                    loss.item(),
-                    l1=terms["l1"].item(),
-                    dssim=terms["dssim"].item(),
-                    scale_reg=terms["scale_reg"].item(),
-                    position_reg=terms["position_reg"].item(),
-                    patch=terms["patch"].item(),
-                    interaction_evaluations=g.interaction_evaluations,
-                )
-            )
-        if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-            save_checkpoint(
-                ckpt_path,
-                {
-                    "step": step,
-                    "model": model.state_dict(),
-                    "optimizer": optimizer.state_dict(),
-                    "rng": gen.get_state(),
-                    "log": [asdict(r) for r in result.log],
-                    "interaction": (result.interaction_evaluations, result.interaction_steps),
-                    "validation": validator.state(),
-                    "best": best.state() if best is not None else None,
-                    "params": params.state() if params is not None else None,
-                },
-            )
-        if stop:
-            break
+        return loss, terms, g.interaction_evaluations
+
+    def log_row(step: int, outcome: tuple[Tensor, dict[str, Tensor], int]) -> DynamicLogRow:
+        loss, terms, interaction_evaluations = outcome
+        return DynamicLogRow(
+            step,
+            loss.item(),
+            l1=terms["l1"].item(),
+            dssim=terms["dssim"].item(),
+            scale_reg=terms["scale_reg"].item(),
+            position_reg=terms["position_reg"].item(),
+            patch=terms["patch"].item(),
+            interaction_evaluations=interaction_evaluations,
+        )
+
+    def checkpoint(step: int) -> None:
+        assert ckpt_path is not None
+        save_checkpoint(
+            ckpt_path,
+            {
+                "step": step,
+                "model": model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "rng": gen.get_state(),
+                "log": [asdict(r) for r in result.log],
+                "interaction": (result.interaction_evaluations, result.interaction_steps),
+                "validation": validator.state(),
+                "best": best.state() if best is not None else None,
+                "params": params.state() if params is not None else None,
+            },
+        )
+
+    run_steps(
+        progress(steps),
+        train_step,
+        validator,
+        render,
+        result.log,
+        log_row,
+        cfg.log_every,
+        checkpoint if ckpt_path is not None else None,
+        cfg.checkpoint_every,
+        after_validation=offer_validation,
+    )
     if best is not None:
         best.restore(model, params)
         result.selection = select(

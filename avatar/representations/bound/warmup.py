@@ -18,11 +18,12 @@ from torch import Tensor
 from avatar.geometry.views import ViewSet
 from avatar.losses import reconstruction_loss, reconstruction_terms
 from avatar.posing import MeshSequence
-from avatar.render.gaussians import render_gaussians
 from avatar.representations.bound.density import DensityConfig, DensityController
 from avatar.representations.bound.gaussians import BoundGaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.frame_params import FrameParams
+from avatar.training.loop import run_steps
+from avatar.training.rendering import render_view
 from avatar.training.schedule import exponential_lr, scaled_interval
 from avatar.training.validation import ValidationConfig, Validator
 
@@ -120,19 +121,7 @@ def render_frame(
     that frame's posed vertices when they differ from ``meshes``', e.g. refined by :class:`FrameParams`)."""
     vertices = meshes.vertices[frame] if vertices is None else vertices
     means, scales, quats = model.world(vertices, meshes.faces)
-    return render_gaussians(
-        means,
-        quats,
-        scales,
-        model.opacities(),
-        model.colors(),
-        views.K[camera],
-        views.world_to_cam[camera],
-        views.size,
-        views.size,
-        views.background,
-        backend=backend,
-    ), scales
+    return render_view(means, quats, scales, model.opacities(), model.colors(), views, camera, backend), scales
 
 
 @torch.no_grad()
@@ -205,7 +194,7 @@ def train_warmup(
             ]
         )
 
-    for step in progress(validator.begin(start, cfg.steps, density.cfg.densify_until, render)):
+    def train_step(step: int) -> tuple[Tensor, dict[str, Tensor]]:
         frame = validator.sample_frame(gen)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         for group in optimizer.param_groups:
@@ -225,23 +214,35 @@ def train_warmup(
         if params is not None:
             params.step(frame, validator.train_frames)
         density.step(step, model, optimizer, world_scales.detach(), extent)
-        stop = validator.after_step(step, render)
-        if step % cfg.log_every == 0 or step == validator.end:
-            log.append(
-                LogRow(
-                    step,
-                    loss.item(),
-                    l1=terms["l1"].item(),
-                    dssim=terms["dssim"].item(),
-                    scale_reg=terms["scale_reg"].item(),
-                    position_reg=terms["position_reg"].item(),
-                    num_gaussians=model.num_gaussians,
-                )
-            )
-        if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-            _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log, validator, params)
-        if stop:
-            break
+        return loss, terms
+
+    def log_row(step: int, outcome: tuple[Tensor, dict[str, Tensor]]) -> LogRow:
+        loss, terms = outcome
+        return LogRow(
+            step,
+            loss.item(),
+            l1=terms["l1"].item(),
+            dssim=terms["dssim"].item(),
+            scale_reg=terms["scale_reg"].item(),
+            position_reg=terms["position_reg"].item(),
+            num_gaussians=model.num_gaussians,
+        )
+
+    def checkpoint(step: int) -> None:
+        assert ckpt_path is not None
+        _save_checkpoint(ckpt_path, step, model, optimizer, density, gen, log, validator, params)
+
+    run_steps(
+        progress(validator.begin(start, cfg.steps, density.cfg.densify_until, render)),
+        train_step,
+        validator,
+        render,
+        log,
+        log_row,
+        cfg.log_every,
+        checkpoint if ckpt_path is not None else None,
+        cfg.checkpoint_every,
+    )
     return log
 
 

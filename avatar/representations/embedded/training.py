@@ -47,10 +47,12 @@ from avatar.geometry.views import ViewSet
 from avatar.metrics import LPIPS, dssim_loss
 from avatar.metrics.lpips_weights import Net
 from avatar.posing import MeshSequence
-from avatar.render.gaussians import RenderOutput, render_gaussians
+from avatar.render.gaussians import RenderOutput
 from avatar.representations.embedded.density import EmbeddedDensityConfig, EmbeddedDensityController
 from avatar.representations.embedded.embedding import EmbeddedGaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
+from avatar.training.loop import run_steps
+from avatar.training.rendering import render_view
 from avatar.training.schedule import exponential_lr, scaled_interval
 from avatar.training.validation import ValidationConfig, Validator
 
@@ -134,20 +136,7 @@ def render_splatting(
 ) -> tuple[RenderOutput, Tensor]:
     """Render ``model`` on frame ``frame``'s meshes from camera ``camera``; also the world scales (N, 3)."""
     means, scales, quats = model.world(meshes.vertices[frame], meshes.faces)
-    out = render_gaussians(
-        means,
-        quats,
-        scales,
-        model.opacities(),
-        model.colors(),
-        views.K[camera],
-        views.world_to_cam[camera],
-        views.size,
-        views.size,
-        views.background,
-        backend=backend,
-    )
-    return out, scales
+    return render_view(means, quats, scales, model.opacities(), model.colors(), views, camera, backend), scales
 
 
 def scale_penalty(world_scales: Tensor, max_threshold: float, ratio_threshold: float) -> Tensor:
@@ -264,7 +253,8 @@ def train_splatting(
             [render_splatting(model, meshes, views, frame, c, cfg.backend)[0].rgb for c in range(views.num_cameras)]
         )
 
-    for step in progress(validator.begin(start, cfg.steps, density.cfg.densify_until, render)):
+    def train_step(step: int) -> tuple[Tensor, dict[str, Tensor]]:
+        nonlocal walked
         frame = validator.sample_frame(gen)
         camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
         _set_position_lr(optimizer, step, cfg)
@@ -279,38 +269,52 @@ def train_splatting(
         walked += density.step(step, model, optimizer, extent)["walked"]
         if cfg.walk_every > 0 and step % cfg.walk_every == 0:
             walked += _walk(model, optimizer, cfg.max_hops)
-        stop = validator.after_step(step, render)
-        if step % cfg.log_every == 0 or step == validator.end:
-            log.append(
-                LogRow(
-                    step,
-                    loss.item(),
-                    l1=terms["l1"].item(),
-                    dssim=terms["dssim"].item(),
-                    mse=terms["mse"].item(),
-                    lpips=terms["lpips"].item(),
-                    scale_reg=terms["scale_reg"].item(),
-                    num_gaussians=model.num_gaussians,
-                    walked=walked,
-                )
-            )
-            walked = 0
-        if ckpt_path is not None and cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-            save_checkpoint(
-                ckpt_path,
-                {
-                    "step": step,
-                    "model": model.state_dict(),
-                    "optimizer": optimizer.state_dict(),
-                    "density": density.state(),
-                    "rng": gen.get_state(),
-                    "walked": walked,
-                    "log": [asdict(r) for r in log],
-                    "validation": validator.state(),
-                },
-            )
-        if stop:
-            break
+        return loss, terms
+
+    def log_row(step: int, outcome: tuple[Tensor, dict[str, Tensor]]) -> LogRow:
+        nonlocal walked
+        loss, terms = outcome
+        row = LogRow(
+            step,
+            loss.item(),
+            l1=terms["l1"].item(),
+            dssim=terms["dssim"].item(),
+            mse=terms["mse"].item(),
+            lpips=terms["lpips"].item(),
+            scale_reg=terms["scale_reg"].item(),
+            num_gaussians=model.num_gaussians,
+            walked=walked,
+        )
+        walked = 0
+        return row
+
+    def checkpoint(step: int) -> None:
+        assert ckpt_path is not None
+        save_checkpoint(
+            ckpt_path,
+            {
+                "step": step,
+                "model": model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "density": density.state(),
+                "rng": gen.get_state(),
+                "walked": walked,
+                "log": [asdict(r) for r in log],
+                "validation": validator.state(),
+            },
+        )
+
+    run_steps(
+        progress(validator.begin(start, cfg.steps, density.cfg.densify_until, render)),
+        train_step,
+        validator,
+        render,
+        log,
+        log_row,
+        cfg.log_every,
+        checkpoint if ckpt_path is not None else None,
+        cfg.checkpoint_every,
+    )
     return log
 
 
