@@ -27,6 +27,7 @@ from avatar.representations.bound.warmup import WarmupTrainConfig
 from avatar.representations.embedded.representation import SHARED_SCHEDULE
 from avatar.representations.embedded.training import SplattingConfig
 from avatar.training.avatar_tracking import AvatarTrackingConfig
+from avatar.training.frame_params import ParamLearningRates
 from avatar.viewer.codec import CodecConfig
 from data_schemas.config_sections import with_generated_block
 
@@ -46,6 +47,7 @@ class GeneratedDefaults:
 
 BLOCKS = (
     GeneratedDefaults("stage/warmup.yaml", WarmupTrainConfig, ("steps", *PIPELINE_CHOICES)),
+    GeneratedDefaults("stage/warmup.yaml", ParamLearningRates, ()),
     GeneratedDefaults("stage/dynamic.yaml", DynamicModelConfig, PRESET_ARCHITECTURE),
     GeneratedDefaults("stage/dynamic.yaml", DynamicTrainConfig, ("steps", "selection", *PIPELINE_CHOICES)),
     GeneratedDefaults("config.yaml", SplattingConfig, SHARED_SCHEDULE),

@@ -41,7 +41,7 @@ from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.posing import posed_keypoints  # noqa: E402
 from avatar.representations.bound.gaussians import BoundGaussians  # noqa: E402
 from avatar.representations.bound.warmup import WarmupTrainConfig, colors_from_views, render_frame, train_warmup  # noqa: E402
-from avatar.training.frame_params import FrameParams, ParamLearningRates  # noqa: E402
+from avatar.training.frame_params import GAUSSIAN_AVATARS_RATES, FrameParams, ParamLearningRates  # noqa: E402
 from avatar.training.validation import ValidationConfig, Validator  # noqa: E402
 from benchmarks.provenance import commit, cpu_name  # noqa: E402
 from data_schemas.capture import MASK_LABELS, CaptureIndex  # noqa: E402
@@ -49,7 +49,7 @@ from pipeline.summary import format_table  # noqa: E402
 
 DRAFT = WarmupTrainConfig(steps=2000, opacity_reset_interval=0.25, max_gaussians=100_000, seed=0)  # conf/quality/draft
 GAUSSIANS_PER_TRIANGLE, INIT_OPACITY, VALIDATION = 2, 0.3, ValidationConfig(every=200, frames=4)
-BASE = ParamLearningRates()  # GaussianAvatars' values (the defaults of conf/stage/warmup.yaml are 10x these)
+BASE = GAUSSIAN_AVATARS_RATES  # the defaults (ParamLearningRates(), conf/stage/warmup.yaml) are 10x these
 
 
 def _cameras(views: ViewSet, index: list[int]) -> ViewSet:

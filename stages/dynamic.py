@@ -23,8 +23,9 @@ from avatar.representations import VALIDATED_RUN, representation, representation
 from avatar.representations.bound.dynamic_model import DynamicModelConfig
 from avatar.representations.bound.representation import PRESET_ARCHITECTURE, selection_config
 from avatar.representations.bound.stage_two import DynamicTrainConfig
+from avatar.training.frame_params import ParamLearningRates
 from avatar.training.selection import SelectionConfig
-from avatar.training.settings import ParamsLrSchema, ValidationSchema, refinement_problems, validation_problems
+from avatar.training.settings import ValidationSchema, refinement_problems, validation_problems
 from data_schemas.config_sections import core_config, section_schema
 from pipeline.stage import StageContext, stage
 
@@ -44,7 +45,7 @@ class DynamicStageSettings:
 
     ply_frames: list[int]
     refine_params: str
-    params_lr: ParamsLrSchema
+    params_lr: ParamLearningRates
     params_centred: bool
     select: SelectSchema
     restarts: int

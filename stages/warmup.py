@@ -23,9 +23,8 @@ from avatar.representations import (
     unused_training_settings,
 )
 from avatar.representations.bound.warmup import WarmupTrainConfig, colors_from_views
-from avatar.training.frame_params import FrameParams
+from avatar.training.frame_params import FrameParams, ParamLearningRates
 from avatar.training.settings import (
-    ParamsLrSchema,
     ValidationSchema,
     frame_params,
     record_refinement,
@@ -48,7 +47,7 @@ class WarmupSettings:
     init_opacity: float
     ply_frame: int
     refine_params: str
-    params_lr: ParamsLrSchema
+    params_lr: ParamLearningRates
     params_centred: bool
     validation: ValidationSchema
 

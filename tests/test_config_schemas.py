@@ -27,6 +27,7 @@ from avatar.representations.embedded.representation import SHARED_SCHEDULE, Spla
 from avatar.representations.embedded.training import SplattingConfig
 from avatar.scene import SceneDecision
 from avatar.training.avatar_tracking import AvatarTrackingConfig
+from avatar.training.frame_params import ParamLearningRates
 from avatar.viewer.codec import CodecConfig
 from data_schemas.config_sections import core_config, core_fields, section_schema, yaml_defaults, yaml_value
 from pipeline.config import ConfigError, validate_config
@@ -48,6 +49,7 @@ SECTIONS = [
     (PBDConfig, "stage.pbd.solver", (), PBDConfig),
     (CodecConfig, "stage.viewer", (), ViewerConfig),
     (AvatarTrackingConfig, "stage.evaluate.tracking", (), AvatarTrackingConfig),
+    (ParamLearningRates, "stage.warmup.params_lr", (), ParamLearningRates),
 ]
 
 

@@ -33,15 +33,18 @@ REFINED_COLUMNS: dict[str, tuple[str, ...]] = {
 }
 
 
-@dataclass(frozen=True)
+@dataclass
 class ParamLearningRates:
     """Adam learning rates of the refined parameters, per group of :data:`REFINED_COLUMNS` (radians and metres
-    per update of a frame; GaussianAvatars' values as defaults). 0 holds a group as fitted."""
+    per update of a frame). 0 holds a group as fitted. The defaults were chosen on the training views
+    (benchmarks/bench_train_refine.py, docs/explanation/tracking-refinement.md): ten times GaussianAvatars'
+    (:data:`GAUSSIAN_AVATARS_RATES`), centred, the largest whose loss on the withheld training frames stays within
+    the validation seed spread. Also the type schema of ``stage.<warmup|dynamic>.params_lr`` (so not frozen)."""
 
-    rotation: float = 1e-5
-    pose: float = 1e-5
-    translation: float = 1e-6
-    expression: float = 1e-3
+    rotation: float = 1e-4  # FLAME and MANO global rotations (GaussianAvatars: 1e-5)
+    pose: float = 1e-4  # neck, jaw, eyes, fingers (GaussianAvatars: 1e-5)
+    translation: float = 1e-5  # FLAME and MANO translations (GaussianAvatars: 1e-6)
+    expression: float = 1e-2  # FLAME expression (GaussianAvatars: 1e-3)
 
     def problems(self) -> list[str]:
         """Range problems, one line each, keyed relative to the block; empty when it can run."""
@@ -50,6 +53,10 @@ class ParamLearningRates:
             for f in fields(self)
             if not (math.isfinite(getattr(self, f.name)) and getattr(self, f.name) >= 0)
         ]
+
+
+#: GaussianAvatars' rates of the FLAME fine-tuning
+GAUSSIAN_AVATARS_RATES = ParamLearningRates(rotation=1e-5, pose=1e-5, translation=1e-6, expression=1e-3)
 
 
 class FrameAdam:

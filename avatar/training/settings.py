@@ -59,16 +59,6 @@ def refinement_problems(section: DictConfig) -> list[str]:
     return problems + [f"params_lr.{p}" for p in param_learning_rates(section).problems()]
 
 
-@dataclass
-class ParamsLrSchema:
-    """Types of ``stage.<warmup|dynamic>.params_lr`` (:class:`ParamLearningRates`)."""
-
-    rotation: float
-    pose: float
-    translation: float
-    expression: float
-
-
 def record_refinement(
     ctx: StageRun, fitted: dict[str, np.ndarray], trained_on: dict[str, np.ndarray], params: FrameParams | None
 ) -> None:
