@@ -87,7 +87,7 @@ lint: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 
-## make typecheck: mypy on avatar, data_schemas, importers, pipeline and stages, its settings in pyproject.toml ([tool.mypy])
+## make typecheck: mypy on avatar, data_schemas, importers, pipeline, reporting and stages, its settings in pyproject.toml ([tool.mypy])
 typecheck: $(STAMP)
 	$(PY) -m mypy
 

@@ -31,25 +31,14 @@ from data_schemas.metrics import COMPARISON, METRICS
 from data_schemas.tables import write_table
 from data_schemas.web_escape import url_path
 from pipeline.manifest import MANIFEST_NAME
-from stages.report import (
-    _cameras_table,
-    _comparison_section,
-    _contact_paragraph,
-    _contact_sheet_section,
-    _dynamic_summary,
-    _fit_section,
-    _image_png,
-    _intro,
-    _metrics_section,
-    _page,
-    _pbd_section,
-    _png_image,
-    _reenact_section,
-    _renders_section,
-    _scene_section,
-    _stages_table,
-    _viewer_section,
-)
+from reporting.capture import cameras_table, contact_paragraph, contact_sheet_section, intro, stages_table
+from reporting.comparison import comparison_section
+from reporting.evaluation import metrics_section, renders_section
+from reporting.fit import fit_section
+from reporting.html import image_png, page, png_image
+from reporting.reenact import reenact_section, viewer_section
+from reporting.scene import pbd_section, scene_section
+from reporting.training import dynamic_summary
 from tests.viewer.conftest import NEEDS_BROWSER
 from tests.viewer.toy_viewer import BACKGROUND, CAMERAS, SIZE, K, toy_avatar, toy_meshes
 
@@ -82,7 +71,7 @@ def _json(path: Path, value: object) -> Path:
 def _png(path: Path) -> Path:
     """A 1x1 PNG at ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(base64.b64decode(_image_png(np.zeros((1, 1, 3), np.uint8))))
+    path.write_bytes(base64.b64decode(image_png(np.zeros((1, 1, 3), np.uint8))))
     return path
 
 
@@ -193,24 +182,24 @@ def hostile_report(root: Path) -> str:
     camera = Camera(NAME, 8, 8, np.asarray(K), np.eye(4), np.zeros(5), TEXT)
     manifests = {NAME: _manifest({NAME: TEXT}), "pbd": _manifest({}), "dynamic": _manifest({"steps": TEXT})}
     manifests["warmup"] = _manifest({}, {"quality.gaussians_per_triangle": 1})
-    png = _image_png(np.zeros((2, 2, 3), np.uint8))
-    return _page(
+    png = image_png(np.zeros((2, 2, 3), np.uint8))
+    return page(
         [
-            _intro(TEXT, NAME, TEXT, TEXT, TEXT, {NAME: sequence, OTHER: sequence}, 2),
-            _contact_paragraph({NAME: (1, 3, TEXT)}),
-            _scene_section(_scene(root / "scene"), manifests),
-            _stages_table(manifests),
-            _cameras_table([camera]),
-            _fit_section(_fit(root / "fit")),
-            _pbd_section(_pbd(root / "pbd")),
-            _metrics_section(_evaluate(root / "evaluate")),
-            _reenact_section(_reenact(root / "reenact")),
-            _viewer_section(_viewer(root / "methods")),
-            _comparison_section(_compare(root / "compare")),
-            _dynamic_summary({"metrics": {"steps": TEXT, "ms_per_step": 1.0}}),
-            _contact_sheet_section(NAME, 0, TEXT, png),
-            _renders_section(TEXT, _png(root / "grids" / "novel_view.png").parent),
-            _png_image(TEXT, png),
+            intro(TEXT, NAME, TEXT, TEXT, TEXT, {NAME: sequence, OTHER: sequence}, 2),
+            contact_paragraph({NAME: (1, 3, TEXT)}),
+            scene_section(_scene(root / "scene"), manifests),
+            stages_table(manifests),
+            cameras_table([camera]),
+            fit_section(_fit(root / "fit")),
+            pbd_section(_pbd(root / "pbd")),
+            metrics_section(_evaluate(root / "evaluate")),
+            reenact_section(_reenact(root / "reenact")),
+            viewer_section(_viewer(root / "methods")),
+            comparison_section(_compare(root / "compare")),
+            dynamic_summary({"metrics": {"steps": TEXT, "ms_per_step": 1.0}}),
+            contact_sheet_section(NAME, 0, TEXT, png),
+            renders_section(TEXT, _png(root / "grids" / "novel_view.png").parent),
+            png_image(TEXT, png),
         ]
     )
 

@@ -11,16 +11,9 @@ from scipy.stats import ttest_ind
 
 from avatar.metrics.stats import welch_p
 from data_schemas.metrics import CONTACT_GROUPS
-from stages.compare import (
-    SHARED_STAGES,
-    MethodRun,
-    _comparison_rows,
-    _cost,
-    _crop,
-    _lookup,
-    _tables,
-    stale_reason,
-)
+from reporting.comparison_figure import crop_box
+from reporting.comparison_tables import comparison_rows, comparison_tables, lookup, run_cost
+from reporting.method_runs import SHARED_STAGES, MethodRun, stale_reason
 from stages.evaluate import showcase_pairs
 from tests.conftest import CONF_DIR
 
@@ -70,7 +63,7 @@ def _run(name: str, warmup_key: str = "k0", seed: int = 0, train_seed: int = 0, 
 
 def test_rows_are_the_means_of_their_group_ignoring_absent_regions_and_perfect_images():
     runs = [_run("interactavatar"), _run("gaussian_avatars", seed=1)]
-    rows = _comparison_rows(runs)
+    rows = comparison_rows(runs)
     for run in runs:
         t = run.metrics
         for split in ("novel_view", "self_reenact"):
@@ -81,7 +74,7 @@ def test_rows_are_the_means_of_their_group_ignoring_absent_regions_and_perfect_i
                         sel &= t["contact"] == (group == "contact")
                     psnr = t["psnr"][sel]
                     expected = np.mean(psnr[np.isfinite(psnr)])
-                    got = _lookup(rows, run.name, split, region, group)
+                    got = lookup(rows, run.name, split, region, group)
                     assert got["psnr"] == pytest.approx(expected, rel=1e-12)
                     assert got["lpips"] == pytest.approx(np.nanmean(t["lpips"][sel]), rel=1e-12)
     hand_all = [
@@ -99,14 +92,14 @@ def test_rows_are_the_means_of_their_group_ignoring_absent_regions_and_perfect_i
 def test_a_group_without_images_has_no_row():
     run = _run("interactavatar")
     run.metrics["contact"][:] = False
-    rows = _comparison_rows([run])
+    rows = comparison_rows([run])
     assert "contact" not in set(rows["contact"]) and {"all", "no_contact"} == set(rows["contact"])
 
 
 def test_shared_warmups_count_once_in_the_cost():
     runs = [_run("a", "k0"), _run("b", "k0"), _run("c", "k1")]
     shared = {"capture": {"timings": {"wall_s": 100.0}}}
-    cost = _cost(runs, shared)
+    cost = run_cost(runs, shared)
     assert cost["warmups_trained"] == 2
     assert cost["total_wall_s"] == pytest.approx(100 + 2 * 10 + 3 * (5 + 2))
     assert cost["unshared_wall_s"] == pytest.approx(3 * 100 + 3 * 10 + 3 * (5 + 2))
@@ -118,8 +111,8 @@ def test_a_resumed_run_counts_the_killed_runs_work_and_is_marked():
     run.manifests["dynamic"]["timings"]["resumed_s"] = 7.0
     assert run.train_wall_s == pytest.approx(15.0 + 7.0) and run.resumed and not _run("no_pbd").resumed
     runs = [run, _run("gaussian_avatars")]
-    tables = _tables(
-        runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    tables = comparison_tables(
+        runs, comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
     )
     budget = next(t for t in tables["tables"] if t["title"] == "Training budget")
     assert [row[3] for row in budget["rows"]] == ["22 (resumed)", "15"]
@@ -127,9 +120,9 @@ def test_a_resumed_run_counts_the_killed_runs_work_and_is_marked():
 
 
 def test_tables_say_whether_the_budget_was_the_same_and_what_is_missing():
-    same = _tables(
+    same = comparison_tables(
         [_run("interactavatar"), _run("gaussian_avatars")],
-        _comparison_rows([_run("interactavatar"), _run("gaussian_avatars")]),
+        comparison_rows([_run("interactavatar"), _run("gaussian_avatars")]),
         [("no_pbd", 0)],
         {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0},
     )
@@ -140,9 +133,9 @@ def test_tables_say_whether_the_budget_was_the_same_and_what_is_missing():
     assert table1["rows"][1][5] == "29.85"  # the paper's novel-view PSNR beside ours
     other = _run("no_patch")
     other.manifests["dynamic"]["metrics"]["steps"] = 11
-    unfair = _tables(
+    unfair = comparison_tables(
         [_run("interactavatar"), other],
-        _comparison_rows([_run("interactavatar"), other]),
+        comparison_rows([_run("interactavatar"), other]),
         [],
         {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0},
     )
@@ -161,8 +154,8 @@ def test_a_method_stands_where_its_own_config_puts_it():
     }
     silent = _run("no_role")  # declares nothing: in the comparison, in no table
     runs = [_run("interactavatar"), _run("gaussian_avatars"), eighth, silent]
-    tables = _tables(
-        runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    tables = comparison_tables(
+        runs, comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
     )
     table1, table2 = tables["tables"][0], tables["tables"][1]
     novel1 = [row for row in table1["rows"] if row[0] == "novel_view"]
@@ -175,13 +168,13 @@ def test_a_method_stands_where_its_own_config_puts_it():
 
 def test_without_a_full_model_there_is_no_seeds_table():
     runs = [_run(name, seed=seed, train_seed=seed) for name in ("gaussian_avatars", "no_pbd") for seed in (0, 1)]
-    tables = _tables(
-        runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    tables = comparison_tables(
+        runs, comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
     )
     assert not any(t["title"].startswith("Seeds") for t in tables["tables"])
     with_full = runs + [_run("interactavatar", seed=s, train_seed=s) for s in (0, 1)]
-    tables = _tables(
-        with_full, _comparison_rows(with_full), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    tables = comparison_tables(
+        with_full, comparison_rows(with_full), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
     )
     assert any(t["title"].startswith("Seeds: INTERACTAVATAR's PSNR") for t in tables["tables"])
 
@@ -196,9 +189,9 @@ def test_showcase_frames_spread_over_the_contact_frames_and_fall_back_to_all():
 
 def test_crops_stay_inside_the_image_and_keep_its_pixels():
     image = np.arange(64 * 64 * 3, dtype=np.uint8).reshape(64, 64, 3)
-    inside = _crop(image, np.array([10.0, 20.0, 26.0, 36.0]), 16)  # a 16 px box: no resampling
+    inside = crop_box(image, np.array([10.0, 20.0, 26.0, 36.0]), 16)  # a 16 px box: no resampling
     np.testing.assert_array_equal(inside, image[20:36, 10:26])
-    edge = _crop(image, np.array([60.0, 0.0, 64.0, 2.0]), 16)  # at the corner: shifted inside, at least 8 px
+    edge = crop_box(image, np.array([60.0, 0.0, 64.0, 2.0]), 16)  # at the corner: shifted inside, at least 8 px
     np.testing.assert_array_equal(edge, np.repeat(np.repeat(image[0:8, 56:64], 2, 0), 2, 1))
 
 
@@ -229,9 +222,9 @@ def test_a_method_is_stale_when_its_inputs_reran_after_it():
 
 def test_stale_methods_are_named_with_the_fix_and_not_tabled():
     runs = [_run("interactavatar")]
-    tables = _tables(
+    tables = comparison_tables(
         runs,
-        _comparison_rows(runs),
+        comparison_rows(runs),
         [],
         {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0},
         {
@@ -261,11 +254,11 @@ def test_seeds_are_tabled_as_mean_and_spread_and_tested_with_welch():
     the seeds table gives the difference of the means and Welch's p (scipy's, recomputed here by hand)."""
     full = [_run("interactavatar", seed=s, train_seed=s, shift=3.0) for s in range(3)]
     base = [_run("gaussian_avatars", seed=10 + s, train_seed=s) for s in range(3)]
-    rows = _comparison_rows(full + base)
+    rows = comparison_rows(full + base)
     assert sorted(set(rows["seed"])) == [0, 1, 2]
-    per_seed = np.array([_lookup(_comparison_rows([r]), "interactavatar", "novel_view", "full")["psnr"] for r in full])
-    assert _lookup(rows, "interactavatar", "novel_view", "full")["psnr"] == pytest.approx(per_seed.mean(), rel=1e-12)
-    tables = _tables(
+    per_seed = np.array([lookup(comparison_rows([r]), "interactavatar", "novel_view", "full")["psnr"] for r in full])
+    assert lookup(rows, "interactavatar", "novel_view", "full")["psnr"] == pytest.approx(per_seed.mean(), rel=1e-12)
+    tables = comparison_tables(
         full + base, rows, [("no_pbd", 1)], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
     )
     table1 = tables["tables"][0]
@@ -273,7 +266,7 @@ def test_seeds_are_tabled_as_mean_and_spread_and_tested_with_welch():
     assert cell == f"{per_seed.mean():.2f} ± {per_seed.std(ddof=1):.2f}"
     seeds = next(t for t in tables["tables"] if t["title"].startswith("Seeds"))
     row = next(r for r in seeds["rows"] if r[:3] == ["novel_view", "GAUSSIAN_AVATARS", "full"])
-    other = np.array([_lookup(_comparison_rows([r]), "gaussian_avatars", "novel_view", "full")["psnr"] for r in base])
+    other = np.array([lookup(comparison_rows([r]), "gaussian_avatars", "novel_view", "full")["psnr"] for r in base])
     assert row[3] == f"{per_seed.mean() - other.mean():+.2f}"
     assert row[4] == f"{max(per_seed.std(ddof=1), other.std(ddof=1)):.2f}"
     # Welch by hand: t = (m1 - m2) / sqrt(v1/n1 + v2/n2), Welch-Satterthwaite degrees of freedom
@@ -291,8 +284,8 @@ def test_seeds_are_tabled_as_mean_and_spread_and_tested_with_welch():
 
 def test_one_seed_has_no_spread_and_no_seeds_table():
     runs = [_run("interactavatar"), _run("gaussian_avatars", seed=1)]
-    tables = _tables(
-        runs, _comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
+    tables = comparison_tables(
+        runs, comparison_rows(runs), [], {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0}
     )
     assert not any(t["title"].startswith("Seeds") for t in tables["tables"])
     assert all("±" not in cell for t in tables["tables"] for row in t["rows"] for cell in row)
@@ -340,9 +333,9 @@ def test_a_corrupt_method_is_named_with_the_fix_and_an_empty_comparison_is_never
     assert not list(out.iterdir())  # nothing written: the runner keeps the published comparison
 
     runs = [_run("gaussian_avatars")]
-    tables = _tables(
+    tables = comparison_tables(
         runs,
-        _comparison_rows(runs),
+        comparison_rows(runs),
         [],
         {"total_wall_s": 1.0, "warmups_trained": 1, "unshared_wall_s": 2.0},
         corrupt={"interactavatar": ("dynamic: gaussians.parquet does not match its manifest", "method=interactavatar")},
@@ -351,8 +344,8 @@ def test_a_corrupt_method_is_named_with_the_fix_and_an_empty_comparison_is_never
         n.startswith("Left out, corrupted: interactavatar: dynamic:") and "method=interactavatar" in n
         for n in tables["notes"]
     )
-    empty = _tables(
-        [], _comparison_rows([]), [("no_pbd", 0)], {"total_wall_s": 0.0, "warmups_trained": 0, "unshared_wall_s": 0.0}
+    empty = comparison_tables(
+        [], comparison_rows([]), [("no_pbd", 0)], {"total_wall_s": 0.0, "warmups_trained": 0, "unshared_wall_s": 0.0}
     )
     assert any(n == "No method to compare yet." for n in empty["notes"]) and not any(
         "not fair" in n for n in empty["notes"]

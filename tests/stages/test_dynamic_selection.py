@@ -63,9 +63,9 @@ def test_choosing_then_retraining_uses_exactly_the_chosen_steps_and_modules_on_e
     assert model["retrained_on_all_frames"] is True
     assert model["architecture"]["hand_mlp"] == metrics["kept_hand_mlp"]  # a module not kept is not even built
     assert model["architecture"]["interaction"] == metrics["kept_interaction"]
-    from stages.report import _withheld_paragraph
+    from reporting.training import withheld_paragraph
 
-    assert "withheld 2 of 8 training frames" in _withheld_paragraph(_dynamic(tmp_path))
+    assert "withheld 2 of 8 training frames" in withheld_paragraph(_dynamic(tmp_path))
     # the warm-up's retrain is the warm-up without validation, bit for bit: the same seed, steps and frames
     plain = tmp_path / "plain"
     run_app(compose_cfg([f"paths.outputs={plain}", *SMALL, "run.until=warmup"]))
@@ -82,9 +82,9 @@ def test_a_capture_too_short_to_withhold_a_frame_trains_on_all_of_it_and_says_so
         assert metrics["validation_frames_withheld"] == 0 and metrics["final_training_frames"] == 4, stage
     metrics = _dynamic(tmp_path)["metrics"]
     assert "selected_step" not in metrics and metrics["steps"] == 20
-    from stages.report import _withheld_paragraph
+    from reporting.training import withheld_paragraph
 
-    text = _withheld_paragraph(_dynamic(tmp_path))
+    text = withheld_paragraph(_dynamic(tmp_path))
     assert "Nothing could be withheld for validation: with 4 training frames, at least 4 must stay" in text
 
 
@@ -108,13 +108,13 @@ def test_the_manifest_and_the_model_say_what_the_selection_kept(tmp_path: Path) 
     assert model["selection"]["selected_step"] == metrics["selected_step"]
     capture = json.loads((tmp_path / "synth_a" / "capture" / "_manifest.json").read_text())["metrics"]
     assert capture["train_frames"] == 8
-    from stages.report import _contact_draws_paragraph, _selection_paragraph  # "What was modelled, and why"
+    from reporting.training import contact_draws_paragraph, selection_paragraph  # "What was modelled, and why"
 
     dynamic_dir = tmp_path / "synth_a" / "methods" / "interactavatar" / "dynamic"
     manifest = json.loads((dynamic_dir / "_manifest.json").read_text())
-    draws = _contact_draws_paragraph(manifest)
+    draws = contact_draws_paragraph(manifest)
     assert (f"probability {metrics['contact_draw_probability']:.2f}" in draws) == (metrics["contact_frames"] > 0)
-    text = _selection_paragraph(metrics)
+    text = selection_paragraph(metrics)
     assert f"kept step {metrics['selected_step']} of 20" in text
     assert ("hand MLPs H: kept" in text) == metrics["kept_hand_mlp"]
 

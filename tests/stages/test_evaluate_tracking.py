@@ -21,8 +21,8 @@ from data_schemas.metrics import METRICS, TRACKED_SPLIT
 from data_schemas.tables import SchemaError, read_table
 from pipeline.cli import run_app
 from pipeline.config import ConfigError, validate_config
+from reporting.evaluation import held_out_tracking_section
 from stages import REGISTRY
-from stages.report import _test_tracking_section
 from tests.conftest import compose_cfg
 
 #: the module (``stages.evaluate`` is the registered stage of the same name)
@@ -87,7 +87,7 @@ def test_the_avatar_tracked_motion_is_scored_only_on_cameras_that_did_not_tune_i
     method = root / "methods" / "interactavatar"
     ctx = SimpleNamespace(cfg=cfg, input_dir=lambda name: method / name if name == "evaluate" else root / name)
     manifest = json.loads((evaluate / "_manifest.json").read_text())
-    page = _test_tracking_section(
+    page = held_out_tracking_section(
         ctx, manifest, *templates(cfg.model), lambda s: load_ground_truth_params(root / "capture", s)
     )
     assert f"on the training cameras {', '.join(train[::2])} and scored on the others ({', '.join(train[1::2])}" in page

@@ -10,7 +10,7 @@ import numpy as np
 from data_schemas.capture import CaptureIndex, SequenceInfo, provided_path
 from data_schemas.deform import CONTACTS
 from data_schemas.tables import write_table
-from stages.report import _contact_summary
+from reporting.capture import contact_summary
 
 
 def test_shipped_contacts_are_counted_and_named(tmp_path: Path) -> None:
@@ -37,8 +37,8 @@ def test_shipped_contacts_are_counted_and_named(tmp_path: Path) -> None:
             "hand": [np.zeros(3, np.float32)] * 4,
         },
     )
-    text = _contact_summary(tmp_path, index)
+    text = contact_summary(tmp_path, index)
     assert "train: 3 of 4 frames with contact (shipped with the dataset)" in text
     assert "test" not in text  # no labels: not counted as zero
     empty = CaptureIndex(subject="s", dataset="folder", sequences={"test": bare})
-    assert "No contact labels in this capture" in _contact_summary(tmp_path, empty)
+    assert "No contact labels in this capture" in contact_summary(tmp_path, empty)

@@ -18,19 +18,9 @@ from data_schemas.cameras import Camera
 from data_schemas.frames import rgb_path
 from data_schemas.images import write_png
 from data_schemas.params import PARAM_COLUMNS
-from stages.report import (
-    FITTED_RGB,
-    OUTLINE_MIN_PX,
-    SHEET_MAX_PX,
-    TRUE_RGB,
-    _contact_sheet,
-    _contact_sheet_section,
-    _fit_section,
-    _outlines_section,
-    _page,
-    _posed_meshes,
-    _rig_section,
-)
+from reporting.capture import contact_sheet_section, posed_meshes, rig_section
+from reporting.fit import FITTED_RGB, OUTLINE_MIN_PX, TRUE_RGB, fit_section, outlines_section
+from reporting.html import SHEET_MAX_PX, contact_sheet, page
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -65,7 +55,7 @@ def test_refined_fit_rows_and_movement(tmp_path: Path) -> None:
     (tmp_path / "fit_report.json").write_text(
         json.dumps({"source": "fitted", "refine": "silhouette", "train_views": 7, "sequences": {"train": refined}})
     )
-    html = _fit_section(tmp_path)
+    html = fit_section(tmp_path)
     assert "<td>train (keypoint fit)</td><td>11.5</td>" in html
     assert "<td>train (refined: silhouette)</td><td>7.5</td>" in html
     assert "<td>0.7 → 0.9</td><td>0.7 → 0.85</td><td>2 / 3</td><td>4 / 6</td><td>1.5</td><td>4</td>" in html
@@ -75,7 +65,7 @@ def test_unrefined_fit_has_one_row_per_sequence(tmp_path: Path) -> None:
     (tmp_path / "fit_report.json").write_text(
         json.dumps({"source": "fitted", "refine": "none", "train_views": 7, "sequences": {"train": _entry(11.5, 13.0)}})
     )
-    html = _fit_section(tmp_path)
+    html = fit_section(tmp_path)
     assert "<td>train</td><td>11.5</td>" in html and "refined" not in html
 
 
@@ -144,12 +134,12 @@ def test_the_fitted_and_true_outlines_and_the_rig(tmp_path: Path) -> None:
     index = _frames(tmp_path, cameras)
     meshes = (HEAD, HAND, True)
     shown = (SEQ, FRAME, "middle frame")
-    html = _outlines_section(tmp_path, index, cameras[0], shown, _params(), _params(0.01), meshes, "fitted")
+    html = outlines_section(tmp_path, index, cameras[0], shown, _params(), _params(0.01), meshes, "fitted")
     assert "the fitted meshes&#x27; outlines (red) over the true meshes&#x27; outlines (blue" in html
     image = _png_pixels(html, "fitted mesh outlines")
     assert image.shape[0] >= OUTLINE_MIN_PX and _has(image, FITTED_RGB) and _has(image, TRUE_RGB)
 
-    rig = _rig_section(cameras, _posed_meshes(_params(), FRAME, HEAD, HAND, True), SEQ, FRAME)
+    rig = rig_section(cameras, posed_meshes(_params(), FRAME, HEAD, HAND, True), SEQ, FRAME)
     assert "blue the training cameras, orange the held-out one(s)" in rig
     assert _png_pixels(rig, "the capture rig").shape[1] <= SHEET_MAX_PX
 
@@ -157,7 +147,7 @@ def test_the_fitted_and_true_outlines_and_the_rig(tmp_path: Path) -> None:
 def test_without_ground_truth_only_the_fitted_outlines(tmp_path: Path) -> None:
     cameras = _cameras(2)
     index = _frames(tmp_path, cameras)
-    html = _outlines_section(
+    html = outlines_section(
         tmp_path, index, cameras[0], (SEQ, FRAME, "middle frame"), _params(), None, (HEAD, HAND, False), "fitted"
     )
     image = _png_pixels(html, "fitted mesh outlines")
@@ -171,9 +161,9 @@ def test_the_contact_sheet_wraps_into_rows_no_wider_than_the_page(tmp_path: Path
     px = int(OmegaConf.select(OmegaConf.load(REPO / "conf" / "stage" / "report.yaml"), "thumbnail_px"))
     cameras = _cameras()
     _frames(tmp_path, cameras)
-    sheet = _contact_sheet(tmp_path, SEQ, [c.camera_id for c in cameras], FRAME, px)
-    html = _contact_sheet_section(SEQ, FRAME, "middle frame", sheet, cameras)
+    sheet = contact_sheet(tmp_path, SEQ, [c.camera_id for c in cameras], FRAME, px)
+    html = contact_sheet_section(SEQ, FRAME, "middle frame", sheet, cameras)
     image = _png_pixels(html, "contact sheet")
     assert image.shape[1] <= SHEET_MAX_PX and image.shape[0] >= 2 * px  # two rows of four
     assert "Row by row: cam00 (training camera)" in html and "cam03 (held-out camera)" in html
-    assert "img,video{max-width:100%;height:auto}" in _page([html])
+    assert "img,video{max-width:100%;height:auto}" in page([html])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.report import pareto_front
+from reporting.comparison import pareto_front
 
 
 def _brute(cost: np.ndarray, quality: np.ndarray) -> np.ndarray:

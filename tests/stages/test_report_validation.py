@@ -9,7 +9,7 @@ import numpy as np
 
 from data_schemas.curve import CURVE
 from data_schemas.tables import write_table
-from stages.report import _validation_section
+from reporting.training import validation_section
 
 
 def _curve(folder: Path, lpips: list[float] | None) -> Path:
@@ -30,12 +30,12 @@ def _curve(folder: Path, lpips: list[float] | None) -> Path:
 
 def test_lpips_is_drawn_only_when_a_curve_has_it(tmp_path: Path):
     warmup = _curve(tmp_path / "warmup", None)
-    assert "Validation PSNR during" in _validation_section(warmup, _curve(tmp_path / "plain", None))
-    html = _validation_section(warmup, _curve(tmp_path / "dynamic", [0.05, 0.04, 0.035]))
+    assert "Validation PSNR during" in validation_section(warmup, _curve(tmp_path / "plain", None))
+    html = validation_section(warmup, _curve(tmp_path / "dynamic", [0.05, 0.04, 0.035]))
     assert "Validation PSNR and LPIPS during" in html and "data:image/png;base64," in html
 
 
 def test_no_curve_says_how_to_get_one(tmp_path: Path):
     empty = tmp_path / "none"
     empty.mkdir()
-    assert "stage.dynamic.validation.every" in _validation_section(empty, empty)
+    assert "stage.dynamic.validation.every" in validation_section(empty, empty)

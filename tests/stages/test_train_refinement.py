@@ -18,7 +18,7 @@ from avatar.training.settings import refines_params
 from data_schemas.gaussians_ply import read_gaussians_ply
 from pipeline.cli import run_app
 from pipeline.export_ply import export_frame
-from stages.report import _trained_tracking_section
+from reporting.fit import trained_tracking_section
 from tests.conftest import compose_cfg, record_crop_reads
 
 
@@ -54,7 +54,7 @@ def test_auto_leaves_the_truth_and_a_forced_refinement_reads_only_train_views_an
         cfg=cfg, input_dir=lambda name: method / name if name in ("warmup", "dynamic") else root / name
     )
     manifests = {name: json.loads((method / name / "_manifest.json").read_text()) for name in ("warmup", "dynamic")}
-    page = _trained_tracking_section(ctx, manifests, *templates(cfg.model))
+    page = trained_tracking_section(ctx, manifests, *templates(cfg.model))
     assert "Training refined the train motion's parameters with the avatar (warmup and dynamic" in page
     assert page.count("<tr>") == 1 + 6 and "data:image/png;base64" in page  # a row per frame, the outline figure
     # what consumes the train motion poses it as refined: the export of a train frame is stage two's own PLY
