@@ -91,14 +91,14 @@ def checkout(commit: str, workdir: Path | None) -> Path:
     return path
 
 
-def run(destination: Path, methods: list[str], workdir: Path | None, commit: str | None) -> None:
+def run(destination: Path, methods: list[str], workdir: Path | None, commit: str | None, overrides: list[str]) -> None:
     """Run the smoke DAG for each method into a fresh directory and write its digests to ``destination``."""
     code = checkout(commit, workdir) if commit else REPO
     env = {**os.environ, "PYTHONPATH": str(code), "PYTHONUNBUFFERED": "1"}
     root = Path(tempfile.mkdtemp(prefix="smoke-digests-", dir=workdir))
     for method in methods:
         done = subprocess.run(
-            cli_command(f"paths.outputs={root}", "quality=smoke", f"method={method}", "run.progress=false"),
+            cli_command(f"paths.outputs={root}", "quality=smoke", f"method={method}", "run.progress=false", *overrides),
             cwd=code,
             env=env,
             capture_output=True,
@@ -132,12 +132,13 @@ def main(argv: list[str] | None = None) -> int:
     run_parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS))
     run_parser.add_argument("--workdir", type=Path, default=None, help="where the outputs go (default: the temp dir)")
     run_parser.add_argument("--commit", default=None, help="run a clean clone of this commit (default: the tree)")
+    run_parser.add_argument("--overrides", nargs="*", default=[], help="more config overrides for every run")
     compare_parser = sub.add_parser("compare", help="compare two digest files; exit 1 on any difference")
     compare_parser.add_argument("before", type=Path)
     compare_parser.add_argument("after", type=Path)
     args = parser.parse_args(argv)
     if args.command == "run":
-        run(args.destination, args.methods, args.workdir, args.commit)
+        run(args.destination, args.methods, args.workdir, args.commit, args.overrides)
         return 0
     differences = compare(json.loads(args.before.read_text()), json.loads(args.after.read_text()))
     print("\n".join(differences) if differences else "identical: every file and every cache key")

@@ -14,7 +14,7 @@ import torch
 from omegaconf import DictConfig
 
 from avatar.artifacts import TRAIN_SEQUENCE, WorldGaussians, contact_flags, load_params, load_scene
-from avatar.artifacts.motion import PosedSequence, applied_deformation, load_sequence, templates
+from avatar.artifacts.motion import PosedSequence, posed_with_offsets, templates
 from avatar.artifacts.stage_run import StageRun
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.geometry.views import ViewSet
@@ -393,14 +393,9 @@ class BoundRepresentation(Representation):
         head, _ = templates(self.cfg.model)
         fit_dir = ctx.input_dir("fit")
         record_refinement(ctx, load_params(fit_dir, TRAIN_SEQUENCE), posed.params, params)
-        if params is not None:  # the PLYs pose the train motion as refined
-            meshes, cond = load_sequence(
-                fit_dir,
-                TRAIN_SEQUENCE,
-                self.cfg,
-                pbd_dir=applied_deformation(self.cfg, ctx.input_dir("pbd")),
-                params=params.arrays(),
-            )
+        if params is not None:  # the PLYs pose the train motion as refined, with the contact offsets read before
+            refined = posed_with_offsets(params.arrays(), self.cfg, posed.offsets)
+            meshes, cond = refined.meshes, refined.conditioning(self.cfg)
         write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model.gaussians, meshes.part_names)
         buffer = io.BytesIO()
         torch.save(model.network_state(), buffer)
