@@ -1,135 +1,35 @@
 """Representations as plug-ins (issue 37): the registry resolves built-in names and ``package.module:Class``,
-refuses anything else up front with the key named, and a representation defined only in this test module trains,
-is evaluated and exported through the stages, which call nothing but the interface."""
+refuses anything else up front with the key named, and a representation defined outside the project
+(``examples/warmup_only.py``) trains, is evaluated and exported through the stages, which call nothing but the
+interface."""
 
 from __future__ import annotations
 
-import io
 import json
-from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 import pytest
-import torch
 
-from avatar.artifacts import TRAIN_SEQUENCE, WorldGaussians, load_params
-from avatar.artifacts.motion import PosedSequence
-from avatar.geometry.views import ViewSet
-from avatar.posing import MeshSequence
 from avatar.representations import (
-    CanonicalGaussians,
-    Progress,
-    Representation,
     load_trained,
     representation,
     representation_class,
     unused_training_settings,
-    write_model_info,
-    write_train_plys,
 )
-from avatar.representations.bound.gaussians import BoundGaussians
-from avatar.representations.bound.representation import BoundRepresentation, load_gaussians, write_bound_gaussians
+from avatar.representations.bound.representation import BoundRepresentation
 from avatar.representations.embedded.representation import EmbeddedRepresentation
-from avatar.training.frame_params import FrameParams
-from avatar.training.settings import record_refinement, record_validation, validation_config
-from avatar.training.validation import Validator
-from data_schemas.gaussians import TRAIN_LOG
 from data_schemas.gaussians_ply import read_gaussians_ply
 from data_schemas.metrics import METRICS
-from data_schemas.tables import TableSchema, read_table, write_records
-from data_schemas.writes import write_bytes
+from data_schemas.tables import read_table
+from examples.warmup_only import WarmupOnly, WarmupOnlyAvatar
 from pipeline.cli import run_app
 from pipeline.config import ConfigError, validate_config
 from pipeline.export_ply import export_frame
-from pipeline.stage import StageContext
 from stages import REGISTRY
 from tests.conftest import compose_cfg
 
-PLUGIN = f"{__name__}:WarmupOnly"
-
-
-@dataclass
-class WarmupOnlyAvatar:
-    """The warm-up's bound Gaussians, posed by the mesh and nothing else."""
-
-    gaussians: BoundGaussians
-    faces: torch.Tensor
-
-    @property
-    def num_gaussians(self) -> int:
-        return self.gaussians.num_gaussians
-
-    @property
-    def triangles(self) -> torch.Tensor:
-        return self.gaussians.binding
-
-    def pose(self, cond: object, vertices: torch.Tensor, frame: int) -> WorldGaussians:
-        means, scales, quats = self.gaussians.world(vertices, self.faces)
-        return _Posed(means, scales, quats, self.gaussians.opacities(), self.gaussians.colors())
-
-
-@dataclass
-class _Posed:
-    means: torch.Tensor
-    scales: torch.Tensor
-    quats: torch.Tensor
-    opacities: torch.Tensor
-    colors: torch.Tensor
-
-
-class WarmupOnly(Representation):
-    """A representation of this test's own: GaussianAvatars' warm-up, not trained in stage two (its stage two only
-    writes the warm-up's Gaussians in the dynamic stage's layout)."""
-
-    own_settings: ClassVar[tuple[str, ...]] = ()
-    refines_tracking: ClassVar[bool] = False
-    train_logs: ClassVar[dict[str, tuple[TableSchema, tuple[str, ...]]]] = {
-        "warmup": (TRAIN_LOG, ("loss", "l1", "dssim"))
-    }
-    gaussians = BoundGaussians
-
-    def warm_up(
-        self,
-        ctx: StageContext,
-        model: CanonicalGaussians,
-        views: ViewSet,
-        meshes: MeshSequence,
-        params: FrameParams | None,
-        validator: Validator,
-        progress: Progress,
-        *,
-        out_dir: Path,
-        checkpoint_dir: Path | None,
-    ) -> float:
-        return BoundRepresentation(self.cfg).warm_up(
-            ctx, model, views, meshes, params, validator, progress, out_dir=out_dir, checkpoint_dir=checkpoint_dir
-        )
-
-    def train(
-        self, ctx: StageContext, views: ViewSet, posed: PosedSequence, validated: PosedSequence | None = None
-    ) -> None:
-        meshes = posed.meshes
-        gaussians = load_gaussians(ctx.input_dir("warmup"), meshes.part_names)
-        write_bound_gaussians(ctx.out_dir / "gaussians.parquet", gaussians, meshes.part_names)
-        buffer = io.BytesIO()
-        torch.save({"faces": meshes.faces}, buffer)
-        write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "the mesh's triangles")
-        write_model_info(ctx.out_dir, self, {"part_names": list(meshes.part_names)}, "the warm-up-only model")
-        write_train_plys(
-            ctx, WarmupOnlyAvatar(gaussians, meshes.faces), posed.conditioning(self.cfg), meshes, views.num_frames
-        )
-        write_records(ctx.out_dir / "train_log.parquet", TRAIN_LOG, [])
-        validator = Validator(validation_config(self.cfg.stage.dynamic.validation, views.num_frames), views)
-        record_validation(ctx, validator, views.num_frames)
-        record_refinement(ctx, load_params(ctx.input_dir("fit"), TRAIN_SEQUENCE), posed.params, None)
-        ctx.metrics.update({"steps": 0, "gaussians": gaussians.num_gaussians, "ms_per_step": 0.0})
-
-    @classmethod
-    def load(cls, dynamic_dir: Path, info: dict) -> WarmupOnlyAvatar:
-        faces = torch.load(dynamic_dir / "networks.pt", weights_only=True)["faces"]
-        return WarmupOnlyAvatar(load_gaussians(dynamic_dir, tuple(info["part_names"])), faces)
+PLUGIN = "examples.warmup_only:WarmupOnly"
 
 
 class NotARepresentation:

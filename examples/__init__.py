@@ -1,0 +1,1 @@
+"""Worked examples of the project's extension points, run by the tests (docs/development/adding-a-method.md)."""
