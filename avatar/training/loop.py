@@ -5,10 +5,12 @@ pass, the losses, the updates), the log row, and what a checkpoint holds."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
-from typing import TypeVar
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import asdict
+from typing import Any, TypeVar
 
-from torch import Tensor
+import torch
+from torch import Tensor, nn
 
 from avatar.training.validation import Validator
 
@@ -47,3 +49,29 @@ def run_steps(
             checkpoint(step)
         if stop:
             break
+
+
+def loss_values(terms: Mapping[str, Tensor], names: Sequence[str]) -> dict[str, float]:
+    """The scalar loss terms ``names`` of a step as floats, for its log row."""
+    return {name: terms[name].item() for name in names}
+
+
+def loop_state(
+    step: int,
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    generator: torch.Generator,
+    log: Sequence[Any],
+    validator: Validator,
+) -> dict[str, Any]:
+    """What every recipe's checkpoint holds to resume the loop bit for bit: the step, the model's and the optimiser's
+    state, the sampler's generator, the log so far (dataclass rows) and the validation's state; a recipe adds its
+    own (density control, refined parameters, the selection)."""
+    return {
+        "step": step,
+        "model": model.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "rng": generator.get_state(),
+        "log": [asdict(row) for row in log],
+        "validation": validator.state(),
+    }

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,10 +30,10 @@ from avatar.metrics.lpips import LPIPS
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.representations.bound.dynamic_model import DynamicAvatar, DynamicFrame
-from avatar.representations.bound.warmup import gaussian_param_groups
+from avatar.representations.bound.warmup import LOSS_TERMS, gaussian_param_groups
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.frame_params import FrameParams
-from avatar.training.loop import run_steps
+from avatar.training.loop import loop_state, loss_values, run_steps
 from avatar.training.rendering import rasterize
 from avatar.training.schedule import exponential_lr
 from avatar.training.selection import BestStep, Selection, SelectionConfig, select
@@ -302,11 +302,7 @@ def train_dynamic(
         return DynamicLogRow(
             step,
             loss.item(),
-            l1=terms["l1"].item(),
-            dssim=terms["dssim"].item(),
-            scale_reg=terms["scale_reg"].item(),
-            position_reg=terms["position_reg"].item(),
-            patch=terms["patch"].item(),
+            **loss_values(terms, (*LOSS_TERMS, "patch")),
             interaction_evaluations=interaction_evaluations,
         )
 
@@ -315,13 +311,8 @@ def train_dynamic(
         save_checkpoint(
             ckpt_path,
             {
-                "step": step,
-                "model": model.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "rng": gen.get_state(),
-                "log": [asdict(r) for r in result.log],
+                **loop_state(step, model, optimizer, gen, result.log, validator),
                 "interaction": (result.interaction_evaluations, result.interaction_steps),
-                "validation": validator.state(),
                 "best": best.state() if best is not None else None,
                 "params": params.state() if params is not None else None,
             },

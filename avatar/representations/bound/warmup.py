@@ -9,7 +9,7 @@ directory that survives a killed run; training resumes from the newest one.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -22,7 +22,7 @@ from avatar.representations.bound.density import DensityConfig, DensityControlle
 from avatar.representations.bound.gaussians import BoundGaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
 from avatar.training.frame_params import FrameParams
-from avatar.training.loop import run_steps
+from avatar.training.loop import loop_state, loss_values, run_steps
 from avatar.training.rendering import render_view
 from avatar.training.schedule import exponential_lr, scaled_interval
 from avatar.training.validation import ValidationConfig, Validator
@@ -72,6 +72,10 @@ class WarmupTrainConfig:
             grad_threshold=self.grad_threshold,
             max_gaussians=self.max_gaussians,
         )
+
+
+#: the loss terms of the bound recipes' log rows (the keys of avatar.losses.reconstruction_terms)
+LOSS_TERMS = ("l1", "dssim", "scale_reg", "position_reg")
 
 
 @dataclass
@@ -218,15 +222,7 @@ def train_warmup(
 
     def log_row(step: int, outcome: tuple[Tensor, dict[str, Tensor]]) -> LogRow:
         loss, terms = outcome
-        return LogRow(
-            step,
-            loss.item(),
-            l1=terms["l1"].item(),
-            dssim=terms["dssim"].item(),
-            scale_reg=terms["scale_reg"].item(),
-            position_reg=terms["position_reg"].item(),
-            num_gaussians=model.num_gaussians,
-        )
+        return LogRow(step, loss.item(), **loss_values(terms, LOSS_TERMS), num_gaussians=model.num_gaussians)
 
     def checkpoint(step: int) -> None:
         assert ckpt_path is not None
@@ -275,15 +271,10 @@ def _save_checkpoint(
     save_checkpoint(
         path,
         {
-            "step": step,
-            "model": model.state_dict(),
-            "optimizer": optimizer.state_dict(),
+            **loop_state(step, model, optimizer, gen, log, validator),
             "grad_sum": density.grad_sum,
             "count": density.count,
-            "rng": gen.get_state(),
             "density_rng": density.generator.get_state(),
-            "log": [asdict(r) for r in log],
-            "validation": validator.state(),
             "params": params.state() if params is not None else None,
         },
     )

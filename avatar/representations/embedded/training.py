@@ -36,7 +36,7 @@ model with ``densify_until = 0`` continues without density control (walking goes
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import cast
 
@@ -51,7 +51,7 @@ from avatar.render.gaussians import RenderOutput
 from avatar.representations.embedded.density import EmbeddedDensityConfig, EmbeddedDensityController
 from avatar.representations.embedded.embedding import EmbeddedGaussians
 from avatar.training.checkpoint import load_checkpoint, save_checkpoint
-from avatar.training.loop import run_steps
+from avatar.training.loop import loop_state, loss_values, run_steps
 from avatar.training.rendering import render_view
 from avatar.training.schedule import exponential_lr, scaled_interval
 from avatar.training.validation import ValidationConfig, Validator
@@ -277,11 +277,7 @@ def train_splatting(
         row = LogRow(
             step,
             loss.item(),
-            l1=terms["l1"].item(),
-            dssim=terms["dssim"].item(),
-            mse=terms["mse"].item(),
-            lpips=terms["lpips"].item(),
-            scale_reg=terms["scale_reg"].item(),
+            **loss_values(terms, ("l1", "dssim", "mse", "lpips", "scale_reg")),
             num_gaussians=model.num_gaussians,
             walked=walked,
         )
@@ -293,14 +289,9 @@ def train_splatting(
         save_checkpoint(
             ckpt_path,
             {
-                "step": step,
-                "model": model.state_dict(),
-                "optimizer": optimizer.state_dict(),
+                **loop_state(step, model, optimizer, gen, log, validator),
                 "density": density.state(),
-                "rng": gen.get_state(),
                 "walked": walked,
-                "log": [asdict(r) for r in log],
-                "validation": validator.state(),
             },
         )
 
