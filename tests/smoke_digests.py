@@ -9,15 +9,14 @@ Run it on the commit before a refactor and on the commit after, then compare::
 ``--commit`` runs a clean clone of that commit, always at the same path (some cache keys name the checkout's files,
 e.g. the viewer's page), so the two runs differ only by their code; without it the working tree runs as it is.
 
-``run`` runs the whole DAG at ``quality=smoke`` for one method of each representation and for the
-GaussianAvatars baseline (``--methods``) through the CLI into a fresh directory, then reads every stage's
-manifest: the sha256 of each output file (the manifest's own record, checked against the bytes) and the
-stage's cache key. Files that record when or how fast something ran (the report's page, timing logs, the
-comparison's text tables) differ between any two runs and are listed apart by name, never compared; a Parquet table
-with a wall-time column (the comparison's ``train_wall_s``) is compared without it. The cache keys of the stages
-that show their inputs' run records (compare, report: their keys cover those manifests' timings and commit) are
-listed apart the same way. ``compare`` prints every
-difference and exits 1 when there is one.
+``run`` runs the whole DAG at ``quality=smoke`` for one method of each representation and for the GaussianAvatars
+baseline (``--methods``) through the CLI into a fresh directory, then reads every stage's manifest: the sha256 of
+each output file (the manifest's own record, checked against the bytes) and the stage's cache key. Files that record
+when or how fast something ran (the report's page, the comparison's text tables) differ between any two runs and are
+listed apart by name, never compared; a Parquet table with a wall-time column (the comparison's ``train_wall_s``) is
+compared without it. The cache keys of the stages that show their inputs' run records (compare, report: their keys
+cover those manifests' timings and commit) are listed apart the same way. ``compare`` prints every difference and
+exits 1 when there is one.
 """
 
 from __future__ import annotations
@@ -41,7 +40,7 @@ from tests.conftest import REPO, cli_command
 #: one method per representation (bound with every module, embedded) and the static baseline
 DEFAULT_METHODS = ("interactavatar", "gaussian_avatars", "splatting_avatar")
 #: output files whose bytes carry wall times or dates, so two runs of the same code never agree on them
-TIMED = ("report.html", "train_log.parquet", "tables.json", "tables.md")
+TIMED = ("report.html", "tables.json", "tables.md")
 #: columns of a Parquet output that hold wall times: the table is compared without them
 WALL_TIME_COLUMNS = ("train_wall_s",)
 
