@@ -118,3 +118,44 @@ class DeltaHeads(nn.Module):
     def forward(self, point: PointInputs, frame: Tensor) -> dict[str, Tensor]:
         """point (N, P) or its parts, frame (Fd,) -> {name: (N, dim)}."""
         return {name: head(point, frame) for name, head in self.heads.items()}
+
+    def output_layers(self) -> list[nn.Linear]:
+        """The zero-initialised last layers: zeroing them makes every delta exactly 0 (the selection's switch)."""
+        return [cast(DeltaMLP, head).output for head in self.heads.values()]
+
+
+class SharedDeltaHeads(nn.Module):
+    """One :class:`DeltaMLP` trunk for several output parameters, with a linear head per parameter: the trunk's
+    zero-initialised output layer maps to all of them at once (``sum(dims)`` columns, split in ``outputs``' order),
+    which is a linear head per parameter on one shared hidden representation. Same inputs and the same zero deltas
+    at the start as :class:`DeltaHeads`, at about ``1 / len(outputs)`` of its cost (``stage.dynamic.heads=shared``).
+    """
+
+    def __init__(self, outputs: dict[str, int], point_dim: int, frame_dim: int, width: int, depth: int) -> None:
+        super().__init__()
+        self.names, self.dims = list(outputs), list(outputs.values())
+        self.trunk = DeltaMLP(point_dim, frame_dim, sum(self.dims), width, depth)
+
+    def forward(self, point: PointInputs, frame: Tensor) -> dict[str, Tensor]:
+        """point (N, P) or its parts, frame (Fd,) -> {name: (N, dim)} (column blocks of one (N, sum(dims)))."""
+        return dict(zip(self.names, torch.split(self.trunk(point, frame), self.dims, dim=1)))
+
+    def output_layers(self) -> list[nn.Linear]:
+        """The trunk's zero-initialised last layer, which holds every parameter's linear head."""
+        return [self.trunk.output]
+
+
+#: ``stage.dynamic.heads``: one MLP per Gaussian parameter (the paper's) or one shared trunk per module
+HEAD_KINDS: dict[str, type[DeltaHeads] | type[SharedDeltaHeads]] = {
+    "per_parameter": DeltaHeads,
+    "shared": SharedDeltaHeads,
+}
+
+
+def delta_heads(
+    kind: str, outputs: dict[str, int], point_dim: int, frame_dim: int, width: int, depth: int
+) -> DeltaHeads | SharedDeltaHeads:
+    """The heads of one module (H_geo, H_app or I) of the kind ``kind`` (a key of :data:`HEAD_KINDS`)."""
+    if kind not in HEAD_KINDS:
+        raise ValueError(f"heads={kind}: must be one of {', '.join(HEAD_KINDS)}")
+    return HEAD_KINDS[kind](outputs, point_dim, frame_dim, width, depth)

@@ -20,14 +20,14 @@ The held-out camera and the held-out motion are never looked at.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-from avatar.nets.mlp import DeltaHeads, DeltaMLP
+from avatar.nets.mlp import DeltaHeads, SharedDeltaHeads
 from avatar.training.frame_params import FrameParams
 
 #: a module's name -> the model attributes it consists of (the stage-two networks whose deltas it adds)
@@ -130,18 +130,18 @@ class Selection:
         return out
 
 
-def module_heads(model: nn.Module, module: str) -> list[DeltaHeads]:
+def module_heads(model: nn.Module, module: str) -> list[DeltaHeads | SharedDeltaHeads]:
     """The built networks of ``module`` (a key of :data:`MODULES`) in ``model`` (empty when not built)."""
     return [net for name in MODULES[module] if (net := getattr(model, name, None)) is not None]
 
 
-def switch_off(nets: list[DeltaHeads]) -> None:
+def switch_off(nets: list[DeltaHeads | SharedDeltaHeads]) -> None:
     """Zero the output layers of every head of ``nets``: each then adds exactly a zero delta."""
     with torch.no_grad():
         for net in nets:
-            for head in cast(Iterable[DeltaMLP], net.heads.values()):  # cast: a ModuleDict's values are Modules
-                head.output.weight.zero_()
-                head.output.bias.zero_()
+            for output in net.output_layers():
+                output.weight.zero_()
+                output.bias.zero_()
 
 
 def select(

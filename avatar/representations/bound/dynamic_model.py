@@ -42,7 +42,7 @@ from torch import Tensor, nn
 from avatar.dynamic.conditioning import FrameConditioning
 from avatar.geometry.frames import place_gaussians, place_means, triangle_frames
 from avatar.nets.encoding import encoded_dim, positional_encoding
-from avatar.nets.mlp import DeltaHeads
+from avatar.nets.mlp import HEAD_KINDS, DeltaHeads, SharedDeltaHeads, delta_heads
 from avatar.nets.pointnet2 import PointNet2Encoder
 from avatar.representations.bound.gaussians import SH_C0, BoundGaussians
 
@@ -98,6 +98,9 @@ class DynamicModelConfig:
     # d_c of H_app and I: add (c_i + d_c, the paper) or scale (c_i exp(d_c): shading multiplies); scale validated
     # 0.06 dB lower at draft (6 runs; docs/notes/2026-12-03-gains-with-seeds.md)
     colour_delta: str = "add"
+    # the MLPs of H_geo, H_app and I: per_parameter (one MLP per Gaussian parameter, the paper) or shared (one trunk
+    # per module with a linear head per parameter: the same inputs, zero deltas at the start, fewer products)
+    heads: str = "per_parameter"
 
     def problems(self) -> list[str]:
         """Range problems of the settings that have a range beyond non-negative, one line each, keyed by field."""
@@ -106,6 +109,11 @@ class DynamicModelConfig:
             problems.append(
                 f"colour_delta={self.colour_delta}: must be one of {', '.join(COLOUR_DELTAS)} "
                 "(add: c_i + d_c as the paper; scale: c_i exp(d_c))"
+            )
+        if self.heads not in HEAD_KINDS:
+            problems.append(
+                f"heads={self.heads}: must be one of {', '.join(HEAD_KINDS)} (per_parameter: one MLP per Gaussian "
+                "parameter, the paper; shared: one trunk per module)"
             )
         if not self.d_max > 0.0:
             problems.append(f"d_max={self.d_max:g}: must be positive (metres; the paper uses 0.05)")
@@ -213,9 +221,9 @@ class DynamicAvatar(nn.Module):
     position_code: Tensor
     hand_index: Tensor
     face_index: Tensor
-    hand_geo: DeltaHeads | None  # None: the "w/o H" ablation (cfg.hand_mlp False), hand_app too
-    hand_app: DeltaHeads | None
-    interaction: DeltaHeads | None  # None: the "w/o I" ablation
+    hand_geo: DeltaHeads | SharedDeltaHeads | None  # None: the "w/o H" ablation (cfg.hand_mlp False), hand_app too
+    hand_app: DeltaHeads | SharedDeltaHeads | None
+    interaction: DeltaHeads | SharedDeltaHeads | None  # None: the "w/o I" ablation
     pointnet: PointNet2Encoder | None  # None when neither H nor I reads F
 
     def __init__(
@@ -279,14 +287,19 @@ class DynamicAvatar(nn.Module):
         self.point_features = nn.Parameter(
             0.01 * torch.randn(self.hand_index.shape[0], cfg.point_feature_dim, generator=gen)
         )  # DeepSDF init
-        self.hand_geo = DeltaHeads(HAND_GEO, pe, hand, cfg.hand_width, cfg.hand_depth) if cfg.hand_mlp else None
+        self.hand_geo = (
+            delta_heads(cfg.heads, HAND_GEO, pe, hand, cfg.hand_width, cfg.hand_depth) if cfg.hand_mlp else None
+        )
         self.hand_app = (
-            DeltaHeads(HAND_APP, pe + cfg.point_feature_dim, F + hand + 6 + 6 + 3, cfg.hand_width, cfg.hand_depth)
+            delta_heads(
+                cfg.heads, HAND_APP, pe + cfg.point_feature_dim, F + hand + 6 + 6 + 3, cfg.hand_width, cfg.hand_depth
+            )
             if cfg.hand_mlp
             else None
         )
         self.interaction = (
-            DeltaHeads(
+            delta_heads(
+                cfg.heads,
                 INTERACTION,
                 pe + encoded_dim(3, cfg.offset_frequencies),
                 F + hand + 12 + expr + 3 + 6,

@@ -81,6 +81,15 @@ def write_bound_gaussians(path: Path, model: BoundGaussians, part_names: tuple[s
         )
 
 
+def architecture_record(cfg: DynamicModelConfig) -> dict[str, Any]:
+    """``model.json``'s ``architecture``: the model's config, without ``heads`` where it is the paper's
+    ``per_parameter`` (so that file reads as it did before the setting existed; loading defaults to it)."""
+    record = asdict(cfg)
+    if record["heads"] == "per_parameter":
+        del record["heads"]
+    return record
+
+
 def load_dynamic(dynamic_dir: Path) -> DynamicAvatar:
     """The dynamic stage's trained model (``model.json``, ``gaussians.parquet``, ``networks.pt``)."""
     info = json.loads((dynamic_dir / "model.json").read_text())
@@ -93,6 +102,12 @@ def load_dynamic(dynamic_dir: Path) -> DynamicAvatar:
     model = DynamicAvatar(
         gaussians, state["mu_cano"], state["faces"], part_names, int(info["num_face_vertices"]), info["frame_dims"], cfg
     )
+    trained = "shared" if any(".trunk." in key for key in state) else "per_parameter"
+    if any(key.startswith(("hand_geo.", "hand_app.", "interaction.")) for key in state) and trained != cfg.heads:
+        raise SchemaError(
+            f"{dynamic_dir / 'networks.pt'}: holds heads={trained} networks, but model.json says heads={cfg.heads}; "
+            "the two files come from different runs: rerun the dynamic stage"
+        )
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.startswith("gaussians.")]
     if missing or unexpected:
@@ -412,7 +427,7 @@ class BoundRepresentation(Representation):
             ctx.out_dir,
             self,
             {
-                "architecture": asdict(model.cfg),
+                "architecture": architecture_record(model.cfg),
                 "part_names": list(meshes.part_names),
                 "num_face_vertices": head.num_vertices,
                 "frame_dims": written.frame_dims,
@@ -440,6 +455,7 @@ class BoundRepresentation(Representation):
                 "contact_draw_probability": result.contact_probability,
                 "retrained_on_all_frames": retrain,
                 "rasterizer": resolve_backend(conf.backend, model.mu_cano),
+                "heads": model.cfg.heads,
                 **selection,
             }
         )
