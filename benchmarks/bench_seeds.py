@@ -12,6 +12,9 @@ Settings (all at ``quality=draft``; every method trained once per seed, the shar
 - ``d``: the held-out third identity synth_c, ``full``, 24 frames, fitted tracking on MediaPipe detections;
 - ``a2``: (a) with two threads per run instead of one (thread counts change the rounding of torch's reductions,
   which acts like another seed);
+- ``h``: (a)'s captures and tracking, InteractAvatar with the paper's heads against ``stage.dynamic.heads=shared``
+  (the method ``interactavatar_shared`` of benchmarks/conf/method/); ``hm``: the same on fitted MediaPipe tracking;
+  ``table --settings h hm --name bench_heads_quality``;
 - ``p``: (a)'s captures and tracking, InteractAvatar against w/o PBD (issue 35: the methods table's "w/o PBD" rows
   against the contact ground truth of capture version 8); ``table --settings p --name bench_seeds_pbd``.
 
@@ -67,6 +70,8 @@ NO_VALIDATION = [
 ]
 # the protocol before issue 53: the validated runs are written
 NO_RETRAIN = ["stage.warmup.validation.retrain=false", "stage.dynamic.validation.retrain=false"]
+#: the benchmarks' own methods (benchmarks/conf/method/: interactavatar_shared)
+BENCH_METHODS = f"hydra.searchpath=[file://{REPO / 'benchmarks' / 'conf'}]"
 SETTINGS: dict[str, dict] = {
     "a": {
         "subjects": ("synth_a", "synth_b"),
@@ -138,6 +143,18 @@ SETTINGS: dict[str, dict] = {
             "stage.dynamic.refine_params=true",
         ],
         "what": "as (m1), and the train motion refined with the avatar in training (refine_params)",
+    },
+    "h": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": ["fit.source=ground_truth", BENCH_METHODS],
+        "methods": ("interactavatar", "interactavatar_shared"),
+        "what": "full appearance, 24 frames, ground-truth tracking: the paper's heads against shared heads",
+    },
+    "hm": {
+        "subjects": ("synth_a",),
+        "overrides": [*MEDIAPIPE, BENCH_METHODS],
+        "methods": ("interactavatar", "interactavatar_shared"),
+        "what": "full appearance, 24 frames, fitted tracking (MediaPipe): the paper's heads against shared heads",
     },
     "p": {
         "subjects": ("synth_a", "synth_b"),
