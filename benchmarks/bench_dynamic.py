@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
 import os
 import shutil
@@ -264,7 +265,13 @@ def _forward_timers(modules: dict[str, torch.nn.Module | None], seconds: dict[st
 
 
 def step_costs(
-    preset: str, subject: str, outputs: Path, extra: list[str], steps: int = 20, rounds: int = 3
+    preset: str,
+    subject: str,
+    outputs: Path,
+    extra: list[str],
+    steps: int = 20,
+    rounds: int = 3,
+    heads: tuple[str, ...] = ("per_parameter",),
 ) -> dict[str, float]:
     """ms per training step of the warm-up and of stage two from the same cached warm-up, side by side.
 
@@ -274,6 +281,10 @@ def step_costs(
     every figure is the median over the rounds (after one untimed round of two steps each). The stage-two step is
     split into the forward passes of PointNet++, the MLPs (H_geo, H_app, I) and the rest of the model (posing,
     sampling, the delta glue), the rasterizer, the loss, the backward pass and the optimizer step.
+
+    With several ``heads`` (``stage.dynamic.heads`` variants) each round trains stage two once per variant, in turn,
+    from the same warm-up; the plain keys are the first variant's, ``<variant>_step_ms``, ``<variant>_mlps_ms`` and
+    ``<variant>_ratio`` every variant's.
     """
     cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"][1] + extra)
     root = outputs / subject
@@ -301,7 +312,7 @@ def step_costs(
         train_warmup(model, views, meshes, WarmupTrainConfig(steps=n, densify_from=1.0, densify_until=0.0, seed=seed))
         return 1000 * (time.perf_counter() - t0) / n
 
-    def dynamic_round(n: int, seed: int) -> dict[str, float]:
+    def dynamic_round(n: int, seed: int, kind: str) -> dict[str, float]:
         model = DynamicAvatar.from_warmup(
             copy.deepcopy(gaussians),
             meshes.vertices[0],
@@ -309,7 +320,7 @@ def step_costs(
             meshes.part_names,
             head.num_vertices,
             frame_dims,
-            arch,
+            dataclasses.replace(arch, heads=kind),
             seed=seed,
         )
         seconds: dict[str, float] = {}
@@ -338,11 +349,15 @@ def step_costs(
         return {k: 1000 * v / n for k, v in parts.items()} | {"interaction_steps": result.interaction_steps / n}
 
     warmup_round(2, 0)
-    dynamic_round(2, 0)
-    warm_ms, dyn = [], []
+    for kind in heads:
+        dynamic_round(2, 0, kind)
+    warm_ms: list[float] = []
+    runs: dict[str, list[dict[str, float]]] = {kind: [] for kind in heads}
     for r in range(rounds):
         warm_ms.append(warmup_round(steps, r))
-        dyn.append(dynamic_round(steps, r))
+        for kind in heads:
+            runs[kind].append(dynamic_round(steps, r, kind))
+    dyn = runs[heads[0]]
     out = {
         "gaussians": gaussians.num_gaussians,
         "hand_gaussians": int((gaussians.part == meshes.part_names.index("hand")).sum()),
@@ -351,6 +366,14 @@ def step_costs(
         "warmup_ms": statistics.median(warm_ms),
     }
     out |= {f"{k}_ms" if k != "interaction_steps" else k: statistics.median(d[k] for d in dyn) for k in dyn[0]}
+    if len(heads) > 1:
+        for kind, kind_runs in runs.items():
+            step = statistics.median(d["step"] for d in kind_runs)
+            out |= {
+                f"{kind}_step_ms": step,
+                f"{kind}_mlps_ms": statistics.median(d["mlps"] for d in kind_runs),
+                f"{kind}_ratio": step / out["warmup_ms"],
+            }
     return out | {"ratio": out["step_ms"] / out["warmup_ms"]}
 
 

@@ -55,6 +55,21 @@ QUICK: dict[str, list[list[str]]] = {
         ["run", "--pair", "e", "--seeds", "0", "--quality", "smoke", "--outputs", "{out}"],
         ["table", "--outputs", "{out}", "--results", "{out}"],
     ],
+    "bench_heads": [
+        [
+            "cost",
+            "--presets",
+            "smoke",
+            "--steps",
+            "2",
+            "--rounds",
+            "1",
+            "--outputs",
+            "{out}",
+            "--results",
+            "{out}",
+        ]
+    ],
     "bench_scene": [["--preset", "smoke", "--scenes", "face_only", "--outputs", "{out}", "--results", "{out}"]],
     "bench_quality": [
         ["--presets", "smoke", "--methods", "gaussian_avatars", "--outputs", "{out}", "--results", "{out}"]
