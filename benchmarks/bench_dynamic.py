@@ -283,8 +283,8 @@ def step_costs(
     sampling, the delta glue), the rasterizer, the loss, the backward pass and the optimizer step.
 
     With several ``heads`` (``stage.dynamic.heads`` variants) each round trains stage two once per variant, in turn,
-    from the same warm-up; the plain keys are the first variant's, ``<variant>_step_ms``, ``<variant>_mlps_ms`` and
-    ``<variant>_ratio`` every variant's.
+    from the same warm-up; the plain keys are the first variant's, ``<variant>_<part>_ms`` (the step and its parts)
+    and ``<variant>_ratio`` every variant's.
     """
     cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"][1] + extra)
     root = outputs / subject
@@ -368,12 +368,9 @@ def step_costs(
     out |= {f"{k}_ms" if k != "interaction_steps" else k: statistics.median(d[k] for d in dyn) for k in dyn[0]}
     if len(heads) > 1:
         for kind, kind_runs in runs.items():
-            step = statistics.median(d["step"] for d in kind_runs)
-            out |= {
-                f"{kind}_step_ms": step,
-                f"{kind}_mlps_ms": statistics.median(d["mlps"] for d in kind_runs),
-                f"{kind}_ratio": step / out["warmup_ms"],
-            }
+            out |= {f"{kind}_{k}_ms": statistics.median(d[k] for d in kind_runs) for k in kind_runs[0] if k != "step"}
+            out |= {f"{kind}_step_ms": statistics.median(d["step"] for d in kind_runs)}
+            out |= {f"{kind}_ratio": out[f"{kind}_step_ms"] / out["warmup_ms"]}
     return out | {"ratio": out["step_ms"] / out["warmup_ms"]}
 
 
