@@ -357,7 +357,6 @@ def step_costs(
         warm_ms.append(warmup_round(steps, r))
         for kind in heads:
             runs[kind].append(dynamic_round(steps, r, kind))
-    dyn = runs[heads[0]]
     out = {
         "gaussians": gaussians.num_gaussians,
         "hand_gaussians": int((gaussians.part == meshes.part_names.index("hand")).sum()),
@@ -365,13 +364,18 @@ def step_costs(
         "rounds": rounds,
         "warmup_ms": statistics.median(warm_ms),
     }
-    out |= {f"{k}_ms" if k != "interaction_steps" else k: statistics.median(d[k] for d in dyn) for k in dyn[0]}
+
+    def medians(kind: str, prefix: str) -> dict[str, float]:  # the step, its parts (ms) and the interaction share
+        first = runs[kind][0]
+        named = {k: f"{prefix}{k}" if k == "interaction_steps" else f"{prefix}{k}_ms" for k in first}
+        values = {named[k]: statistics.median(d[k] for d in runs[kind]) for k in first}
+        return values | {f"{prefix}ratio": values[f"{prefix}step_ms"] / out["warmup_ms"]}
+
+    out |= medians(heads[0], "")
     if len(heads) > 1:
-        for kind, kind_runs in runs.items():
-            out |= {f"{kind}_{k}_ms": statistics.median(d[k] for d in kind_runs) for k in kind_runs[0] if k != "step"}
-            out |= {f"{kind}_step_ms": statistics.median(d["step"] for d in kind_runs)}
-            out |= {f"{kind}_ratio": out[f"{kind}_step_ms"] / out["warmup_ms"]}
-    return out | {"ratio": out["step_ms"] / out["warmup_ms"]}
+        for kind in heads:
+            out |= medians(kind, f"{kind}_")
+    return out
 
 
 def main() -> None:

@@ -45,14 +45,15 @@ TIMED = ("report.html", "tables.json", "tables.md")
 WALL_TIME_COLUMNS = ("train_wall_s",)
 
 
-def content_digest(path: Path) -> str:
-    """sha256 of a file's bytes; of a Parquet table's values without its wall-time columns where it has any."""
+def content_digest(path: Path, digest: str) -> str:
+    """A file's digest as compared: its sha256 ``digest``; for a Parquet table with wall-time columns, the sha256 of
+    its values without them."""
     if path.suffix == ".parquet":
         table = pq.read_table(path)
         timed = [c for c in WALL_TIME_COLUMNS if c in table.column_names]
         if timed:
             return hashlib.sha256(json.dumps(table.drop_columns(timed).to_pydict(), default=str).encode()).hexdigest()
-    return sha256_file(path)
+    return digest
 
 
 def collect(outputs: Path) -> dict[str, dict[str, str]]:
@@ -77,7 +78,7 @@ def collect(outputs: Path) -> dict[str, dict[str, str]]:
             if Path(rel).name in TIMED:
                 timed[name] = ""
             else:
-                files[name] = content_digest(path)
+                files[name] = content_digest(path, digest)
     return {"files": files, "keys": keys, "timed": timed}
 
 
