@@ -1,7 +1,7 @@
 """Posed FLAME + MANO meshes of every frame, from per-frame parameters, and the mesh sequence they make.
 
 Below both the training loops (:mod:`avatar.training`) and the dynamic model (:mod:`avatar.dynamic`), which
-pose the templates alike; it imports only the templates.
+pose the templates alike; it imports only the templates (and the device move).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from avatar.device import to_device
 from avatar.templates import FLAMELayer, LayerOutput, MANOLayer, TemplateModel
 
 
@@ -31,6 +32,10 @@ class MeshSequence:
     faces: Tensor
     face_part: Tensor
     part_names: tuple[str, ...]
+
+    def to(self, device: torch.device | str) -> MeshSequence:
+        """The same meshes on ``device``."""
+        return to_device(self, device)
 
     def extent(self) -> float:
         """Radius of the bounding sphere of all frames' vertices (the 3DGS 'scene extent')."""

@@ -7,7 +7,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -15,6 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from pipeline.device import cpu_name
 from pipeline.summary import format_table, format_value
 
 REPO = Path(__file__).resolve().parent.parent
@@ -30,17 +30,6 @@ def commit() -> str:
     except OSError:
         return "unknown"
     return proc.stdout.strip() or "unknown"
-
-
-def cpu_name() -> str:
-    """The CPU's model name (``/proc/cpuinfo``), else what ``platform`` knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def machine() -> dict[str, Any]:

@@ -43,6 +43,9 @@ class WarmupOnlyAvatar:
     def triangles(self) -> torch.Tensor:
         return self.gaussians.binding
 
+    def on_device(self, device: str, precision: str) -> WarmupOnlyAvatar:
+        return WarmupOnlyAvatar(self.gaussians.to(device), self.faces.to(device))  # no networks: fp32 alone
+
     def pose(self, cond: object, vertices: torch.Tensor, frame: int) -> WorldGaussians:
         means, scales, quats = self.gaussians.world(vertices, self.faces)
         return _Posed(means, scales, quats, self.gaussians.opacities(), self.gaussians.colors())

@@ -22,6 +22,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from data_schemas.config_sections import check_section
 from importers.decaf import ships_keypoints
+from pipeline.device import device_syntax_problem, precision_problem
 from pipeline.registry import RegistryError, StageRegistry
 from pipeline.stage import Stage
 from pipeline.workspace import method_problem, outputs_problem, seed_problem, subject_problem
@@ -70,23 +71,29 @@ class RunConfig:
     dry: bool = False  # print the plan and the reason per stage, run nothing
     progress: bool = True  # progress bars for long loops
     lock_timeout_s: float = 3600.0  # how long to wait for another run holding a stage lock
+    device: str = "auto"  # where the stages that train and render compute: auto, cpu, cuda, cuda:N (pipeline.device)
+    precision: str = "fp32"  # fp32, or bf16: the MLPs' products in bfloat16
     overrides: list[str] = field(default_factory=list)  # set by the CLI: the command line's overrides
 
 
 #: overrides a fix command sets itself, or that select what to run rather than what is computed
 _NOT_REPEATED = ("run.", "+run.", "method=", "method.", "+method.", "seed=", "hydra.", "hydra/", "~")
+#: the ``run.*`` overrides that decide what is computed (where, in which precision): a fix command repeats them
+_REPEATED_RUN = ("run.device=", "+run.device=", "run.precision=", "+run.precision=")
 
 
 def fix_command(cfg: DictConfig, *args: str) -> str:
     """A shell command for a message that tells the user how to fix something: ``interactavatar``, this run's
     own command-line overrides (``run.overrides``; those that decide where and from what the stages compute:
-    ``paths.outputs``, ``subject``, ``quality``, ``fit.source``, ...; not ``run.*``, ``method``, ``seed``) and
-    ``args``, which win over an override of the same key. Run as printed, it computes in the same DAG."""
+    ``paths.outputs``, ``subject``, ``quality``, ``fit.source``, ``run.device``, ``run.precision``, ...; not the
+    other ``run.*``, ``method``, ``seed``) and ``args``, which win over an override of the same key. Run as printed,
+    it computes in the same DAG."""
     own = {arg.split("=", 1)[0].lstrip("+") for arg in args}
     kept = [
         o
         for o in (OmegaConf.select(cfg, "run.overrides") or ())
-        if not str(o).startswith(_NOT_REPEATED) and str(o).split("=", 1)[0].lstrip("+") not in own
+        if (str(o).startswith(_REPEATED_RUN) or not str(o).startswith(_NOT_REPEATED))
+        and str(o).split("=", 1)[0].lstrip("+") not in own
     ]
     return " ".join(["interactavatar", *(shlex.quote(str(o)) for o in kept), *(shlex.quote(a) for a in args)])
 
@@ -178,6 +185,11 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
                 errors.append(f"run.{key}={name}: unknown stage; choose one of {', '.join(known)}")
         if run.get("only") is not None and (run.get("from") is not None or run.get("until") is not None):
             errors.append("run.only cannot be combined with run.from or run.until")
+        errors.extend(
+            p
+            for p in (device_syntax_problem(run.get("device", "auto")), precision_problem(run.get("precision", "fp32")))
+            if p is not None
+        )
     paths = check_section(cfg.get("paths", {}), PathsConfig, "paths", errors)
     if paths is not None and (problem := outputs_problem(paths.outputs)):
         errors.append(problem)

@@ -73,6 +73,7 @@ class Manifest:
     git_sha: str
     created: str
     sources: dict[str, str] | None = None  # relative path -> sha256 of imported user files
+    device: dict[str, Any] | None = None  # a device stage's: kind, name (model), precision, peak_memory_mb (CUDA)
 
     @property
     def output_digest(self) -> str:
@@ -102,6 +103,8 @@ class Manifest:
         }
         if self.sources is not None:
             body["sources"] = self.sources
+        if self.device is not None:
+            body["device"] = self.device
         body["manifest_digest"] = sha256_json(body)
         return body
 
@@ -142,6 +145,7 @@ def read_manifest(stage_dir: Path) -> Manifest | None:
         git_sha=body["git_sha"],
         created=body["created"],
         sources=body.get("sources"),
+        device=body.get("device"),
     )
 
 

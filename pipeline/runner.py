@@ -32,6 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from data_schemas.tables import SchemaError
 from pipeline.config import ConfigError, changed_keys, fix_command, key_config
+from pipeline.device import DeviceUnavailable, resolve_compute
 from pipeline.manifest import (
     Manifest,
     ManifestError,
@@ -150,6 +151,10 @@ class Runner:
         self.selection = Selection.from_cfg(cfg.run)
         self.show_progress = bool(cfg.run.get("progress", True))
         self.lock_timeout_s = float(cfg.run.get("lock_timeout_s", 3600.0))
+        try:  # on the machine that runs the stages, before any of them
+            self.compute = resolve_compute(str(cfg.run.get("device", "auto")), str(cfg.run.get("precision", "fp32")))
+        except DeviceUnavailable as exc:
+            raise ConfigError(f"invalid config:\n  - {exc}", [str(exc)]) from exc
         # Artifacts (by id) this run has verified or written, so each is hashed once per run.
         self._verified: dict[str, Manifest] = {}
 
@@ -306,6 +311,8 @@ class Runner:
         upstream, rerunning = self._upstream_digests(s, inputs, pending)
         config = key_config(self.cfg, s)
         config["subject"] = self.ws.subject
+        if s.device:  # nothing on the CPU in fp32: the reference's keys stay as they were
+            config.update(self.compute.key_entries())
         sources = self._source_digests(s)
         key = cache_key(s.name, s.version, config, upstream, sources)
 
@@ -430,7 +437,11 @@ class Runner:
                 method_inputs=cross,
                 method_problems=self._cross_method_problems(s, d.inputs),
                 subject_inputs=other_subject,
+                device=self.compute.device if s.device else "cpu",
+                precision=self.compute.precision if s.device else "fp32",
             )
+            if s.device:
+                self.compute.reset_peak_memory()
             with ResourceMonitor() as monitor:
                 s.fn(ctx)
             missing = [rel for rel in s.outputs if not (tmp / rel).exists()]
@@ -452,6 +463,7 @@ class Runner:
                 git_sha=_git_sha(),
                 created=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                 sources=d.sources,
+                device=self.compute.record() if s.device else None,
             )
             write_manifest(tmp, manifest)
             self.ws.publish(a, tmp)

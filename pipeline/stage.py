@@ -20,6 +20,8 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
   their whole manifests enter its key, not only their outputs (the report);
 - ``outputs``: relative paths (files or directories) it must produce;
 - ``version``: bumped by hand whenever the code changes what the stage writes;
+- ``device``: the stage computes on ``run.device`` (it trains or renders); on any device but the CPU in fp32 the
+  device's kind and ``run.precision`` enter its key, and its manifest records the device (:mod:`pipeline.device`);
 - ``config_schema``: optional dataclass that ``cfg.stage.<name>`` must match
   (checked, with types, before any stage runs);
 - ``per_method``: the output depends on the method (``method=...``), so the runner keeps one artifact
@@ -71,6 +73,8 @@ class StageContext:
         method_problems: for the cross-method inputs, run folder -> why an artifact that is on disk could not
             be used (``"dynamic: file ... does not match its manifest"``); such runs are absent from
             ``method_inputs``.
+        device: the torch device a ``device`` stage computes on (``cpu``, ``cuda:N``; :mod:`pipeline.device`).
+        precision: ``fp32``, or ``bf16`` for the MLPs' products.
     """
 
     cfg: DictConfig
@@ -84,6 +88,8 @@ class StageContext:
     method_inputs: Mapping[str, Mapping[str, Path]] = field(default_factory=dict)
     subject_inputs: Mapping[str, Path] = field(default_factory=dict)
     method_problems: Mapping[str, str] = field(default_factory=dict)
+    device: str = "cpu"
+    precision: str = "fp32"
 
     def input_dir(self, stage: str) -> Path:
         """Artifact directory of a declared upstream stage (of this run's method where it is per-method)."""
@@ -131,6 +137,7 @@ class Stage:
     config_keys: tuple[str, ...] = ()
     outputs: tuple[str, ...] = ()
     version: str = "1"
+    device: bool = False
     config_schema: type | None = None
     description: str = ""
     cache_exclude: tuple[str, ...] = ()
@@ -179,6 +186,7 @@ def stage(
     config_keys: Iterable[str] = (),
     outputs: Iterable[str],
     version: str = "1",
+    device: bool = False,
     config_schema: type | None = None,
     cache_exclude: Iterable[str] = (),
     unused_keys: Callable[[DictConfig], Iterable[str]] | None = None,
@@ -202,6 +210,7 @@ def stage(
             config_keys=tuple(config_keys),
             outputs=tuple(outputs),
             version=version,
+            device=device,
             config_schema=config_schema,
             cache_exclude=tuple(cache_exclude),
             unused_keys=unused_keys,

@@ -123,6 +123,7 @@ DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("st
     # shifted sums instead of conv2d (rounding-level changes); 6: the compiled rasterizer's alpha as a power of two
     # (rounding-level)
     version="14",
+    device=True,
     per_method=True,
     config_schema=DynamicConfig,
     # resuming is bit-for-bit: it cannot change the result
@@ -144,7 +145,7 @@ def dynamic(ctx: StageContext) -> None:
     conf = ctx.cfg.stage.dynamic
     torch.manual_seed(conf.seed)
     fit_dir, pbd_dir, warmup_dir = ctx.input_dir("fit"), ctx.input_dir("pbd"), ctx.input_dir("warmup")
-    views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train")
+    views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train", ctx.device)
     deformation = applied_deformation(ctx.cfg, pbd_dir)
     posed = posed_sequence(
         fit_dir, TRAIN_SEQUENCE, ctx.cfg, deformation, method_params(warmup_dir, fit_dir, TRAIN_SEQUENCE)

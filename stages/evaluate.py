@@ -33,6 +33,7 @@ from avatar.artifacts import (
 )
 from avatar.artifacts.dependencies import contact_sources, unused_driving_settings
 from avatar.artifacts.motion import applied_deformation, load_sequence, posed_sequence, posed_with_offsets, templates
+from avatar.device import host
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.fitting.errors import tracking_errors
 from avatar.geometry.views import ViewSet
@@ -98,6 +99,7 @@ Renderer = Callable[[int, int], torch.Tensor]
     config_keys=("model", "method", "stage.evaluate", "reenact", "stage.pbd.solver"),
     outputs=("metrics.parquet", "grids", "renders", "splits.json", TRACKING_DIR),
     version="12",  # 12: stage.evaluate.test_tracking (the held-out motion tracked by the avatar)
+    device=True,
     config_schema=EvaluateConfig,
     sources=contact_sources,
     per_method=True,
@@ -113,9 +115,10 @@ def evaluate(ctx: StageContext) -> None:
     conf, method = ctx.cfg.stage.evaluate, str(ctx.cfg.method.name)
     cap_dir, frames_dir = ctx.input_dir("capture"), ctx.input_dir("frames")
     rows: dict[str, list] = {c.name: [] for c in METRICS.columns}
-    lpips = LPIPS("alex")
-    ctx.metrics["rasterizer"] = resolve_backend(conf.backend, torch.zeros(0, 3))  # what backend=auto chose here
-    model = load_trained(ctx.input_dir("dynamic"))
+    lpips = LPIPS("alex").to(ctx.device)
+    # what backend=auto chose here, for tensors on the run's device
+    ctx.metrics["rasterizer"] = resolve_backend(conf.backend, torch.zeros(0, 3, device=ctx.device))
+    model = load_trained(ctx.input_dir("dynamic")).on_device(ctx.device, ctx.precision)
     (ctx.out_dir / "grids").mkdir()
     (ctx.out_dir / TRACKING_DIR).mkdir()
     splits = _splits(ctx)
@@ -130,7 +133,7 @@ def evaluate(ctx: StageContext) -> None:
     loaded: dict[tuple[str, str], ViewSet] = {}  # the held-out motion's crops serve both of its protocols
     for split, (sequence, camera_split) in splits.items():
         if (sequence, camera_split) not in loaded:
-            loaded[sequence, camera_split] = load_views(cap_dir, frames_dir, sequence, camera_split)
+            loaded[sequence, camera_split] = load_views(cap_dir, frames_dir, sequence, camera_split, ctx.device)
         views = loaded[sequence, camera_split]
         if split == TRACKED_SPLIT:
             tuning, scoring = tracking_cameras(conf.tuning_cameras, views.camera_ids)
@@ -139,7 +142,8 @@ def evaluate(ctx: StageContext) -> None:
             views = views.cameras(scoring)
         else:
             meshes, cond = _split_sequence(ctx, split, sequence, views.num_frames)
-        render = _renderer(model, cond, meshes, views, conf.backend)
+        render = _renderer(model, cond.to(ctx.device), meshes.to(ctx.device), views, conf.backend)
+        labels = views.labels.cpu()  # the regions' masks, cut on the host
         contact = contact_frames(cap_dir, sequence, views.num_frames)
         showcase = set(showcase_pairs(contact, int(conf.showcase_frames)))
         (ctx.out_dir / "renders" / split).mkdir(parents=True)
@@ -150,7 +154,7 @@ def evaluate(ctx: StageContext) -> None:
                 raw = render(t, c).clamp(0, 1)
             # metrics and error maps on the observed pixels only: the render takes the ground truth on padding
             gt, pred = (image.permute(2, 0, 1) for image in views.target_and_render(raw, t, c))
-            for region, mask in _regions(views.labels[t, c].numpy()).items():
+            for region, mask in _regions(labels[t, c].numpy()).items():
                 m = image_metrics(pred, gt, None if mask is None else torch.from_numpy(mask), lpips_model=lpips)
                 for key, value in (
                     ("method", method),
@@ -203,7 +207,7 @@ def _tracked_sequence(
         head,
         hand,
         torch.from_numpy(posed.offsets).float(),
-        tuning,
+        tuning,  # on the run's device, as the avatar
         core_config(AvatarTrackingConfig, cfg.stage.evaluate.tracking),
         str(cfg.stage.evaluate.backend),
         progress=lambda frames: ctx.progress(frames, desc=f"track {sequence} with the avatar"),
@@ -375,7 +379,7 @@ def _regions(labels: np.ndarray) -> dict[str, np.ndarray | None]:
 
 def _to_u8(image: torch.Tensor) -> np.ndarray:
     """(S, S, 3) uint8 of an image (3, S, S) in [0, 1]."""
-    return to_uint8(image.permute(1, 2, 0).numpy())
+    return to_uint8(host(image.permute(1, 2, 0)))
 
 
 def _grid_row(gt: torch.Tensor, preds: list[torch.Tensor]) -> np.ndarray:
@@ -383,7 +387,7 @@ def _grid_row(gt: torch.Tensor, preds: list[torch.Tensor]) -> np.ndarray:
     images (3, S, S) in [0, 1]."""
 
     def heat(pred: torch.Tensor) -> np.ndarray:
-        err = ((pred - gt).abs().mean(0).numpy() * 4 * 255).clip(0, 255).astype(np.uint8)
+        err = (host((pred - gt).abs().mean(0)) * 4 * 255).clip(0, 255).astype(np.uint8)
         return cv2.applyColorMap(err, cv2.COLORMAP_INFERNO)[..., ::-1]
 
     return np.concatenate([_to_u8(gt), *(_to_u8(p) for p in preds), *(heat(p) for p in preds)], axis=1)

@@ -37,6 +37,7 @@ from avatar.artifacts import (
     write_frame_ply,
 )
 from avatar.artifacts.dependencies import contact_sources, unused_driving_settings
+from avatar.device import host
 from avatar.reenact.cameras import framed_intrinsics, orbit, orbit_intrinsics, reframe
 from avatar.reenact.driving import (
     DRIVER_CHOICES,
@@ -143,6 +144,7 @@ def capture_camera_ids(cfg: DictConfig) -> list[str] | None:
     config_keys=("model", "method", "reenact", "stage.reenact", "stage.pbd.solver", "quality.image_size"),
     outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
     version="8",
+    device=True,
     config_schema=ReenactConfig,
     per_method=True,
     subject_inputs=("fit",),
@@ -163,9 +165,10 @@ def reenact(ctx: StageContext) -> None:
     driven = drive(cfg, params, load_scene(ctx.input_dir("scene")), scale)
     meshes, cond, offsets, pbd_frames = driven.meshes, driven.cond, driven.offsets, driven.pbd_frames
     T = offsets.shape[0]
-    model = load_trained(ctx.input_dir("dynamic"))
+    model = load_trained(ctx.input_dir("dynamic")).on_device(ctx.device, ctx.precision)
     size = int(conf.image_size) or int(cfg.quality.image_size)
     views = _views(ctx, meshes.vertices.numpy().reshape(-1, 3), params, size)
+    meshes, cond = meshes.to(ctx.device), cond.to(ctx.device)
     background = torch.tensor(list(conf.background), dtype=torch.float32)
     rendered: dict[str, list[np.ndarray]] = {name: [] for name in views}
     model_s, render_s = 0.0, 0.0
@@ -184,15 +187,15 @@ def reenact(ctx: StageContext) -> None:
                     g.scales,
                     g.opacities,
                     g.colors,
-                    torch.tensor(K[t], dtype=torch.float32),
-                    torch.tensor(w2c[t], dtype=torch.float32),
+                    torch.tensor(K[t], dtype=torch.float32, device=ctx.device),
+                    torch.tensor(w2c[t], dtype=torch.float32, device=ctx.device),
                     size,
                     size,
-                    background,
+                    background.to(ctx.device),
                     backend=conf.backend,
                 )
                 render_s += time.perf_counter() - start
-                rendered[name].append(to_uint8(out.rgb.numpy()))
+                rendered[name].append(to_uint8(host(out.rgb)))
             if conf.ply:
                 write_frame_ply(ctx.out_dir / "ply" / f"{t:05d}.ply", g)
     fps = float(conf.fps) or _capture_fps(ctx.input_dir("capture"))

@@ -82,6 +82,7 @@ def page_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # the SourceLis
     config_keys=(*TEMPLATE_KEYS, "method", "stage.viewer"),
     outputs=("index.html", "data", "viewer.json"),
     version="2",  # 2: names escaped in the page's data (data_schemas.web_escape)
+    device=True,
     config_schema=ViewerConfig,
     sources=page_sources,
     per_method=True,
@@ -103,7 +104,7 @@ def viewer(ctx: StageContext) -> None:
     identity = {"method": str(ctx.cfg.method.name), "label": str(ctx.cfg.method.label), "subject": ctx.subject}
     report = write_viewer(
         ctx.out_dir,
-        load_trained(ctx.input_dir("dynamic")),
+        load_trained(ctx.input_dir("dynamic")).on_device(ctx.device, ctx.precision),
         motions,
         codec,
         settings,

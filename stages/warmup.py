@@ -91,6 +91,7 @@ WarmupConfig = section_schema("WarmupConfig", WarmupTrainConfig, exclude=("steps
     ),
     outputs=("gaussians.parquet", "gaussians.ply", "train_log.parquet", "curve.parquet", "params.parquet"),
     version="10",
+    device=True,
     # 10: validation.fraction/min_train_frames/retrain (the validated run in validation/, then every frame);
     # 9: gaussians.ply by the one PLY writer (write_frame_ply: opacity logits of the clamped opacities, equal to
     # rounding); 8: refine_params (the train motion's parameters refined with the Gaussians; params.parquet);
@@ -115,7 +116,7 @@ def warmup(ctx: StageContext) -> None:
     FLAME/MANO parameters (:mod:`avatar.training.frame_params`); ``params.parquet`` holds the train motion's
     parameters as trained on (the fit's where nothing was refined), which stage two starts from."""
     conf = ctx.cfg.stage.warmup
-    views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train")
+    views = load_views(ctx.input_dir("capture"), ctx.input_dir("frames"), "train", "train", ctx.device)
     posed = posed_sequence(
         ctx.input_dir("fit"), TRAIN_SEQUENCE, ctx.cfg, applied_deformation(ctx.cfg, ctx.input_dir("pbd"))
     )
@@ -127,7 +128,7 @@ def warmup(ctx: StageContext) -> None:
         write_params(first_dir / "params.parquet", params.arrays() if params is not None else posed.params)
         final = Validator(ValidationConfig(), views, limit=validator.end)
         model, params, final_loss = _train(ctx, views, posed, final, ctx.out_dir, "final")
-    meshes = posed.meshes
+    meshes = posed.meshes.to(ctx.device)
     frame = min(int(conf.ply_frame), meshes.vertices.shape[0] - 1)
     with torch.no_grad():
         vertices = params.vertices(frame) if params is not None else meshes.vertices[frame]
@@ -154,22 +155,22 @@ def _train(
     conf, q = ctx.cfg.stage.warmup, ctx.cfg.quality
     torch.manual_seed(conf.seed)
     rep = representation(ctx.cfg)
-    meshes, params = posed.meshes, frame_params(ctx.cfg, conf, posed, rep.refines_tracking)
-    canonical = meshes.vertices[0]  # the paper's canonical frame: the first training frame
     populate = None  # every triangle; without a hand in the scene, only the face's (a face-only avatar)
     if not load_scene(ctx.input_dir("scene")).model_hand:
-        populate = meshes.face_part != meshes.part_names.index("hand")
+        populate = posed.meshes.face_part != posed.meshes.part_names.index("hand")
+    # populated on the CPU, where the seed's draws are the same on every machine, then moved to the run's device
     model = rep.populate(
-        canonical,
-        meshes,
+        posed.meshes.vertices[0],  # the paper's canonical frame: the first training frame
+        posed.meshes,
         int(q.gaussians_per_triangle),
         init_opacity=conf.init_opacity,
         seed=conf.seed,
         populate=populate,
-    )
+    ).to(ctx.device)
+    meshes, params = posed.meshes.to(ctx.device), frame_params(ctx.cfg, conf, posed, rep.refines_tracking, ctx.device)
     with torch.no_grad():
-        means, _, _ = model.world(canonical, meshes.faces)
-    part_label = torch.tensor([MASK_LABELS[name] for name in meshes.part_names])[model.part]
+        means, _, _ = model.world(meshes.vertices[0], meshes.faces)
+    part_label = torch.tensor([MASK_LABELS[name] for name in meshes.part_names], device=ctx.device)[model.part]
     model.set_colors(colors_from_views(means, part_label, views, frame=0))
     out_dir.mkdir(exist_ok=True)
     checkpoints = run_scratch(ctx, run)

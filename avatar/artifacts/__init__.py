@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from avatar.device import fits_on_device, host
 from avatar.geometry.views import ViewSet
 from avatar.render.gaussians import WorldGaussians
 from avatar.scene import SceneDecision
@@ -129,8 +130,11 @@ def load_face_offsets(pbd_dir: Path, sequence: str, num_frames: int, num_vertice
     return offsets.reshape(num_frames, num_vertices, 3)
 
 
-def load_views(capture_dir: Path, frames_dir: Path, sequence: str, split: str) -> ViewSet:
-    """The crops of ``sequence`` seen by the cameras of ``split`` (``train`` or ``test``)."""
+def load_views(
+    capture_dir: Path, frames_dir: Path, sequence: str, split: str, device: torch.device | str = "cpu"
+) -> ViewSet:
+    """The crops of ``sequence`` seen by the cameras of ``split`` (``train`` or ``test``), loaded once onto ``device``
+    (a clear MemoryError where they would take more of a GPU than :func:`avatar.device.fits_on_device` allows)."""
     index = read_table(frames_dir / "index.parquet", FRAMES_INDEX)
     cameras = {c.camera_id: c for c in read_cameras(capture_dir / "cameras.parquet") if c.split == split}
     rows = [
@@ -152,6 +156,12 @@ def load_views(capture_dir: Path, frames_dir: Path, sequence: str, split: str) -
     background = (
         images[labels == 0].reshape(-1, 3).astype(np.float64).mean(0) / 255.0 if (labels == 0).any() else np.zeros(3)
     )
+    fits_on_device(
+        images.nbytes + labels.nbytes,
+        device,
+        f"the {len(frames)} frames x {len(camera_ids)} cameras of {sequence}/{split} crops in {frames_dir}",
+        "lower quality.image_size or the capture's frame count, or train with run.device=cpu",
+    )
     return ViewSet(
         images=torch.from_numpy(images),
         labels=torch.from_numpy(labels),
@@ -159,7 +169,7 @@ def load_views(capture_dir: Path, frames_dir: Path, sequence: str, split: str) -
         world_to_cam=torch.tensor(np.stack([cameras[c].world_to_cam for c in camera_ids]), dtype=torch.float32),
         camera_ids=camera_ids,
         background=torch.tensor(background, dtype=torch.float32),
-    )
+    ).to(device)
 
 
 def load_scene(scene_dir: Path) -> SceneDecision:
@@ -190,10 +200,10 @@ def write_frame_ply(path: Path, g: WorldGaussians) -> None:
         write_gaussians_ply(
             path,
             GaussianCloud.from_rgb(
-                g.means.numpy(),
-                torch.log(g.scales).numpy(),
-                g.quats.numpy(),
-                torch.log(o / (1 - o)).numpy(),
-                g.colors.numpy(),
+                host(g.means),
+                host(torch.log(g.scales)),
+                host(g.quats),
+                host(torch.log(o / (1 - o))),
+                host(g.colors),
             ),
         )

@@ -20,12 +20,16 @@ class StageRun(Protocol):
         out_dir: the stage's fresh output folder.
         scratch_dir: persistent space for checkpoints (None where the stage has none).
         metrics: scalars recorded in the stage's manifest.
+        device: the torch device the stage computes on (``cpu``, ``cuda:N``: ``run.device`` resolved).
+        precision: ``fp32``, or ``bf16`` for the networks' products (``run.precision``).
     """
 
     cfg: DictConfig
     out_dir: Path
     scratch_dir: Path | None
     metrics: dict[str, float | int | str]
+    device: str
+    precision: str
 
     def input_dir(self, stage: str) -> Path:
         """The artifact folder of the upstream stage ``stage``."""

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from avatar.device import to_device
 from avatar.posing import pose_layers
 from avatar.templates import TemplateModel
 from avatar.templates.lbs import batch_rodrigues
@@ -65,6 +66,10 @@ class Conditioning:
     def num_frames(self) -> int:
         """T of a sequence."""
         return self.hand_pose.shape[0]
+
+    def to(self, device: torch.device | str) -> Conditioning:
+        """The same conditioning on ``device``."""
+        return to_device(self, device)
 
     def frame(self, t: int) -> Conditioning:
         """Frame ``t`` of a sequence."""

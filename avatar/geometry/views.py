@@ -7,6 +7,8 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from avatar.device import to_device
+
 FACE_LABEL, HAND_LABEL = 1, 2  # part labels of the crops' masks (see ViewSet)
 UNOBSERVED_LABEL = 4  # crop padding past the camera image (data_schemas.frames.UNOBSERVED)
 
@@ -35,6 +37,10 @@ class ViewSet:
     @property
     def num_frames(self) -> int:
         return self.images.shape[0]
+
+    def to(self, device: torch.device | str) -> ViewSet:
+        """The same crops on ``device`` (this set itself where they are there already)."""
+        return to_device(self, device)
 
     @property
     def num_cameras(self) -> int:

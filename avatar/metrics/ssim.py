@@ -90,7 +90,7 @@ class _SeparableBlur(torch.autograd.Function):
 
 def _blur(x: Tensor, padding: Padding) -> Tensor:
     """Gaussian-filter every channel of ``x`` ``(N, K, H, W)`` separably; ``(N, K, H', W')`` per ``padding``."""
-    weights = gaussian_window(torch.float64).tolist()
+    weights = gaussian_window(torch.float64, "cpu").tolist()  # the taps, numbers on the host
     return _SeparableBlur.apply(x, weights, _RADIUS if padding == "zero" else 0)
 
 

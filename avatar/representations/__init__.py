@@ -15,7 +15,7 @@ import json
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import ClassVar, Protocol
+from typing import ClassVar, Protocol, Self
 
 import torch
 from omegaconf import DictConfig
@@ -78,6 +78,10 @@ class CanonicalGaussians(Protocol):
         """(N,) in (0, 1)."""
         ...
 
+    def to(self, device: torch.device | str) -> Self:
+        """These Gaussians on ``device`` (an ``nn.Module``'s ``to``)."""
+        ...
+
 
 class GaussianPopulation(Protocol):
     """A class of :class:`CanonicalGaussians` that populates a mesh's triangles."""
@@ -110,6 +114,11 @@ class TrainedAvatar(Protocol):
     def triangles(self) -> torch.Tensor:
         """(N,) int64: the triangle (a row of the posed meshes' faces) each Gaussian rides on; the browser viewer
         poses the Gaussians with that triangle's frame (:mod:`avatar.viewer.codec`)."""
+        ...
+
+    def on_device(self, device: str, precision: str) -> TrainedAvatar:
+        """This avatar on the torch ``device`` (``cpu``, ``cuda:N``), its networks (where it has any) run in
+        ``precision`` (``fp32``, ``bf16``); on the CPU in fp32 the avatar as loaded."""
         ...
 
     def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:

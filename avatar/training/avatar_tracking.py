@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from avatar.device import host
 from avatar.dynamic.conditioning import FrameConditioning
 from avatar.geometry.views import FACE_LABEL, HAND_LABEL, ViewSet
 from avatar.render.gaussians.world import WorldGaussians
@@ -114,7 +115,8 @@ def track_with_avatar(
         params: the tracker's params.parquet columns, T rows each; T must equal ``views.num_frames``.
         head, hand: the templates the avatar was trained on.
         face_offsets: (T, V_face, 3) world-frame contact offsets added to the posed face (None: none).
-        views: the crops the refinement may look at: every camera of it is used, and no other.
+        views: the crops the refinement may look at: every camera of it is used, and no other; the parameters
+            are refined on their device (the avatar's).
         config: steps and rates.
         backend: the rasterizer.
         progress: wraps the loop over the frames (a progress bar).
@@ -122,7 +124,7 @@ def track_with_avatar(
     num_frames = len(next(iter(params.values())))
     if num_frames != views.num_frames:
         raise ValueError(f"{num_frames} frames of parameters but {views.num_frames} of images")
-    frames = FrameParams(params, head, hand, face_offsets, config.rates())
+    frames = FrameParams(params, head, hand, face_offsets, config.rates(), device=views.images.device)
     held = {part: ~_seen(views, label) for part, (_, label) in PARTS.items()}
     before, after = np.zeros(num_frames), np.zeros(num_frames)
     decay = config.final_rate ** (1 / max(config.steps - 1, 1))
@@ -141,7 +143,7 @@ def track_with_avatar(
 def _loss(pose: PoseFrame, frames: FrameParams, views: ViewSet, t: int, backend: str) -> Tensor:
     """The mean L1 error of frame ``t``'s renders over every camera of ``views`` (observed pixels only)."""
     gaussians = pose(frames.conditioning(t), frames.vertices(t))
-    total = torch.zeros(())
+    total = torch.zeros((), device=views.images.device)
     for c in range(views.num_cameras):
         gt, render = views.target_and_render(rasterize(gaussians, views, c, backend).rgb, t, c)
         total = total + (render - gt).abs().mean()
@@ -151,7 +153,7 @@ def _loss(pose: PoseFrame, frames: FrameParams, views: ViewSet, t: int, backend:
 def _seen(views: ViewSet, label: int) -> np.ndarray:
     """(T,) bool: frames in which some camera of ``views`` shows at least :data:`MIN_VISIBLE_PIXELS` of ``label``."""
     counts = (views.labels == label).flatten(2).sum(-1)  # (T, C)
-    return (counts >= MIN_VISIBLE_PIXELS).any(1).numpy()
+    return host((counts >= MIN_VISIBLE_PIXELS).any(1))
 
 
 def _hold(frames: FrameParams, t: int, parts: list[str]) -> None:

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from avatar.device import host
 from avatar.dynamic.conditioning import Conditioning, conditioning_from_posed
 from avatar.geometry.rotations import rotation_angle_deg
 from avatar.posing import posed_keypoints, run_layers, template_layers
@@ -78,7 +79,7 @@ class FrameAdam:
         self.betas, self.eps = betas, eps
         self.exp_avg = [torch.zeros_like(p) for p, _ in self.groups]
         self.exp_avg_sq = [torch.zeros_like(p) for p, _ in self.groups]
-        self.steps = torch.zeros(num_frames, dtype=torch.long)
+        self.steps = torch.zeros(num_frames, dtype=torch.long, device="cpu")  # counted on the host
 
     @torch.no_grad()
     def step(self, frame: int, lr_scale: float = 1.0) -> None:
@@ -120,6 +121,7 @@ class FrameParams(nn.Module):
         face_offsets: (T, V_face, 3) world-frame contact offsets added to the posed face (None: none).
         lrs: the learning rate of each group of :data:`REFINED_COLUMNS`.
         centred: keep the corrections' mean over the refined frames at zero (:meth:`step`).
+        device: where the parameters, the templates and the offsets live (the training run's device).
     """
 
     face_offsets: Tensor  # buffer (T, V_face, 3)
@@ -132,13 +134,14 @@ class FrameParams(nn.Module):
         face_offsets: Tensor | None,
         lrs: ParamLearningRates,
         centred: bool = False,
+        device: torch.device | str = "cpu",
     ) -> None:
         super().__init__()
         self.centred = centred
-        t = {k: torch.tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
+        t = {k: torch.tensor(np.asarray(v), dtype=torch.float32, device=device) for k, v in params.items()}
         self.flame, self.mano = template_layers(t, head, hand)
-        self.flame.float()  # the templates' float64 buffers, cast once instead of in every forward
-        self.mano.float()
+        self.flame.to(device, torch.float32)  # the templates' float64 buffers, cast once instead of in every forward
+        self.mano.to(device, torch.float32)
         refined = {c for columns in REFINED_COLUMNS.values() for c in columns}
         self.rows = nn.ParameterDict({k: nn.Parameter(v) for k, v in t.items() if k in refined})
         for k, v in t.items():
@@ -148,6 +151,7 @@ class FrameParams(nn.Module):
         self.start = {k: v.clone() for k, v in t.items() if k in refined}  # the parameters as given
         num_frames = next(iter(t.values())).shape[0]
         offsets = torch.zeros(num_frames, head.num_vertices, 3) if face_offsets is None else face_offsets.float()
+        offsets = offsets.to(device)
         self.register_buffer("face_offsets", offsets)
         self.optimizer = FrameAdam(
             [(self.rows[c], getattr(lrs, group)) for group, columns in REFINED_COLUMNS.items() for c in columns],
@@ -191,7 +195,7 @@ class FrameParams(nn.Module):
         self.optimizer.step(frame)
         if not self.centred or len(frames) == 0:
             return
-        index = torch.as_tensor(np.asarray(frames), dtype=torch.long)
+        index = torch.as_tensor(np.asarray(frames), dtype=torch.long, device=self.face_offsets.device)
         with torch.no_grad():
             for k, p in self.rows.items():
                 p[index] -= (p[index] - self.start[k][index]).mean(0)
@@ -199,7 +203,7 @@ class FrameParams(nn.Module):
     def arrays(self) -> dict[str, np.ndarray]:
         """Every column as a (T, D) float32 array (the params.parquet columns)."""
         with torch.no_grad():
-            return {k: v.numpy().copy() for k, v in self.columns_all().items()}
+            return {k: host(v).copy() for k, v in self.columns_all().items()}
 
     def columns_all(self) -> dict[str, Tensor]:
         """Every column, all T frames."""

@@ -77,8 +77,10 @@ def record_refinement(
         ctx.metrics[f"params_rotated_{part}_deg_max"] = float(np.max(moved["rotated_deg"][part]))
 
 
-def frame_params(cfg: DictConfig, section: DictConfig, posed: PosedSequence, can_refine: bool) -> FrameParams | None:
-    """The train motion's parameters to refine while training (:class:`FrameParams`), or None when
+def frame_params(
+    cfg: DictConfig, section: DictConfig, posed: PosedSequence, can_refine: bool, device: torch.device | str = "cpu"
+) -> FrameParams | None:
+    """The train motion's parameters to refine while training (:class:`FrameParams`, on ``device``), or None when
     :func:`refines_params` says no (``can_refine``: whether the method's representation can)."""
     if not refines_params(cfg, section, can_refine):
         return None
@@ -90,6 +92,7 @@ def frame_params(cfg: DictConfig, section: DictConfig, posed: PosedSequence, can
         torch.from_numpy(posed.offsets),
         param_learning_rates(section),
         centred=bool(section.params_centred),
+        device=device,
     )
 
 

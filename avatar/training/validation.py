@@ -125,7 +125,7 @@ def withheld_count(num_frames: int, fraction: float, min_train_frames: int) -> i
 def draw_frame(gen: torch.Generator, frames: np.ndarray) -> int:
     """One of ``frames`` (K,) drawn uniformly with one ``randint`` of ``gen``: over ``arange(T)`` the very
     draw the loops made before validation existed, so runs without it are unchanged."""
-    return int(frames[int(torch.randint(len(frames), (1,), generator=gen))])
+    return int(frames[int(torch.randint(len(frames), (1,), generator=gen, device="cpu"))])
 
 
 def is_flat(psnrs: Sequence[float], window: int, min_gain_db: float) -> bool:
@@ -246,7 +246,11 @@ class Validator:
         observed = torch.stack(
             [self.views.observed(int(t), c) for t in self.frames for c in range(self.views.num_cameras)]
         )  # (F C, S, S)
-        lpips = float(default_lpips()(pred.float(), gt.float(), unit_range=True).mean()) if self.cfg.lpips else math.nan
+        lpips = (
+            float(default_lpips().to(pred.device)(pred.float(), gt.float(), unit_range=True).mean())
+            if self.cfg.lpips
+            else math.nan
+        )
         return float(psnr(pred, gt, observed).mean()), lpips
 
     def _flat(self) -> bool:

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from avatar.artifacts.motion import PosedSequence
+from avatar.device import host
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.representations import TrainedAvatar
 from avatar.viewer.codec import (
@@ -93,7 +94,7 @@ def write_viewer(
     data_dir.mkdir()
     faces = motions[0].posed.meshes.faces.numpy()
     face_part = motions[0].posed.meshes.face_part.numpy()
-    triangle = avatar.triangles.numpy()
+    triangle = host(avatar.triangles)
     posed_frames = {m.name: _pose_all(avatar, m) for m in motions}
     static = static_gaussians(
         _reference_samples(motions, posed_frames, settings.reference_frames), faces, face_part, triangle
@@ -155,12 +156,13 @@ def write_viewer(
 
 def _pose_all(avatar: TrainedAvatar, motion: Motion) -> list[FrameGaussians]:
     """Every frame of ``motion`` as the avatar poses it (as evaluated: no sampling noise). A frame whose mesh or
-    Gaussians are not finite is refused, naming it (nothing is written)."""
-    vertices = motion.posed.meshes.vertices
+    Gaussians are not finite is refused, naming it (nothing is written). Posed on the avatar's device."""
+    device = avatar.triangles.device
+    vertices, cond = motion.posed.meshes.vertices.to(device), motion.cond.to(device)
     frames = []
     with torch.no_grad():
         for t in range(vertices.shape[0]):
-            frame = FrameGaussians.of(avatar.pose(motion.cond, vertices[t], t))
+            frame = FrameGaussians.of(avatar.pose(cond, vertices[t], t))
             bad = frame.non_finite()
             if bad or not torch.isfinite(vertices[t]).all():
                 raise ValueError(

@@ -71,6 +71,9 @@ class ToyAvatar:
     def triangles(self) -> torch.Tensor:
         return self.gaussians.binding
 
+    def on_device(self, device: str, precision: str) -> ToyAvatar:
+        return self  # the tests' toy runs on the CPU
+
     def pose(self, cond: object, vertices: torch.Tensor, frame: int) -> PosedGaussians:
         means, scales, quats = self.gaussians.world(vertices, self.faces)
         colors = self.gaussians.colors().clone()

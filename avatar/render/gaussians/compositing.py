@@ -147,7 +147,7 @@ class _Compositor:
         pad[0, GEOMETRY_COLUMNS - 1] = _PAD_LOG_OPACITY
         self.columns = torch.cat([table, pad]).T.contiguous()
         self.pad_row = table.shape[0]
-        limit = torch.tensor(ALPHA_MIN, dtype=table.dtype)
+        limit = torch.tensor(ALPHA_MIN, dtype=table.dtype, device="cpu")  # a number for the host
         self.below_alpha_min = float(torch.nextafter(limit, torch.zeros_like(limit)))
 
     def gather(self, step: _Step) -> tuple[Tensor, Tensor, Tensor]:

@@ -237,5 +237,5 @@ def _reinitialise_broken(model: BoundGaussians) -> None:
 def reset_opacity(model: BoundGaussians, optimizer: torch.optim.Optimizer, ceiling: float) -> None:
     """Clamp every opacity to at most ``ceiling`` and zero its Adam moments."""
     logits = model.opacity_logits.detach()
-    capped = torch.minimum(logits, inverse_sigmoid(torch.tensor(ceiling, dtype=logits.dtype)))
+    capped = torch.minimum(logits, inverse_sigmoid(torch.tensor(ceiling, dtype=logits.dtype, device=logits.device)))
     _replace(model, optimizer, "opacity_logits", capped, torch.zeros_like)

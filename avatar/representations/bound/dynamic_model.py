@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from avatar.device import precision
 from avatar.dynamic.conditioning import FrameConditioning
 from avatar.geometry.frames import place_gaussians, place_means, triangle_frames
 from avatar.nets.encoding import encoded_dim, positional_encoding
@@ -159,7 +160,7 @@ def nearest_distance(points: Tensor, targets: Tensor, reach: float) -> Tensor:
     ``[-2x, |x|^2, 1] . [y, 1, |y|^2]``, clamped at 1e-30, then the root), but the minimum is taken over the
     squared distances, before the clamp and the root (both monotonic), so the root is taken once per point
     and no indices are kept (a draft contact frame: 41 ms instead of 164)."""
-    out = torch.full((points.shape[0],), math.inf, dtype=points.dtype)
+    out = points.new_full((points.shape[0],), math.inf)
     if targets.shape[0] == 0 or points.shape[0] == 0:
         return out
     lo, hi = targets.min(0).values - reach, targets.max(0).values + reach
@@ -181,12 +182,17 @@ def sample_one_per_triangle(
     ``log w + Gumbel noise``); with ``generator`` None the largest weight of each triangle."""
     key = weight.clamp_min(1e-30).log()
     if generator is not None:
-        u = torch.rand(key.shape, generator=generator, dtype=key.dtype).clamp(1e-12, 1 - 1e-12)
+        # drawn on the generator's device (the CPU's), so that a seed draws the same sample on every device
+        u = (
+            torch.rand(key.shape, generator=generator, dtype=key.dtype, device="cpu")
+            .to(key.device)
+            .clamp(1e-12, 1 - 1e-12)
+        )
         key = key - torch.log(-torch.log(u))
-    best = torch.full((num_triangles,), -math.inf, dtype=key.dtype).scatter_reduce(0, triangle, key, "amax")
+    best = key.new_full((num_triangles,), -math.inf).scatter_reduce(0, triangle, key, "amax")
     winners = (key == best[triangle]).nonzero()[:, 0]
     # exact ties (measure zero when sampling; equal weights at evaluation): keep the first per triangle
-    first = torch.full((num_triangles,), weight.shape[0], dtype=torch.long).scatter_reduce(
+    first = torch.full((num_triangles,), weight.shape[0], dtype=torch.long, device=key.device).scatter_reduce(
         0, triangle[winners], winners, "amin"
     )
     return first[first < weight.shape[0]]
@@ -239,6 +245,8 @@ class DynamicAvatar(nn.Module):
     ) -> None:
         super().__init__()
         self.cfg = cfg
+        #: the networks' precision (``run.precision``): ``fp32``, or ``bf16`` (autocast; their outputs back in float32)
+        self.precision = "fp32"
         self.gaussians = gaussians
         self.num_face_vertices = num_face_vertices
         self.face_part, self.hand_part = part_names.index("face"), part_names.index("hand")
@@ -356,7 +364,8 @@ class DynamicAvatar(nn.Module):
         """F (geometry_feature_dim,) from PointNet++ over ``points`` (P, 3); a learned vector when P = 0."""
         if self.pointnet is None:
             raise RuntimeError("this model reads no geometry feature (neither H nor I is built)")
-        return self.pointnet(points)
+        with precision(self.precision, points.device):
+            return self.pointnet(points).float()
 
     # -- the frame ---------------------------------------------------------------------------------
 
@@ -391,13 +400,14 @@ class DynamicAvatar(nn.Module):
             assert self.hand_app is not None and feature is not None  # built, and read, with H_geo
             idx = self.hand_index
             code = self.position_code[idx]
-            geo = self.hand_geo(code, cond.hand_pose)
-            app = self.hand_app(
-                (code, self.point_features),
-                torch.cat([feature, cond.hand_pose, cond.hand_rotation, cond.rel_rotation, cond.rel_translation]),
-            )
+            with precision(self.precision, code.device):
+                geo = self.hand_geo(code, cond.hand_pose)
+                app = self.hand_app(
+                    (code, self.point_features),
+                    torch.cat([feature, cond.hand_pose, cond.hand_rotation, cond.rel_rotation, cond.rel_translation]),
+                )
             for name, value in {**geo, **app}.items():
-                deltas[name] = deltas[name].index_add(0, idx, value)
+                deltas[name] = deltas[name].index_add(0, idx, value.float())
         if self.interaction is not None:
             assert feature is not None  # I reads F
             evaluations = self._interact(cond, means0[self.face_index], offsets, vertices, feature, deltas)
@@ -451,6 +461,8 @@ class DynamicAvatar(nn.Module):
         frame = torch.cat(
             [feature, cond.hand_pose, cond.face_pose, cond.expression, cond.rel_translation, cond.rel_rotation]
         )
-        for name, value in self.interaction(point, frame).items():
-            deltas[name] = deltas[name].index_add(0, idx[active], weight[active, None] * value)
+        with precision(self.precision, point.device):
+            outputs = self.interaction(point, frame)
+        for name, value in outputs.items():
+            deltas[name] = deltas[name].index_add(0, idx[active], weight[active, None] * value.float())
         return int(active.numel())

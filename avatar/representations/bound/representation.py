@@ -16,6 +16,7 @@ from omegaconf import DictConfig
 from avatar.artifacts import TRAIN_SEQUENCE, WorldGaussians, contact_flags, load_params, load_scene
 from avatar.artifacts.motion import PosedSequence, posed_with_offsets, templates
 from avatar.artifacts.stage_run import StageRun
+from avatar.device import host, host_state
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
@@ -70,13 +71,13 @@ def write_bound_gaussians(path: Path, model: BoundGaussians, part_names: tuple[s
             path,
             BOUND_GAUSSIANS,
             {
-                "binding": model.binding.numpy(),
+                "binding": host(model.binding),
                 "part": [part_names[i] for i in model.part.tolist()],
-                "local_means": model.local_means.numpy(),
-                "log_scales": model.log_scales.numpy(),
-                "quats": model.quats.numpy(),
-                "opacity_logits": model.opacity_logits.numpy(),
-                "sh_dc": model.sh_dc.numpy(),
+                "local_means": host(model.local_means),
+                "log_scales": host(model.log_scales),
+                "quats": host(model.quats),
+                "opacity_logits": host(model.opacity_logits),
+                "sh_dc": host(model.sh_dc),
             },
         )
 
@@ -230,6 +231,11 @@ class BoundAvatar:
     def triangles(self) -> torch.Tensor:
         return self.model.gaussians.binding
 
+    def on_device(self, device: str, precision: str) -> BoundAvatar:
+        model = self.model.to(device)
+        model.precision = precision
+        return BoundAvatar(model)
+
     def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:
         return self.model(cond.frame(frame), vertices)
 
@@ -354,22 +360,24 @@ class BoundRepresentation(Representation):
         ``run`` names its checkpoint folder."""
         conf = self.cfg.stage.dynamic
         meshes, cond, params = (
-            posed.meshes,
-            posed.conditioning(self.cfg),
-            frame_params(self.cfg, conf, posed, self.refines_tracking),
+            posed.meshes.to(ctx.device),
+            posed.conditioning(self.cfg).to(ctx.device),
+            frame_params(self.cfg, conf, posed, self.refines_tracking, ctx.device),
         )
         head, _ = templates(self.cfg.model)
         frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
+        # built on the CPU, where the seed initialises the networks alike on every machine, then moved
         model = DynamicAvatar.from_warmup(
             load_gaussians(warmup_dir, meshes.part_names),
-            meshes.vertices[0],
-            meshes.faces,
+            posed.meshes.vertices[0],
+            posed.meshes.faces,
             meshes.part_names,
             head.num_vertices,
             frame_dims,
             arch,
             seed=seed,
-        )
+        ).to(ctx.device)
+        model.precision = ctx.precision
         train_cfg = dynamic_train_config(self.cfg)
         train_cfg = replace(train_cfg, seed=seed, selection=replace(train_cfg.selection, enabled=select))
         result = train_dynamic(
@@ -404,16 +412,15 @@ class BoundRepresentation(Representation):
             written.result,
             written.posed,
         )
-        meshes, cond = posed.meshes, posed.conditioning(self.cfg)
         head, _ = templates(self.cfg.model)
         fit_dir = ctx.input_dir("fit")
         record_refinement(ctx, load_params(fit_dir, TRAIN_SEQUENCE), posed.params, params)
         if params is not None:  # the PLYs pose the train motion as refined, with the contact offsets read before
-            refined = posed_with_offsets(params.arrays(), self.cfg, posed.offsets)
-            meshes, cond = refined.meshes, refined.conditioning(self.cfg)
+            posed = posed_with_offsets(params.arrays(), self.cfg, posed.offsets)
+        meshes, cond = posed.meshes.to(ctx.device), posed.conditioning(self.cfg).to(ctx.device)
         write_bound_gaussians(ctx.out_dir / "gaussians.parquet", model.gaussians, meshes.part_names)
         buffer = io.BytesIO()
-        torch.save(model.network_state(), buffer)
+        torch.save(host_state(model.network_state()), buffer)
         write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "the dynamic model's networks")
         selection = chosen.result.selection.metrics() if chosen.result.selection is not None else {}
         if len(runs) > 1:

@@ -189,7 +189,7 @@ def sample_frame(gen: torch.Generator, frames: np.ndarray, contact: np.ndarray, 
     """One of the training frames ``frames`` (K,): with probability ``contact_fraction`` one of those with
     contact (``contact``: (T,) bool over the whole sequence), if any, else any of them."""
     contact_ids = frames[contact[frames]]
-    draw = float(torch.rand((), generator=gen))
+    draw = float(torch.rand((), generator=gen, device="cpu"))
     if contact_ids.size and draw < contact_fraction:
         return draw_frame(gen, contact_ids)
     return draw_frame(gen, frames)
@@ -222,7 +222,7 @@ def train_dynamic(
             step (:mod:`avatar.training.frame_params`); with the selection, the parameters of the kept step
             are kept with it.
     """
-    gen = torch.Generator().manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)  # frames, cameras and PointNet++'s sample: drawn on the CPU
     validator = validator if validator is not None else Validator(ValidationConfig(), views)
     if cfg.selection.enabled and not validator.cfg.enabled:
         raise ValueError(
@@ -230,8 +230,12 @@ def train_dynamic(
             "> 0, or stage.dynamic.select.enabled=false"
         )
     best = BestStep() if cfg.selection.enabled else None
+    device = model.mu_cano.device  # the run's: the model, the crops, the meshes and the conditioning are there
     if lpips is None and cfg.patch_weight > 0:  # the VGG layers cost time to build: only where L_patch counts
         lpips = LPIPS("vgg")
+    if lpips is not None:
+        lpips.to(device)
+    labels = views.labels.cpu()  # the part masks the patch boxes are cut from, read on the host every step
     optimizer = _optimizer(model, cfg)
     result = DynamicTrainResult([], 0, 0, {"model": 0.0, "render": 0.0, "loss": 0.0, "backward": 0.0})
     start = 0
@@ -271,7 +275,7 @@ def train_dynamic(
 
     def train_step(step: int) -> tuple[Tensor, dict[str, Tensor], int]:
         frame = sample_frame(gen, validator.train_frames, contact, result.contact_probability)
-        camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
+        camera = int(torch.randint(views.num_cameras, (1,), generator=gen, device="cpu"))
         _set_learning_rates(optimizer, cfg, step)
         t0 = time.perf_counter()
         g = model(*inputs(frame), gen)
@@ -279,7 +283,7 @@ def train_dynamic(
         out = rasterize(g, views, camera, cfg.backend)
         t2 = time.perf_counter()
         gt, pred = views.target_and_render(out.rgb, frame, camera)
-        terms = _loss_terms(pred, gt, views.labels[frame, camera].numpy(), g, out.radii > 0, cfg, lpips)
+        terms = _loss_terms(pred, gt, labels[frame, camera].numpy(), g, out.radii > 0, cfg, lpips)
         loss = (
             reconstruction_loss(terms, cfg.lambda_dssim, cfg.scale_weight, cfg.position_weight)
             + cfg.patch_weight * terms["patch"]

@@ -169,10 +169,10 @@ def train_warmup(
     (default: no validation, every frame). With ``checkpoint_dir`` it resumes from ``warmup.pt`` there when
     present (the model is resized to match). The stop rule looks at the validations after density control.
     """
-    gen = torch.Generator().manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)  # frames and cameras: drawn on the CPU on every device
     validator = validator if validator is not None else Validator(ValidationConfig(), views)
     optimizer = _optimizer(model, cfg)
-    density = DensityController(cfg.density(), model.num_gaussians, seed=cfg.seed)
+    density = DensityController(cfg.density(), model.num_gaussians, device=model.local_means.device, seed=cfg.seed)
     extent = meshes.extent()
     log: list[LogRow] = []
     start = 0
@@ -200,7 +200,7 @@ def train_warmup(
 
     def train_step(step: int) -> tuple[Tensor, dict[str, Tensor]]:
         frame = validator.sample_frame(gen)
-        camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
+        camera = int(torch.randint(views.num_cameras, (1,), generator=gen, device="cpu"))
         for group in optimizer.param_groups:
             if group["name"] == "local_means":
                 group["lr"] = exponential_lr(step, cfg.lr_position_init, cfg.lr_position_final, cfg.steps)

@@ -17,6 +17,7 @@ from omegaconf import DictConfig
 from avatar.artifacts import TRAIN_SEQUENCE, PosedGaussians, WorldGaussians, load_params
 from avatar.artifacts.motion import PosedSequence
 from avatar.artifacts.stage_run import StageRun
+from avatar.device import host, host_state
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
@@ -81,7 +82,7 @@ def write_embedded_gaussians(path: Path, model: EmbeddedGaussians, part_names: t
         EMBEDDED_GAUSSIANS,
         {
             **{
-                k: state[k].numpy()
+                k: host(state[k])
                 for k in ("triangle", "barycentric", "displacement", "log_scales", "quats", "opacity_logits", "sh_dc")
             },
             "part": [part_names[i] for i in state["part"].tolist()],
@@ -124,6 +125,9 @@ class EmbeddedAvatar:
     @property
     def triangles(self) -> torch.Tensor:
         return self.model.triangle
+
+    def on_device(self, device: str, precision: str) -> EmbeddedAvatar:
+        return EmbeddedAvatar(self.model.to(device))  # no networks: nothing runs in another precision
 
     def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:
         means, scales, quats = self.model.world(vertices, self.model.mesh.faces)
@@ -205,7 +209,7 @@ class EmbeddedRepresentation(Representation):
         :meth:`problems` were refused before any stage ran. With ``validation.retrain`` the validated run (from the
         warm-up's validated run where it kept one; ``validated``: the train motion as that run posed it) only
         measures and may stop early; the model written trains on every frame for the steps it ran."""
-        conf, meshes = self.cfg.stage.dynamic, posed.meshes
+        conf, meshes = self.cfg.stage.dynamic, posed.meshes.to(ctx.device)
         canonical = meshes.vertices[0]
         validation = validation_config(conf.validation, views.num_frames)
         warmup_dir = ctx.input_dir("warmup")
@@ -222,7 +226,7 @@ class EmbeddedRepresentation(Representation):
         steps = written.end  # steps run
         write_embedded_gaussians(ctx.out_dir / "gaussians.parquet", model, meshes.part_names)
         buffer = io.BytesIO()
-        torch.save({"canonical_vertices": canonical.float(), "faces": meshes.faces}, buffer)
+        torch.save(host_state({"canonical_vertices": canonical.float(), "faces": meshes.faces}), buffer)
         write_bytes(ctx.out_dir / "networks.pt", buffer.getvalue(), "SplattingAvatar's canonical mesh")
         write_model_info(
             ctx.out_dir,
@@ -251,7 +255,10 @@ class EmbeddedRepresentation(Representation):
     ) -> tuple[EmbeddedGaussians, list]:
         """One stage-two run from the warm-up model in ``warmup_dir`` on the frames and for the steps ``validator``
         leaves to it: the model and its loss log. ``run`` names its checkpoint folder."""
-        model = load_embedded_gaussians(warmup_dir, meshes.part_names, meshes.vertices[0], meshes.faces)
+        # loaded on the CPU, as the warm-up populated it, then moved to the run's device
+        model = load_embedded_gaussians(warmup_dir, meshes.part_names, meshes.vertices[0].cpu(), meshes.faces.cpu()).to(
+            meshes.vertices.device
+        )
         log = train_splatting(
             model,
             views,

@@ -256,7 +256,7 @@ def train_splatting(
     def train_step(step: int) -> tuple[Tensor, dict[str, Tensor]]:
         nonlocal walked
         frame = validator.sample_frame(gen)
-        camera = int(torch.randint(views.num_cameras, (1,), generator=gen))
+        camera = int(torch.randint(views.num_cameras, (1,), generator=gen, device="cpu"))
         _set_position_lr(optimizer, step, cfg)
         out, world_scales = render_splatting(model, meshes, views, frame, camera, cfg.backend)
         gt, pred = views.target_and_render(out.rgb, frame, camera)
