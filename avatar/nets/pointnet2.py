@@ -83,9 +83,14 @@ def fps_start(points: torch.Tensor) -> int:
     """Index of the point (N >= 1, 3) farthest from the centroid: an order-independent FPS start.
 
     Computed in float64; exact ties go to the lowest index."""
+    return int(fps_start_index(points))
+
+
+def fps_start_index(points: torch.Tensor) -> torch.Tensor:
+    """:func:`fps_start` as a 0-d int64 tensor on the points' device (not read on the host)."""
     p = points.detach().to(torch.float64)
     d2 = ((p - p.mean(dim=0)) ** 2).sum(dim=1)
-    return int(torch.argmax(d2))
+    return torch.argmax(d2)
 
 
 def farthest_point_sample(points: torch.Tensor, num_samples: int, start: int = 0) -> torch.Tensor:
@@ -125,6 +130,40 @@ def farthest_point_sample(points: torch.Tensor, num_samples: int, start: int = 0
     return torch.tensor(chosen, dtype=torch.int64, device=points.device)
 
 
+def farthest_point_sample_on_device(points: torch.Tensor, num_samples: int, start: torch.Tensor) -> torch.Tensor:
+    """:func:`farthest_point_sample` of finite points (N >= 1, 3) without reading a value on the host, for a GPU,
+    where every such read waits for the device: the same indices, bit for bit (the same float32 operations in the
+    same order; ``start`` a 0-d int64 tensor, e.g. :func:`fps_start_index`).
+
+    Instead of asking whether only repeats are left, a chosen point's distance is set to -1 once chosen: while
+    unchosen points lie farther than 0 the maximum is among them as before, and once all of them sit on chosen
+    points (distance 0) the first of them in index order is the maximum, which is the ascending order the host
+    version takes."""
+    n = points.shape[0]
+    m = max(0, min(num_samples, n))
+    out = torch.empty(m, dtype=torch.int64, device=points.device)
+    if m == 0:
+        return out
+    columns = points.detach().T.contiguous()  # (3, N)
+    min_d2 = torch.full((n,), float("inf"), dtype=columns.dtype, device=columns.device)
+    d2, t = torch.empty_like(min_d2), torch.empty_like(min_d2)
+    index = start.reshape(1).to(device=points.device, dtype=torch.int64)
+    out[:1] = index
+    for i in range(1, m):
+        last = columns.index_select(1, index)  # (3, 1): the newest chosen point
+        for k in range(3):  # d2 = |p - p_last|^2, in place, as the host version
+            torch.sub(columns[k], last[k], out=t)
+            if k == 0:
+                torch.square(t, out=d2)
+            else:
+                d2.addcmul_(t, t)
+        torch.minimum(min_d2, d2, out=min_d2)
+        min_d2.index_fill_(0, index, -1.0)
+        index = torch.argmax(min_d2).reshape(1)
+        out[i : i + 1] = index
+    return out
+
+
 def _squared_distances(centres: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """(M, N) squared distances between centres (M, 3) and points (N, 3), summed coordinate by
     coordinate (exact differences, no (M, N, 3) temporary)."""
@@ -143,7 +182,7 @@ def _ball_query_block(points: torch.Tensor, centres: torch.Tensor, radius: float
     first = torch.topk(key, min(k, n), dim=1, largest=False, sorted=True).values
     lead = first[:, 0]  # the first point found in each ball ...
     empty = lead == n
-    if empty.any():  # ... or, for an empty ball, the nearest point
+    if not empty.is_cpu or empty.any():  # ... or, for an empty ball, the nearest point (on a GPU unasked: no wait)
         lead = torch.where(empty, torch.argmin(d2, dim=1), lead)
     if first.shape[1] < k:
         first = torch.cat([first, first.new_full((first.shape[0], k - first.shape[1]), n)], dim=1)
@@ -240,7 +279,10 @@ class SetAbstraction(nn.Module):
         xyz: torch.Tensor,
         features: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        centre_index = farthest_point_sample(xyz, self.num_centres, start=fps_start(xyz))
+        if xyz.is_cpu:
+            centre_index = farthest_point_sample(xyz, self.num_centres, start=fps_start(xyz))
+        else:  # the same centres without reading the device's values on the host every sample
+            centre_index = farthest_point_sample_on_device(xyz, self.num_centres, fps_start_index(xyz))
         centres = xyz[centre_index]
         neighbours = ball_query(xyz, centres, self.radius, self.max_neighbours)
         grouped = group(xyz, features, centres, neighbours, self.radius)

@@ -14,7 +14,9 @@ from avatar.nets.pointnet2 import (
     canonical_order,
     classic_widths,
     farthest_point_sample,
+    farthest_point_sample_on_device,
     fps_start,
+    fps_start_index,
 )
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -81,6 +83,25 @@ def test_fps_empty_and_single() -> None:
     empty = farthest_point_sample(torch.empty(0, 3), 5)
     assert empty.shape == (0,) and empty.dtype == torch.int64
     assert farthest_point_sample(torch.zeros(1, 3), 5).tolist() == [0]
+
+
+@pytest.mark.parametrize(
+    "points, m",
+    [
+        (torch.rand(300, 3, generator=torch.Generator().manual_seed(6)), 64),  # float32: ties possible
+        (torch.rand(50, 3, generator=torch.Generator().manual_seed(7)), 50),  # every point
+        (torch.tensor([[0.0, 0, 0], [1, 0, 0]]).repeat(5, 1), 10),  # only repeats left after two
+        (torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]).repeat(4, 1), 7),
+        (torch.zeros(1, 3), 5),
+        (torch.rand(0, 3), 5),
+    ],
+)
+def test_fps_without_host_reads_picks_the_same_indices(points: torch.Tensor, m: int) -> None:
+    """The GPU's FPS (no value read on the host) against the host version, bit for bit, ties and repeats too."""
+    start = fps_start(points) if len(points) else 0
+    expected = farthest_point_sample(points, m, start=start)
+    got = farthest_point_sample_on_device(points, m, fps_start_index(points) if len(points) else torch.tensor(0))
+    assert got.dtype == torch.int64 and got.tolist() == expected.tolist()
 
 
 def test_fps_start_and_canonical_order_ignore_input_order() -> None:
