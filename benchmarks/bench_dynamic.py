@@ -282,9 +282,10 @@ def step_costs(
     split into the forward passes of PointNet++, the MLPs (H_geo, H_app, I) and the rest of the model (posing,
     sampling, the delta glue), the rasterizer, the loss, the backward pass and the optimizer step.
 
-    With several ``heads`` (``stage.dynamic.heads`` variants) each round trains stage two once per variant, in turn,
-    from the same warm-up; the plain keys are the first variant's, ``<variant>_<part>_ms`` (the step and its parts)
-    and ``<variant>_ratio`` every variant's.
+    With several ``heads`` (``stage.dynamic.heads`` variants, ``<heads>+bf16`` with the networks in bfloat16 as
+    ``run.precision=bf16`` runs them) each round trains stage two once per variant, in turn, from the same warm-up; the
+    plain keys are the first variant's, ``<variant>_<part>_ms`` (the step and its parts) and ``<variant>_ratio``
+    every variant's.
     """
     cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"][1] + extra)
     root = outputs / subject
@@ -312,7 +313,8 @@ def step_costs(
         train_warmup(model, views, meshes, WarmupTrainConfig(steps=n, densify_from=1.0, densify_until=0.0, seed=seed))
         return 1000 * (time.perf_counter() - t0) / n
 
-    def dynamic_round(n: int, seed: int, kind: str) -> dict[str, float]:
+    def dynamic_round(n: int, seed: int, variant: str) -> dict[str, float]:
+        kind, _, precision = variant.partition("+")
         model = DynamicAvatar.from_warmup(
             copy.deepcopy(gaussians),
             meshes.vertices[0],
@@ -323,6 +325,7 @@ def step_costs(
             dataclasses.replace(arch, heads=kind),
             seed=seed,
         )
+        model.precision = precision or "fp32"
         seconds: dict[str, float] = {}
         train_cfg = DynamicTrainConfig(steps=n, patch_weight=float(conf.patch_weight), seed=seed)
         modules = {

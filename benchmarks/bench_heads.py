@@ -46,9 +46,9 @@ GOAL_RATIO = 3.0
 PARTS = ("pointnet", "mlps", "posing_glue", "render", "loss", "backward", "optimizer")
 
 
-def cost_table(costs: dict[str, float]) -> list[list[str]]:
-    """One row per variant: ms per stage-two step, the ratio to a warm-up step, the speed-up against the paper's
-    heads, whether it meets the goal, and the step's parts in ms."""
+def cost_table(costs: dict[str, float], variants: tuple[str, ...] = tuple(HEAD_KINDS)) -> list[list[str]]:
+    """One row per variant (``heads`` or ``heads+bf16``): ms per stage-two step, the ratio to a warm-up step, the
+    speed-up against the paper's heads, whether it meets the goal, and the step's parts in ms."""
     reference = costs["per_parameter_step_ms"]
     return [
         [
@@ -59,7 +59,7 @@ def cost_table(costs: dict[str, float]) -> list[list[str]]:
             "yes" if costs[f"{kind}_ratio"] <= GOAL_RATIO else "no",
             *(f"{costs[f'{kind}_{part}_ms']:.0f}" for part in PARTS),
         ]
-        for kind in HEAD_KINDS
+        for kind in variants
     ]
 
 
@@ -72,9 +72,8 @@ def cost(args: argparse.Namespace) -> None:
             load_before = os.getloadavg()
             cfg = compose_cfg(preset, args.subject, outputs, VARIANTS["full"][1] + args.set, until="warmup")
             Runner(cfg, REGISTRY, log=lambda _m: None).run()
-            costs = step_costs(
-                preset, args.subject, outputs, args.set, args.steps, args.rounds, heads=tuple(HEAD_KINDS)
-            )
+            variants = tuple(HEAD_KINDS) + tuple(f"{kind}+{p}" for p in args.precisions for kind in HEAD_KINDS)
+            costs = step_costs(preset, args.subject, outputs, args.set, args.steps, args.rounds, heads=variants)
             load_after = os.getloadavg()
             log = ResultLog("bench_heads", preset=preset)
             print(
@@ -87,7 +86,7 @@ def cost(args: argparse.Namespace) -> None:
                     f"stage-two step per variant, {args.subject}, {preset} (goal: at most {GOAL_RATIO:g}x a warm-up "
                     f"step of {costs['warmup_ms']:.0f} ms; load {load_before[0]:.2f} -> {load_after[0]:.2f})",
                     ("heads", "ms per step", "x warm-up step", "speed-up", "goal", *(f"{p} ms" for p in PARTS)),
-                    cost_table(costs),
+                    cost_table(costs, variants),
                 )
             )
             log.write(args.results)
@@ -103,6 +102,13 @@ def main() -> None:
     c.add_argument("--rounds", type=int, default=5, help="interleaved rounds (medians)")
     c.add_argument("--outputs", type=Path, default=None, help="keep the warm-ups here (default: a temp dir)")
     c.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more config overrides")
+    c.add_argument(
+        "--precisions",
+        nargs="*",
+        default=[],
+        choices=["bf16"],
+        help="each variant also with its networks in this run.precision (rows heads+bf16)",
+    )
     add_results_argument(c)
     args = parser.parse_args()
     cost(args)
