@@ -55,7 +55,14 @@ def gsplat_available() -> bool:
 MAX_STD_PX = 1e6
 #: relative widening of ``[near, far]`` passed to gsplat (the adapter has culled by depth already)
 DEPTH_SLACK = 1e-3
-_IDENTITY = (1.0, 0.0, 0.0, 0.0)
+
+
+def _identity(like: Tensor) -> Tensor:
+    """(4,) the identity quaternion (w, x, y, z) in ``like``'s dtype and device, filled there: no copy from the host,
+    which on a GPU would wait for the device."""
+    identity = like.new_zeros(4)
+    identity[0] = 1.0
+    return identity
 
 
 def unit_quaternions(quats: Tensor) -> Tensor:
@@ -64,7 +71,7 @@ def unit_quaternions(quats: Tensor) -> Tensor:
     largest = quats.abs().amax(-1, keepdim=True)
     zero = ~(largest > 0)
     scaled = quats / torch.where(zero, torch.ones_like(largest), largest)
-    scaled = torch.where(zero, scaled.new_tensor(_IDENTITY), scaled)
+    scaled = torch.where(zero, _identity(scaled), scaled)
     return scaled / scaled.norm(dim=-1, keepdim=True)
 
 
@@ -88,13 +95,14 @@ def gsplat_inputs(
         for tensor in (quats, scales):
             keep &= torch.isfinite(tensor.detach()).all(-1)
         keep &= torch.isfinite(opacities.detach())
-        parked = (view[:3, :3].T @ (view.new_tensor([0.0, 0.0, 2.0 * far]) - view[:3, 3])).to(means)
-        focal = float(K.detach().diagonal()[:2].max())
+        # the camera-space point (0, 0, 2 far) in the world, R^T ((0, 0, 2 far) - t), from the device's own values
+        parked = (2.0 * far * view[2, :3] - view[:3, :3].T @ view[:3, 3]).to(means)
+        focal = K.detach().diagonal()[:2].max().to(torch.float64)  # a tensor: not read on the host
         max_scale = ((MAX_STD_PX / focal) * depth.clamp(near, far)).to(scales)
     keep_col = keep[:, None]
     means = torch.where(keep_col, means, parked)
     quats = torch.where(
-        keep_col, unit_quaternions(torch.where(keep_col, quats, torch.ones_like(quats))), quats.new_tensor(_IDENTITY)
+        keep_col, unit_quaternions(torch.where(keep_col, quats, torch.ones_like(quats))), _identity(quats)
     )
     scales = torch.where(keep_col, torch.minimum(scales, max_scale[:, None]), torch.ones_like(scales))
     opacities = torch.where(keep, opacities, torch.zeros_like(opacities))
