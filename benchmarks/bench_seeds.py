@@ -15,6 +15,8 @@ Settings (all at ``quality=draft``; every method trained once per seed, the shar
 - ``h``: (a)'s captures and tracking, InteractAvatar with the paper's heads against ``stage.dynamic.heads=shared``
   (the method ``interactavatar_shared`` of benchmarks/conf/method/); ``hm``: the same on fitted MediaPipe tracking;
   ``table --settings h hm --name bench_heads_quality``;
+- ``f``: (a)'s captures and tracking, InteractAvatar's networks in fp32 against ``run.precision=bf16`` (the method
+  ``interactavatar_bf16`` of benchmarks/conf/method/; issue 58); ``table --settings f --name bench_precision``;
 - ``p``: (a)'s captures and tracking, InteractAvatar against w/o PBD (issue 35: the methods table's "w/o PBD" rows
   against the contact ground truth of capture version 8); ``table --settings p --name bench_seeds_pbd``.
 
@@ -155,6 +157,12 @@ SETTINGS: dict[str, dict] = {
         "overrides": [*MEDIAPIPE, BENCH_METHODS],
         "methods": ("interactavatar", "interactavatar_shared"),
         "what": "full appearance, 24 frames, fitted tracking (MediaPipe): the paper's heads against shared heads",
+    },
+    "f": {
+        "subjects": ("synth_a", "synth_b"),
+        "overrides": ["fit.source=ground_truth", BENCH_METHODS],
+        "methods": ("interactavatar", "interactavatar_bf16"),
+        "what": "full appearance, 24 frames, ground-truth tracking: the networks in fp32 against run.precision=bf16",
     },
     "p": {
         "subjects": ("synth_a", "synth_b"),

@@ -122,12 +122,12 @@ class Compute:
     def kind(self) -> str:
         return device_kind(self.device)
 
-    def key_entries(self) -> dict[str, str]:
+    def key_entries(self, networks: bool = True) -> dict[str, str]:
         """What enters a device stage's cache key beyond its config keys: the device's kind where it is not the CPU,
-        the precision where it is not fp32; nothing on the reference (the CPU in fp32), so its keys stay what they
-        were."""
+        and for a stage that runs networks (``networks``) the precision where it is not fp32; nothing on the
+        reference (the CPU in fp32), so its keys stay what they were."""
         entries = {"run.device": self.kind} if self.kind != "cpu" else {}
-        return entries | ({"run.precision": self.precision} if self.precision != "fp32" else {})
+        return entries | ({"run.precision": self.precision} if networks and self.precision != "fp32" else {})
 
     def reset_peak_memory(self) -> None:
         """Start counting the device's peak memory afresh (on CUDA; the CPU's is the monitor's peak RSS)."""
@@ -136,10 +136,12 @@ class Compute:
 
             torch.cuda.reset_peak_memory_stats(self.device)
 
-    def record(self) -> dict[str, Any]:
-        """The manifest's record of where a device stage computed: kind, model and precision, and on CUDA the peak
-        memory torch allocated on the device since :meth:`reset_peak_memory` (MiB)."""
-        record: dict[str, Any] = {"kind": self.kind, "name": device_name(self.device), "precision": self.precision}
+    def record(self, networks: bool = True) -> dict[str, Any]:
+        """The manifest's record of where a device stage computed: kind, model and precision (fp32 for a stage that
+        runs no networks, ``networks``), and on CUDA the peak memory torch allocated on the device since
+        :meth:`reset_peak_memory` (MiB)."""
+        used = self.precision if networks else "fp32"
+        record: dict[str, Any] = {"kind": self.kind, "name": device_name(self.device), "precision": used}
         if self.kind == "cuda":
             import torch
 

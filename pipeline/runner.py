@@ -312,7 +312,7 @@ class Runner:
         config = key_config(self.cfg, s)
         config["subject"] = self.ws.subject
         if s.device:  # nothing on the CPU in fp32: the reference's keys stay as they were
-            config.update(self.compute.key_entries())
+            config.update(self.compute.key_entries(s.precision))
         sources = self._source_digests(s)
         key = cache_key(s.name, s.version, config, upstream, sources)
 
@@ -438,7 +438,7 @@ class Runner:
                 method_problems=self._cross_method_problems(s, d.inputs),
                 subject_inputs=other_subject,
                 device=self.compute.device if s.device else "cpu",
-                precision=self.compute.precision if s.device else "fp32",
+                precision=self.compute.precision if s.precision else "fp32",
             )
             if s.device:
                 self.compute.reset_peak_memory()
@@ -463,7 +463,7 @@ class Runner:
                 git_sha=_git_sha(),
                 created=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                 sources=d.sources,
-                device=self.compute.record() if s.device else None,
+                device=self.compute.record(s.precision) if s.device else None,
             )
             write_manifest(tmp, manifest)
             self.ws.publish(a, tmp)

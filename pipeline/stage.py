@@ -20,8 +20,10 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
   their whole manifests enter its key, not only their outputs (the report);
 - ``outputs``: relative paths (files or directories) it must produce;
 - ``version``: bumped by hand whenever the code changes what the stage writes;
-- ``device``: the stage computes on ``run.device`` (it trains or renders); on any device but the CPU in fp32 the
-  device's kind and ``run.precision`` enter its key, and its manifest records the device (:mod:`pipeline.device`);
+- ``device``: the stage computes on ``run.device`` (it trains or renders); on any device but the CPU the device's
+  kind enters its key, and its manifest records the device (:mod:`pipeline.device`);
+- ``precision``: the stage runs the networks whose products ``run.precision`` sets (a ``device`` stage); other than
+  fp32, the precision enters its key;
 - ``config_schema``: optional dataclass that ``cfg.stage.<name>`` must match
   (checked, with types, before any stage runs);
 - ``per_method``: the output depends on the method (``method=...``), so the runner keeps one artifact
@@ -138,6 +140,7 @@ class Stage:
     outputs: tuple[str, ...] = ()
     version: str = "1"
     device: bool = False
+    precision: bool = False
     config_schema: type | None = None
     description: str = ""
     cache_exclude: tuple[str, ...] = ()
@@ -167,6 +170,8 @@ class Stage:
             raise ValueError(f"stage '{self.name}' lists itself as an input")
         if bool(self.cross_method_inputs) != (self.methods_key is not None):
             raise ValueError(f"stage '{self.name}': cross_method_inputs and methods_key go together")
+        if self.precision and not self.device:
+            raise ValueError(f"stage '{self.name}': precision=True needs device=True (networks run on the device)")
         if self.seeds_key is not None and self.methods_key is None:
             raise ValueError(f"stage '{self.name}': seeds_key needs methods_key")
         if bool(self.subject_inputs) != (self.input_subject is not None):
@@ -187,6 +192,7 @@ def stage(
     outputs: Iterable[str],
     version: str = "1",
     device: bool = False,
+    precision: bool = False,
     config_schema: type | None = None,
     cache_exclude: Iterable[str] = (),
     unused_keys: Callable[[DictConfig], Iterable[str]] | None = None,
@@ -211,6 +217,7 @@ def stage(
             outputs=tuple(outputs),
             version=version,
             device=device,
+            precision=precision,
             config_schema=config_schema,
             cache_exclude=tuple(cache_exclude),
             unused_keys=unused_keys,

@@ -124,6 +124,7 @@ DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("st
     # (rounding-level)
     version="14",
     device=True,
+    precision=True,
     per_method=True,
     config_schema=DynamicConfig,
     # resuming is bit-for-bit: it cannot change the result

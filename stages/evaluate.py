@@ -100,6 +100,7 @@ Renderer = Callable[[int, int], torch.Tensor]
     outputs=("metrics.parquet", "grids", "renders", "splits.json", TRACKING_DIR),
     version="12",  # 12: stage.evaluate.test_tracking (the held-out motion tracked by the avatar)
     device=True,
+    precision=True,
     config_schema=EvaluateConfig,
     sources=contact_sources,
     per_method=True,

@@ -145,6 +145,7 @@ def capture_camera_ids(cfg: DictConfig) -> list[str] | None:
     outputs=("videos", "frames", "ply", "params.parquet", "deform.parquet", "reenact_report.json"),
     version="8",
     device=True,
+    precision=True,
     config_schema=ReenactConfig,
     per_method=True,
     subject_inputs=("fit",),

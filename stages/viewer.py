@@ -83,6 +83,7 @@ def page_sources(cfg: DictConfig, subject: str) -> SourceFiles:  # the SourceLis
     outputs=("index.html", "data", "viewer.json"),
     version="2",  # 2: names escaped in the page's data (data_schemas.web_escape)
     device=True,
+    precision=True,
     config_schema=ViewerConfig,
     sources=page_sources,
     per_method=True,

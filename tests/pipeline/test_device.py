@@ -72,8 +72,11 @@ def test_the_config_check_names_a_malformed_device_or_precision() -> None:
 
 @pytest.fixture
 def device_stage_b(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The toy DAG's stage b computes on the run's device; a, c and d do not."""
-    monkeypatch.setitem(toy_dag.REGISTRY._stages, "b", dataclasses.replace(toy_dag.REGISTRY["b"], device=True))
+    """The toy DAG's stage b runs networks on the run's device, d computes there without networks; a and c run on
+    the CPU."""
+    stages = toy_dag.REGISTRY._stages
+    monkeypatch.setitem(stages, "b", dataclasses.replace(stages["b"], device=True, precision=True))
+    monkeypatch.setitem(stages, "d", dataclasses.replace(stages["d"], device=True))
 
 
 def _manifest(cfg, stage: str) -> dict:
@@ -91,17 +94,20 @@ def test_on_the_cpu_keys_stay_as_they_were_and_the_manifest_records_the_device(t
     cfg = toy_cfg()
     assert _manifest(cfg, "b")["device"] == {"kind": "cpu", "name": cpu_name(), "precision": "fp32"}
     assert "device" not in _manifest(cfg, "a") and "device" not in _manifest(cfg, "c")
+    assert _manifest(cfg, "d")["device"] == {"kind": "cpu", "name": cpu_name(), "precision": "fp32"}
     assert "run.device" not in _manifest(cfg, "b")["config"]  # the key of the reference is the key it always had
 
 
 @pytest.mark.usefixtures("device_stage_b")
-def test_another_precision_is_another_cache_entry_of_the_device_stages_alone(toy_cfg) -> None:
+def test_another_precision_is_another_cache_entry_of_the_stages_that_run_networks_alone(toy_cfg) -> None:
     run_app(toy_cfg("run.device=cpu"))
     reports = {r.stage: r for r in run_app(toy_cfg("run.device=cpu", "run.precision=bf16"))}
     assert reports["b"].action == "run" and "config changed: run.precision" in reports["b"].reason
-    # b wrote the same bytes (the toy does not read the precision): what reads it is cached
+    # d computes on the device without networks: the precision is not its; b wrote the same bytes (the toy does not
+    # read the precision), so c, which reads it, is cached
     assert {s: reports[s].action for s in "acd"} == {"a": "cached", "c": "cached", "d": "cached"}
     assert _manifest(toy_cfg(), "b")["device"]["precision"] == "bf16"
+    assert _manifest(toy_cfg(), "d")["device"]["precision"] == "fp32"
 
 
 @pytest.mark.usefixtures("device_stage_b")
@@ -114,7 +120,7 @@ def test_a_gpu_is_another_cache_entry_and_its_manifest_names_the_card(toy_cfg, m
     monkeypatch.setattr(torch.cuda, "max_memory_allocated", lambda device=None: 3 * 2**20)
     reports = {r.stage: r for r in run_app(toy_cfg())}  # auto: the GPU
     assert reports["b"].action == "run" and "config changed: run.device" in reports["b"].reason
-    assert reports["a"].action == "cached"
+    assert reports["d"].action == "run" and reports["a"].action == "cached"
     cfg = toy_cfg()
     assert _manifest(cfg, "b")["device"] == {
         "kind": "cuda",
