@@ -162,6 +162,8 @@ SETTINGS: dict[str, dict] = {
         "subjects": ("synth_a", "synth_b"),
         "overrides": ["fit.source=ground_truth", BENCH_METHODS],
         "methods": ("interactavatar", "interactavatar_bf16"),
+        # run.* is the primary config's own (its _self_ comes last): a method's YAML cannot set it, the command can
+        "method_overrides": {"interactavatar_bf16": ["run.precision=bf16"]},
         "what": "full appearance, 24 frames, ground-truth tracking: the networks in fp32 against run.precision=bf16",
     },
     "p": {
@@ -210,7 +212,12 @@ def run(setting: str, subject: str, seeds: list[int], outputs: Path, extra: list
         *extra,
     ]
     seed_list, methods = ",".join(map(str, seeds)), ",".join(_methods(spec))
-    _cli(_threads(spec), "-m", f"method={methods}", f"seed={seed_list}", "run.until=evaluate", *common)
+    own = spec.get("method_overrides", {})
+    together = ",".join(m for m in _methods(spec) if m not in own)
+    if together:
+        _cli(_threads(spec), "-m", f"method={together}", f"seed={seed_list}", "run.until=evaluate", *common)
+    for method, overrides in own.items():  # a method with overrides of its own: a multirun of its own
+        _cli(_threads(spec), "-m", f"method={method}", f"seed={seed_list}", "run.until=evaluate", *common, *overrides)
     _cli(
         _threads(spec),
         "run.only=compare",
