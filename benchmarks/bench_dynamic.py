@@ -54,8 +54,12 @@ from torch.optim.optimizer import register_optimizer_step_post_hook, register_op
 
 from avatar.artifacts import TRAIN_SEQUENCE, contact_flags, load_scene, load_views, method_params  # noqa: E402
 from avatar.artifacts.motion import applied_deformation, posed_sequence, templates  # noqa: E402
+from avatar.dynamic.conditioning import Conditioning  # noqa: E402
+from avatar.geometry.views import ViewSet  # noqa: E402
 from avatar.metrics.lpips import LPIPS  # noqa: E402
-from avatar.representations.bound.dynamic_model import DynamicAvatar  # noqa: E402
+from avatar.posing import MeshSequence  # noqa: E402
+from avatar.representations.bound.dynamic_model import DynamicAvatar, DynamicModelConfig  # noqa: E402
+from avatar.representations.bound.gaussians import BoundGaussians  # noqa: E402
 from avatar.representations.bound.representation import load_gaussians, model_config  # noqa: E402
 from avatar.representations.bound.stage_two import DynamicTrainConfig, train_dynamic  # noqa: E402
 from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup  # noqa: E402
@@ -264,6 +268,79 @@ def _forward_timers(modules: dict[str, torch.nn.Module | None], seconds: dict[st
             handle.remove()
 
 
+@dataclasses.dataclass
+class StageTwoInputs:
+    """What a stage-two step reads, from a cached warm-up, on ``device``: the crops, the posed meshes, the
+    conditioning and the contact flags of the train motion, the warm-up's Gaussians (on the CPU, as the stage loads
+    them), the architecture and the patch loss's network."""
+
+    device: str
+    views: ViewSet
+    meshes: MeshSequence
+    cond: Conditioning
+    contact: np.ndarray
+    gaussians: BoundGaussians
+    arch: DynamicModelConfig
+    num_face_vertices: int
+    frame_dims: dict[str, int]
+    patch_weight: float
+    lpips: LPIPS | None
+
+    def model(self, seed: int, heads: str = "per_parameter", precision: str = "fp32") -> DynamicAvatar:
+        """A fresh stage-two model from a copy of the warm-up Gaussians, built on the CPU and moved, as the stage
+        builds it."""
+        cpu = self.meshes.to("cpu")
+        model = DynamicAvatar.from_warmup(
+            copy.deepcopy(self.gaussians),
+            cpu.vertices[0],
+            cpu.faces,
+            cpu.part_names,
+            self.num_face_vertices,
+            self.frame_dims,
+            dataclasses.replace(self.arch, heads=heads),
+            seed=seed,
+        ).to(self.device)
+        model.precision = precision
+        return model
+
+
+def stage_two_inputs(preset: str, subject: str, outputs: Path, extra: list[str], device: str = "cpu") -> StageTwoInputs:
+    """The inputs of stage two at ``preset`` from the full model's cached warm-up in ``outputs``, on ``device``."""
+    cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"][1] + extra)
+    root = outputs / subject
+    warm = root / "methods" / VARIANTS["full"][0] / "warmup"
+    views = load_views(root / "capture", root / "frames", "train", "train", device)
+    posed = posed_sequence(
+        root / "fit",
+        TRAIN_SEQUENCE,
+        cfg,
+        applied_deformation(cfg, root / "pbd"),
+        method_params(warm, root / "fit", TRAIN_SEQUENCE),
+    )
+    meshes, cond = posed.meshes, posed.conditioning(cfg)
+    head, _ = templates(cfg.model)
+    patch_weight = float(cfg.stage.dynamic.patch_weight)
+    return StageTwoInputs(
+        device,
+        views,
+        meshes.to(device),
+        cond.to(device),
+        contact_flags(root / "pbd", "train", views.num_frames),
+        load_gaussians(warm, meshes.part_names),
+        model_config(cfg, load_scene(root / "scene")),
+        head.num_vertices,
+        {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]},
+        patch_weight,
+        LPIPS("vgg").to(device) if patch_weight > 0 else None,
+    )
+
+
+def synchronize(device: str) -> None:
+    """Wait for the device's queued work (a CUDA device; nothing to wait for on the CPU), before reading a clock."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def step_costs(
     preset: str,
     subject: str,
@@ -272,6 +349,7 @@ def step_costs(
     steps: int = 20,
     rounds: int = 3,
     heads: tuple[str, ...] = ("per_parameter",),
+    device: str = "cpu",
 ) -> dict[str, float]:
     """ms per training step of the warm-up and of stage two from the same cached warm-up, side by side.
 
@@ -286,57 +364,45 @@ def step_costs(
     ``run.precision=bf16`` runs them) each round trains stage two once per variant, in turn, from the same warm-up; the
     plain keys are the first variant's, ``<variant>_<part>_ms`` (the step and its parts) and ``<variant>_ratio``
     every variant's.
+
+    On a CUDA ``device`` the data and the models live there and each round waits for the device before its clock
+    stops; the parts are then the times at which the host queued them (the device runs behind), and only the step is
+    the device's.
     """
-    cfg = compose_cfg(preset, subject, outputs, VARIANTS["full"][1] + extra)
-    root = outputs / subject
-    warm = root / "methods" / VARIANTS["full"][0] / "warmup"
-    views = load_views(root / "capture", root / "frames", "train", "train")
-    posed = posed_sequence(
-        root / "fit",
-        TRAIN_SEQUENCE,
-        cfg,
-        applied_deformation(cfg, root / "pbd"),
-        method_params(warm, root / "fit", TRAIN_SEQUENCE),
+    inputs = stage_two_inputs(preset, subject, outputs, extra, device)
+    views, meshes, cond, contact, gaussians = (
+        inputs.views,
+        inputs.meshes,
+        inputs.cond,
+        inputs.contact,
+        inputs.gaussians,
     )
-    meshes, cond = posed.meshes, posed.conditioning(cfg)
-    contact = contact_flags(root / "pbd", "train", views.num_frames)
-    gaussians = load_gaussians(warm, meshes.part_names)
-    arch = model_config(cfg, load_scene(root / "scene"))
-    head, _ = templates(cfg.model)
-    frame_dims = {"hand_pose": cond.hand_pose.shape[1], "expression": cond.expression.shape[1]}
-    conf = cfg.stage.dynamic
-    lpips = LPIPS("vgg") if float(conf.patch_weight) > 0 else None
+    lpips = inputs.lpips
 
     def warmup_round(n: int, seed: int) -> float:
-        model = copy.deepcopy(gaussians)
+        model = copy.deepcopy(gaussians).to(device)
+        synchronize(device)
         t0 = time.perf_counter()
         train_warmup(model, views, meshes, WarmupTrainConfig(steps=n, densify_from=1.0, densify_until=0.0, seed=seed))
+        synchronize(device)
         return 1000 * (time.perf_counter() - t0) / n
 
     def dynamic_round(n: int, seed: int, variant: str) -> dict[str, float]:
         kind, _, precision = variant.partition("+")
-        model = DynamicAvatar.from_warmup(
-            copy.deepcopy(gaussians),
-            meshes.vertices[0],
-            meshes.faces,
-            meshes.part_names,
-            head.num_vertices,
-            frame_dims,
-            dataclasses.replace(arch, heads=kind),
-            seed=seed,
-        )
-        model.precision = precision or "fp32"
+        model = inputs.model(seed, kind, precision or "fp32")
         seconds: dict[str, float] = {}
-        train_cfg = DynamicTrainConfig(steps=n, patch_weight=float(conf.patch_weight), seed=seed)
+        train_cfg = DynamicTrainConfig(steps=n, patch_weight=inputs.patch_weight, seed=seed)
         modules = {
             "pointnet": model.pointnet,
             "hand_geo": model.hand_geo,
             "hand_app": model.hand_app,
             "interaction": model.interaction,
         }
+        synchronize(device)
         t0 = time.perf_counter()
         with _forward_timers(modules, seconds):
             result = train_dynamic(model, views, meshes, cond, contact, train_cfg, lpips=lpips)
+        synchronize(device)
         wall = time.perf_counter() - t0
         mlp = sum(seconds.get(k, 0.0) for k in ("hand_geo", "hand_app", "interaction"))
         parts = {
@@ -362,7 +428,7 @@ def step_costs(
             runs[kind].append(dynamic_round(steps, r, kind))
     out = {
         "gaussians": gaussians.num_gaussians,
-        "hand_gaussians": int((gaussians.part == meshes.part_names.index("hand")).sum()),
+        "hand_gaussians": int((gaussians.part == meshes.part_names.index("hand")).sum().item()),
         "steps": steps,
         "rounds": rounds,
         "warmup_ms": statistics.median(warm_ms),
