@@ -1,56 +1,63 @@
-"""``make test-gpu``: the CUDA (gsplat) backend checked and measured on a GPU machine, in one table.
+"""Training on a GPU (``run.device=cuda``), checked and measured: what ``make test-gpu`` runs, in tables (issue 58).
 
-1. gsplat's CUDA extension: built (gsplat compiles it just in time on first use, minutes) and loaded;
-2. the ``cuda``-marked tests (``tests/render/gaussians``: the adapter against the project's backends and the
-   extremes, through gsplat's CUDA kernels);
-3. ``bench_rasterizer.py --backend gsplat``'s table: gsplat beside the compiled cpu backend, ms per forward +
-   backward, peak memory, and gsplat's image against the cpu backend's;
-4. the smoke DAG up to ``evaluate`` twice into one outputs folder: with the rasterizer ``auto`` (the compiled
-   cpu backend: training runs on CPU tensors) and with ``backend=gsplat`` for the warm-up, stage two and the
-   evaluation (the method named ``interactavatar_gsplat``; the CPU tensors are copied to the GPU to render);
-   the shared stages run once. Per arm: ms per step of the warm-up and of stage two, and the held-out PSNR
-   (novel view and self-reenactment, full image), with gsplat's difference to the cpu arm.
+On a CUDA machine, in this order (each part recorded as it finishes, so that a deadline or a failure keeps the rest):
 
-Never part of the default suite (CI has no GPU). Writes ``--json`` (default
-``benchmarks/results/bench_gpu.json``) with the commit, machine and every figure.
+1. gsplat's CUDA extension: built (just in time, the first time) and loaded;
+2. the ``cuda``-marked tests: the rasterizer adapter (``tests/render/gaussians``) and training on the device
+   (``tests/gpu``: no tensor of a training loop left on the CPU, the smoke DAG end to end on the GPU, its PSNR within
+   the CPU's seed spread);
+3. gsplat beside the compiled cpu rasterizer (``bench_rasterizer.gsplat_beside_cpu``, ``--quick`` sizes);
+4. the step costs on the GPU (``bench_dynamic.step_costs`` with ``device=cuda``): a warm-up step and a stage-two step
+   of the paper's heads and of the shared heads, each also in bf16, from the same warm-up, at the presets given to
+   ``--step-presets``; then a ``torch.profiler`` summary of stage-two steps at the first of them: the kernels that
+   take the device's time, and the host's waits for the device per step;
+5. the DAG after capture generation, per preset (``--presets``: smoke, draft, standard, paper, as far as
+   ``--deadline-s`` allows) and method (InteractAvatar, GaussianAvatars), ``fit.source=ground_truth``, on the GPU:
+   the wall time of every stage, ms per warm-up and stage-two step, peak device memory, PSNR and LPIPS per split; at
+   smoke also on this machine's CPU in the same run, as the reference.
 
-Usage: python benchmarks/bench_gpu.py [--outputs DIR] [--json PATH] [--skip-dag] [--quick] [--set KEY=VALUE ...]
-       [--deadline-s S]
+Every run is appended to ``benchmarks/results/bench_gpu.json`` (``--results``) with the commit, the machine, the
+GPU's name and ``training_device``; ``render_results.py`` renders it as ``docs/results/bench_gpu.md``. Never part of
+the default suite (CI has no GPU).
+
+``--cpu-seeds`` runs anywhere: the smoke DAG on the CPU for seeds 0-2, whose PSNR mean and spread per split the GPU
+test compares its own with (the newest such run's ``figures.cpu_smoke_seeds``).
+
+Usage: python benchmarks/bench_gpu.py [--presets smoke draft standard paper] [--methods ...] [--deadline-s S]
+                                      [--step-presets draft standard] [--skip-tests] [--skip-rasterizer]
+                                      [--outputs DIR] [--results DIR] [--set KEY=VALUE ...]
+       python benchmarks/bench_gpu.py --cpu-seeds [--outputs DIR]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
+import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
-from benchmarks.provenance import commit, cpu_name  # noqa: E402
-
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 import torch  # noqa: E402
 
-from pipeline.summary import format_table  # noqa: E402
+from benchmarks.provenance import ResultLog, add_results_argument  # noqa: E402
 
-#: arm -> (method name, overrides); gsplat first, so that a deadline drops the reference arm, not the one checked
-ARMS = {
-    "gsplat": (
-        "interactavatar_gsplat",
-        ["method.name=interactavatar_gsplat"]
-        + [f"stage.{stage}.backend=gsplat" for stage in ("warmup", "dynamic", "evaluate", "reenact")],
-    ),
-    "cpu": ("interactavatar", []),
-}
+#: the stages of the DAG after capture generation, in order (those a run to ``evaluate`` computes)
+STAGES = ("frames", "keypoints", "fit", "scene", "pbd", "warmup", "dynamic", "evaluate")
+SPLITS = ("novel_view", "self_reenact")
+#: the issue's goals on one H100 or H200
+GOALS = {"step_ratio": 3.0, "draft_dag_s": 120.0, "standard_dag_s": 300.0, "paper_dag_s": 1800.0}
+METHODS = ("interactavatar", "gaussian_avatars")
 
 
-def build_gsplat() -> dict:
+def build_gsplat() -> dict[str, Any]:
     """Load gsplat's CUDA extension (building it the first time); seconds and whether it loaded."""
     t0 = time.perf_counter()
     try:
@@ -62,12 +69,23 @@ def build_gsplat() -> dict:
     return {"gsplat_build_s": time.perf_counter() - t0, "gsplat_loaded": loaded, "gsplat_error": error[-2000:]}
 
 
-def run_cuda_tests(log: Path) -> dict:
-    """The cuda-marked tests of the rasterizer; their pytest summary line and exit code, the whole output in
-    ``log``."""
+def run_cuda_tests(log: Path) -> dict[str, Any]:
+    """The cuda-marked tests (rasterizer and training on the device): their pytest summary line and exit code; the
+    whole output in ``log``."""
     t0 = time.perf_counter()
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider", "tests/render/gaussians"],
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-m",
+            "cuda",
+            "-p",
+            "no:cacheprovider",
+            "tests/render/gaussians",
+            "tests/gpu",
+        ],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -80,26 +98,33 @@ def run_cuda_tests(log: Path) -> dict:
     return {"tests_rc": proc.returncode, "tests_summary": summary, "tests_s": time.perf_counter() - t0}
 
 
-def run_arm(arm: str, outputs: Path, extra: list[str] = ()) -> dict:
-    """The smoke DAG up to evaluate for one arm; its wall time, ms per step and held-out PSNR."""
+def run_dag(preset: str, method: str, device: str, outputs: Path, extra: list[str], seed: int = 0) -> dict[str, Any]:
+    """The DAG until ``evaluate`` of ``method`` at ``preset`` on ``device`` (``cuda`` or ``cpu``; the CPU's runs keep
+    their artifacts as method ``<method>_cpu``, beside the GPU's), ground-truth tracking: every stage's wall time,
+    ms per warm-up and stage-two step, the device's peak memory, and PSNR and LPIPS (full image) per split."""
     from hydra import compose, initialize_config_dir
 
     from data_schemas.metrics import METRICS
     from data_schemas.tables import read_table
     from pipeline.config import validate_config
     from pipeline.runner import Runner
+    from pipeline.workspace import method_run
     from stages import REGISTRY
 
-    method, overrides = ARMS[arm]
+    name = method if device == "cuda" else f"{method}_cpu"
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose(
             "config",
             overrides=[
-                "quality=smoke",
-                f"paths.outputs={outputs}",
+                f"quality={preset}",
+                f"method={method}",
+                f"method.name={name}",
+                f"seed={seed}",
+                "fit.source=ground_truth",
+                f"run.device={device}",
+                f"paths.outputs={outputs / preset}",
                 "run.until=evaluate",
                 "run.progress=false",
-                *overrides,
                 *extra,
             ],
         )
@@ -107,149 +132,308 @@ def run_arm(arm: str, outputs: Path, extra: list[str] = ()) -> dict:
     t0 = time.perf_counter()
     Runner(cfg, REGISTRY, log=lambda _m: None).run()
     wall = time.perf_counter() - t0
-    root = outputs / cfg.subject / "methods" / method
-    manifests = {s: json.loads((root / s / "_manifest.json").read_text()) for s in ("warmup", "dynamic")}
-    warm = manifests["warmup"]
-    metrics = read_table(root / "evaluate" / "metrics.parquet", METRICS)
-    psnr = {}
-    for split in ("novel_view", "self_reenact"):
-        values = [
-            p
-            for p, s, r, m in zip(metrics["psnr"], metrics["split"], metrics["region"], metrics["method"])
-            if s == split and r == "full" and m == method
-        ]
-        psnr[split] = float(sum(values) / len(values))
-    return {
+    subject = outputs / preset / cfg.subject
+    folders = {s: subject / ("methods/" + method_run(name, seed) if REGISTRY[s].per_method else "") / s for s in STAGES}
+    manifests = {s: json.loads((folders[s] / "_manifest.json").read_text()) for s in STAGES}
+    metrics = read_table(folders["evaluate"] / "metrics.parquet", METRICS)
+    out: dict[str, Any] = {
+        "preset": preset,
+        "method": method,
+        "training_device": device,
+        "seed": seed,
         "wall_s": wall,
-        "warmup_ms_per_step": 1000 * warm["timings"]["wall_s"] / warm["metrics"]["steps"],
+        "stage_s": {s: manifests[s]["timings"]["wall_s"] for s in STAGES},
+        "warmup_ms_per_step": 1000 * manifests["warmup"]["timings"]["wall_s"] / manifests["warmup"]["metrics"]["steps"],
         "dynamic_ms_per_step": manifests["dynamic"]["metrics"]["ms_per_step"],
-        "psnr_novel_view": psnr["novel_view"],
-        "psnr_self_reenact": psnr["self_reenact"],
+        "peak_device_mb": max(
+            (manifests[s].get("device") or {}).get("peak_memory_mb", float("nan")) for s in ("warmup", "dynamic")
+        ),
+        "rasterizer": manifests["dynamic"]["metrics"].get("rasterizer", "-"),
     }
+    out["dag_after_capture_s"] = sum(out["stage_s"].values())
+    out["step_ratio"] = out["dynamic_ms_per_step"] / out["warmup_ms_per_step"]
+    for split in SPLITS:
+        rows = [
+            i
+            for i, (s, r, m) in enumerate(zip(metrics["split"], metrics["region"], metrics["method"]))
+            if s == split and r == "full" and m == name
+        ]
+        out[f"psnr_{split}"] = float(statistics.fmean(float(metrics["psnr"][i]) for i in rows))
+        out[f"lpips_{split}"] = float(statistics.fmean(float(metrics["lpips"][i]) for i in rows))
+    return out
+
+
+def profile_stage_two(preset: str, outputs: Path, extra: list[str], steps: int = 10) -> dict[str, Any]:
+    """``torch.profiler`` over ``steps`` stage-two steps on the GPU from the cached warm-up at ``preset`` (after 3
+    untimed steps): the top operators by device time, and per step the host's waits for the device
+    (``cudaStreamSynchronize``, ``cudaDeviceSynchronize``) and its copies (``cudaMemcpyAsync``)."""
+    from bench_dynamic import stage_two_inputs, synchronize
+    from torch.profiler import ProfilerActivity, profile
+
+    from avatar.representations.bound.stage_two import DynamicTrainConfig, train_dynamic
+
+    inputs = stage_two_inputs(preset, "synth_a", outputs / preset, extra, "cuda")
+
+    def train(n: int) -> None:
+        cfg = DynamicTrainConfig(steps=n, patch_weight=inputs.patch_weight)
+        train_dynamic(
+            inputs.model(0), inputs.views, inputs.meshes, inputs.cond, inputs.contact, cfg, lpips=inputs.lpips
+        )
+
+    train(3)
+    synchronize("cuda")
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        train(steps)
+        synchronize("cuda")
+    averages = prof.key_averages()
+    calls = {e.key: e.count for e in averages}
+    waits = sum(calls.get(k, 0) for k in ("cudaStreamSynchronize", "cudaDeviceSynchronize"))
+    return {
+        "preset": preset,
+        "steps": steps,
+        "waits_per_step": waits / steps,
+        "copies_per_step": calls.get("cudaMemcpyAsync", 0) / steps,
+        "kernel_launches_per_step": calls.get("cudaLaunchKernel", 0) / steps,
+        "top": averages.table(sort_by="device_time_total", row_limit=15),
+    }
+
+
+def cpu_seeds(outputs: Path, extra: list[str], seeds: tuple[int, ...] = (0, 1, 2)) -> dict[str, Any]:
+    """The smoke DAG on the CPU, InteractAvatar, ground-truth tracking, per seed: PSNR (full image) per split, and its
+    mean and sample standard deviation over the seeds."""
+    runs = [run_dag("smoke", "interactavatar", "cpu", outputs, extra, seed) for seed in seeds]
+    return {
+        split: {
+            "values": [r[f"psnr_{split}"] for r in runs],
+            "mean": statistics.fmean(r[f"psnr_{split}"] for r in runs),
+            "sd": statistics.stdev(r[f"psnr_{split}"] for r in runs),
+        }
+        for split in SPLITS
+    }
+
+
+def dag_rows(runs: list[dict[str, Any]]) -> list[list[str]]:
+    """One row per DAG run: preset, method, device, the DAG's time after capture, ms per step, the ratio, peak device
+    memory, PSNR and LPIPS per split."""
+    return [
+        [
+            r["preset"],
+            r["method"],
+            r["training_device"],
+            f"{r['dag_after_capture_s']:.0f}",
+            f"{r['warmup_ms_per_step']:.1f}",
+            f"{r['dynamic_ms_per_step']:.1f}",
+            f"{r['step_ratio']:.2f}",
+            f"{r['peak_device_mb']:.0f}",
+            *(f"{r[f'psnr_{s}']:.2f} / {r[f'lpips_{s}']:.4f}" for s in SPLITS),
+        ]
+        for r in runs
+    ]
+
+
+def stage_rows(runs: list[dict[str, Any]]) -> list[list[str]]:
+    """Seconds per stage of every DAG run."""
+    return [[r["preset"], r["method"], r["training_device"], *(f"{r['stage_s'][s]:.1f}" for s in STAGES)] for r in runs]
+
+
+def goal_rows(runs: list[dict[str, Any]], steps: dict[str, dict[str, float]]) -> list[list[str]]:
+    """The issue's goals against what was measured on the GPU (InteractAvatar)."""
+    rows = []
+    for preset, costs in steps.items():
+        ratio = costs["ratio"]
+        rows.append(
+            [
+                f"stage-two step / warm-up step, {preset}",
+                f"<= {GOALS['step_ratio']:g}",
+                f"{ratio:.2f}",
+                "yes" if ratio <= GOALS["step_ratio"] else "no",
+            ]
+        )
+    for r in runs:
+        goal = GOALS.get(f"{r['preset']}_dag_s")
+        if r["training_device"] == "cuda" and r["method"] == "interactavatar" and goal is not None:
+            rows.append(
+                [
+                    f"{r['preset']} DAG after capture, s",
+                    f"<= {goal:g}",
+                    f"{r['dag_after_capture_s']:.0f}",
+                    "yes" if r["dag_after_capture_s"] <= goal else "no",
+                ]
+            )
+    return rows
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--outputs", type=Path, default=REPO / "outputs" / "gpu_check")
-    parser.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "bench_gpu.json")
-    parser.add_argument("--skip-dag", action="store_true", help="no smoke DAG (build, tests and rasterizer only)")
-    parser.add_argument("--quick", action="store_true", help="the rasterizer at its --quick sizes, 3 repeats")
+    add_results_argument(parser)
+    parser.add_argument("--presets", nargs="*", default=["smoke", "draft", "standard", "paper"])
+    parser.add_argument("--methods", nargs="*", default=list(METHODS))
+    parser.add_argument("--step-presets", nargs="*", default=["draft", "standard"])
+    parser.add_argument("--step-rounds", type=int, default=3)
+    parser.add_argument("--skip-tests", action="store_true", help="no cuda-marked tests")
     parser.add_argument("--skip-rasterizer", action="store_true", help="no gsplat-beside-cpu timing")
+    parser.add_argument("--cpu-seeds", action="store_true", help="the CPU's smoke seeds only (runs anywhere)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="overrides for every DAG run")
     parser.add_argument(
-        "--set",
-        nargs="*",
-        default=[],
-        metavar="KEY=VALUE",
-        help="overrides for both DAG arms, e.g. stage.dynamic.patch_weight=0",
-    )
-    parser.add_argument(
-        "--deadline-s",
-        type=float,
-        default=None,
-        help="start no DAG arm after this many seconds (the arms left are recorded as skipped)",
+        "--deadline-s", type=float, default=None, help="start nothing new after this many seconds (recorded as left)"
     )
     args = parser.parse_args()
-    start = time.perf_counter()
+    log = ResultLog("bench_gpu", preset=",".join(args.presets))
+    if args.cpu_seeds:
+        figures = {"cpu_smoke_seeds": cpu_seeds(args.outputs, args.set)}
+        rows = [
+            [s, *(f"{v:.2f}" for v in f["values"]), f"{f['mean']:.2f}", f"{f['sd']:.2f}"]
+            for s, f in figures["cpu_smoke_seeds"].items()
+        ]
+        print(
+            log.table(
+                "the CPU's smoke PSNR (dB, full image) per seed, InteractAvatar, ground-truth tracking",
+                ("split", "seed 0", "seed 1", "seed 2", "mean", "sd"),
+                rows,
+            )
+        )
+        log.write(args.results, training_device="cpu", figures=figures)
+        return
     if not torch.cuda.is_available():
-        raise SystemExit("bench_gpu needs a CUDA GPU (torch.cuda.is_available() is False)")
-    from avatar.render.gaussians import available_backends
-
-    result: dict = {
-        "commit": commit(),
-        "dag_overrides": args.set,
-        "machine": platform.node(),
-        "cpu": cpu_name(),
+        raise SystemExit("bench_gpu needs a CUDA GPU (torch.cuda.is_available() is False); --cpu-seeds runs anywhere")
+    start = time.perf_counter()
+    left: list[str] = []
+    figures: dict[str, Any] = {
         "gpu": torch.cuda.get_device_name(),
         "torch": torch.__version__,
         "cuda": torch.version.cuda,
-        "cpus": os.cpu_count(),
-        "load_start": os.getloadavg(),
     }
 
-    def save() -> None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2))
+    def due(what: str) -> bool:
+        if args.deadline_s is not None and time.perf_counter() - start > args.deadline_s:
+            left.append(what)
+            return False
+        return True
 
-    result.update(build_gsplat())
-    print(
-        f"gsplat CUDA extension: loaded={result['gsplat_loaded']} in {result['gsplat_build_s']:.0f} s "
-        f"{result['gsplat_error']}",
-        flush=True,
-    )
-    result["backends"] = available_backends()
+    def attempt(what: str, work: Callable[..., Any], *positional: Any, **named: Any) -> Any:
+        try:
+            return work(*positional, **named)
+        except Exception as exc:  # recorded; the other parts still run
+            figures.setdefault("errors", {})[what] = f"{type(exc).__name__}: {exc}"[-2000:]
+            print(f"{what}: {figures['errors'][what]}", flush=True)
+            return None
+
+    def save() -> None:  # every part as it ends: a deadline or a crash keeps what was measured
+        (args.outputs / "bench_gpu.partial.json").write_text(json.dumps(figures, indent=1, default=str))
+
+    args.outputs.mkdir(parents=True, exist_ok=True)
+    figures.update(build_gsplat())
+    print(f"gsplat: loaded={figures['gsplat_loaded']} in {figures['gsplat_build_s']:.0f} s", flush=True)
     save()
-    result.update(run_cuda_tests(args.json.with_name(args.json.stem + "_tests.log")))
-    print(f"cuda tests: {result['tests_summary']} ({result['tests_s']:.0f} s)", flush=True)
-    save()
-    if "gsplat" in result["backends"] and not args.skip_rasterizer:
+    if not args.skip_tests and due("cuda tests"):
+        figures.update(run_cuda_tests(args.outputs / "bench_gpu_tests.log"))
+        print(f"cuda tests: {figures['tests_summary']} ({figures['tests_s']:.0f} s)", flush=True)
+        save()
+    if not args.skip_rasterizer and figures["gsplat_loaded"] and due("rasterizer"):
         import bench_rasterizer
 
-        configs = bench_rasterizer.QUICK if args.quick else bench_rasterizer.FULL
-        try:
-            result["rasterizer"] = bench_rasterizer.gsplat_beside_cpu(configs, 3 if args.quick else 5)
-        except Exception as exc:  # recorded; the DAG check still runs
-            result["rasterizer_error"] = f"{type(exc).__name__}: {exc}"
+        figures["rasterizer"] = attempt("rasterizer", bench_rasterizer.gsplat_beside_cpu, bench_rasterizer.QUICK, 3)
         save()
-    if not args.skip_dag and "gsplat" in result["backends"]:
-        result["dag"] = {}
-        for arm in ARMS:
-            if args.deadline_s is not None and time.perf_counter() - start > args.deadline_s:
-                result["dag"][arm] = {"skipped": f"past the {args.deadline_s:.0f} s deadline"}
-                continue
-            try:
-                result["dag"][arm] = run_arm(arm, args.outputs, args.set)
-            except Exception as exc:  # recorded; the other arm still runs
-                result["dag"][arm] = {"skipped": f"failed: {type(exc).__name__}: {exc}"}
-            print(f"smoke DAG, {arm} arm: {result['dag'][arm]}", flush=True)
-            save()
-    result["load_end"] = os.getloadavg()
-    save()
-    print_table(result)
+    runs: list[dict[str, Any]] = []
+    steps: dict[str, dict[str, float]] = {}
+    for preset in args.presets:
+        for method in args.methods:
+            devices = ("cuda", "cpu") if preset == "smoke" else ("cuda",)
+            for device in devices:
+                if due(f"DAG {preset} {method} {device}"):
+                    what = f"DAG {preset} {method} {device}"
+                    run = attempt(what, run_dag, preset, method, device, args.outputs, args.set)
+                    if run is not None:
+                        runs.append(run)
+                        print(f"DAG {preset} {method} {device}: {run['dag_after_capture_s']:.0f} s", flush=True)
+                    figures["dag"] = runs
+                    save()
+        if preset in args.step_presets and due(f"step costs {preset}"):
+            from bench_dynamic import step_costs
 
-
-def print_table(result: dict) -> None:
-    """The one table ``make test-gpu`` prints."""
-    rows = [
-        ("GPU / torch / CUDA", f"{result['gpu']} / {result['torch']} / {result['cuda']}"),
-        (
-            "gsplat extension",
-            f"{'loaded' if result['gsplat_loaded'] else 'FAILED'} ({result['gsplat_build_s']:.0f} s to build or load)",
-        ),
-        ("cuda-marked tests", result["tests_summary"]),
-    ]
-    if "rasterizer_error" in result:
-        rows.append(("rasterizer", result["rasterizer_error"]))
-    for r in result.get("rasterizer", []):
-        rows.append(
-            (
-                f"rasterizer {r['image']}x{r['image']}, {r['gaussians'] // 1000}k: cpu / gsplat ms (x faster)",
-                f"{r['cpu_ms']:.1f} / {r['gsplat_ms']:.2f} ({r['speedup']:.0f}x); image vs cpu "
-                f"PSNR {r['psnr_vs_cpu']:.1f} dB, max |rgb| {r['max_rgb_diff']:.1e}",
+            variants = ("per_parameter", "shared", "per_parameter+bf16", "shared+bf16")
+            extra = ["fit.source=ground_truth", *args.set]
+            costs = attempt(
+                f"step costs {preset}",
+                step_costs,
+                preset,
+                "synth_a",
+                args.outputs / preset,
+                extra,
+                20,
+                args.step_rounds,
+                heads=variants,
+                device="cuda",
+            )
+            if costs is not None:
+                steps[preset] = costs
+                figures.setdefault("step_costs", {})[preset] = costs
+                save()
+    if steps and due("profile"):
+        first = next(iter(steps))
+        figures["profile"] = attempt(
+            "profile", profile_stage_two, first, args.outputs, ["fit.source=ground_truth", *args.set]
+        )
+        save()
+    figures["left_by_deadline"] = left
+    gpu = figures["gpu"]
+    print(
+        log.table(
+            f"checks on {gpu}",
+            ("check", "result"),
+            [
+                [
+                    "gsplat extension",
+                    f"{'loaded' if figures['gsplat_loaded'] else 'FAILED'} ({figures['gsplat_build_s']:.0f} s)",
+                ],
+                ["cuda-marked tests", figures.get("tests_summary", "not run")],
+                ["left by the deadline", ", ".join(left) or "-"],
+                *([[k, v] for k, v in figures.get("errors", {}).items()]),
+            ],
+        )
+    )
+    if runs:
+        print(
+            log.table(
+                f"the DAG after capture generation on {gpu} (and smoke on the CPU), ground-truth tracking, seed 0",
+                (
+                    "preset",
+                    "method",
+                    "device",
+                    "DAG s",
+                    "warm-up ms/step",
+                    "stage two ms/step",
+                    "ratio",
+                    "peak device MiB",
+                    *(f"{s} PSNR / LPIPS" for s in SPLITS),
+                ),
+                dag_rows(runs),
             )
         )
-    dag = {arm: r for arm, r in result.get("dag", {}).items() if "skipped" not in r}
-    for arm, r in result.get("dag", {}).items():
-        if "skipped" in r:
-            rows.append((f"smoke DAG, {arm} arm", r["skipped"]))
-    if len(dag) == 2:
-        for key, label, fmt in (
-            ("warmup_ms_per_step", "warm-up ms/step", "{:.1f}"),
-            ("dynamic_ms_per_step", "stage two ms/step", "{:.1f}"),
-            ("psnr_novel_view", "novel view PSNR dB", "{:.2f}"),
-            ("psnr_self_reenact", "self-reenactment PSNR dB", "{:.2f}"),
-            ("wall_s", "DAG wall s (the first arm includes the shared stages)", "{:.0f}"),
-        ):
-            cpu, gs = dag["cpu"][key], dag["gsplat"][key]
-            rows.append(
-                (
-                    f"smoke DAG {label}: cpu / gsplat",
-                    f"{fmt.format(cpu)} / {fmt.format(gs)} (gsplat - cpu {gs - cpu:+.2f})",
-                )
+        print(log.table("seconds per stage", ("preset", "method", "device", *STAGES), stage_rows(runs)))
+    for preset, costs in steps.items():
+        print(
+            log.table(
+                f"step costs on {gpu}, {preset} (medians of {args.step_rounds} interleaved rounds of 20 steps)",
+                ("variant", "ms per step", "x warm-up step"),
+                [["warm-up", f"{costs['warmup_ms']:.1f}", "1.00"]]
+                + [
+                    [v, f"{costs[f'{v}_step_ms']:.1f}", f"{costs[f'{v}_ratio']:.2f}"]
+                    for v in ("per_parameter", "shared", "per_parameter+bf16", "shared+bf16")
+                ],
             )
-    elif dag:
-        rows += [(f"smoke DAG, {arm} arm", ", ".join(f"{k} {v:.2f}" for k, v in r.items())) for arm, r in dag.items()]
-    rows.append(("load average start / end", f"{result['load_start'][0]:.2f} / {result['load_end'][0]:.2f}"))
-    print(format_table(("check", "result"), rows))
+        )
+    if runs or steps:
+        print(log.table(f"goals on {gpu}", ("goal", "target", "measured", "met"), goal_rows(runs, steps)))
+    if figures.get("profile"):
+        p = figures["profile"]
+        print(
+            f"\nprofile of {p['steps']} stage-two steps at {p['preset']}: {p['waits_per_step']:.1f} waits for the "
+            f"device, {p['copies_per_step']:.1f} copies, {p['kernel_launches_per_step']:.0f} kernel launches per "
+            f"step\n{p['top']}"
+        )
+    log.write(args.results, training_device="cuda", gpu=gpu, figures=figures)
 
 
 if __name__ == "__main__":

@@ -72,8 +72,9 @@ class ResultLog:
         )
         return format_table(headers, rows)
 
-    def write(self, results: Path) -> Path:
-        """Append this run to ``results/<name>.json`` (created with its folder if missing); the file's path."""
+    def write(self, results: Path, **fields: Any) -> Path:
+        """Append this run to ``results/<name>.json`` (created with its folder if missing), with ``fields`` (a GPU
+        benchmark's ``training_device``, ``gpu``, its machine-readable ``figures``); the file's path."""
         results.mkdir(parents=True, exist_ok=True)
         path = results / f"{self.name}.json"
         data = json.loads(path.read_text()) if path.is_file() else {"benchmark": self.name, "runs": []}
@@ -87,6 +88,7 @@ class ResultLog:
                 "wall_s": round(time.monotonic() - self.started, 1),
                 "argv": sys.argv[1:],
                 "tables": self.tables,
+                **fields,
             }
         )
         path.write_text(json.dumps(data, indent=1) + "\n")

@@ -147,6 +147,15 @@ def _purpose(name: str) -> str:
     return _title(re.split(r"(?<=\.)\s", paragraph, maxsplit=1)[0])
 
 
+def _trained_on(run: dict) -> str:
+    """``trained on `cuda` (NVIDIA H100 ...); `` for a run that records its training device (bench_gpu), else
+    nothing."""
+    if "training_device" not in run:
+        return ""
+    gpu = f" (GPU: {run['gpu']})" if run.get("gpu") else ""
+    return f"trained on `{run['training_device']}`{gpu}; "
+
+
 def log_page(data: dict) -> str:
     """The page of a ``ResultLog`` file: every run, newest first, with where it came from and its tables."""
     name = data["benchmark"]
@@ -164,7 +173,8 @@ def log_page(data: dict) -> str:
         lines += [
             f"## {run['date']}, commit `{run['commit']}`{preset}",
             "",
-            f"{m['cpu']}, {m['cores']} cores, load {load}; {run['wall_s']:g} s"
+            _trained_on(run)
+            + f"{m['cpu']}, {m['cores']} cores, load {load}; {run['wall_s']:g} s"
             + (f"; seeds {', '.join(map(str, run['seeds']))}" if run["seeds"] else "")
             + f"; arguments: `{' '.join(run['argv']) or '(defaults)'}`",
             "",

@@ -115,7 +115,20 @@ QUICK: dict[str, list[list[str]]] = {
     "bench_test_tracking": [
         ["rates", "--workspace", "{smoke}/synth_a", "--frames", "2", "--sweep", "5x1", "--results", "{out}"]
     ],
-    "bench_gpu": [["--quick", "--skip-dag", "--json", "{out}/bench_gpu.json"]],
+    "bench_gpu": [
+        [
+            "--presets",
+            "smoke",
+            "--methods",
+            "interactavatar",
+            "--step-presets",
+            "--skip-rasterizer",
+            "--outputs",
+            "{out}/work",
+            "--results",
+            "{out}",
+        ]
+    ],
 }
 #: the arguments a benchmark needs even in its full mode
 NEEDS = {

@@ -31,8 +31,8 @@ def precision_problem(spec: object) -> str | None:
     if spec in PRECISIONS:
         return None
     return (
-        f"run.precision={spec}: use fp32 (the reference) or bf16 (the MLPs' products in bfloat16, "
-        "docs/how-to/train-on-a-gpu.md)"
+        f"run.precision={spec}: use fp32 (the reference) or bf16 (the networks' products in bfloat16, "
+        "docs/how-to/gpu.md)"
     )
 
 
