@@ -279,8 +279,8 @@ def main() -> None:
         "--deadline-s", type=float, default=None, help="start nothing new after this many seconds (recorded as left)"
     )
     args = parser.parse_args()
-    log = ResultLog("bench_gpu", preset=",".join(args.presets))
     if args.cpu_seeds:
+        log = ResultLog("bench_gpu", preset="smoke", seeds=(0, 1, 2))
         figures = {"cpu_smoke_seeds": cpu_seeds(args.outputs, args.set)}
         rows = [
             [s, *(f"{v:.2f}" for v in f["values"]), f"{f['mean']:.2f}", f"{f['sd']:.2f}"]
@@ -295,6 +295,7 @@ def main() -> None:
         )
         log.write(args.results, training_device="cpu", figures=figures)
         return
+    log = ResultLog("bench_gpu", preset=",".join(args.presets))
     if not torch.cuda.is_available():
         raise SystemExit("bench_gpu needs a CUDA GPU (torch.cuda.is_available() is False); --cpu-seeds runs anywhere")
     start = time.perf_counter()
