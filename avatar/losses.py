@@ -21,8 +21,7 @@ def scale_regulariser(local_scales: Tensor, visible: Tensor, eps_s: float) -> Te
         visible: (N,) bool.
         eps_s: threshold below which scales are free (paper: 0.4).
     """
-    excess = torch.relu(local_scales[visible] - eps_s)
-    return excess.square().sum(-1).mean() if excess.numel() else local_scales.sum() * 0.0
+    return visible_mean(torch.relu(local_scales - eps_s).square().sum(-1), visible)
 
 
 def position_regulariser(local_means: Tensor, visible: Tensor, eps_mu: float) -> Tensor:
@@ -33,9 +32,26 @@ def position_regulariser(local_means: Tensor, visible: Tensor, eps_mu: float) ->
         local_means: (N, 3) positions in the parent frame (mu + delta_mu for the dynamic model).
         visible: (N,) bool.
     """
-    norms = torch.sqrt(local_means[visible].square().sum(-1) + 1e-12)
-    excess = torch.relu(norms - eps_mu)
-    return excess.square().mean() if excess.numel() else local_means.sum() * 0.0
+    norms = torch.sqrt(local_means.square().sum(-1) + 1e-12)
+    return visible_mean(torch.relu(norms - eps_mu).square(), visible)
+
+
+def visible_mean(values: Tensor, visible: Tensor) -> Tensor:
+    """The mean of per-Gaussian ``values`` (N,) over the ``visible`` (N,) ones; 0 (with a graph) where none is.
+
+    On the CPU the visible values are gathered and averaged; on a GPU the others are masked to zero and the sum is
+    divided by the count, which gives the same mean up to the order of the sum without the device telling the host
+    how many Gaussians are visible (a wait every step)."""
+    if values.is_cpu:
+        kept = values[visible]
+        return kept.mean() if kept.numel() else values.sum() * 0.0
+    return masked_visible_mean(values, visible)
+
+
+def masked_visible_mean(values: Tensor, visible: Tensor) -> Tensor:
+    """:func:`visible_mean` as a GPU computes it: the invisible values masked to zero, the sum divided by the visible
+    count (at least 1), every shape known before the values are."""
+    return torch.where(visible, values, torch.zeros_like(values)).sum() / visible.sum().clamp_min(1)
 
 
 def reconstruction_terms(
