@@ -50,6 +50,7 @@ from avatar.representations import TrainedAvatar, load_trained
 from avatar.templates.lbs import batch_rodrigues
 from data_schemas.tables import SchemaError
 from data_schemas.writes import write_json
+from pipeline.device import DeviceUnavailable, resolve_device
 from pipeline.manifest import MANIFEST_NAME
 from pipeline.workspace import METHODS_DIR, method_run
 
@@ -261,8 +262,8 @@ def in_axes(g: WorldGaussians, rotation: np.ndarray, centre: np.ndarray) -> Pose
     quats = g.quats / g.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     if np.array_equal(rotation, np.eye(3)) and not centre.any():
         return PosedGaussians(g.means, g.scales, quats, g.opacities, g.colors)
-    A = torch.tensor(rotation, dtype=torch.float64)
-    means = ((g.means.double() - torch.tensor(centre)) @ A.T).to(g.means.dtype)
+    A = torch.tensor(rotation, dtype=torch.float64, device=g.means.device)
+    means = ((g.means.double() - torch.tensor(centre, device=g.means.device)) @ A.T).to(g.means.dtype)
     quats = quaternion_multiply(rotation_to_quaternion(A).to(quats.dtype)[None], quats)
     return PosedGaussians(means, g.scales, quats, g.opacities, g.colors)
 
@@ -276,10 +277,12 @@ def export_motion(
     axes: str = "world",
     overwrite: bool = False,
     progress: Callable[[str], None] | None = None,
+    device: str = "cpu",
 ) -> list[Path]:
     """Write the frames ``frames`` (:func:`parse_frames`) of ``motion`` as ``out/<frame>.ply`` (five digits) and
     ``out/export.json``; return the PLY paths. The folder appears whole or not at all: the files are written into a
-    temporary folder beside it that is renamed into place (replacing an earlier export only with ``overwrite``)."""
+    temporary folder beside it that is renamed into place (replacing an earlier export only with ``overwrite``).
+    The avatar poses the frames on the torch ``device``, its networks in the precision its training ran them in."""
     _check_destination(out, overwrite)
     params = motion_params(run, motion)
     num_frames = len(params["flame_global_orient"])
@@ -287,12 +290,12 @@ def export_motion(
     rotation, centre = axes_frame(run, axes)
     try:
         meshes, cond = posed_motion(run, motion, params)
-        model = load_trained(run.dynamic_dir)
+        model = load_trained(run.dynamic_dir).on_device(device, trained_precision(run.dynamic_dir))
     except SchemaError as exc:
         raise ExportError(str(exc)) from exc
     partial = _partial_folder(out)
     try:
-        names = _write_frames(partial, model, meshes, cond, chosen, rotation, centre, progress)
+        names = _write_frames(partial, model, meshes.to(device), cond.to(device), chosen, rotation, centre, progress)
         world_to_file = np.eye(4)
         world_to_file[:3, :3], world_to_file[:3, 3] = rotation, -rotation @ centre
         write_json(
@@ -329,6 +332,13 @@ def _partial_folder(out: Path) -> Path:
     except OSError as exc:
         raise ExportError(f"--out {out}: cannot write there ({exc.strerror or exc}); choose another folder") from exc
     return partial
+
+
+def trained_precision(dynamic_dir: Path) -> str:
+    """The ``run.precision`` the dynamic stage in ``dynamic_dir`` ran its networks in (its manifest's ``device``;
+    fp32 where it records none)."""
+    manifest = json.loads((dynamic_dir / MANIFEST_NAME).read_text())
+    return str((manifest.get("device") or {}).get("precision", "fp32"))
 
 
 def _write_frames(
@@ -401,7 +411,11 @@ def export_frame(
     (t,) = parse_frames(str(frame), len(params["flame_global_orient"]), sequence)
     with torch.no_grad():
         meshes, cond = posed_motion(run, sequence, params)
-        g = load_trained(run.dynamic_dir).pose(cond, meshes.vertices[t], t)
+        g = (
+            load_trained(run.dynamic_dir)
+            .on_device("cpu", trained_precision(run.dynamic_dir))
+            .pose(cond, meshes.vertices[t], t)
+        )
         write_frame_ply(out, in_axes(g, np.eye(3), np.zeros(3)))
 
 
@@ -443,12 +457,22 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--flame-path", default=None, help="the official FLAME file, if the run used one and it moved")
     p.add_argument("--mano-path", default=None, help="the official MANO file, if the run used one and it moved")
     p.add_argument("--quiet", action="store_true", help="no line per frame")
+    p.add_argument(
+        "--device",
+        default="auto",
+        help="where the avatar poses the frames: auto (default: a CUDA GPU where there is one), cpu, cuda, cuda:N",
+    )
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     progress = None if args.quiet else lambda line: print(line, file=sys.stderr, flush=True)
+    try:
+        device = resolve_device(args.device)
+    except DeviceUnavailable as exc:
+        print(f"{PROG}: {str(exc).replace('run.device=', '--device ')}", file=sys.stderr)
+        return 2
     try:
         run = trained_run(
             args.subject,
@@ -459,7 +483,14 @@ def main(argv: list[str] | None = None) -> int:
             mano_path=args.mano_path,
         )
         written = export_motion(
-            run, args.motion, args.out, frames=args.frames, axes=args.axes, overwrite=args.overwrite, progress=progress
+            run,
+            args.motion,
+            args.out,
+            frames=args.frames,
+            axes=args.axes,
+            overwrite=args.overwrite,
+            progress=progress,
+            device=device,
         )
     except (ExportError, SchemaError, OSError) as exc:
         print(f"{PROG}: {str(exc).splitlines()[0]}", file=sys.stderr)

@@ -265,3 +265,21 @@ def test_the_command_is_installed_and_its_help_states_the_axes_and_the_layout(ca
     ):
         assert words in " ".join(text.split()), words
     assert "`" not in text
+
+
+def test_a_device_this_machine_lacks_is_one_error_before_anything_is_read(tmp_path: Path, capsys) -> None:
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    status = pipeline.export_ply.main([str(tmp_path / "synth_a"), "--out", str(tmp_path / "x"), "--device", "cuda"])
+    said = capsys.readouterr().err
+    assert status == 2 and said.startswith("interactavatar-export: --device cuda: this machine has no CUDA device")
+    assert not (tmp_path / "x").exists()
+
+
+def test_the_export_poses_in_the_precision_training_used(tmp_path: Path) -> None:
+    from pipeline.manifest import MANIFEST_NAME
+
+    (tmp_path / MANIFEST_NAME).write_text(json.dumps({"device": {"kind": "cuda", "precision": "bf16"}}))
+    assert pipeline.export_ply.trained_precision(tmp_path) == "bf16"
+    (tmp_path / MANIFEST_NAME).write_text(json.dumps({"metrics": {}}))  # written before the device was recorded
+    assert pipeline.export_ply.trained_precision(tmp_path) == "fp32"

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 
+from avatar.device import fits_on_device
 from avatar.metrics.evaluation import default_lpips
 from avatar.metrics.lpips import LPIPS
 from avatar.representations.bound.density import DensityController
@@ -146,3 +147,21 @@ def test_the_probe_catches_a_tensor_made_without_its_device() -> None:
         controller = DensityController(WarmupTrainConfig(steps=4).density(), model.num_gaussians)
         controller.accumulate(grads, visible, 32)
         float(controller.grad_sum.sum())
+
+
+def test_a_capture_that_does_not_fit_the_gpu_is_one_error_naming_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The crops may take half of the device's free memory (here 1 of 80 GiB free); the CPU is not checked."""
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (2**30, 80 * 2**30))
+    fits_on_device(2**29, "cuda:0", "the crops", "lower quality.image_size")
+    with pytest.raises(MemoryError) as caught:
+        fits_on_device(2**29 + 1, "cuda:0", "the 24 frames x 7 cameras of train/train crops in F", "lower the size")
+    said = str(caught.value)
+    assert said.startswith("the 24 frames x 7 cameras of train/train crops in F take 0.50 GiB, more than the 0.50 GiB")
+    assert said.endswith("; lower the size")
+    fits_on_device(10**15, "cpu", "the crops", "-")
+
+
+def test_on_the_cpu_a_move_returns_the_very_same_tensors(four_frames: Scene) -> None:
+    views, meshes, cond = four_frames.views, four_frames.meshes, four_frames.cond
+    assert views.to("cpu").images is views.images and meshes.to("cpu").vertices is meshes.vertices
+    assert cond.to("cpu").face_offsets is cond.face_offsets
