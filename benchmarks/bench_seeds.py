@@ -16,7 +16,8 @@ Settings (all at ``quality=draft``; every method trained once per seed, the shar
   (the method ``interactavatar_shared`` of benchmarks/conf/method/); ``hm``: the same on fitted MediaPipe tracking;
   ``table --settings h hm --name bench_heads_quality``;
 - ``f``: (a)'s captures and tracking, InteractAvatar's networks in fp32 against ``run.precision=bf16`` (the method
-  ``interactavatar_bf16`` of benchmarks/conf/method/; issue 58); ``table --settings f --name bench_precision``;
+  ``interactavatar_bf16`` of benchmarks/conf/method/; issue 58); ``fm``: the same on fitted MediaPipe tracking;
+  ``table --settings f fm --name bench_precision``;
 - ``p``: (a)'s captures and tracking, InteractAvatar against w/o PBD (issue 35: the methods table's "w/o PBD" rows
   against the contact ground truth of capture version 8); ``table --settings p --name bench_seeds_pbd``.
 
@@ -165,6 +166,14 @@ SETTINGS: dict[str, dict] = {
         # run.* is the primary config's own (its _self_ comes last): a method's YAML cannot set it, the command can
         "method_overrides": {"interactavatar_bf16": ["run.precision=bf16"]},
         "what": "full appearance, 24 frames, ground-truth tracking: the networks in fp32 against run.precision=bf16",
+    },
+    "fm": {
+        "subjects": ("synth_a",),
+        "overrides": [*MEDIAPIPE, BENCH_METHODS],
+        "methods": ("interactavatar", "interactavatar_bf16"),
+        "method_overrides": {"interactavatar_bf16": ["run.precision=bf16"]},
+        "what": "full appearance, 24 frames, fitted tracking (MediaPipe): the networks in fp32 against "
+        "run.precision=bf16",
     },
     "p": {
         "subjects": ("synth_a", "synth_b"),
