@@ -92,8 +92,9 @@ typecheck: $(STAMP)
 	$(PY) -m mypy
 
 ## make test-gpu: on a machine with an NVIDIA GPU and the CUDA toolkit (nvcc, for gsplat's just-in-time build):
-## the cuda-marked tests, bench_rasterizer's gsplat-beside-cpu table and the smoke DAG with backend=gsplat
-## beside the cpu rasterizer, in one table (benchmarks/bench_gpu.py; results/bench_gpu.json). Its own
+## the cuda-marked tests (the rasterizer, training on the device), gsplat beside the cpu rasterizer, the DAG per
+## preset trained on the GPU, the step costs and a profile, in tables (benchmarks/bench_gpu.py, which appends to
+## results/bench_gpu.json; ARGS="--presets smoke draft" and the like choose what it runs). Its own
 ## environment .venv-cuda holds torch's CUDA build (from CUDA_TORCH_INDEX) and the `cuda` extra;
 ## GPU_PYTHON=/path/to/python uses a Python that has a CUDA torch and the project's dependencies instead.
 CUDA_VENV  := .venv-cuda
