@@ -15,7 +15,7 @@ import hashlib
 import io
 import logging
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +46,18 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
-def _read(path: Path, required: Iterable[str]) -> dict[str, Any]:
+def placement(device: torch.device | str) -> Callable[[Any, str], Any] | None:
+    """``torch.load``'s ``map_location`` for a run on ``device``: what was saved on any CUDA device goes to this one (a
+    run resumed on another card of the machine, whose artifacts it shares), what was saved on the CPU stays there
+    (the samplers' generator states); None on the CPU: every tensor where it was saved."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        return None
+    index = device.index or 0
+    return lambda storage, location: storage.cuda(index) if location.startswith("cuda") else storage
+
+
+def _read(path: Path, required: Iterable[str], device: torch.device | str) -> dict[str, Any]:
     """The verified state in ``path``; ``ValueError`` saying what is wrong with it."""
     blob = path.read_bytes()
     head = len(MAGIC) + _DIGEST_BYTES
@@ -56,7 +67,7 @@ def _read(path: Path, required: Iterable[str]) -> dict[str, Any]:
     if hashlib.sha256(payload).digest() != blob[len(MAGIC) : head]:
         raise ValueError("content does not match its digest (truncated or corrupted)")
     try:
-        state = torch.load(io.BytesIO(payload), weights_only=True)
+        state = torch.load(io.BytesIO(payload), weights_only=True, map_location=placement(device))
     except Exception as exc:  # any unpickling failure means the file is unusable
         raise ValueError(f"unreadable ({type(exc).__name__}: {exc})") from exc
     missing = sorted(set(required) - set(state)) if isinstance(state, dict) else ["<a dict>"]
@@ -65,8 +76,9 @@ def _read(path: Path, required: Iterable[str]) -> dict[str, Any]:
     return state
 
 
-def load_checkpoint(path: Path, required: Iterable[str]) -> dict[str, Any] | None:
-    """The newest whole checkpoint at ``path`` (or its previous one), or ``None`` to start over.
+def load_checkpoint(path: Path, required: Iterable[str], device: torch.device | str = "cpu") -> dict[str, Any] | None:
+    """The newest whole checkpoint at ``path`` (or its previous one), or ``None`` to start over; its tensors on the
+    run's ``device`` (:func:`placement`).
 
     A checkpoint that fails verification is logged as a warning naming the file and
     the reason, and deleted, so it can never block a later run.
@@ -76,7 +88,7 @@ def load_checkpoint(path: Path, required: Iterable[str]) -> dict[str, Any] | Non
         if not candidate.is_file():
             continue
         try:
-            return _read(candidate, required)
+            return _read(candidate, required, device)
         except (OSError, ValueError) as exc:
             log.warning(
                 "%s: checkpoint discarded, %s; %s",

@@ -27,6 +27,7 @@ from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup
 from avatar.representations.embedded.training import train_splatting
 from avatar.templates import procedural_hand, procedural_head
 from avatar.training.avatar_tracking import AvatarTrackingConfig, track_with_avatar
+from avatar.training.checkpoint import placement
 from avatar.training.frame_params import FrameParams, ParamLearningRates
 from avatar.training.selection import SelectionConfig
 from avatar.training.validation import ValidationConfig, Validator
@@ -165,3 +166,24 @@ def test_on_the_cpu_a_move_returns_the_very_same_tensors(four_frames: Scene) -> 
     views, meshes, cond = four_frames.views, four_frames.meshes, four_frames.cond
     assert views.to("cpu").images is views.images and meshes.to("cpu").vertices is meshes.vertices
     assert cond.to("cpu").face_offsets is cond.face_offsets
+
+
+def test_a_checkpoint_resumed_on_another_card_loads_onto_the_run_s_card() -> None:
+    """What was saved on a CUDA device goes to the run's (the cards of a machine share a cache entry, so a killed
+    run may resume on another); what was saved on the CPU, the samplers' generator states, stays there."""
+
+    class Storage:
+        def __init__(self) -> None:
+            self.moved_to: int | None = None
+
+        def cuda(self, index: int) -> Storage:
+            self.moved_to = index
+            return self
+
+    assert placement("cpu") is None  # the CPU: every tensor where it was saved
+    on_card_1 = placement("cuda:1")
+    assert on_card_1 is not None
+    saved_on_0, saved_on_cpu = Storage(), Storage()
+    assert on_card_1(saved_on_0, "cuda:0").moved_to == 1
+    assert on_card_1(saved_on_cpu, "cpu") is saved_on_cpu and saved_on_cpu.moved_to is None
+    assert placement("cuda")(Storage(), "cuda:3").moved_to == 0

@@ -240,7 +240,7 @@ def train_dynamic(
     result = DynamicTrainResult([], 0, 0, {"model": 0.0, "render": 0.0, "loss": 0.0, "backward": 0.0})
     start = 0
     ckpt_path = checkpoint_dir / CHECKPOINT if checkpoint_dir is not None else None
-    state = load_checkpoint(ckpt_path, _CHECKPOINT_KEYS) if ckpt_path is not None else None
+    state = load_checkpoint(ckpt_path, _CHECKPOINT_KEYS, device) if ckpt_path is not None else None
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])

@@ -177,7 +177,7 @@ def train_warmup(
     log: list[LogRow] = []
     start = 0
     ckpt_path = checkpoint_dir / CHECKPOINT if checkpoint_dir is not None else None
-    state = load_checkpoint(ckpt_path, _CHECKPOINT_KEYS) if ckpt_path is not None else None
+    state = load_checkpoint(ckpt_path, _CHECKPOINT_KEYS, model.local_means.device) if ckpt_path is not None else None
     if state is not None:
         start, log = _restore(state, model, density, gen)
         optimizer = _optimizer(model, cfg)

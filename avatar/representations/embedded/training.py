@@ -237,7 +237,7 @@ def train_splatting(
     log: list[LogRow] = []
     start, walked = 0, 0
     ckpt_path = checkpoint_dir / CHECKPOINT if checkpoint_dir is not None else None
-    state = load_checkpoint(ckpt_path, _CHECKPOINT_KEYS) if ckpt_path is not None else None
+    state = load_checkpoint(ckpt_path, _CHECKPOINT_KEYS, device) if ckpt_path is not None else None
     if state is not None:
         model.resize_like(state["model"])
         model.load_state_dict(state["model"])
