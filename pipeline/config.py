@@ -72,7 +72,7 @@ class RunConfig:
     progress: bool = True  # progress bars for long loops
     lock_timeout_s: float = 3600.0  # how long to wait for another run holding a stage lock
     device: str = "auto"  # where the stages that train and render compute: auto, cpu, cuda, cuda:N (pipeline.device)
-    precision: str = "fp32"  # fp32, or bf16: the MLPs' products in bfloat16
+    precision: str = "fp32"  # fp32, or bf16: the networks' products in bfloat16 (H, I, PointNet++)
     overrides: list[str] = field(default_factory=list)  # set by the CLI: the command line's overrides
 
 

@@ -55,6 +55,13 @@ def toy_meshes(frames: int) -> tuple[MeshSequence, np.ndarray]:
     return meshes, rest
 
 
+class NoConditioning:
+    """The conditioning of a motion whose avatar reads none (the toy's): it moves to any device as itself."""
+
+    def to(self, device: object) -> NoConditioning:
+        return self
+
+
 @dataclass
 class ToyAvatar:
     """Bound Gaussians whose hand ones move up to 2 mm and brighten with the frame (what H does to a real hand)."""
@@ -131,7 +138,7 @@ def write_toy_viewer(out_dir: Path, frames: int = 8) -> tuple[ToyAvatar, dict[st
             name,
             f"toy {name}",
             PosedSequence({}, seq, np.zeros((frames, 144, 3))),
-            None,  # type: ignore[arg-type]  # the toy's pose reads no conditioning
+            NoConditioning(),  # type: ignore[arg-type]  # the toy's pose reads none
             np.arange(frames) % 3 == 1,
             cameras,
             (truth * 255).round().astype(np.uint8) if name == "train" else None,
