@@ -40,7 +40,7 @@ from reporting.reenact import reenact_section, viewer_section
 from reporting.scene import pbd_section, scene_section
 from reporting.training import dynamic_summary
 from tests.viewer.conftest import NEEDS_BROWSER
-from tests.viewer.toy_viewer import BACKGROUND, CAMERAS, SIZE, K, toy_avatar, toy_meshes
+from tests.viewer.toy_viewer import BACKGROUND, CAMERAS, SIZE, K, NoConditioning, toy_avatar, toy_meshes
 
 #: a name that can be a file name (no '/'), trying every way out: quotes closing an attribute, tags with handlers,
 #: a percent-escape and a reference to be decoded twice, URL delimiters, a JavaScript line separator
@@ -219,7 +219,7 @@ def hostile_viewer(out_dir: Path, frames: int = 3) -> None:
             name,
             TEXT,
             PosedSequence({}, meshes, np.zeros((frames, 144, 3))),
-            None,  # type: ignore[arg-type]  # the toy's pose reads no conditioning
+            NoConditioning(),  # type: ignore[arg-type]  # the toy's pose reads none
             np.arange(frames) % 2 == 1,
             cameras,
             ground_truth,
