@@ -1,9 +1,10 @@
 """Moving a run's data to the device it trains on, and back to the host where it is written.
 
 The stages hand the core a torch device (``run.device``, resolved by the pipeline): the model and the data a training
-loop reads (crops, meshes, conditioning, the refined parameters) move there once, before the loop; random draws stay
-on the CPU's generators and their numbers move (so a seed draws the same numbers on every device), and whatever is
-written goes back through :func:`host`. On the CPU every move returns the very same tensor, so the CPU path computes
+loop reads (crops, meshes, conditioning, the refined parameters) move there once, before the loop; the samplers (frames,
+cameras, PointNet++'s sample) draw on the CPU's generators and their numbers move, so a seed draws the same numbers on
+every device (the density control's split noise alone draws on the device's generator); whatever is written goes
+back through :func:`host`. On the CPU every move returns the very same tensor, so the CPU path computes
 what it always did."""
 
 from __future__ import annotations
