@@ -43,11 +43,6 @@ def host_state(state: dict[str, Any]) -> dict[str, Any]:
     return {k: v.cpu() if isinstance(v, Tensor) else v for k, v in state.items()}
 
 
-def data_bytes(*tensors: Tensor) -> int:
-    """Bytes ``tensors`` hold."""
-    return sum(t.numel() * t.element_size() for t in tensors)
-
-
 def fits_on_device(need: int, device: torch.device | str, what: str, fix: str) -> None:
     """Raise MemoryError, naming ``what`` and ``fix``, when ``need`` bytes exceed :data:`DEVICE_DATA_SHARE` of the
     CUDA device's free memory (nothing to check on the CPU, whose data is in memory already)."""
