@@ -2,8 +2,9 @@
 
 Tolerances as the torch backend's: float64 images to 1e-10 absolute and gradients to 1e-10
 relative to the largest reference entry of each input (observed: ~1e-15); float32 to 1e-5
-(observed: ~1e-7 on images, ~1e-6 on gradients). Thread count and tile size never change the
-image bit for bit (every pixel composites the same list in the same order); the thread count
+(observed: ~1e-7 on images, ~1e-6 on gradients); means2d to 4 ULPs, and radii to one pixel in 1 % of
+the Gaussians (tests/float_agreement.py: the two round differently on some CPUs). Thread count and
+tile size never change the image bit for bit (every pixel composites the same list in the same order); the thread count
 does not change the gradients either (per-pair gradients are summed in a fixed order).
 """
 
@@ -22,6 +23,7 @@ from avatar.render.gaussians import extension, render_gaussians
 from avatar.render.gaussians.backend_cpu import render_cpu, work_counts
 from avatar.render.gaussians.backend_torch import render_torch
 from avatar.render.gaussians.render import resolve_backend
+from tests.float_agreement import assert_rounded_alike, assert_within_ulps
 
 pytestmark = pytest.mark.skipif(
     not extension.cpu_extension_available(),
@@ -104,7 +106,10 @@ def test_matches_the_torch_backend(dtype: torch.dtype) -> None:
     got = _images_and_grads(render_cpu, scene)
     _assert_close(got, _images_and_grads(render_torch, scene), TOL[dtype])
     cpu, ref = (r(*scene.params(), *scene.camera()) for r in (render_cpu, render_torch))
-    assert torch.equal(cpu.radii, ref.radii) and torch.equal(cpu.means2d, ref.means2d)
+    # Two implementations: means2d to rounding (observed: under 1 ULP of the largest, on AMD EPYC and Intel
+    # Xeon alike; not bit for bit on the Xeon), radii (ceil of a float) equal but where one lands on an integer.
+    assert_within_ulps(cpu.means2d, ref.means2d, ulps=4, what="means2d")
+    assert_rounded_alike(cpu.radii, ref.radii, at_most=3, what="radii")  # 1 % of 300
 
 
 def test_float32_matches_float64_reference() -> None:

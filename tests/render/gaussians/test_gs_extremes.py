@@ -25,6 +25,7 @@ from gs_scenes import Scene, random_scene, single_gaussian
 
 from avatar.render.gaussians import RenderOutput, render_gaussians
 from avatar.render.gaussians.extension import cpu_extension_available, unavailable_reason
+from tests.float_agreement import assert_rounded_alike
 
 F32 = torch.float32
 NAMES = ("means", "quats", "scales", "opacities", "colors")
@@ -98,12 +99,14 @@ def _render_and_backward(
 
 
 def _assert_same_radii(out: RenderOutput, ref: RenderOutput, backend: str) -> None:
-    """The compiled backend's radii are the torch backend's; gsplat's too, below the scale cap's radius."""
+    """The compiled backend's radii are the torch backend's (one pixel apart where a radius lands on an
+    integer: two implementations, tests/float_agreement.py); gsplat's too, below the scale cap's radius."""
     if _name(backend) != "gsplat":
-        assert torch.equal(out.radii, ref.radii)
+        assert_rounded_alike(out.radii, ref.radii, at_most=1, what="radii")
         return
     huge = ref.radii > 1_000_000
-    assert torch.equal(out.radii[~huge], ref.radii[~huge]) and (out.radii[huge] > 1_000_000).all()
+    assert_rounded_alike(out.radii[~huge], ref.radii[~huge], at_most=1, what="radii")
+    assert (out.radii[huge] > 1_000_000).all()
 
 
 def _with_extra(

@@ -1,6 +1,6 @@
 """The delta MLPs and the stage-two step as made faster for issue 33 against the per-head reference they replace:
 the same function and gradients to float32 rounding, the same initialisation bit for bit, the same interaction
-distances bit for bit, and the same short stage-two loss curve to rounding."""
+distances to rounding, and the same short stage-two loss curve to rounding."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from avatar.nets.mlp import DeltaHeads, DeltaMLP, SplitLinear
 from avatar.representations.bound import dynamic_model
 from avatar.representations.bound.dynamic_model import nearest_distance
 from avatar.representations.bound.stage_two import DynamicTrainConfig, train_dynamic
+from tests.float_agreement import assert_within_ulps
 from tests.representations.bound.conftest import Scene
 
 # float32 rounding of a few layers of 16-128 units: relative to the largest entry of each compared tensor
@@ -104,11 +105,16 @@ def reference_nearest_distance(points: Tensor, targets: Tensor, reach: float) ->
     return out
 
 
-def test_nearest_distance_is_cdist_bit_for_bit() -> None:
+def test_nearest_distance_is_cdists_to_rounding() -> None:
+    """Two implementations of one formula (the chunks' matrix products are blocked differently from cdist's,
+    and torch's kernels round differently per instruction set): within 16 ULPs of the largest distance, and
+    the same points out of reach."""
     gen = torch.Generator().manual_seed(0)
     points = torch.rand(5000, 3, generator=gen) * 0.3  # more than one chunk
     targets = torch.rand(300, 3, generator=gen) * 0.1 + 0.1
-    assert torch.equal(nearest_distance(points, targets, 0.05), reference_nearest_distance(points, targets, 0.05))
+    ours, ref = nearest_distance(points, targets, 0.05), reference_nearest_distance(points, targets, 0.05)
+    assert torch.equal(ours.isinf(), ref.isinf())
+    assert_within_ulps(ours[ref.isfinite()], ref[ref.isfinite()], ulps=16, what="nearest distance")
 
 
 def test_a_short_stage_two_gives_the_reference_loss_curve(scene: Scene, monkeypatch) -> None:
