@@ -229,7 +229,7 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
                 errors.append(f"{list_key}: stage '{s.name}' needs a non-empty list of {what}")
             else:
                 errors.extend(p for value in values if (p := problem_of(value, list_key)))
-        for key in s.config_keys:
+        for key in s.keys(cfg):
             if OmegaConf.select(cfg, key, default=_MISSING) is _MISSING:
                 errors.append(f"stage '{s.name}' depends on config key '{key}', which is not set")
         if s.config_schema is not None:
@@ -339,15 +339,14 @@ def dataset_problems(cfg: DictConfig) -> list[str]:
 
 
 def key_config(cfg: DictConfig, s: Stage) -> dict[str, Any]:
-    """The settings that enter stage ``s``'s cache key under ``cfg``: the resolved values of its ``config_keys``
-    without its ``cache_exclude`` and without what its ``unused_keys(cfg)`` names."""
+    """The settings that enter stage ``s``'s cache key under ``cfg``: the resolved values of its ``config_keys`` and
+    ``extra_keys(cfg)`` without its ``cache_exclude`` and without what its ``unused_keys(cfg)`` names."""
+    keys = s.keys(cfg)
     unused = tuple(s.unused_keys(cfg)) if s.unused_keys is not None else ()
     for key in unused:
-        if not any(key == k or key.startswith(f"{k}.") for k in s.config_keys):
-            raise ValueError(
-                f"stage '{s.name}': unused key '{key}' is not one of its config_keys {s.config_keys} or below one"
-            )
-    return config_subset(cfg, tuple(k for k in s.config_keys if k not in unused), s.cache_exclude + unused)
+        if not any(key == k or key.startswith(f"{k}.") for k in keys):
+            raise ValueError(f"stage '{s.name}': unused key '{key}' is not one of its config_keys {keys} or below one")
+    return config_subset(cfg, tuple(k for k in keys if k not in unused), s.cache_exclude + unused)
 
 
 def config_subset(cfg: DictConfig, keys: tuple[str, ...], exclude: tuple[str, ...] = ()) -> dict[str, Any]:

@@ -11,6 +11,9 @@ A stage is a plain function wrapped in a :class:`Stage` that declares
 - ``unused_keys``: a function of the resolved config naming the paths at or below ``config_keys`` that this
   configuration does not read (another representation's recipe, the options of a solver not chosen): left out
   of the key too, so changing them reruns nothing (:func:`pipeline.config.key_config`);
+- ``extra_keys``: a function of the resolved config naming further paths this configuration reads, which no fixed
+  list can name (the method's representation's own section, whatever representation it is): they enter the key as
+  ``config_keys`` do, and the config check requires them to be set;
 - ``checks``: a function of the resolved config listing what this stage cannot run with (one line each, naming
   the key and the fix), beyond its schema's types and ranges; run with the rest of the check before any stage runs
   (the method's representation, e.g.);
@@ -145,6 +148,7 @@ class Stage:
     description: str = ""
     cache_exclude: tuple[str, ...] = ()
     unused_keys: Callable[[DictConfig], Iterable[str]] | None = None
+    extra_keys: Callable[[DictConfig], Iterable[str]] | None = None
     checks: Callable[[DictConfig], Iterable[str]] | None = None
     sources: SourceLister | None = None
     reads_manifests: bool = False
@@ -160,6 +164,11 @@ class Stage:
         """Every stage this one reads (``inputs``, ``cross_method_inputs``, ``subject_inputs``): its DAG edges."""
         extra = (*self.cross_method_inputs, *self.subject_inputs)
         return self.inputs + tuple(dict.fromkeys(n for n in extra if n not in self.inputs))
+
+    def keys(self, cfg: DictConfig) -> tuple[str, ...]:
+        """The config paths this stage reads under ``cfg``: its ``config_keys`` and what ``extra_keys(cfg)`` adds."""
+        extra = tuple(self.extra_keys(cfg)) if self.extra_keys is not None else ()
+        return tuple(dict.fromkeys(self.config_keys + extra))
 
     def __post_init__(self) -> None:
         if not self.name or not self.name.replace("_", "").isalnum():
@@ -196,6 +205,7 @@ def stage(
     config_schema: type | None = None,
     cache_exclude: Iterable[str] = (),
     unused_keys: Callable[[DictConfig], Iterable[str]] | None = None,
+    extra_keys: Callable[[DictConfig], Iterable[str]] | None = None,
     checks: Callable[[DictConfig], Iterable[str]] | None = None,
     sources: SourceLister | None = None,
     reads_manifests: bool = False,
@@ -221,6 +231,7 @@ def stage(
             config_schema=config_schema,
             cache_exclude=tuple(cache_exclude),
             unused_keys=unused_keys,
+            extra_keys=extra_keys,
             checks=checks,
             sources=sources,
             reads_manifests=reads_manifests,

@@ -19,7 +19,7 @@ from omegaconf import DictConfig
 from avatar.artifacts import TRAIN_SEQUENCE, load_views, method_params
 from avatar.artifacts.dependencies import TEMPLATE_KEYS, model_sources
 from avatar.artifacts.motion import applied_deformation, posed_sequence
-from avatar.representations import VALIDATED_RUN, representation, representation_problems, unused_training_settings
+from avatar.representations import VALIDATED_RUN, representation, representation_problems, training_settings
 from avatar.representations.bound.dynamic_model import DynamicModelConfig
 from avatar.representations.bound.representation import PRESET_ARCHITECTURE, selection_config
 from avatar.representations.bound.stage_two import DynamicTrainConfig
@@ -100,7 +100,6 @@ DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("st
         "stage.dynamic",
         "method.representation",
         "method.pbd",
-        "splatting",
         "stage.warmup",
         "fit.source",
         "stage.keypoints.detector",
@@ -129,7 +128,7 @@ DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("st
     config_schema=DynamicConfig,
     # resuming is bit-for-bit: it cannot change the result
     cache_exclude=("stage.dynamic.checkpoint_every", "stage.warmup.checkpoint_every"),
-    unused_keys=unused_training_settings,
+    extra_keys=training_settings,  # the representation's own recipe (SplattingAvatar's splatting, a plug-in's)
     checks=representation_problems,
     sources=model_sources,
 )

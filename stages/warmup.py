@@ -20,7 +20,7 @@ from avatar.representations import (
     representation,
     representation_problems,
     run_scratch,
-    unused_training_settings,
+    training_settings,
 )
 from avatar.representations.bound.warmup import WarmupTrainConfig, colors_from_views
 from avatar.training.frame_params import FrameParams, ParamLearningRates
@@ -85,7 +85,6 @@ WarmupConfig = section_schema("WarmupConfig", WarmupTrainConfig, exclude=("steps
         "stage.warmup",
         "method.representation",
         "method.pbd",
-        "splatting",
         "fit.source",
         "stage.keypoints.detector",
     ),
@@ -100,7 +99,7 @@ WarmupConfig = section_schema("WarmupConfig", WarmupTrainConfig, exclude=("steps
     per_method=True,
     config_schema=WarmupConfig,
     cache_exclude=("stage.warmup.checkpoint_every",),  # resuming is bit-for-bit: it cannot change the result
-    unused_keys=unused_training_settings,
+    extra_keys=training_settings,  # the representation's own recipe (SplattingAvatar's splatting, a plug-in's)
     checks=representation_problems,
     sources=model_sources,
 )

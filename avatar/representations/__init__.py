@@ -131,8 +131,8 @@ class Representation(ABC):
     """A Gaussian representation: how the Gaussians are initialised on the mesh, trained in the two stages,
     saved, loaded and posed. One instance per run, built from the run's config (``cfg``)."""
 
-    #: Config sections only this representation reads (its own recipe): kept in the training stages' cache keys
-    #: only when it is the method's (:func:`unused_training_settings`).
+    #: Config sections only this representation reads (its own recipe): in the training stages' cache keys when it is
+    #: the method's, and only then (:func:`training_settings`).
     own_settings: ClassVar[tuple[str, ...]] = ()
     #: Whether the training stages may refine the train motion's parameters with it (``refine_params``).
     refines_tracking: ClassVar[bool] = True
@@ -239,12 +239,15 @@ def representation_class(name: str) -> type[Representation]:
     return cls
 
 
-def unused_training_settings(cfg: DictConfig) -> tuple[str, ...]:
-    """What the training stages never read for this method: the other representations' own settings (e.g.
-    SplattingAvatar's recipe, ``splatting``, unless the method's representation is ``embedded``)."""
-    chosen = representation_class(str(cfg.method.representation))
-    others = (representation_class(name) for name in BUILT_IN)
-    return tuple(dict.fromkeys(key for cls in others for key in cls.own_settings if key not in chosen.own_settings))
+def training_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """The config sections the training stages read for this method beyond their own: its representation's
+    ``own_settings``, whichever representation it is (SplattingAvatar's recipe, ``splatting``, for ``embedded``; a
+    plug-in's own section); none where ``method.representation`` names no representation (the config check says
+    so)."""
+    try:
+        return representation_class(str(cfg.method.representation)).own_settings
+    except ValueError:
+        return ()
 
 
 def representation(cfg: DictConfig) -> Representation:

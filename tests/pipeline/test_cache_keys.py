@@ -3,9 +3,12 @@ a setting the configuration never reads reruns nothing; one it reads reruns the 
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import pytest
 
-from pipeline.config import key_config
+from examples.warmup_only import WarmupOnly
+from pipeline.config import ConfigError, key_config, validate_config
 from stages import REGISTRY
 from tests.conftest import compose_cfg
 
@@ -52,6 +55,27 @@ def test_a_setting_the_configuration_reads_reruns_the_stages_that_read_it(
     base: list[str], change: list[str], expected: set[str]
 ) -> None:
     assert changed_stages(base, change) == expected
+
+
+class OwnRecipe(WarmupOnly):
+    """A plug-in representation with a config section of its own, as SplattingAvatar's ``splatting``."""
+
+    own_settings: ClassVar[tuple[str, ...]] = ("own_recipe",)
+
+
+OWN_RECIPE = ["method=gaussian_avatars", f"method.representation={__name__}:OwnRecipe", "+own_recipe.strength=1"]
+
+
+def test_a_plugin_representations_own_settings_rerun_its_training_stages() -> None:
+    """Only the built-in representations' sections used to enter the keys: a plug-in's own setting reran nothing."""
+    assert changed_stages(OWN_RECIPE, ["own_recipe.strength=2"]) == {"warmup", "dynamic"}
+    # and the built-in recipe it never reads reruns nothing
+    assert changed_stages(OWN_RECIPE, ["splatting.lambda_mse=3.0"]) == set()
+
+
+def test_a_plugin_representations_own_section_must_be_set() -> None:
+    with pytest.raises(ConfigError, match="stage 'warmup' depends on config key 'own_recipe', which is not set"):
+        validate_config(compose_cfg(OWN_RECIPE[:-1]), REGISTRY)
 
 
 def test_an_unused_key_must_be_one_of_the_stage_keys() -> None:

@@ -15,7 +15,7 @@ from avatar.representations import (
     load_trained,
     representation,
     representation_class,
-    unused_training_settings,
+    training_settings,
 )
 from avatar.representations.bound.representation import BoundRepresentation
 from avatar.representations.embedded.representation import EmbeddedRepresentation
@@ -52,9 +52,10 @@ def test_the_registry_resolves_built_in_names_and_module_paths() -> None:
 
 def test_the_training_keys_hold_only_the_chosen_representations_settings() -> None:
     base = ["quality=smoke"]
-    assert unused_training_settings(compose_cfg(base)) == ("splatting",)
-    assert unused_training_settings(compose_cfg([*base, "method=splatting_avatar"])) == ()
-    assert unused_training_settings(compose_cfg([*base, f"method.representation={PLUGIN}"])) == ("splatting",)
+    assert training_settings(compose_cfg(base)) == ()
+    assert training_settings(compose_cfg([*base, "method=splatting_avatar"])) == ("splatting",)
+    assert training_settings(compose_cfg([*base, f"method.representation={PLUGIN}"])) == ()
+    assert training_settings(compose_cfg([*base, "method.representation=nosuch"])) == ()  # the check names it
 
 
 @pytest.mark.parametrize(
