@@ -19,7 +19,13 @@ from omegaconf import DictConfig
 from avatar.artifacts import TRAIN_SEQUENCE, load_views, method_params
 from avatar.artifacts.dependencies import TEMPLATE_KEYS, model_sources
 from avatar.artifacts.motion import applied_deformation, posed_sequence
-from avatar.representations import VALIDATED_RUN, representation, representation_problems, training_settings
+from avatar.representations import (
+    VALIDATED_RUN,
+    representation,
+    representation_problems,
+    training_settings,
+    unused_stage_two_settings,
+)
 from avatar.representations.bound.dynamic_model import DynamicModelConfig
 from avatar.representations.bound.representation import PRESET_ARCHITECTURE, selection_config
 from avatar.representations.bound.stage_two import DynamicTrainConfig
@@ -129,6 +135,7 @@ DynamicConfig = section_schema("DynamicConfig", DynamicTrainConfig, exclude=("st
     # resuming is bit-for-bit: it cannot change the result
     cache_exclude=("stage.dynamic.checkpoint_every", "stage.warmup.checkpoint_every"),
     extra_keys=training_settings,  # the representation's own recipe (SplattingAvatar's splatting, a plug-in's)
+    unused_keys=unused_stage_two_settings,  # e.g. restarts without the selection, validation's details without it
     checks=representation_problems,
     sources=model_sources,
 )

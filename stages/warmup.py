@@ -21,6 +21,7 @@ from avatar.representations import (
     representation_problems,
     run_scratch,
     training_settings,
+    unused_warmup_settings,
 )
 from avatar.representations.bound.warmup import WarmupTrainConfig, colors_from_views
 from avatar.training.frame_params import FrameParams, ParamLearningRates
@@ -100,6 +101,7 @@ WarmupConfig = section_schema("WarmupConfig", WarmupTrainConfig, exclude=("steps
     config_schema=WarmupConfig,
     cache_exclude=("stage.warmup.checkpoint_every",),  # resuming is bit-for-bit: it cannot change the result
     extra_keys=training_settings,  # the representation's own recipe (SplattingAvatar's splatting, a plug-in's)
+    unused_keys=unused_warmup_settings,  # e.g. validation's details with validation off
     checks=representation_problems,
     sources=model_sources,
 )

@@ -27,6 +27,7 @@ from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
 from avatar.training.frame_params import FrameParams
+from avatar.training.settings import unused_section_settings
 from avatar.training.validation import Validator
 from data_schemas.tables import TableSchema
 from data_schemas.writes import write_json
@@ -248,6 +249,26 @@ def training_settings(cfg: DictConfig) -> tuple[str, ...]:
         return representation_class(str(cfg.method.representation)).own_settings
     except ValueError:
         return ()
+
+
+def _refines_tracking(cfg: DictConfig) -> bool:
+    """Whether the method's representation may refine the train motion's parameters (true where it names none)."""
+    try:
+        return representation_class(str(cfg.method.representation)).refines_tracking
+    except ValueError:  # the config check names it
+        return True
+
+
+def unused_warmup_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """What the warm-up never reads of ``stage.warmup`` for this method (:func:`unused_section_settings`)."""
+    return unused_section_settings(cfg, "warmup", _refines_tracking(cfg))
+
+
+def unused_stage_two_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """What stage two never reads of ``stage.dynamic``, nor of ``stage.warmup``, which its key holds too, for this
+    method (:func:`unused_section_settings`)."""
+    can_refine = _refines_tracking(cfg)
+    return unused_section_settings(cfg, "warmup", can_refine) + unused_section_settings(cfg, "dynamic", can_refine)
 
 
 def representation(cfg: DictConfig) -> Representation:

@@ -50,6 +50,11 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     return m
 
 
+def held_out_index(num_cameras: int) -> int:
+    """The index of the rig's held-out 'test' camera: ``n // 2 - 1``, between its two azimuthal neighbours."""
+    return num_cameras // 2 - 1
+
+
 def make_rig(num_cameras: int, image_size: int, target: np.ndarray) -> list[Camera]:
     """Cameras around ``target`` (3,) world metres, square ``image_size`` images.
 
@@ -59,7 +64,7 @@ def make_rig(num_cameras: int, image_size: int, target: np.ndarray) -> list[Came
     if num_cameras < 2:
         raise ValueError(f"the rig needs >= 2 cameras (train + test), got {num_cameras}")
     azimuths = np.linspace(-AZIMUTH_RANGE_DEG, AZIMUTH_RANGE_DEG, num_cameras)
-    test_index = num_cameras // 2 - 1
+    test_index = held_out_index(num_cameras)
     up = np.array([0.0, 1.0, 0.0])
     cams = []
     for i, az in enumerate(azimuths):

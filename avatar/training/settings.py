@@ -117,6 +117,28 @@ class ValidationSchema:
     stop_when_flat: FlatStopSchema
 
 
+def unused_section_settings(cfg: DictConfig, stage: str, can_refine: bool) -> tuple[str, ...]:
+    """What a training stage never reads of ``stage.<stage>`` (``warmup``, ``dynamic``) in the configuration ``cfg``:
+    ``validation``'s details with validation off (``validation.every`` <= 0: no frame withheld, none validated on),
+    ``params_lr`` and ``params_centred`` where it refines no parameters (:func:`refines_params`; ``can_refine``:
+    whether the method's representation can), and stage two's ``restarts`` and ``select.margin_db`` without the
+    selection (``select.enabled`` with validation on). Left out of the stages' cache keys (``unused_keys``)."""
+    section, name = cfg.stage[stage], f"stage.{stage}"
+    validating = int(section.validation.every) > 0
+    unused = (
+        [] if validating else [f"{name}.validation.{f.name}" for f in fields(ValidationSchema) if f.name != "every"]
+    )
+    try:
+        refining = refines_params(cfg, section, can_refine)
+    except ValueError:  # refused by the config check before any key is computed
+        refining = True
+    if not refining:
+        unused += [f"{name}.params_lr", f"{name}.params_centred"]
+    if stage == "dynamic" and not (validating and bool(section.select.enabled)):
+        unused += [f"{name}.restarts", f"{name}.select.margin_db"]
+    return tuple(unused)
+
+
 def validation_config(conf: DictConfig, num_frames: int) -> ValidationConfig:
     """The training loops' :class:`ValidationConfig` of a ``stage.<warmup|dynamic>.validation`` block for a training
     sequence of ``num_frames`` frames: ``fraction`` of them withheld, as far as ``min_train_frames`` stay to train on

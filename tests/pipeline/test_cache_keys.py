@@ -30,10 +30,39 @@ def changed_stages(base: list[str], change: list[str]) -> set[str]:
         ("interactavatar", ["stage.pbd.solver.relaxation=0.5"]),
         ("interactavatar", ["stage.pbd.solver.chebyshev_rho=0.5"]),
         ("interactavatar", ["stage.pbd.solver.detect_every=7"]),
+        # validation off (smoke): nothing withheld, nothing selected, one initialisation
+        ("interactavatar", ["stage.dynamic.restarts=3"]),
+        ("interactavatar", ["stage.dynamic.validation.fraction=0.3"]),
+        ("interactavatar", ["stage.dynamic.validation.stop_when_flat.enabled=true"]),
+        ("interactavatar", ["stage.dynamic.select.margin_db=0.5"]),
+        ("interactavatar", ["stage.warmup.validation.fraction=0.3"]),
+        ("splatting_avatar", ["stage.warmup.validation.retrain=false"]),
+        # the held-out motion posed as the tracker tracked it: the avatar's tracking is not run
+        ("interactavatar", ["stage.evaluate.tuning_cameras=[cam00]"]),
+        ("interactavatar", ["stage.evaluate.tracking.steps=3"]),
     ],
 )
 def test_a_setting_the_configuration_never_reads_reruns_nothing(method: str, change: list[str]) -> None:
     assert changed_stages([f"method={method}"], change) == set()
+
+
+@pytest.mark.parametrize(
+    ("base", "change", "expected"),
+    [
+        # draft validates and selects: the restarts and the withheld share are read
+        (["quality=draft"], ["stage.dynamic.restarts=3"], {"dynamic"}),
+        (["quality=draft"], ["stage.dynamic.validation.fraction=0.3"], {"dynamic"}),
+        (["quality=draft"], ["stage.warmup.validation.fraction=0.3"], {"warmup", "dynamic"}),
+        # validation without the selection: one initialisation, whatever restarts says
+        (["quality=draft", "stage.dynamic.select.enabled=false"], ["stage.dynamic.restarts=3"], set()),
+        (["stage.evaluate.test_tracking=avatar"], ["stage.evaluate.tuning_cameras=[cam00]"], {"evaluate"}),
+        (["stage.evaluate.test_tracking=avatar"], ["stage.evaluate.tracking.steps=3"], {"evaluate"}),
+    ],
+)
+def test_settings_a_configuration_reads_only_when_switched_on_rerun_it_then(
+    base: list[str], change: list[str], expected: set[str]
+) -> None:
+    assert changed_stages(base, change) == expected
 
 
 @pytest.mark.parametrize(
