@@ -21,6 +21,7 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
+from omegaconf import DictConfig
 
 from avatar.artifacts import (
     contact_frames,
@@ -43,6 +44,7 @@ from avatar.preprocess.crops import label_box, overlap_box
 from avatar.reenact.driving import drive, driver_subject, transfer_summary, transferred_params
 from avatar.render.gaussians import resolve_backend
 from avatar.representations import TrainedAvatar, load_trained
+from avatar.synthetic.rig import held_out_index
 from avatar.templates import TemplateModel
 from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar, tracking_cameras
 from avatar.training.frame_params import parameter_movement
@@ -55,6 +57,7 @@ from data_schemas.images import to_uint8, write_png
 from data_schemas.metrics import METRICS, REGIONS, SPLIT_SOURCES, TRACKED_SPLIT, showcase_path
 from data_schemas.tables import SchemaError, write_table
 from data_schemas.writes import write_json
+from pipeline.config import synthetic_camera_ids
 from pipeline.stage import StageContext, stage
 
 TEST_TRACKING = ("tracker", "avatar")
@@ -85,8 +88,56 @@ class EvaluateConfig:
         listed = not isinstance(cams, str) and len(cams) > 0 and all(isinstance(c, str) for c in cams)
         if not (cams == "auto" or listed):
             problems.append(f"tuning_cameras={cams}: 'auto' or a non-empty list of training camera ids")
+        elif listed and (twice := sorted({c for c in cams if list(cams).count(c) > 1})):
+            problems.append(f"tuning_cameras={list(cams)}: {', '.join(twice)} listed more than once; name each once")
         problems += [f"tracking.{p}" for p in core_config(AvatarTrackingConfig, conf.tracking).problems()]
         return problems
+
+
+def unused_evaluate_settings(cfg: DictConfig) -> tuple[str, ...]:
+    """What evaluate never reads in this configuration: the PBD solver's settings it does not drive with
+    (:func:`unused_driving_settings`) and, where the held-out motion is posed as the tracker tracked it
+    (``test_tracking=tracker``), the avatar tracking's."""
+    tracked = str(cfg.stage.evaluate.test_tracking) == "avatar"
+    return unused_driving_settings(cfg) + (
+        () if tracked else ("stage.evaluate.tuning_cameras", "stage.evaluate.tracking")
+    )
+
+
+def known_train_cameras(cfg: DictConfig) -> tuple[list[str], list[str]] | None:
+    """(training, held-out) camera ids of the capture, where they are known before it runs: the synthetic rig's, or
+    those ``dataset.train_cameras`` names (the held-out ones then unknown: empty); None otherwise."""
+    dataset = cfg.dataset
+    named = dataset.get("train_cameras")
+    train = None if named is None else [str(c) for c in named]
+    if dataset.get("name") != "synthetic":
+        return None if train is None else (train, [])
+    ids = synthetic_camera_ids(cfg)
+    if train is None:
+        train = [c for i, c in enumerate(ids) if i != held_out_index(len(ids))]
+    return train, [c for c in ids if c not in train]
+
+
+def tuning_camera_problems(cfg: DictConfig) -> list[str]:
+    """With ``test_tracking=avatar``, ``stage.evaluate.tuning_cameras`` against the capture's training cameras where
+    they are known before any stage runs (:func:`known_train_cameras`): one line for a held-out or unknown camera, or
+    for a list that leaves no camera to score on."""
+    conf = cfg.stage.evaluate
+    known = known_train_cameras(cfg)
+    if str(conf.test_tracking) != "avatar" or isinstance(conf.tuning_cameras, str) or known is None:
+        return []
+    train, held_out = known
+    wanted = [str(c) for c in conf.tuning_cameras]
+    if held := [c for c in wanted if c in held_out]:
+        return [
+            f"stage.evaluate.tuning_cameras={wanted}: {', '.join(held)} held out (the novel view), which evaluate "
+            f"never tracks on; name training cameras among {train}"
+        ]
+    try:
+        tracking_cameras(wanted, train)
+    except SchemaError as exc:
+        return [str(exc)]
+    return []
 
 
 Renderer = Callable[[int, int], torch.Tensor]
@@ -106,7 +157,8 @@ Renderer = Callable[[int, int], torch.Tensor]
     per_method=True,
     subject_inputs=("fit",),
     input_subject=driver_subject,
-    unused_keys=unused_driving_settings,
+    unused_keys=unused_evaluate_settings,
+    checks=tuning_camera_problems,
 )
 def evaluate(ctx: StageContext) -> None:
     """Render the held-out camera and the held-out motion (and, when reenact.driver names another subject
@@ -126,6 +178,10 @@ def evaluate(ctx: StageContext) -> None:
     for split, why in _unmeasurable(cap_dir, splits).items():  # e.g. a monocular capture has no held-out camera
         del splits[split]
         ctx.metrics[f"{split}_skipped"] = why
+    if TRACKED_SPLIT in splits:  # tuning cameras the capture does not train on: said before any split renders
+        tracking_cameras(
+            conf.tuning_cameras, [c.camera_id for c in read_cameras(cap_dir / "cameras.parquet") if c.split == "train"]
+        )
     write_json(
         ctx.out_dir / "splits.json",
         {split: sequence for split, (sequence, _) in splits.items()},

@@ -127,3 +127,31 @@ def test_bad_tracking_settings_are_refused_before_any_stage_runs(override: str, 
         validate_config(compose_cfg([override]), REGISTRY)
     assert message in str(caught.value), str(caught.value)
     assert OmegaConf.select(compose_cfg([]), "stage.evaluate.test_tracking") == "tracker"
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        # cam03 is the synthetic rig's held-out camera: this failed in evaluate, after its other splits had rendered
+        (["stage.evaluate.tuning_cameras=[cam03]"], "stage.evaluate.tuning_cameras=['cam03']: cam03 held out"),
+        (["stage.evaluate.tuning_cameras=[cam00,cam02,cam00]"], "cam00 listed more than once; name each once"),
+        (["stage.evaluate.tuning_cameras=[cam09]"], "['cam09'] are not training cameras of this capture"),
+        (["dataset.train_cameras=[cam00,cam01]", "stage.evaluate.tuning_cameras=[cam02]"], "cam02 held out"),
+        (
+            ["dataset.train_cameras=[cam00,cam01]", "stage.evaluate.tuning_cameras=[cam00,cam01]"],
+            "leaves no training camera to score",
+        ),
+    ],
+)
+def test_tuning_cameras_the_capture_cannot_tune_on_are_refused_before_any_stage_runs(
+    overrides: list[str], message: str
+) -> None:
+    with pytest.raises(ConfigError) as caught:
+        validate_config(compose_cfg(["stage.evaluate.test_tracking=avatar", *overrides]), REGISTRY)
+    assert len(caught.value.problems) == 1 and message in caught.value.problems[0], caught.value.problems
+
+
+def test_tuning_cameras_among_the_training_ones_are_accepted() -> None:
+    validate_config(
+        compose_cfg(["stage.evaluate.test_tracking=avatar", "stage.evaluate.tuning_cameras=[cam00]"]), REGISTRY
+    )
