@@ -1,13 +1,19 @@
-"""``interactavatar-view`` serves its folder and nothing else: no file outside it (links resolved), no dot-folder,
-no listing, no request addressed to another host; bad ports are one line."""
+"""``interactavatar-view`` serves its folder and nothing else: no file outside it (links followed only inside it,
+not even while a folder is swapped for a link), no dot-folder, no listing, no request addressed to another host; bad
+ports are one line."""
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import os
 import random
 import socket
+import subprocess
+import sys
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from urllib.parse import quote
 
@@ -55,9 +61,14 @@ def tree(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
         "hidden": root / ".cache",  # inside, but a dot-folder
         "loop": root / "loop",
         "alias": root / "methods/toy/viewer",  # inside: may be served
+        "methods/toy/viewer/data/up.js": Path("../../../../../outside/secret.txt"),  # out, by a relative target
+        "methods/toy/viewer/data/chain.js": Path("leak.js"),  # a link inside to a link that leads out
+        "methods/toy/viewer/data/sneak.json": Path("../../../../.cache/sources.json"),  # inside, into a dot-folder
+        "methods/toy/viewer/data/page.html": Path("../index.html"),  # inside, relative: may be served
     }
     for name, target in links.items():
         (root / name).symlink_to(target)
+    os.mkfifo(root / "methods/toy/viewer/data/pipe.js")  # opened, a FIFO would wait for a writer
     return root, outside
 
 
@@ -107,6 +118,7 @@ def test_every_file_inside_is_served(port: int) -> None:
 
 def test_a_link_inside_to_inside_is_served(port: int) -> None:
     assert answer(port, "/alias/index.html") == (200, PAGE)
+    assert answer(port, "/methods/toy/viewer/data/page.html") == (200, PAGE)
 
 
 @pytest.mark.parametrize(
@@ -121,11 +133,37 @@ def test_a_link_inside_to_inside_is_served(port: int) -> None:
         "/methods/abs/etc/passwd",
         "/loop",
         "/loop/x",
+        "/methods/toy/viewer/data/up.js",
+        "/methods/toy/viewer/data/chain.js",
+        "/methods/toy/viewer/data/sneak.json",
     ],
 )
 def test_a_link_that_leaves_the_folder_is_refused(port: int, path: str) -> None:
     status, head, body = fetch(port, path)
     assert status in (403, 404) and SENTINEL not in head + body and b"root:" not in body
+
+
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/../outside/secret.txt",
+        "/methods/../../outside/secret.txt",
+        "/methods/toy/viewer/data/../../../../../outside/secret.txt",
+        "/%2e%2e/outside/secret.txt",
+        "/methods/%2E%2E/%2e%2e/outside/secret.txt",
+        "/methods%2f..%2f..%2foutside%2fsecret.txt",
+        "/methods/..%5c..%5coutside%5csecret.txt",
+        "/./methods/toy/viewer/index.html",
+    ],
+)
+def test_dot_dot_is_refused(port: int, path: str) -> None:
+    status, head, body = fetch(port, path)
+    assert status == 404 and SENTINEL not in head + body and PAGE not in body
+
+
+def test_a_fifo_is_refused_at_once(port: int) -> None:
+    """A FIFO inside the folder is not a regular file: 404 without waiting for a writer."""
+    assert answer(port, "/methods/toy/viewer/data/pipe.js")[0] == 404
 
 
 @pytest.mark.parametrize("path", [url(name) for name in HIDDEN] + ["/.locks/", "/.cache/", "/hidden/sources.json"])
@@ -291,3 +329,115 @@ def test_the_links_of_the_tree_do_reach_outside(tree: tuple[Path, Path]) -> None
     assert (root / "outdir" / "secret.txt").read_bytes() == SENTINEL
     assert (root / "methods/toy/viewer/data/leak.js").read_bytes() == SENTINEL
     assert os.path.realpath(root / "up" / "outside") == os.path.realpath(tree[1])
+
+
+REQUESTS = 1000  # a server that checks a path, then opens it by name, served 18 to 222 of 1000 on 2 busy cores
+RENAME_EXCHANGE = 2  # linux/fs.h: swap the two names atomically
+AT_FDCWD = -100
+
+
+def renameat2() -> Callable[[Path, Path], None] | None:
+    """A function that swaps two names at once with Linux's ``renameat2(RENAME_EXCHANGE)`` through ctypes, or None
+    where the C library lacks it (not Linux, glibc before 2.28)."""
+    if sys.platform != "linux":
+        return None
+    libc = ctypes.CDLL(None, use_errno=True)
+    call = getattr(libc, "renameat2", None)
+    if call is None:
+        return None
+    call.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    call.restype = ctypes.c_int
+
+    def exchange(a: Path, b: Path) -> None:
+        if call(AT_FDCWD, os.fsencode(a), AT_FDCWD, os.fsencode(b), RENAME_EXCHANGE) != 0:
+            code = ctypes.get_errno()
+            raise OSError(code, os.strerror(code), str(a))
+
+    return exchange
+
+
+@pytest.fixture
+def exchange(tmp_path: Path) -> Callable[[Path, Path], None]:
+    """``renameat2(RENAME_EXCHANGE)``, checked to work on the file system of ``tmp_path``; the test is skipped with
+    the reason where it does not."""
+    swap = renameat2()
+    if swap is None:
+        pytest.skip("renameat2 is not in this C library (Linux with glibc 2.28 or later has it): no race to run")
+    (tmp_path / "probe-a").mkdir()
+    (tmp_path / "probe-b").symlink_to("probe-a")
+    try:
+        swap(tmp_path / "probe-a", tmp_path / "probe-b")
+    except OSError as error:
+        pytest.skip(f"renameat2(RENAME_EXCHANGE) fails on this file system ({error.strerror}): no race to run")
+    return swap
+
+
+def cpus_apart() -> tuple[set[int], set[int]] | None:
+    """This process's CPUs in two groups, the last one alone (the swapper's) and the others (the server's), or None
+    with fewer than two: a server and a swapper that share a core swap only while the server waits, never inside
+    its requests, and a race that should show would hide for a whole run."""
+    cpus = sorted(os.sched_getaffinity(0))
+    return (set(cpus[:-1]), {cpus[-1]}) if len(cpus) > 1 else None
+
+
+@contextlib.contextmanager
+def served_by_a_process(root: Path, cpus: set[int] | None) -> Iterator[int]:
+    """The port of ``interactavatar-view root`` running in a process of its own (no interpreter lock shared with the
+    test), on ``cpus`` where given, stopped on exit."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipeline.view", str(root)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert process.stdout is not None
+        address = process.stdout.readline()
+        assert address.startswith("http://127.0.0.1:"), f"no address: {address!r}"
+        if cpus:
+            os.sched_setaffinity(process.pid, cpus)
+        yield int(address.split(":")[2].split("/")[0])
+    finally:
+        process.terminate()
+        process.communicate(timeout=10)
+
+
+def test_a_folder_swapped_for_a_link_never_serves_outside(
+    tmp_path: Path, exchange: Callable[[Path, Path], None]
+) -> None:
+    """A folder inside and a link to a folder outside swap their names in a loop while the server is asked for a file
+    of the folder: the check of a path and the open of it by name must not see two different trees (TOCTOU)."""
+    root, outside = tmp_path / "served", tmp_path / "outside"
+    viewer_folder(root)
+    deep = "/".join("abcdefgh")  # the deeper the file below the swapped folder, the wider a check-then-open window
+    (root / "data" / deep).mkdir(parents=True)
+    (root / "data" / deep / "frame.js").write_bytes(b"inside")
+    (outside / deep).mkdir(parents=True)
+    (outside / deep / "frame.js").write_bytes(SENTINEL)
+    (root / "swap").symlink_to(outside)
+    stop, swaps, failures, apart = threading.Event(), [0], list[OSError](), cpus_apart()
+
+    def swap_loop() -> None:
+        if apart:
+            os.sched_setaffinity(0, apart[1])  # this thread only
+        try:
+            while not stop.is_set():
+                exchange(root / "data", root / "swap")
+                swaps[0] += 1
+        except OSError as error:
+            failures.append(error)
+
+    statuses: list[int] = []
+    leaked = 0
+    with served_by_a_process(root, apart[0] if apart else None) as port:
+        swapper = threading.Thread(target=swap_loop)
+        swapper.start()
+        try:
+            deadline = time.monotonic() + 30
+            while len(statuses) < REQUESTS and time.monotonic() < deadline:
+                status, head, body = fetch(port, f"/data/{deep}/frame.js")
+                statuses.append(status)
+                leaked += SENTINEL in head + body
+        finally:
+            stop.set()
+            swapper.join()
+    assert swaps[0] > 0 and statuses and not failures, f"the race never ran: {failures}"
+    assert leaked == 0, f"{leaked} of {len(statuses)} responses served the file outside the folder"
+    assert set(statuses) <= {200, 404} and 200 in statuses  # the folder's own file was served between swaps
