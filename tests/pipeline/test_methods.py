@@ -135,3 +135,23 @@ def test_a_shared_stage_cannot_read_a_per_method_one_directly():
     cross = stage("cross", outputs=("y",), cross_method_inputs=("plain",), methods_key="k")(_noop)
     with pytest.raises(RegistryError, match="shared by every method"):
         StageRegistry([plain, cross]).topological()
+
+
+def test_a_methods_yaml_sets_run_and_root_settings_the_command_line_still_overrides(tmp_path: Path) -> None:
+    """The root config's own values used to be merged after the method's file, so a method could not set ``run.*``
+    (nor ``splatting.*``, ``fit.*``, ...): what it said was silently replaced by the root's defaults."""
+    (tmp_path / "method").mkdir()
+    (tmp_path / "method" / "bf16_method.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - interactavatar\nmethod:\n  name: bf16_method\n"
+        "run:\n  precision: bf16\n  lock_timeout_s: 60\nsplatting:\n  walk_every: 7\n"
+    )
+    user = [f"hydra.searchpath=[file://{tmp_path}]", "method=bf16_method"]
+    cfg = compose_cfg(user)
+    assert (cfg.method.name, cfg.run.precision, cfg.run.lock_timeout_s, cfg.splatting.walk_every) == (
+        "bf16_method",
+        "bf16",
+        60,
+        7,
+    )
+    assert cfg.run.device == "auto" and cfg.method.representation == "bound"  # the rest as the root and its base say
+    assert compose_cfg([*user, "run.precision=fp32"]).run.precision == "fp32"
