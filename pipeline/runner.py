@@ -22,7 +22,7 @@ import errno
 import functools
 import shutil
 import subprocess
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -90,10 +90,20 @@ class StageReport:
 
 
 class StageFailed(RuntimeError):
-    """A stage raised; nothing of it was published."""
+    """A stage raised; nothing of it was published.
 
-    def __init__(self, stage: str, cause: BaseException, fix: str | None = None) -> None:
-        super().__init__(f"stage '{stage}' failed: {type(cause).__name__}: {cause}" + (f"; {fix}" if fix else ""))
+    With ``written`` (the folder it was computing into, removed now) and ``output`` (where its artifact lives), the
+    message names the output wherever the cause named the removed folder, and says that nothing was written there.
+    """
+
+    def __init__(
+        self, stage: str, cause: BaseException, fix: str | None = None, written: tuple[Path, Path] | None = None
+    ) -> None:
+        said = str(cause) if written is None else str(cause).replace(str(written[0]), str(written[1]))
+        where = f"; nothing was written to {written[1]}" if written is not None else ""
+        super().__init__(
+            f"stage '{stage}' failed: {type(cause).__name__}: {said}" + (f"; {fix}" if fix else "") + where
+        )
         self.stage = stage
 
 
@@ -477,11 +487,12 @@ class Runner:
             if isinstance(exc, KeyboardInterrupt):
                 kept = scratch if scratch is not None and scratch.is_dir() else None
                 raise Interrupted(s.name, kept) from exc
+            written = None if tmp is None else (tmp, self.ws.artifact_dir(a))
             if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
                 fix = f"the disk of {self.ws.root} is full: free some space, then run the same command again"
-                raise StageFailed(s.name, exc, fix) from exc
+                raise StageFailed(s.name, exc, fix, written) from exc
             if isinstance(exc, Exception):
-                raise StageFailed(s.name, exc) from exc
+                raise StageFailed(s.name, exc, written=written) from exc
             raise
         report.wall_s, report.peak_rss_mb, report.metrics = usage.wall_s, usage.peak_rss_mb, dict(ctx.metrics)
         return report
@@ -585,3 +596,58 @@ def _git_sha() -> str:
     except (OSError, subprocess.TimeoutExpired):
         return "unknown"
     return out.stdout.strip() or "unknown"
+
+
+@dataclass(frozen=True)
+class RecordedArtifact:
+    """An artifact of a finished run as its manifest records it, and why the runner would compute it again (``None``:
+    it would not), as :func:`recorded_plan` finds it."""
+
+    artifact: Artifact
+    manifest: Manifest | None
+    stale: str | None
+
+
+def recorded_plan(
+    ws: Workspace, registry: StageRegistry, target: Artifact, verify: Collection[str] = ()
+) -> list[RecordedArtifact]:
+    """``target`` and every artifact it is computed from, in the DAG's order, each with the reason the runner would
+    compute it again, in :meth:`Runner.plan`'s words, under the settings its own manifest records: ``upstream reruns``
+    (an input that is itself stale), no complete artifact, an untrustworthy manifest, a key that is no longer its
+    inputs' (``upstream changed``: an input was republished after it was computed) and, for the stages named in
+    ``verify`` (hashing reads every file), outputs that are not as recorded. Settings a new command would change are
+    not known here, and cross-method inputs keep their recorded digests: this is the plan of what is on disk."""
+    wanted = {target.stage} | registry.ancestors(target.stage)
+    found: dict[str, RecordedArtifact] = {}
+    for s in registry:
+        if s.name in wanted:
+            a = Artifact(s.name, target.method if s.per_method else None, target.subject)
+            found[s.name] = _recorded(ws, s, a, found, s.name in verify)
+    return list(found.values())
+
+
+def _recorded(
+    ws: Workspace, s: Stage, a: Artifact, inputs: dict[str, RecordedArtifact], verify: bool
+) -> RecordedArtifact:
+    """:func:`recorded_plan`'s finding for ``a``, an artifact of ``s``, whose inputs were found as ``inputs`` say; the
+    reasons in the order :meth:`Runner._decide` gives them."""
+    stage_dir = ws.artifact_dir(a)
+    try:
+        manifest, unreadable = read_manifest(stage_dir), None
+    except ManifestError as exc:
+        manifest, unreadable = None, f"manifest corrupted: {exc}"
+    rerunning = [name for name in s.inputs if inputs[name].stale is not None]
+    if rerunning:
+        return RecordedArtifact(a, manifest, f"upstream reruns: {', '.join(rerunning)}")
+    if manifest is None:
+        missing = "outputs missing" + ("" if stage_dir.exists() else ": never run")
+        return RecordedArtifact(a, None, unreadable or missing)
+    upstream = dict(manifest.upstream)
+    for name in s.inputs:
+        found = inputs[name].manifest
+        assert found is not None  # an input that is not stale has its manifest
+        upstream[name] = _input_digest(s, found)
+    if cache_key(s.name, manifest.version, manifest.config, upstream, manifest.sources) != manifest.key:
+        why = _why_key_changed(manifest, manifest.version, manifest.config, upstream, manifest.sources)
+        return RecordedArtifact(a, manifest, why)
+    return RecordedArtifact(a, manifest, verify_outputs(stage_dir, manifest, s.outputs) if verify else None)

@@ -278,13 +278,11 @@ class Workspace:
         self.discard_scratch(artifact)
 
     def discard_empty_scratch(self, scratch: Path) -> None:
-        """Remove ``scratch`` if the stage left nothing in it to resume from (after a failure)."""
-        if [p.name for p in scratch.iterdir()] == [ATTEMPT_FILE]:
-            (scratch / ATTEMPT_FILE).unlink(missing_ok=True)
-        try:
-            scratch.rmdir()
-        except OSError:
-            pass  # not empty: a checkpoint the next run with the same key resumes from
+        """Remove ``scratch`` if the stage left nothing in it to resume from (after a failure): no file but the
+        attempt record, in it or in the folders of its training runs. A checkpoint keeps it for the next run with the
+        same key to resume from."""
+        if not any(p.is_file() and p != scratch / ATTEMPT_FILE for p in scratch.rglob("*")):
+            shutil.rmtree(scratch, ignore_errors=True)
 
     @staticmethod
     def begin_attempt(scratch: Path) -> float:

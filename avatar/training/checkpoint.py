@@ -46,6 +46,12 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
+def discard_checkpoint(path: Path) -> None:
+    """Delete the checkpoint at ``path`` and its previous one, where they are (a run that must not be resumed)."""
+    for candidate in (path, previous_path(path)):
+        candidate.unlink(missing_ok=True)
+
+
 def placement(device: torch.device | str) -> Callable[[Any, str], Any] | None:
     """``torch.load``'s ``map_location`` for a run on ``device``: what was saved on any CUDA device goes to this one (a
     run resumed on another card of the machine, whose artifacts it shares), what was saved on the CPU stays there

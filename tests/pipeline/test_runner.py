@@ -93,6 +93,16 @@ def test_failing_stage_leaves_no_artifact_and_next_run_redoes_it(toy_cfg):
     assert actions(reports)["a"] == "run"
 
 
+def test_a_failure_names_the_stage_output_not_its_removed_temporary_folder(toy_cfg):
+    cfg = toy_cfg("++stage.a.fail=true")
+    with pytest.raises(StageFailed) as caught:
+        run_app(cfg)
+    assert str(caught.value).endswith(f"; nothing was written to {subject_dir(cfg) / 'a'}"), str(caught.value)
+    tmp, out = Path("/o/.tmp/a-1f"), Path("/o/a")
+    said = str(StageFailed("a", ValueError(f"{tmp}/a.txt: not finite"), written=(tmp, out)))
+    assert said == "stage 'a' failed: ValueError: /o/a/a.txt: not finite; nothing was written to /o/a"
+
+
 def test_checkpoint_in_scratch_survives_a_failure_and_is_removed_on_success(toy_cfg):
     cfg = toy_cfg("++stage.a.fail_once=true")
     with pytest.raises(StageFailed, match="failed after a checkpoint"):
@@ -164,7 +174,7 @@ def test_dry_run_plans_and_writes_nothing(toy_cfg, capsys):
         ("run.only=nope", "run.only=nope: unknown stage; choose one of a, b, c, d"),
         ("run.until=zzz", "run.until=zzz: unknown stage"),
         ("stage.a.value=abc", "stage.a.value: Value 'abc' of type 'str' could not be converted to Integer"),
-        ("+stage.a.typo=1", "stage.a.typo: Key 'typo' not in 'ToyConfig'"),
+        ("+stage.a.typo=1", "stage.a.typo: not a setting of stage.a"),
         ("subject=''", "subject='': use letters, digits"),
     ],
 )

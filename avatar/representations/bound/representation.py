@@ -36,8 +36,15 @@ from avatar.representations.bound.stage_two import DynamicTrainConfig, DynamicTr
 from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup
 from avatar.scene import SceneDecision
 from avatar.training.frame_params import FrameParams
+from avatar.training.loop import advising, learning_rates
 from avatar.training.selection import SelectionConfig
-from avatar.training.settings import frame_params, record_refinement, record_validation, validation_config
+from avatar.training.settings import (
+    frame_params,
+    param_learning_rates,
+    record_refinement,
+    record_validation,
+    validation_config,
+)
 from avatar.training.validation import ValidationConfig, Validator
 from data_schemas.config_sections import core_config
 from data_schemas.gaussians import BOUND_GAUSSIANS, DYNAMIC_TRAIN_LOG, TRAIN_LOG
@@ -191,6 +198,18 @@ def dynamic_train_config(cfg: DictConfig) -> DynamicTrainConfig:
     )
 
 
+def stage_learning_rates(
+    cfg: DictConfig, stage: str, config: WarmupTrainConfig | DynamicTrainConfig, refining: bool
+) -> dict[str, float]:
+    """The learning rates of training stage ``stage`` (``warmup``, ``dynamic``), config key -> value: its recipe's
+    (``config``, built from ``stage.<stage>``; not stage two's ``lr_decay``, a ratio) and, where it refines the train
+    motion's parameters, its ``params_lr``."""
+    rates = learning_rates(f"stage.{stage}", config, exclude=("lr_decay",))
+    if refining:
+        rates |= learning_rates(f"stage.{stage}.params_lr", param_learning_rates(cfg.stage[stage]), start="")
+    return rates
+
+
 def restart_seed(seed: int, restart: int) -> int:
     """The seed of stage two's ``restart``-th initialisation (``stage.dynamic.restarts``): the run's own seed for the
     first, so that one restart is the run without restarts."""
@@ -269,16 +288,18 @@ class BoundRepresentation(Representation):
         checkpoint_dir: Path | None,
     ) -> float:
         assert isinstance(model, BoundGaussians)
-        log = train_warmup(
-            model,
-            views,
-            meshes,
-            warmup_train_config(self.cfg),
-            checkpoint_dir=checkpoint_dir,
-            progress=progress,
-            validator=validator,
-            params=params,
-        )
+        config = warmup_train_config(self.cfg)
+        with advising("the warm-up", stage_learning_rates(self.cfg, "warmup", config, params is not None)):
+            log = train_warmup(
+                model,
+                views,
+                meshes,
+                config,
+                checkpoint_dir=checkpoint_dir,
+                progress=progress,
+                validator=validator,
+                params=params,
+            )
         write_bound_gaussians(out_dir / "gaussians.parquet", model, meshes.part_names)
         write_records(out_dir / "train_log.parquet", TRAIN_LOG, log)
         return log[-1].loss if log else float("nan")
@@ -380,18 +401,19 @@ class BoundRepresentation(Representation):
         model.precision = ctx.precision
         train_cfg = dynamic_train_config(self.cfg)
         train_cfg = replace(train_cfg, seed=seed, selection=replace(train_cfg.selection, enabled=select))
-        result = train_dynamic(
-            model,
-            views,
-            meshes,
-            cond,
-            contact,
-            train_cfg,
-            checkpoint_dir=run_scratch(ctx, run),
-            progress=lambda steps: ctx.progress(steps, desc=f"dynamic ({run})" if run else "dynamic"),
-            validator=validator,
-            params=params,
-        )
+        with advising("stage two", stage_learning_rates(self.cfg, "dynamic", train_cfg, params is not None)):
+            result = train_dynamic(
+                model,
+                views,
+                meshes,
+                cond,
+                contact,
+                train_cfg,
+                checkpoint_dir=run_scratch(ctx, run),
+                progress=lambda steps: ctx.progress(steps, desc=f"dynamic ({run})" if run else "dynamic"),
+                validator=validator,
+                params=params,
+            )
         return StageTwoRun(posed, model, params, validator, result, seed, frame_dims)
 
     def _write(

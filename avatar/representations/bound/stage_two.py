@@ -333,6 +333,8 @@ def train_dynamic(
         checkpoint if ckpt_path is not None else None,
         cfg.checkpoint_every,
         after_validation=offer_validation,
+        loss_of=lambda outcome: outcome[0],
+        checkpoint_file=ckpt_path,
     )
     if best is not None:
         best.restore(model, params)

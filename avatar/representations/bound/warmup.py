@@ -238,6 +238,8 @@ def train_warmup(
         cfg.log_every,
         checkpoint if ckpt_path is not None else None,
         cfg.checkpoint_every,
+        loss_of=lambda outcome: outcome[0],
+        checkpoint_file=ckpt_path,
     )
     return log
 

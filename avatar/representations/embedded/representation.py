@@ -34,6 +34,7 @@ from avatar.representations import (
 from avatar.representations.embedded import EmbeddedGaussians
 from avatar.representations.embedded.training import SplattingConfig, train_splatting
 from avatar.training.frame_params import FrameParams
+from avatar.training.loop import advising, learning_rates
 from avatar.training.settings import record_refinement, record_validation, validation_config
 from avatar.training.validation import ValidationConfig, Validator
 from data_schemas.config_sections import core_config, schema_problems, section_schema
@@ -187,16 +188,11 @@ class EmbeddedRepresentation(Representation):
         checkpoint_dir: Path | None,
     ) -> float:
         assert isinstance(model, EmbeddedGaussians) and params is None
-        conf = self.cfg.stage.warmup
-        log = train_splatting(
-            model,
-            views,
-            meshes,
-            splatting_config(self.cfg, int(self.cfg.quality.warmup_steps), conf, densify=True),
-            checkpoint_dir=checkpoint_dir,
-            progress=progress,
-            validator=validator,
-        )
+        config = splatting_config(self.cfg, int(self.cfg.quality.warmup_steps), self.cfg.stage.warmup, densify=True)
+        with advising("the warm-up", learning_rates("splatting", config)):
+            log = train_splatting(
+                model, views, meshes, config, checkpoint_dir=checkpoint_dir, progress=progress, validator=validator
+            )
         write_embedded_gaussians(out_dir / "gaussians.parquet", model, meshes.part_names)
         write_records(out_dir / "train_log.parquet", SPLATTING_TRAIN_LOG, log)
         return log[-1].loss if log else float("nan")
@@ -259,15 +255,17 @@ class EmbeddedRepresentation(Representation):
         model = load_embedded_gaussians(warmup_dir, meshes.part_names, meshes.vertices[0].cpu(), meshes.faces.cpu()).to(
             meshes.vertices.device
         )
-        log = train_splatting(
-            model,
-            views,
-            meshes,
-            splatting_config(self.cfg, int(self.cfg.quality.dynamic_steps), self.cfg.stage.dynamic, densify=False),
-            checkpoint_dir=run_scratch(ctx, run),
-            progress=lambda s: ctx.progress(s, desc=f"dynamic ({run})" if run else "dynamic"),
-            validator=validator,
-        )
+        config = splatting_config(self.cfg, int(self.cfg.quality.dynamic_steps), self.cfg.stage.dynamic, densify=False)
+        with advising("stage two", learning_rates("splatting", config)):
+            log = train_splatting(
+                model,
+                views,
+                meshes,
+                config,
+                checkpoint_dir=run_scratch(ctx, run),
+                progress=lambda s: ctx.progress(s, desc=f"dynamic ({run})" if run else "dynamic"),
+                validator=validator,
+            )
         return model, log
 
     @classmethod

@@ -305,6 +305,8 @@ def train_splatting(
         cfg.log_every,
         checkpoint if ckpt_path is not None else None,
         cfg.checkpoint_every,
+        loss_of=lambda outcome: outcome[0],
+        checkpoint_file=ckpt_path,
     )
     return log
 
