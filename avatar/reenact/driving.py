@@ -10,17 +10,16 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from avatar.artifacts import load_params
+from avatar.artifacts import load_params, read_params
 from avatar.artifacts.motion import templates
 from avatar.dynamic import sequence_conditioning
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.pbd import PBDConfig, StiffnessFileError, face_relative_stiffness, simulate_sequence
 from avatar.posing import MeshSequence, posed_keypoints, posed_meshes
-from avatar.reenact import PLACEMENTS, MotionTransfer, MotionTransferError, transfer_motion
+from avatar.reenact import PLACEMENTS, MotionTransfer, MotionTransferError, parameter_problem, transfer_motion
 from avatar.scene import SceneDecision
 from avatar.templates import TemplateModel
-from data_schemas.params import PARAMS
-from data_schemas.tables import SchemaError, read_table
+from data_schemas.tables import SchemaError
 
 
 def driver_subject(cfg: DictConfig) -> str | None:
@@ -41,17 +40,19 @@ DRIVER_CHOICES = "give a params.parquet (the fit stage's schema), 'self', or a s
 
 def driver_file_problem(driver: str) -> str | None:
     """Why the file ``reenact.driver`` names cannot drive an avatar (missing, not ``.parquet``, not a table of the
-    fit stage's params schema), or ``None``; reads the table, which is small (a row per frame)."""
+    fit stage's params schema, values no capture holds: :func:`avatar.reenact.parameter_problem`), or ``None``;
+    reads the table, which is small (a row per frame)."""
     path = Path(driver)
     if not path.is_file():
         return f"reenact.driver={driver}: no such file; {DRIVER_CHOICES}"
     if path.suffix != ".parquet":
         return f"reenact.driver={driver}: not a .parquet file; {DRIVER_CHOICES}"
     try:
-        read_table(path, PARAMS)
+        params = read_params(path)
     except SchemaError as exc:
         return f"reenact.driver={driver}: not a params table ({exc}); {DRIVER_CHOICES}"
-    return None
+    problem = parameter_problem(params)
+    return None if problem is None else f"reenact.driver={driver}: {problem}"
 
 
 def placement_problem(cfg: DictConfig) -> str | None:

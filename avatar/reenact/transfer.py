@@ -35,7 +35,13 @@ from avatar.reenact.contact import PASS_THROUGH_M, place_hand
 from avatar.templates import MANOLayer, TemplateModel
 from avatar.templates.layers import hand_frame
 from avatar.templates.lbs import batch_rodrigues
+from data_schemas.params import PARAMS
 
+#: The largest magnitude a parameter may have: a kilometre from the world's origin, a thousand radians, a thousand
+#: shape or expression units. No capture comes near it, and beyond it the float32 posing rounds a head to a point.
+PARAMETER_LIMIT = 1e3
+#: the unit of each parameter column (params.parquet's schema), for the messages
+PARAMETER_UNITS = {c.name: c.unit for c in PARAMS.columns if c.unit}
 #: what the driver gives, per frame
 DRIVER_COLUMNS = (
     "flame_expression",
@@ -184,18 +190,32 @@ def _keep_contacts(
     return report
 
 
+def parameter_problem(params: Mapping[str, np.ndarray], name: str = "driver") -> str | None:
+    """Why the parameters ``params`` (params.parquet's columns, a row per frame) cannot be posed, naming the column,
+    the first frames and the fix, or ``None``: a value that is not finite, or one beyond :data:`PARAMETER_LIMIT`."""
+    fix = "fix or drop those frames' parameters"
+    for key, value in params.items():
+        rows = np.abs(np.asarray(value, np.float64).reshape(len(value), -1))
+        unfinite = np.flatnonzero(~np.isfinite(rows).all(1))
+        if unfinite.size:
+            return f"the {name}'s '{key}' is not finite in frames {unfinite[:5].tolist()}; {fix}"
+        beyond = np.flatnonzero(rows.max(1, initial=0.0) > PARAMETER_LIMIT)
+        if beyond.size:
+            unit = f" {PARAMETER_UNITS[key]}" if key in PARAMETER_UNITS else ""
+            return (
+                f"the {name}'s '{key}' reaches {rows.max():.3g}{unit} in frames {beyond[:5].tolist()}: beyond "
+                f"{PARAMETER_LIMIT:g}{unit}, which no capture reaches and where posing rounds a head to a point; {fix}"
+            )
+    return None
+
+
 def _check(target: Mapping[str, np.ndarray], driver: Mapping[str, np.ndarray]) -> None:
     if len(driver.get("flame_global_orient", ())) == 0:
         raise MotionTransferError("the driver sequence has no frames")
     for name, params in (("driver", driver), ("target", target)):
-        for key, value in params.items():
-            rows = np.asarray(value, np.float64).reshape(len(value), -1)
-            bad = np.flatnonzero(~np.isfinite(rows).all(1))
-            if bad.size:
-                raise MotionTransferError(
-                    f"the {name}'s '{key}' is not finite in frames {bad[:5].tolist()}; fix or "
-                    f"drop those frames' parameters"
-                )
+        problem = parameter_problem(params, name)
+        if problem is not None:
+            raise MotionTransferError(problem)
     for key in ("flame_shape", "flame_expression", "mano_shape", "mano_hand_pose"):
         wd, wt = np.asarray(driver[key]).shape[1:], np.asarray(target[key]).shape[1:]
         if wd != wt:

@@ -210,3 +210,20 @@ def test_bad_drivers_are_refused_with_the_reason():
     other["flame_expression"] = np.zeros((4, 50))
     with pytest.raises(MotionTransferError, match="different templates"):
         transfer_motion(target, other, HEAD, HAND)
+
+
+def test_a_driver_far_beyond_any_capture_is_refused_with_the_cause_and_the_fix(tmp_path):
+    """A head 1e30 m away is finite but collapses to a point when posed: the transfer names the column and the
+    frames, and ``reenact.driver=`` names the file before any stage runs."""
+    from avatar.artifacts import write_params
+    from avatar.reenact.driving import driver_file_problem
+
+    absurd = _params(5)
+    absurd["flame_transl"][1:3] = 1e30
+    with pytest.raises(MotionTransferError, match=r"'flame_transl' reaches 1e\+30 m in frames \[1, 2\]"):
+        transfer_motion(_params(4), absurd, HEAD, HAND)
+    path = tmp_path / "params.parquet"
+    write_params(path, absurd)
+    problem = driver_file_problem(str(path))
+    assert problem is not None and problem.startswith(f"reenact.driver={path}: the driver's 'flame_transl'"), problem
+    assert "fix or drop those frames' parameters" in problem
