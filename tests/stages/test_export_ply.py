@@ -5,8 +5,15 @@ axis conversions against their closed form, and the errors: one line, no traceba
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import json
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 import tomllib
 from pathlib import Path
 
@@ -17,7 +24,8 @@ from plyfile import PlyData
 from scipy.spatial.transform import Rotation
 
 import pipeline.export_ply
-from avatar.artifacts import load_face_offsets, load_params, method_params
+import pipeline.export_ply.frames
+from avatar.artifacts import load_face_offsets, load_params, method_params, read_params, write_params
 from avatar.artifacts.motion import applied_deformation, load_sequence
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.posing import MeshSequence, posed_meshes
@@ -29,7 +37,10 @@ from data_schemas.gaussians_ply import SH_C0
 from data_schemas.writes import WriteError
 from pipeline.cli import run_app
 from pipeline.export_ply import main
-from tests.conftest import REPO, compose_cfg
+from pipeline.manifest import read_manifest, verify_outputs
+from pipeline.workspace import Artifact, Workspace
+from stages import REGISTRY
+from tests.conftest import REPO, cli_env, compose_cfg, default_sigint, wait_for
 
 TINY = [
     "quality=smoke",
@@ -221,7 +232,7 @@ def test_each_mistake_is_one_line_that_names_the_fix_and_writes_nothing(trained,
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep")
     _one_line_error(capsys, [str(subject), "--out", str(tmp_path / "mine")], "exists; pass --overwrite")
-    _one_line_error(capsys, [str(subject), "--out", str(tmp_path / "mine"), "--overwrite"], "notes.txt")
+    _one_line_error(capsys, [str(subject), "--out", str(tmp_path / "mine"), "--overwrite"], "no export.json")
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
 
 
@@ -231,7 +242,7 @@ def test_a_failed_export_leaves_the_earlier_one_and_no_partial_folder(trained, t
     out = tmp_path / "clip"
     assert main([str(subject), "--frames", "0", "--out", str(out), "--quiet"]) == 0
     before = (out / "00000.ply").read_bytes()
-    original, written = pipeline.export_ply.write_frame_ply, []
+    original, written = pipeline.export_ply.frames.write_frame_ply, []
 
     def failing_write(path: Path, g: WorldGaussians) -> None:  # the second frame fails
         if written:
@@ -239,12 +250,13 @@ def test_a_failed_export_leaves_the_earlier_one_and_no_partial_folder(trained, t
         written.append(path)
         original(path, g)
 
-    monkeypatch.setattr(pipeline.export_ply, "write_frame_ply", failing_write)
+    monkeypatch.setattr(pipeline.export_ply.frames, "write_frame_ply", failing_write)
     argv = [str(subject), "--frames", "1-3", "--out", str(out), "--overwrite", "--quiet"]
     if failure == "ctrl-c":
         _one_line_error(capsys, argv, f"interrupted; nothing written to {out}", code=130)
     else:
-        _one_line_error(capsys, argv, "No space left on device")
+        line = _one_line_error(capsys, argv, f"--out {out}: no space left on its disk")
+        assert "paths.outputs" not in line and "--out on a larger disk" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["clip"]  # no partial folder beside it
     assert sorted(p.name for p in out.iterdir()) == ["00000.ply", "export.json"]
     assert (out / "00000.ply").read_bytes() == before
@@ -280,6 +292,175 @@ def test_the_export_poses_in_the_precision_training_used(tmp_path: Path) -> None
     from pipeline.manifest import MANIFEST_NAME
 
     (tmp_path / MANIFEST_NAME).write_text(json.dumps({"device": {"kind": "cuda", "precision": "bf16"}}))
-    assert pipeline.export_ply.trained_precision(tmp_path) == "bf16"
+    assert pipeline.export_ply.frames.trained_precision(tmp_path) == "bf16"
     (tmp_path / MANIFEST_NAME).write_text(json.dumps({"metrics": {}}))  # written before the device was recorded
-    assert pipeline.export_ply.trained_precision(tmp_path) == "fp32"
+    assert pipeline.export_ply.frames.trained_precision(tmp_path) == "fp32"
+
+
+def _copy_subject(subject: Path, outputs: Path) -> Path:
+    """A copy of the trained subject's folder in the outputs folder ``outputs``, for a test that changes it."""
+    copy = outputs / subject.name
+    shutil.copytree(subject, copy, ignore=shutil.ignore_patterns(".locks"))
+    return copy
+
+
+def test_overwrite_replaces_only_a_folder_an_earlier_export_wrote(trained, tmp_path, capsys) -> None:
+    subject, _ = trained
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for name in ("scan.ply", "00000.ply"):  # PLY files of the user's own, no export's record
+        (mine / name).write_bytes(b"the user's")
+    line = _one_line_error(capsys, [str(subject), "--out", str(mine), "--overwrite", "--quiet"], f"--out {mine}: ")
+    assert "export.json" in line and "choose another --out" in line
+    assert {p.name: p.read_bytes() for p in mine.iterdir()} == {"scan.ply": b"the user's", "00000.ply": b"the user's"}
+    out = tmp_path / "clip"
+    assert main([str(subject), "--frames", "0", "--out", str(out), "--quiet"]) == 0
+    (out / "extra.ply").write_bytes(b"the user's")  # a file the export's record does not list
+    _one_line_error(capsys, [str(subject), "--frames", "1", "--out", str(out), "--overwrite"], "extra.ply")
+    assert (out / "extra.ply").read_bytes() == b"the user's"
+    (out / "extra.ply").unlink()
+    assert main([str(subject), "--frames", "1", "--out", str(out), "--overwrite", "--quiet"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["00001.ply", "export.json"]
+
+
+def test_a_destination_inside_a_subjects_outputs_is_refused(trained, tmp_path, capsys) -> None:
+    subject, _ = trained
+    dynamic = _dynamic(subject)
+    link = tmp_path / "link"
+    link.symlink_to(dynamic, target_is_directory=True)
+    for out, extra in (
+        (dynamic / "ply", ["--overwrite"]),  # stage two's own PLY folder
+        (dynamic / "more", []),  # a new folder in an artifact
+        (subject / "exports", []),
+        (link / "more", []),  # the same through a link
+    ):
+        argv = [str(subject), "--frames", "0", "--out", str(out), *extra, "--quiet"]
+        line = _one_line_error(capsys, argv, f"--out {out}: inside {subject.resolve()}")
+        assert "choose a folder outside it" in line
+    manifest = read_manifest(dynamic)
+    assert manifest is not None and verify_outputs(dynamic, manifest, REGISTRY["dynamic"].outputs) is None
+
+
+def test_an_export_waits_for_no_run_writing_what_it_reads_and_records_what_it_read(
+    trained, tmp_path, capsys, monkeypatch
+) -> None:
+    subject, driver = trained
+    monkeypatch.setattr(pipeline.export_ply, "LOCK_WAIT_S", 0.2, raising=False)
+    ws = Workspace(subject.parent, subject.name)
+    out = tmp_path / "clip"
+    with ws.lock(Artifact("pbd"), [], REGISTRY.names(), 1.0):  # a run rewriting the pbd stage's offsets now
+        line = _one_line_error(capsys, [str(subject), "--frames", "0", "--out", str(out)], "stage 'pbd'")
+    assert "another run is writing it" in line and not out.exists()
+    assert main([str(subject), "--motion", str(driver), "--frames", "0", "--out", str(out), "--quiet"]) == 0
+    info = json.loads((out / "export.json").read_text())
+    read = {"fit": "fit", "scene": "scene", "pbd": "pbd", "dynamic@interactavatar": "methods/interactavatar/dynamic"}
+    assert info["read"] == {name: read_manifest(subject / folder).output_digest for name, folder in read.items()}
+    assert info["motion_sha256"] == hashlib.sha256(driver.read_bytes()).hexdigest()
+
+
+def test_an_avatar_trained_on_an_earlier_fit_is_refused_with_the_command_that_retrains_it(
+    trained, tmp_path, capsys
+) -> None:
+    subject = _copy_subject(trained[0], tmp_path / "outputs")
+    refit = [f"paths.outputs={subject.parent}", *TINY, "fit.source=fitted"]
+    with single_threaded():
+        run_app(compose_cfg([*refit, "run.until=fit"]))  # the fit republished from another source
+        plan = run_app(compose_cfg([*refit, "run.until=dynamic", "run.dry=true"]))
+    stale = [r.stage for r in plan if r.action == "would run"]
+    assert stale == ["scene", "pbd", "warmup", "dynamic"]
+    capsys.readouterr()
+    out = tmp_path / "clip"
+    line = _one_line_error(capsys, [str(subject), "--frames", "0", "--out", str(out)], "fit.source=fitted")
+    assert f"interactavatar paths.outputs={subject.parent} subject=synth_a method=interactavatar" in line
+    assert "run.until=dynamic" in line and all(stage in line for stage in stale), line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["outputs"]
+
+
+def test_hostile_frames_templates_and_drivers_are_one_line_each(trained, tmp_path, capsys) -> None:
+    subject, driver = trained
+    out = tmp_path / "out"
+    _one_line_error(capsys, [str(subject), "--frames", "0-99999999999999999", "--out", str(out)], "out of range")
+    not_a_model = tmp_path / "hostname"
+    not_a_model.write_text("a-machine\n")
+    line = _one_line_error(capsys, [str(subject), "--flame-path", str(not_a_model), "--out", str(out)], "--flame-path")
+    assert "model.flame_path=" not in line
+    absurd = tmp_path / "absurd" / "params.parquet"
+    params = read_params(driver)
+    params["flame_transl"] = np.full_like(params["flame_transl"], 1e30)
+    absurd.parent.mkdir()
+    write_params(absurd, params)
+    line = _one_line_error(capsys, [str(subject), "--motion", str(absurd), "--out", str(out)], f"--motion {absurd}: ")
+    assert "'flame_transl'" in line and "fix or drop" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["absurd", "hostname"]
+
+
+def test_a_method_or_seed_the_pipeline_refuses_is_refused_without_a_training_command(trained, tmp_path, capsys) -> None:
+    subject, _ = trained
+    out = tmp_path / "out"
+    line = _one_line_error(capsys, [str(subject), "--method", "nosuch", "--out", str(out)], "--method nosuch: ")
+    assert "method=nosuch" not in line and "gaussian_avatars" in line  # the methods there are
+    line = _one_line_error(capsys, [str(subject), "--seed", "-1", "--out", str(out)], "--seed -1: ")
+    assert "seed=-1" not in line
+    # a method is a folder's name: '..' cannot reach the model of another outputs folder
+    other = _copy_subject(subject, tmp_path / "other")
+    shutil.rmtree(other / "methods")
+    sneaky = os.path.relpath(subject / "methods" / "interactavatar", other / "methods")
+    _one_line_error(capsys, [str(other), "--method", sneaky, "--out", str(out)], f"--method {sneaky}: ")
+    assert not out.exists()
+
+
+SLOW_EXPORT = """\
+import sys, time
+import data_schemas.gaussians_ply as ply
+write = ply.write_gaussians_ply
+ply.write_gaussians_ply = lambda *args: (time.sleep(1.0), write(*args))[1]
+from pipeline.export_ply import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_sigterm_leaves_no_partial_folder_and_the_next_export_clears_one_a_killed_export_left(trained, tmp_path):
+    subject, _ = trained
+    out = tmp_path / "clip"
+    argv = [str(subject), "--out", str(out), "--quiet"]
+    export = subprocess.Popen(
+        [sys.executable, "-c", SLOW_EXPORT, *argv], cwd=REPO, env=cli_env(), stderr=subprocess.PIPE, text=True
+    )
+    wait_for(lambda: any(tmp_path.glob(".clip.*.partial")) or export.poll() is not None, timeout_s=300)
+    export.send_signal(signal.SIGTERM)
+    _, err = export.communicate(timeout=120)
+    assert export.returncode == 143, err
+    assert err.splitlines() == [f"interactavatar-export: terminated; nothing written to {out}"]
+    assert list(tmp_path.iterdir()) == []
+    stale = tmp_path / ".clip.0123456789ab.partial"  # left by an export that was killed (no process holds it)
+    stale.mkdir()
+    (stale / "00000.ply").write_bytes(b"")
+    live = tmp_path / ".clip.fedcba987654.partial"  # an export writing now: it holds its folder's lock
+    live.mkdir()
+    held = os.open(live, os.O_RDONLY)
+    try:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        assert main([str(subject), "--frames", "0", "--out", str(out), "--quiet"]) == 0
+    finally:
+        os.close(held)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [live.name, "clip"]
+
+
+def test_ctrl_c_while_the_command_starts_is_one_line_and_exit_130(trained, tmp_path) -> None:
+    subject, _ = trained
+    out = tmp_path / "clip"
+    for after_s in (0.3, 1.5):  # in the imports of torch and the core
+        export = subprocess.Popen(
+            [sys.executable, "-m", "pipeline.export_ply", str(subject), "--out", str(out)],
+            cwd=REPO,
+            env=cli_env(),
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=default_sigint,
+        )
+        time.sleep(after_s)
+        export.send_signal(signal.SIGINT)
+        _, err = export.communicate(timeout=120)
+        assert export.returncode == 130, err
+        assert len(err.splitlines()) == 1 and err.startswith("interactavatar-export: interrupted"), err
+        assert list(tmp_path.iterdir()) == []
