@@ -22,7 +22,9 @@ from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
+from omegaconf.errors import ConfigKeyError, OmegaConfBaseException
+
+from data_schemas.key_names import did_you_mean, key_paths
 
 T = TypeVar("T")
 
@@ -164,6 +166,10 @@ def check_section(section: Any, schema: type, where: str, errors: list[str]) -> 
     except OmegaConfBaseException as exc:
         msg = str(exc).splitlines()[0]
         key = getattr(exc, "full_key", None)
+        if isinstance(exc, ConfigKeyError) and key:  # a key the schema does not have: the one meant, where one is close
+            paths = key_paths(OmegaConf.structured(schema)) + key_paths(section)  # the schema's blocks, as given
+            meant = did_you_mean(f"{where}.{key}", (f"{where}.{path}" for path in paths))
+            msg = f"not a setting of {where}{meant}"
         errors.append(f"{where}.{key}: {msg}" if key else f"{where}: {msg}")
         return None
     missing = sorted(OmegaConf.missing_keys(merged))

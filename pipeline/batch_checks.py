@@ -22,6 +22,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from pipeline.config import ConfigError, validate_config
+from pipeline.overrides import composition_problem, setting_paths
 from pipeline.registry import RegistryError, load_registry
 
 #: how a launcher config's ``_target_`` ends for a launcher that submits through SLURM (submitit)
@@ -79,9 +80,10 @@ def sweep_jobs(config: DictConfig) -> list[list[str]]:
 
 def job_config(config: DictConfig, overrides: list[str]) -> DictConfig:
     """The config a job of the multirun whose driver's config is ``config`` runs with: composed as its launcher
-    composes it, less the ``hydra`` node, as the app receives it."""
+    composes it, less the ``hydra`` node, with ``run.overrides`` set: as the app receives and completes it."""
     job = copy.deepcopy(GlobalHydra.instance().config_loader().load_sweep_config(config, overrides))
     with read_write(job), open_dict(job):
+        job.run.overrides = list(job.hydra.overrides.task)  # as the app records them
         del job["hydra"]
     return job
 
@@ -93,7 +95,9 @@ def job_problems(config: DictConfig, overrides: list[str]) -> list[str]:
         validate_config(job, load_registry(job.pipeline.stages_module))
     except ConfigError as exc:
         return list(exc.problems)
-    except (RegistryError, HydraException) as exc:
+    except HydraException as exc:  # an override the job's config has no key or option for
+        return [composition_problem(exc, overrides, lambda: setting_paths(config))]
+    except RegistryError as exc:
         return [str(exc)]
     return []
 

@@ -11,18 +11,28 @@ Batch (one job per subject, through any Hydra launcher)::
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import os
 import shlex
 import shutil
 import sys
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 import hydra
+from hydra import compose, initialize_config_dir
+from hydra._internal.utils import get_args_parser
+from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import ConfigCompositionException, HydraException, OverrideParseException
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.config import CONF_DIR, ConfigError, fix_command, validate_config
+from pipeline.overrides import composition_problem, override_key, setting_paths
 from pipeline.registry import RegistryError, StageRegistry, load_registry
 from pipeline.runner import Interrupted, MissingUpstream, Runner, StageFailed, StageReport
 from pipeline.summary import metrics_table, stage_table
@@ -117,8 +127,8 @@ def comparison_fixes(cfg: DictConfig, reports: list[StageReport]) -> list[str]:
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
-def main(cfg: DictConfig) -> None:
-    """Console entry point (``interactavatar``)."""
+def app(cfg: DictConfig) -> None:
+    """The Hydra app: one job, the DAG for one subject (:func:`run_app`), its errors in one message each."""
     OmegaConf.update(cfg, "run.overrides", list(HydraConfig.get().overrides.task))  # fix commands repeat them
     try:
         run_app(cfg)
@@ -131,6 +141,57 @@ def main(cfg: DictConfig) -> None:
         said = str(exc) if isinstance(exc, Interrupted) else INTERRUPTED_BETWEEN_STAGES
         print(f"interactavatar: {said}", file=sys.stderr)
         sys.exit(INTERRUPTED_STATUS)
+
+
+#: Hydra's errors about the command line: an override it cannot apply, a group option that does not exist, a
+#: malformed override.
+COMMAND_LINE_ERRORS = (ConfigCompositionException, OverrideParseException)
+#: Set to 1 by the user: Hydra's own report of its errors, with the stack trace.
+FULL_ERROR = "HYDRA_FULL_ERROR"
+
+
+def main() -> None:
+    """Console entry point (``interactavatar``): :func:`app`, with Hydra's errors about the command line in one
+    line naming the override and the key it most likely meant (:func:`pipeline.overrides.composition_problem`), exit
+    status 2, before anything is written."""
+    previous = os.environ.get(FULL_ERROR)
+    if previous == "1":
+        app()
+        return
+    os.environ[FULL_ERROR] = "1"  # Hydra raises its errors to here, instead of printing them with a stack trace
+    try:
+        app()
+    except COMMAND_LINE_ERRORS as exc:
+        overrides = hydra_args().overrides
+        problem = composition_problem(exc, overrides, lambda: setting_paths(compose_for_keys(overrides)))
+        print(f"interactavatar: error: {problem}", file=sys.stderr)
+        sys.exit(2)
+    finally:
+        if previous is None:
+            del os.environ[FULL_ERROR]
+        else:
+            os.environ[FULL_ERROR] = previous
+
+
+def hydra_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line as Hydra's own parser reads it (``overrides``, ``multirun``, ...)."""
+    return get_args_parser().parse_args(sys.argv[1:] if argv is None else argv)
+
+
+def compose_for_keys(overrides: Sequence[str]) -> DictConfig:
+    """The app's config as far as it composes with ``overrides``, to name its keys: with every override that is no
+    sweep and composes (the groups chosen, ``hydra.searchpath``), else with the groups chosen alone, else the
+    defaults."""
+    parsed = []
+    with contextlib.suppress(HydraException):
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    single = [o.input_line for o in parsed if not o.is_sweep_override() and o.input_line is not None]
+    groups = [o for o in single if "." not in override_key(o) or o.startswith("hydra.")]
+    GlobalHydra.instance().clear()
+    for tried in (single, groups, []):
+        with contextlib.suppress(HydraException), initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+            return compose(config_name="config", overrides=tried)
+    return OmegaConf.create()
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ from omegaconf.errors import OmegaConfBaseException
 from data_schemas.config_sections import check_section
 from importers.decaf import ships_keypoints
 from pipeline.device import device_syntax_problem, precision_problem
+from pipeline.overrides import added_key_problems
 from pipeline.registry import RegistryError, StageRegistry
 from pipeline.stage import Stage
 from pipeline.workspace import method_problem, outputs_problem, seed_problem, subject_problem
@@ -241,11 +242,13 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
                 if typed is not None:
                     with open_dict(cfg):
                         cfg.stage[s.name] = typed
+    errors.extend(added_key_problems(cfg, errors))
     if not errors:  # the stages' own checks read sections the schemas have typed
         errors.extend(dict.fromkeys(p for s in stages if s.checks is not None for p in s.checks(cfg)))
     errors.extend(numeric_problems(cfg, errors))
-    if errors:
-        raise ConfigError("invalid config:\n  - " + "\n  - ".join(errors), errors)
+    if errors:  # one problem on one line, several one per line
+        listed = f" {errors[0]}" if len(errors) == 1 else "\n  - " + "\n  - ".join(errors)
+        raise ConfigError(f"invalid config:{listed}", errors)
     return cfg
 
 
