@@ -8,7 +8,10 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -238,19 +241,63 @@ def _render_sequences(ctx: StageContext, configs: dict[str, SyntheticConfig]) ->
     if workers <= 1:
         return dict(_render_sequence(*job) for job in ctx.progress(jobs, desc=desc))
     # spawn, not fork: a forked child of a process whose OpenMP pool has started can hang in it
-    with ProcessPoolExecutor(
+    pool = ProcessPoolExecutor(
         workers, mp_context=multiprocessing.get_context("spawn"), initializer=_die_with_parent, initargs=(os.getpid(),)
-    ) as pool:
-        futures = [pool.submit(_render_sequence, *job) for job in jobs]
-        return dict(future.result() for future in ctx.progress(as_completed(futures), desc=desc, total=len(jobs)))
+    )
+    started: list[multiprocessing.process.BaseProcess] = []
+    try:
+        with _spawning_workers(started):  # submit starts the workers
+            futures = [pool.submit(_render_sequence, *job) for job in jobs]
+        rendered = dict(future.result() for future in ctx.progress(as_completed(futures), desc=desc, total=len(jobs)))
+    except BaseException:  # Ctrl-C, a worker's error: the workers stop now, mid-sequence (their files are discarded)
+        _stop_workers(pool, started)
+        raise
+    pool.shutdown()
+    return rendered
+
+
+@contextmanager
+def _spawning_workers(started: list[multiprocessing.process.BaseProcess]) -> Iterator[None]:
+    """While the block starts worker processes (appended to ``started``): SIGINT is blocked in this thread, so each
+    worker starts with it blocked and a Ctrl-C during its start-up (seconds of imports) stays pending until its
+    initializer ignores it (:func:`_die_with_parent`); a Ctrl-C meant for this process is held until the workers
+    have started, none half, and raised here then as KeyboardInterrupt (in the main thread, where Python handles
+    signals)."""
+    before = set(multiprocessing.active_children())
+    held: list[int] = []
+    main = threading.current_thread() is threading.main_thread()
+    handler = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum)) if main else None
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        started.extend(set(multiprocessing.active_children()) - before)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a Ctrl-C that came meanwhile is delivered now: held
+        if main:  # a handler Python did not set (None) is put back as the default action
+            signal.signal(signal.SIGINT, signal.SIG_DFL if handler is None else handler)
+    if held:
+        raise KeyboardInterrupt
+
+
+def _stop_workers(pool: ProcessPoolExecutor, workers: list[multiprocessing.process.BaseProcess]) -> None:
+    """End ``pool`` without waiting for its work: its queued jobs cancelled, its ``workers`` terminated (SIGTERM, at
+    any point of their start-up or work) and reaped."""
+    pool.shutdown(wait=False, cancel_futures=True)
+    for worker in workers:
+        worker.terminate()
+    for worker in workers:
+        worker.join()
 
 
 def _die_with_parent(parent_pid: int) -> None:
     """Worker initializer: a killed run leaves no worker writing into its scratch folder. On Linux the kernel
     sends SIGKILL to the worker when the stage's process dies (``PR_SET_PDEATHSIG``); a worker whose parent
-    is already gone exits at once. Elsewhere the pool's own shutdown is all there is. Ctrl-C (SIGINT to the
-    terminal's process group) ends a worker at once and quietly: the stage's process says what was kept."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    is already gone exits at once. Elsewhere the pool's own shutdown is all there is. A worker ignores Ctrl-C
+    (SIGINT to the terminal's process group), also one that came while it started (:func:`_spawning_workers`):
+    the stage's process stops the workers (:func:`_stop_workers`) and says in one line what was kept, and no worker
+    prints a traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # a pending Ctrl-C is dropped: it is ignored now
     if sys.platform.startswith("linux"):
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent_pid:

@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import signal
 import subprocess
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -99,8 +102,8 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
     try:
         parent = psutil.Process(proc.pid)
         # the workers have started once two children import the generator (the spawn helper is a third)
-        wait_for(lambda: sum("spawn_main" in " ".join(c.cmdline()) for c in parent.children()) >= 2, 120)
-        workers = [c for c in parent.children(recursive=True) if "spawn_main" in " ".join(c.cmdline())]
+        wait_for(lambda: len(_workers(parent)) >= 2, 120)
+        workers = _workers(parent)
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
         gone, alive = psutil.wait_procs(workers, timeout=30)
@@ -111,20 +114,28 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path: Path) -> None:
     assert not (tmp_path / "synth_a" / "capture" / "_manifest.json").exists()
 
 
-def test_ctrl_c_while_workers_render_is_one_line(tmp_path: Path) -> None:
-    """Ctrl-C reaches the whole process group, the workers too: they end quietly (no KeyboardInterrupt traceback
-    per worker) and the run says in one line what was kept."""
-    import os
+def _workers(parent: psutil.Process) -> list[psutil.Process]:
+    """The worker processes of the run ``parent`` (the spawn helper's children that run ``spawn_main``)."""
+    workers = []
+    for child in parent.children(recursive=True):
+        try:
+            if "spawn_main" in " ".join(child.cmdline()):
+                workers.append(child)
+        except psutil.NoSuchProcess:  # ended while listed
+            pass
+    return workers
 
+
+def _ctrl_c(tmp_path: Path, ready: Callable[[psutil.Process], bool], delay_s: float = 0.0) -> None:
+    """Ctrl-C (SIGINT to the run's process group, as a terminal sends it) ``delay_s`` after ``ready(run)`` holds:
+    the run says in one line what was kept, exit status 130, no traceback from it or any worker, no worker left."""
     # its own process group, as a terminal's foreground job
     proc = _parallel_capture(tmp_path, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         parent = psutil.Process(proc.pid)
-        # both workers render once two sequences' folders are written (a worker still importing at Ctrl-C prints
-        # Python's own KeyboardInterrupt: its start-up is not ours to quiet)
-        wait_for(lambda: len(list((tmp_path / "synth_a" / ".tmp").glob("capture-*/*/videos"))) >= 2, 120)
-        workers = [c for c in parent.children(recursive=True) if "spawn_main" in " ".join(c.cmdline())]
-        assert len(workers) >= 2
+        wait_for(lambda: ready(parent), 120)
+        time.sleep(delay_s)
+        workers = _workers(parent)
         os.killpg(proc.pid, signal.SIGINT)
         _, stderr = proc.communicate(timeout=60)
         gone, alive = psutil.wait_procs(workers, timeout=30)
@@ -133,8 +144,21 @@ def test_ctrl_c_while_workers_render_is_one_line(tmp_path: Path) -> None:
             proc.kill()
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
-    assert [line for line in stderr.splitlines() if line.strip()][-1].startswith(
-        "interactavatar: interrupted during stage 'capture'"
-    ), stderr
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("interactavatar: interrupted during stage 'capture'"), stderr
     assert alive == []
     assert not (tmp_path / "synth_a" / "capture" / "_manifest.json").exists()
+
+
+def test_ctrl_c_while_workers_render_is_one_line(tmp_path: Path) -> None:
+    """Ctrl-C reaches the whole process group, the workers too: they end quietly (no KeyboardInterrupt traceback
+    per worker) and the run says in one line what was kept."""
+    # both workers render once two sequences' folders are written
+    _ctrl_c(tmp_path, lambda run: len(list((tmp_path / "synth_a" / ".tmp").glob("capture-*/*/videos"))) >= 2)
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.4, 1.2])
+def test_ctrl_c_while_workers_start_is_one_line(tmp_path: Path, delay_s: float) -> None:
+    """Ctrl-C at moments of the workers' start-up, which imports torch and the generator (seconds): as the first
+    worker appears, and a little later while they import. No worker prints Python's KeyboardInterrupt."""
+    _ctrl_c(tmp_path, lambda run: bool(_workers(run)), delay_s)
