@@ -16,7 +16,9 @@ from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
+from numpy.typing import ArrayLike
 
 from data_schemas.writes import write_failed
 
@@ -108,7 +110,7 @@ def _to_arrow(path: Path, col: Column, values: Any, n_rows: int) -> pa.Array:
         if len(rows) != n_rows:
             raise SchemaError(f"{where}: expected {n_rows} rows, got {len(rows)}")
         if col.finite and any(not np.isfinite(r).all() for r in rows):
-            raise SchemaError(f"{where}: contains NaN or Inf")
+            raise SchemaError(f"{where}: contains NaN or Inf {_in_rows([not np.isfinite(r).all() for r in rows])}")
         return pa.array([r.tolist() for r in rows], type=pa.list_(pa.float32()))
     arr = np.asarray(values)
     if arr.shape[:1] != (n_rows,):
@@ -118,7 +120,7 @@ def _to_arrow(path: Path, col: Column, values: Any, n_rows: int) -> pa.Array:
             raise SchemaError(f"{where}: expected a 1-D array of {col.kind}, got shape {arr.shape}")
         arr = arr.astype(np.dtype(col.kind if col.kind != "bool" else np.bool_))
         if col.finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
-            raise SchemaError(f"{where}: contains NaN or Inf")
+            raise SchemaError(f"{where}: contains NaN or Inf {_in_rows(~np.isfinite(arr))}")
         return pa.array(arr, type=_SCALAR_TYPES[col.kind])
     value_type, dtype = _VECTOR_DTYPES[col.kind]
     flat = arr.reshape(n_rows, -1).astype(dtype)
@@ -126,7 +128,7 @@ def _to_arrow(path: Path, col: Column, values: Any, n_rows: int) -> pa.Array:
     if col.size is not None and size != col.size:
         raise SchemaError(f"{where}: expected vectors of length {col.size}, got {size}")
     if col.finite and not np.isfinite(flat).all():
-        raise SchemaError(f"{where}: contains NaN or Inf")
+        raise SchemaError(f"{where}: contains NaN or Inf {_in_rows(~np.isfinite(flat).all(1))}")
     return pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(flat).ravel(), type=value_type), size)
 
 
@@ -203,7 +205,31 @@ def validate_table(path: Path, table: pa.Table, schema: TableSchema) -> None:
         if actual != expected:
             raise SchemaError(f"{path}: column '{c.name}' has type {actual}, expected {expected}")
         if c.finite and c.kind not in ("string", "bool", "int32", "int64"):
-            values = table.column(c.name).combine_chunks()
-            flat = values.flatten() if c.kind in _VECTOR_DTYPES else values
-            if len(flat) and not np.isfinite(flat.to_numpy(zero_copy_only=False)).all():
-                raise SchemaError(f"{path}: column '{c.name}' contains NaN or Inf")
+            rows = _nonfinite_rows(table.column(c.name).combine_chunks())
+            if rows.size:
+                raise SchemaError(f"{path}: column '{c.name}' contains NaN or Inf {_in_rows(rows, table)}")
+
+
+def _nonfinite_rows(values: pa.Array) -> np.ndarray:
+    """The indices of the rows of a float column (scalars, or fixed-size or variable-length lists of them) that hold
+    a NaN or an infinity, ascending."""
+    if pa.types.is_list(values.type) or pa.types.is_fixed_size_list(values.type):
+        flat = pc.list_flatten(values).to_numpy(zero_copy_only=False)
+        parents = pc.list_parent_indices(values).to_numpy(zero_copy_only=False)
+    else:
+        flat = values.to_numpy(zero_copy_only=False)
+        parents = np.arange(len(flat))
+    return np.unique(parents[~np.isfinite(flat)])
+
+
+def _in_rows(bad: ArrayLike, table: pa.Table | None = None, shown: int = 5) -> str:
+    """Where a column is not finite, for its message: ``in frames [1, 2]`` by the table's ``frame`` column where it
+    has one (a per-frame table), else ``in rows [...]`` (from 0); the first ``shown``, and how many there are.
+    ``bad``: a flag per row, or the rows' indices."""
+    flags = np.asarray(bad)
+    rows = np.flatnonzero(flags) if flags.dtype == bool else flags.astype(int)
+    label = "rows"
+    if table is not None and "frame" in table.column_names:
+        rows, label = table.column("frame").to_numpy()[rows], "frames"
+    more = f" ({rows.size} in all)" if rows.size > shown else ""
+    return f"in {label} {rows[:shown].tolist()}{more}"

@@ -15,7 +15,7 @@ from data_schemas.gaussians_ply import SH_C0, GaussianCloud, read_gaussians_ply,
 from data_schemas.images import read_exr, read_png, write_exr, write_png
 from data_schemas.keypoints import KEYPOINTS
 from data_schemas.params import PARAMS
-from data_schemas.tables import SchemaError, read_table, write_table
+from data_schemas.tables import Column, SchemaError, TableSchema, read_table, write_table
 
 RNG = np.random.default_rng(0)
 
@@ -70,7 +70,10 @@ def test_params_round_trip_with_metadata(tmp_path):
             lambda d: d.__setitem__("mano_hand_pose", np.zeros((3, 44))),
             "column 'mano_hand_pose': expected vectors of length 45",
         ),
-        (lambda d: d["flame_transl"].__setitem__((1, 2), np.nan), "column 'flame_transl': contains NaN or Inf"),
+        (
+            lambda d: d["flame_transl"].__setitem__((1, 2), np.nan),
+            "column 'flame_transl': contains NaN or Inf in rows [1]",
+        ),
         (lambda d: d.__setitem__("mano_transl", np.zeros((4, 3))), "column 'mano_transl': expected 3 rows"),
     ],
 )
@@ -112,8 +115,33 @@ def test_nan_written_by_another_tool_is_caught_on_read(tmp_path):
     bad = pa.FixedSizeListArray.from_arrays(pa.array(values), 3)
     table = table.set_column(table.schema.get_field_index("flame_transl"), table.schema.field("flame_transl"), bad)
     pq.write_table(table, path)
-    with pytest.raises(SchemaError, match="column 'flame_transl' contains NaN"):
+    with pytest.raises(SchemaError, match=r"column 'flame_transl' contains NaN or Inf in frames \[1\]$"):
+        read_table(path, PARAMS)  # values[4]: the second frame's y
+
+
+def test_values_that_are_not_finite_are_named_by_frame_or_row(tmp_path):
+    """Read back, a per-frame table names the frames (its ``frame`` column) that hold NaN or Inf, the first five and
+    how many; a table without frames names the rows; a variable-length list column the same."""
+    data = _params()
+    data["frame"] = np.array([10, 11, 12])
+    path = tmp_path / "params.parquet"
+    write_table(path, PARAMS, data)
+    table = pq.read_table(path)
+    values = table.column("mano_hand_pose").combine_chunks().flatten().to_numpy().copy()
+    values[[45, 46, 2 * 45]] = [np.inf, np.nan, -np.inf]  # frames 11 (twice) and 12
+    bad = pa.FixedSizeListArray.from_arrays(pa.array(values), 45)
+    index = table.schema.get_field_index("mano_hand_pose")
+    pq.write_table(table.set_column(index, table.schema.field("mano_hand_pose"), bad), path)
+    with pytest.raises(SchemaError, match=r"column 'mano_hand_pose' contains NaN or Inf in frames \[11, 12\]$"):
         read_table(path, PARAMS)
+    ragged = TableSchema("ragged", 1, (Column("values", "list_f32"),))
+    rows = [[0.0], [1.0, np.nan], [], [np.inf]] + [[float("nan")]] * 6
+    write_table(tmp_path / "r.parquet", ragged, {"values": [[0.0]] * len(rows)})
+    table = pq.read_table(tmp_path / "r.parquet")
+    column = pa.array(rows, pa.list_(pa.float32()))
+    pq.write_table(table.set_column(0, table.schema.field("values"), column), tmp_path / "r.parquet")
+    with pytest.raises(SchemaError, match=r"contains NaN or Inf in rows \[1, 3, 4, 5, 6\] \(8 in all\)$"):
+        read_table(tmp_path / "r.parquet", ragged)
 
 
 def test_cameras_round_trip_and_projection(tmp_path):
