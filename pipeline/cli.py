@@ -156,11 +156,11 @@ def main() -> None:
     status 2, before anything is written."""
     previous = os.environ.get(FULL_ERROR)
     if previous == "1":
-        app()
+        _app_quiet_on_ctrl_c()
         return
     os.environ[FULL_ERROR] = "1"  # Hydra raises its errors to here, instead of printing them with a stack trace
     try:
-        app()
+        _app_quiet_on_ctrl_c()
     except COMMAND_LINE_ERRORS as exc:
         overrides = hydra_args().overrides
         problem = composition_problem(exc, overrides, lambda: setting_paths(compose_for_keys(overrides)))
@@ -171,6 +171,16 @@ def main() -> None:
             del os.environ[FULL_ERROR]
         else:
             os.environ[FULL_ERROR] = previous
+
+
+def _app_quiet_on_ctrl_c() -> None:
+    """:func:`app`, where a Ctrl-C before the run starts (Hydra reading the command line and composing the config, a
+    second or so) ends as one between stages does: one line, exit status 130, no traceback."""
+    try:
+        app()
+    except KeyboardInterrupt:
+        print(f"interactavatar: {INTERRUPTED_BETWEEN_STAGES}", file=sys.stderr)
+        sys.exit(INTERRUPTED_STATUS)
 
 
 def hydra_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -9,6 +9,8 @@ import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import REPO, TOY_OVERRIDES, cli_command, cli_env, default_sigint, run_cli, wait_for
 
 TOY = [*TOY_OVERRIDES, "run.progress=false"]
@@ -77,3 +79,20 @@ def _interrupted(args: list[str], ready: Callable[[int], bool]) -> list[str]:
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr
     return [line for line in stderr.splitlines() if line.strip()]
+
+
+def test_ctrl_c_while_hydra_composes_the_config_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Ctrl-C before the run starts, while Hydra reads the command line and composes the config (it raises
+    KeyboardInterrupt out of the app, outside the run's own handling): the same one line and status, no traceback."""
+    from pipeline import cli
+
+    def composing() -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "app", composing)
+    with pytest.raises(SystemExit) as caught:
+        cli.main()
+    assert caught.value.code == cli.INTERRUPTED_STATUS == 130
+    assert capsys.readouterr().err.splitlines() == [f"interactavatar: {cli.INTERRUPTED_BETWEEN_STAGES}"]
