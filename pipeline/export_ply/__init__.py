@@ -31,10 +31,8 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from pipeline.export_ply.options import PROG, parser
+from pipeline.export_ply.options import LOCK_WAIT_S, PROG, parser
 
-#: how long an export waits for a run that is rewriting an artifact the export reads, in seconds, before it gives up
-LOCK_WAIT_S = 10.0
 #: the exit status of an export stopped by Ctrl-C (128 + SIGINT) and by SIGTERM (128 + SIGTERM), as a shell reports it
 INTERRUPTED_STATUS, TERMINATED_STATUS = 130, 143
 #: the export's functions by the submodule that defines them (``__getattr__`` imports it on first use)

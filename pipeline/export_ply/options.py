@@ -7,6 +7,8 @@ import argparse
 from pathlib import Path
 
 PROG = "interactavatar-export"
+#: how long an export waits for a run that is rewriting an artifact the export reads (seconds) before it gives up
+LOCK_WAIT_S = 10.0
 #: --axes: the frame the files are written in (:func:`pipeline.export_ply.frames.axes_frame`)
 AXES = ("world", "opengl", "opencv")
 

@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 from avatar.reenact import PLACEMENTS
 from data_schemas.names import folder_name_problem
 from pipeline.config import changed_keys, fix_command, group_options
-from pipeline.export_ply.options import ExportError
+from pipeline.export_ply.options import LOCK_WAIT_S, ExportError
 from pipeline.manifest import MANIFEST_NAME, Manifest, sha256_file
 from pipeline.registry import StageRegistry, load_registry
 from pipeline.runner import RecordedArtifact, recorded_plan
@@ -33,8 +33,6 @@ MODEL_STAGE = "dynamic"
 #: the stages whose artifacts an export reads: their files are checked against their manifests, and the manifests
 #: of every stage the model is computed from are checked
 READS = ("fit", "scene", "pbd", MODEL_STAGE)
-#: how long to wait, by default, for a run that is rewriting one of them (seconds)
-LOCK_WAIT_S = 10.0
 #: the official template files a run may have been posed with (``model.<key>``), by the template they hold
 TEMPLATES = {"flame_path": "FLAME", "mano_path": "MANO"}
 _ABSENT = object()
@@ -87,7 +85,7 @@ def open_run(
             locks.enter_context(ws.lock(target, reads, registry.names(), lock_wait_s, write=False))
         except LockTimeout as exc:
             what = str(exc).partition("; ")[0]  # "stage 'pbd' of subject 'synth_a' is locked by another run (...)"
-            raise ExportError(f"{what}: another run is writing it; export once that run has finished it") from exc
+            raise ExportError(f"{what}, which is writing it; export again once that run has finished") from exc
         except OSError:
             pass  # no lock file can be made there: read without
         yield trained_run(subject_dir, method, seed, placement=placement, flame_path=flame_path, mano_path=mano_path)

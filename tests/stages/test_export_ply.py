@@ -1,7 +1,10 @@
 """``interactavatar-export`` on a tiny trained model (the DAG up to stage two at 32 px, 4 steps each, and the reenact
 stage driven by a params.parquet file): every file read back with ``plyfile`` as the standard 3DGS layout, each frame
 the Gaussians the pipeline poses for it (evaluate's posing of a motion of the fit, reenact's of a driver file), the
-axis conversions against their closed form, and the errors: one line, no traceback, nothing written."""
+axis conversions against their closed form, and the errors: one line, no traceback, nothing written. What a hostile
+user tried is refused: an --overwrite of a folder no export wrote, a destination inside a subject's outputs, a run the
+pipeline would retrain (its fit republished), a run another run is writing, absurd frames, templates, drivers,
+methods and seeds; Ctrl-C while the command starts and SIGTERM while it writes leave nothing behind."""
 
 from __future__ import annotations
 
@@ -350,7 +353,7 @@ def test_an_export_waits_for_no_run_writing_what_it_reads_and_records_what_it_re
     out = tmp_path / "clip"
     with ws.lock(Artifact("pbd"), [], REGISTRY.names(), 1.0):  # a run rewriting the pbd stage's offsets now
         line = _one_line_error(capsys, [str(subject), "--frames", "0", "--out", str(out)], "stage 'pbd'")
-    assert "another run is writing it" in line and not out.exists()
+    assert "which is writing it; export again once that run has finished" in line and not out.exists()
     assert main([str(subject), "--motion", str(driver), "--frames", "0", "--out", str(out), "--quiet"]) == 0
     info = json.loads((out / "export.json").read_text())
     read = {"fit": "fit", "scene": "scene", "pbd": "pbd", "dynamic@interactavatar": "methods/interactavatar/dynamic"}
