@@ -1,7 +1,8 @@
-"""Checks a batch makes in the Hydra driver before it submits any job (a Hydra callback, ``hydra.callbacks``).
+"""Checks a batch makes in the Hydra driver before it submits any job.
 
 A problem found here ends the driver with one line per problem naming the fix (exit status 2) and nothing
-submitted: the cluster's (SLURM accounting), and every job's config, checked as the job would check it.
+submitted: the cluster's (SLURM accounting, a Hydra callback), and every job's config, checked as the job would check
+it (by the batch's sweeper, :mod:`pipeline.batch`, with the configs it hands the jobs).
 """
 
 from __future__ import annotations
@@ -10,13 +11,9 @@ import copy
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
-from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-from hydra.core.global_hydra import GlobalHydra
-from hydra.core.hydra_config import HydraConfig
-from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import HydraException
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
@@ -65,72 +62,72 @@ def slurm_accounting_problem(
     return f"hydra/launcher=slurm: `sacct` failed ({said or f'exit status {done.returncode}'}); submitit needs it"
 
 
-def sweep_jobs(config: DictConfig) -> list[list[str]]:
-    """Each job's overrides, as Hydra's basic sweeper will expand ``hydra.sweeper.params`` and the command line's
-    overrides of the multirun whose driver's config is ``config``; none for another sweeper, whose jobs are
-    not known before it runs (an optimiser's)."""
-    target = str(OmegaConf.select(config, "hydra.sweeper._target_", default="") or "")
-    if not target.endswith(f".{BasicSweeper.__name__}"):
-        return []
-    params = OmegaConf.select(config, "hydra.sweeper.params", default=None) or {}
-    arguments = [*(f"{key}={value}" for key, value in params.items()), *config.hydra.overrides.task]
-    parser = OverridesParser.create(config_loader=GlobalHydra.instance().config_loader())
-    return [job for batch in BasicSweeper.split_arguments(parser.parse_overrides(arguments), None) for job in batch]
+#: Composes the config of a job of a multirun: (the driver's config, the job's overrides) -> the job's config with its
+#: ``hydra`` node (Hydra's ``ConfigLoader.load_sweep_config``).
+Composer = Callable[[DictConfig, list[str]], DictConfig]
 
 
-def job_config(config: DictConfig, overrides: list[str]) -> DictConfig:
-    """The config a job of the multirun whose driver's config is ``config`` runs with: composed as its launcher
-    composes it, less the ``hydra`` node, with ``run.overrides`` set: as the app receives and completes it."""
-    job = copy.deepcopy(GlobalHydra.instance().config_loader().load_sweep_config(config, overrides))
+def job_config(job: DictConfig) -> DictConfig:
+    """The config the app runs a job of a multirun with, from the job's composed config ``job`` (its ``hydra`` node
+    included): a copy without the ``hydra`` node, with ``run.overrides`` set as the app sets them."""
+    job = copy.deepcopy(job)
     with read_write(job), open_dict(job):
-        job.run.overrides = list(job.hydra.overrides.task)  # as the app records them
+        job.run.overrides = list(job.hydra.overrides.task)
         del job["hydra"]
     return job
 
 
-def job_problems(config: DictConfig, overrides: list[str]) -> list[str]:
-    """What the job with ``overrides`` would refuse to run with (:func:`pipeline.config.validate_config`)."""
+def job_problems(config: DictConfig, overrides: list[str], compose: Composer) -> tuple[DictConfig | None, list[str]]:
+    """The composed config of the job with ``overrides`` of the multirun whose driver's config is ``config``, and
+    what the job would refuse to run with (:func:`pipeline.config.validate_config`): (None, its problems) where it
+    has any."""
     try:
-        job = job_config(config, overrides)
-        validate_config(job, load_registry(job.pipeline.stages_module))
+        job = compose(config, overrides)
+        app = job_config(job)
+        validate_config(app, load_registry(app.pipeline.stages_module))
     except ConfigError as exc:
-        return list(exc.problems)
+        return None, list(exc.problems)
     except HydraException as exc:  # an override the job's config has no key or option for
-        return [composition_problem(exc, overrides, lambda: setting_paths(config))]
+        return None, [composition_problem(exc, overrides, lambda: setting_paths(config))]
     except RegistryError as exc:
-        return [str(exc)]
-    return []
+        return None, [str(exc)]
+    return job, []
 
 
-def batch_problems(config: DictConfig) -> list[str]:
-    """One line per job of the multirun (:func:`sweep_jobs`) that could not run, naming the overrides that set it
-    apart from the other jobs and every problem of its config."""
-    jobs = sweep_jobs(config)
+def job_label(number: int, overrides: Sequence[str], jobs: Sequence[Sequence[str]]) -> str:
+    """``job <number> (<the overrides that set it apart from the other jobs of jobs>)``."""
     shared = set.intersection(*(set(job) for job in jobs)) if jobs else set()
-    lines = []
+    own = " ".join(o for o in overrides if o not in shared)
+    return f"job {number}{f' ({own})' if own else ''}"
+
+
+def batch_problems(
+    config: DictConfig, jobs: Sequence[list[str]], compose: Composer
+) -> tuple[dict[tuple[str, ...], DictConfig], list[str]]:
+    """Each job of the multirun whose driver's config is ``config`` (``jobs``: their overrides) composed once, by its
+    overrides, and one line per job that could not run, naming it (:func:`job_label`) and every problem of its
+    config."""
+    configs, lines = {}, []
     for number, overrides in enumerate(jobs):
-        problems = job_problems(config, overrides)
-        if problems:
-            own = " ".join(o for o in overrides if o not in shared)
-            lines.append(f"job {number}{f' ({own})' if own else ''}: {'; '.join(problems)}")
-    return lines
+        job, problems = job_problems(config, overrides, compose)
+        if job is not None:
+            configs[tuple(overrides)] = job
+        else:
+            lines.append(f"{job_label(number, overrides, jobs)}: {'; '.join(problems)}")
+    return configs, lines
 
 
 class BatchPreflight(Callback):
-    """Refuses a batch the cluster cannot carry out (:func:`slurm_accounting_problem`), or one of whose jobs
-    could not run (:func:`batch_problems`), before any job is submitted."""
+    """Refuses a batch the cluster cannot carry out (:func:`slurm_accounting_problem`) before any job is submitted
+    (the jobs' own configs are checked by the batch's sweeper, :class:`pipeline.batch.CheckedSweeper`)."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         problem = slurm_accounting_problem(config)
         if problem is not None:
-            _refuse(problem)
-        HydraConfig.instance().set_config(config)  # the jobs' checks read it (hydra.searchpath: the user's methods)
-        problems = batch_problems(config)
-        if problems:
-            listed = "\n  - ".join(problems)
-            _refuse(f"the batch was not started, {len(problems)} of its jobs cannot run:\n  - {listed}")
+            refuse(problem)
 
 
-def _refuse(message: str) -> None:
+def refuse(message: str) -> None:
+    """End the driver of a batch with ``message``, exit status 2, before any job is submitted."""
     print(f"interactavatar: error: {message}", file=sys.stderr)
     sys.exit(2)  # SystemExit: Hydra turns a callback's exceptions into warnings, but not this

@@ -18,6 +18,7 @@ import shlex
 import shutil
 import sys
 import tempfile
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from hydra.errors import ConfigCompositionException, HydraException, OverridePar
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from pipeline.batch import JobFailed, one_line
 from pipeline.config import CONF_DIR, ConfigError, fix_command, validate_config
 from pipeline.overrides import composition_problem, override_key, setting_paths
 from pipeline.registry import RegistryError, StageRegistry, load_registry
@@ -130,17 +132,23 @@ def comparison_fixes(cfg: DictConfig, reports: list[StageReport]) -> list[str]:
 def app(cfg: DictConfig) -> None:
     """The Hydra app: one job, the DAG for one subject (:func:`run_app`), its errors in one message each."""
     OmegaConf.update(cfg, "run.overrides", list(HydraConfig.get().overrides.task))  # fix commands repeat them
+    batch = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
         run_app(cfg)
     except USER_ERRORS as exc:
         print(f"interactavatar: error: {exc}", file=sys.stderr)
-        if HydraConfig.get().mode == RunMode.MULTIRUN:
-            raise  # let the launcher record this job as failed and go on with the others
+        if batch:  # the launcher records this job as failed and goes on with the others; the batch names it
+            raise JobFailed(one_line(exc)) from None
         sys.exit(2 if isinstance(exc, (ConfigError, RegistryError)) else 1)
     except (Interrupted, KeyboardInterrupt) as exc:  # Ctrl-C: say what was kept, not where Python was
         said = str(exc) if isinstance(exc, Interrupted) else INTERRUPTED_BETWEEN_STAGES
         print(f"interactavatar: {said}", file=sys.stderr)
         sys.exit(INTERRUPTED_STATUS)
+    except Exception as exc:
+        if not batch:
+            raise
+        traceback.print_exc()  # a fault of the app's: in full in the job's own output, in one line at the batch's end
+        raise JobFailed(f"{type(exc).__name__}: {one_line(exc)}") from None
 
 
 #: Hydra's errors about the command line: an override it cannot apply, a group option that does not exist, a
