@@ -46,7 +46,13 @@ from avatar.render.gaussians import resolve_backend
 from avatar.representations import TrainedAvatar, load_trained
 from avatar.synthetic.rig import held_out_index
 from avatar.templates import TemplateModel
-from avatar.training.avatar_tracking import AvatarTrackingConfig, TrackedMotion, track_with_avatar, tracking_cameras
+from avatar.training.avatar_tracking import (
+    AvatarTrackingConfig,
+    TrackedMotion,
+    track_with_avatar,
+    tracking_cameras,
+    untracked_reason,
+)
 from avatar.training.frame_params import parameter_movement
 from avatar.training.rendering import rasterize
 from data_schemas.cameras import read_cameras
@@ -127,6 +133,8 @@ def tuning_camera_problems(cfg: DictConfig) -> list[str]:
     if str(conf.test_tracking) != "avatar" or isinstance(conf.tuning_cameras, str) or known is None:
         return []
     train, held_out = known
+    if untracked_reason(train) is not None:  # a monocular capture: evaluate skips the split, saying why
+        return []
     wanted = [str(c) for c in conf.tuning_cameras]
     if held := [c for c in wanted if c in held_out]:
         return [
@@ -330,18 +338,19 @@ def _renderer(
 
 
 def _unmeasurable(cap_dir: Path, splits: dict[str, tuple[str, str]]) -> dict[str, str]:
-    """split -> why it cannot be measured on this capture: its sequence or its cameras are missing."""
+    """split -> why it cannot be measured on this capture: its sequence or its cameras are missing, or (the
+    avatar-tracked split) one camera would have to both tune and score (:func:`untracked_reason`)."""
     sequences = CaptureIndex.read(cap_dir).sequences
     cameras = read_cameras(cap_dir / "cameras.parquet")
-    camera_splits = {c.split for c in cameras}
     why = {}
     for split, (sequence, camera_split) in splits.items():
+        ids = [c.camera_id for c in cameras if c.split == camera_split]
         if sequence not in sequences:
             why[split] = f"the capture has no '{sequence}' sequence"
-        elif camera_split not in camera_splits:
+        elif not ids:
             why[split] = f"the capture has no '{camera_split}' camera (a held-out view)"
-        elif split == TRACKED_SPLIT and sum(c.split == camera_split for c in cameras) < 2:
-            why[split] = "one training camera: none is left to score the motion the avatar tracked on it"
+        elif split == TRACKED_SPLIT and (untracked := untracked_reason(ids)) is not None:
+            why[split] = untracked
     return why
 
 

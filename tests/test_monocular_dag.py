@@ -10,11 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from avatar.training.avatar_tracking import untracked_reason
 from data_schemas.cameras import read_cameras
-from data_schemas.metrics import METRICS
+from data_schemas.metrics import METRICS, TRACKED_SPLIT
 from data_schemas.tables import read_table
 from pipeline.cli import run_app
-from pipeline.config import ConfigError
+from pipeline.config import ConfigError, validate_config
+from stages import REGISTRY
 from tests.conftest import compose_cfg
 from tests.test_extremes_dag import assert_every_metric_finite
 
@@ -28,6 +30,7 @@ def test_monocular_capture_runs_the_whole_dag(tmp_path: Path) -> None:
                 "run.progress=false",
                 "stage.capture.cross_reenactment=false",
                 "dataset.train_cameras=[cam04]",
+                "stage.evaluate.test_tracking=avatar",  # one camera cannot tune and score: that split is skipped
             ]
         )
     )
@@ -48,6 +51,27 @@ def test_monocular_capture_runs_the_whole_dag(tmp_path: Path) -> None:
     novel = np.asarray(table["split"]) == "novel_view"
     assert set(np.asarray(table["camera_id"])[novel]) == {f"cam{i:02d}" for i in range(8) if i != 4}
     assert np.isfinite(np.asarray(table["psnr"])[novel & (np.asarray(table["region"]) == "full")]).all()
+    evaluate = json.loads((subject / "methods" / "interactavatar" / "evaluate" / "_manifest.json").read_text())
+    assert evaluate["metrics"][f"{TRACKED_SPLIT}_skipped"] == untracked_reason(["cam04"])
+    assert TRACKED_SPLIT not in set(table["split"])
+
+
+@pytest.mark.parametrize("tuning", ["auto", "[cam04]"])
+def test_a_monocular_capture_with_the_avatar_tracking_is_planned_without_its_split(tuning: str) -> None:
+    """One training camera cannot both tune the held-out motion's frames and score them: the config check refuses
+    nothing (it asked to "name fewer" tuning cameras than the one there is), and evaluate skips the split saying why,
+    as it skips the novel view of a capture without a held-out camera."""
+    cfg = compose_cfg(
+        [
+            "dataset.train_cameras=[cam04]",
+            "stage.evaluate.test_tracking=avatar",
+            f"stage.evaluate.tuning_cameras={tuning}",
+        ]
+    )
+    validate_config(cfg, REGISTRY)
+    reason = untracked_reason(["cam04"])
+    assert reason is not None and "one training camera (cam04)" in reason and "name fewer" not in reason
+    assert untracked_reason(["cam00", "cam04"]) is None
 
 
 def test_train_cameras_naming_no_camera_is_one_clear_error(tmp_path: Path) -> None:

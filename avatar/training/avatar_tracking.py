@@ -19,7 +19,7 @@ on the same camera measures the refinement, not the avatar (see ``stages.evaluat
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -165,10 +165,24 @@ def _hold(frames: FrameParams, t: int, parts: list[str]) -> None:
                 rows[t] = frames.start[column][t]
 
 
+def untracked_reason(camera_ids: Sequence[str]) -> str | None:
+    """Why no choice of tuning cameras among the training cameras ``camera_ids`` can track the held-out motion and
+    score it on others: fewer than two (a monocular capture). ``None`` where some choice can. Evaluate skips the
+    avatar-tracked split for this reason, whatever ``stage.evaluate.tuning_cameras`` names, and says so."""
+    if len(camera_ids) >= 2:
+        return None
+    named = f"one training camera ({camera_ids[0]})" if camera_ids else "no training camera"
+    return f"{named}: none is left to score the motion the avatar tracked on it"
+
+
 def tracking_cameras(setting: Any, camera_ids: list[str]) -> tuple[list[str], list[str]]:
     """(tuning, scoring) training cameras of ``stage.evaluate.tuning_cameras`` = ``setting``: ``auto`` takes every
     other training camera by sorted id (the 1st, 3rd, ...) to tune and leaves the rest to score; a list names the
-    tuning ones. Both must be non-empty (SchemaError naming the key otherwise)."""
+    tuning ones. Both must be non-empty (SchemaError naming the key otherwise; with fewer than two training cameras
+    :func:`untracked_reason`'s)."""
+    why = untracked_reason(camera_ids)
+    if why is not None:
+        raise SchemaError(f"stage.evaluate.test_tracking=avatar: {why}; set stage.evaluate.test_tracking=tracker")
     ordered = sorted(camera_ids)
     tuning = ordered[::2] if setting == "auto" else [str(c) for c in setting]
     unknown = sorted(set(tuning) - set(ordered))
