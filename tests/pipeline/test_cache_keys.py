@@ -37,6 +37,10 @@ def changed_stages(base: list[str], change: list[str]) -> set[str]:
         ("interactavatar", ["stage.dynamic.select.margin_db=0.5"]),
         ("interactavatar", ["stage.warmup.validation.fraction=0.3"]),
         ("splatting_avatar", ["stage.warmup.validation.retrain=false"]),
+        # refine_params=auto refines nothing on the ground-truth keypoints' fit; SplattingAvatar never refines
+        ("interactavatar", ["stage.warmup.params_lr.pose=0.001"]),
+        ("interactavatar", ["stage.dynamic.params_centred=false"]),
+        ("splatting_avatar", ["stage.warmup.params_lr.expression=0.1"]),
         # the held-out motion posed as the tracker tracked it: the avatar's tracking is not run
         ("interactavatar", ["stage.evaluate.tuning_cameras=[cam00]"]),
         ("interactavatar", ["stage.evaluate.tracking.steps=3"]),
@@ -55,6 +59,9 @@ def test_a_setting_the_configuration_never_reads_reruns_nothing(method: str, cha
         (["quality=draft"], ["stage.warmup.validation.fraction=0.3"], {"warmup", "dynamic"}),
         # validation without the selection: one initialisation, whatever restarts says
         (["quality=draft", "stage.dynamic.select.enabled=false"], ["stage.dynamic.restarts=3"], set()),
+        (["stage.warmup.refine_params=true"], ["stage.warmup.params_lr.pose=0.001"], {"warmup", "dynamic"}),
+        (["stage.keypoints.detector=mediapipe"], ["stage.warmup.params_lr.pose=0.001"], {"warmup", "dynamic"}),
+        (["stage.keypoints.detector=mediapipe"], ["stage.dynamic.params_centred=false"], {"dynamic"}),
         (["stage.evaluate.test_tracking=avatar"], ["stage.evaluate.tuning_cameras=[cam00]"], {"evaluate"}),
         (["stage.evaluate.test_tracking=avatar"], ["stage.evaluate.tracking.steps=3"], {"evaluate"}),
     ],
