@@ -81,6 +81,8 @@ class ComposedConfigs(ConfigLoader):
         assert isinstance(config, DictConfig)
         return config
 
+    # the rest of the interface: Hydra's own loader's
+
     def load_configuration(
         self,
         config_name: str | None,
