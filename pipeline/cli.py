@@ -34,6 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.batch import JobFailed, one_line
 from pipeline.config import CONF_DIR, ConfigError, fix_command, validate_config
+from pipeline.launch import INTERRUPTED_BETWEEN_STAGES, INTERRUPTED_STATUS
 from pipeline.overrides import composition_problem, override_key, setting_paths
 from pipeline.registry import RegistryError, StageRegistry, load_registry
 from pipeline.runner import Interrupted, MissingUpstream, Runner, StageFailed, StageReport
@@ -41,12 +42,6 @@ from pipeline.summary import metrics_table, stage_table
 from pipeline.workspace import LockTimeout, outputs_problem, run_overrides
 
 USER_ERRORS = (ConfigError, RegistryError, MissingUpstream, StageFailed, LockTimeout)
-#: The exit status of a run stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
-INTERRUPTED_STATUS = 130
-INTERRUPTED_BETWEEN_STAGES = (
-    "interrupted: the stages finished so far are kept and none was left half written; the same command goes on "
-    "from there"
-)
 
 
 def hydra_root(outputs: str) -> str:

@@ -45,7 +45,8 @@ def cli_env() -> dict[str, str]:
 
 
 def cli_command(*args: str) -> list[str]:
-    return [sys.executable, "-m", "pipeline.cli", *args]
+    """``interactavatar`` with these arguments, through the console script's own entry point."""
+    return [sys.executable, "-m", "pipeline.launch", *args]
 
 
 def run_cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:

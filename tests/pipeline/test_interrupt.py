@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -43,6 +44,18 @@ def test_ctrl_c_while_waiting_for_a_lock_is_one_line(tmp_path) -> None:
         lines = _interrupted(
             [*TOY, f"paths.outputs={out}", "run.only=a", "run.force=true"], lambda pid: _has_open(pid, lock)
         )
+    assert lines == [
+        "interactavatar: interrupted: the stages finished so far are kept and none was left half written; the same "
+        "command goes on from there"
+    ]
+
+
+@pytest.mark.parametrize("delay_s", [0.15, 0.4, 0.8])
+def test_ctrl_c_while_python_imports_the_app_is_one_line(tmp_path, delay_s: float) -> None:
+    """Ctrl-C in the command's first second, while Python still imports Hydra, torch and the pipeline (before any of
+    the app's own handling exists): the same one line and status, no traceback of the module that was loading."""
+    started = time.monotonic()
+    lines = _interrupted([*TOY, f"paths.outputs={tmp_path / 'out'}"], lambda pid: time.monotonic() - started > delay_s)
     assert lines == [
         "interactavatar: interrupted: the stages finished so far are kept and none was left half written; the same "
         "command goes on from there"

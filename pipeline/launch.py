@@ -1,0 +1,28 @@
+"""The ``interactavatar`` command's entry point. It imports the standard library only, then the app: a Ctrl-C
+while Python still imports Hydra, torch and the pipeline (the command's first second or so) ends as one between
+stages does, in one line and exit status 130, never in the traceback of whatever module was loading."""
+
+from __future__ import annotations
+
+import sys
+
+#: The exit status of a run stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
+INTERRUPTED_STATUS = 130
+INTERRUPTED_BETWEEN_STAGES = (
+    "interrupted: the stages finished so far are kept and none was left half written; the same command goes on "
+    "from there"
+)
+
+
+def main() -> None:
+    """Load :mod:`pipeline.cli` and run its ``main``; a Ctrl-C while it loads: one line on stderr, exit 130."""
+    try:
+        from pipeline.cli import main as run_command
+    except KeyboardInterrupt:
+        print(f"interactavatar: {INTERRUPTED_BETWEEN_STAGES}", file=sys.stderr)
+        sys.exit(INTERRUPTED_STATUS)
+    run_command()
+
+
+if __name__ == "__main__":
+    main()
