@@ -34,11 +34,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.batch import JobFailed, one_line
 from pipeline.config import CONF_DIR, ConfigError, fix_command, validate_config
-from pipeline.launch import INTERRUPTED_BETWEEN_STAGES, INTERRUPTED_STATUS
+from pipeline.exit_status import INTERRUPTED_BETWEEN_STAGES, INTERRUPTED_STATUS
 from pipeline.overrides import composition_problem, override_key, setting_paths
 from pipeline.registry import RegistryError, StageRegistry, load_registry
 from pipeline.runner import Interrupted, MissingUpstream, Runner, StageFailed, StageReport
 from pipeline.summary import metrics_table, stage_table
+from pipeline.threads import use_threads
 from pipeline.workspace import LockTimeout, outputs_problem, run_overrides
 
 USER_ERRORS = (ConfigError, RegistryError, MissingUpstream, StageFailed, LockTimeout)
@@ -70,10 +71,15 @@ def _free_bytes(path: Path) -> int:
 OmegaConf.register_new_resolver("hydra_root", hydra_root, replace=True)
 
 
-def run_app(cfg: DictConfig) -> list[StageReport]:
-    """Validate ``cfg``, then plan (``run.dry``) or run the DAG and print the summary."""
+def run_app(cfg: DictConfig, job: bool = False) -> list[StageReport]:
+    """Validate ``cfg``, then plan (``run.dry``) or run the DAG and print the summary. ``job``: the run is a job of
+    its own process (the command's, a batch's), which computes on ``run.threads``
+    (:func:`pipeline.threads.use_threads`); a caller in its own process (a test, a benchmark) keeps its thread
+    count."""
     registry = load_registry(cfg.pipeline.stages_module)
     cfg = validate_config(cfg, registry)
+    if job and not cfg.run.dry:
+        use_threads(cfg.run.threads)
     runner = Runner(cfg, registry)
     if cfg.run.dry:
         reports = runner.plan()
@@ -129,7 +135,7 @@ def app(cfg: DictConfig) -> None:
     OmegaConf.update(cfg, "run.overrides", list(HydraConfig.get().overrides.task))  # fix commands repeat them
     batch = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
-        run_app(cfg)
+        run_app(cfg, job=True)
     except USER_ERRORS as exc:
         print(f"interactavatar: error: {exc}", file=sys.stderr)
         if batch:  # the launcher records this job as failed and goes on with the others; the batch names it

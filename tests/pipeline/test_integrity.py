@@ -102,7 +102,10 @@ def test_subject_rule_is_enforced_as_stated_in_one_line(tmp_path, subject):
     """Case 6: the check enforces the rule the message states."""
     result = run_cli(*TOY, f"paths.outputs={tmp_path / 'out'}", f"subject={subject}")
     assert result.returncode == 2, result.stdout
-    assert result.stderr.strip().splitlines()[-1].startswith(f"  - subject={subject!r}: use letters, digits")
+    assert result.stderr.strip().splitlines() == [
+        f"interactavatar: error: invalid config: subject={subject!r}: use letters, digits, '-' or '_', starting with "
+        "a letter or digit, at most 64 characters, e.g. subject=synth_a"
+    ]
     assert "Traceback" not in result.stderr
 
 
