@@ -7,6 +7,10 @@ app's sweeper, ``hydra/sweeper=interactavatar``) composes every job's config bef
 as the job would (:func:`pipeline.batch_checks.batch_problems`: a batch with a job that cannot run is not started),
 keeps them in the batch's folder (``<hydra.sweep.dir>/.jobs/``) and lends the launcher a config loader that reads a
 job's config from there (:class:`ComposedConfigs`). The code a job runs is the code installed when it starts.
+
+A launcher that runs several jobs at once on this machine (joblib's ``n_jobs``, submitit's local executor) gets
+jobs whose ``run.threads=auto`` is their share of the cores (:func:`share_threads`), so that the jobs' threads
+together do not exceed the cores; jobs on other machines (SLURM, Ray) count their own.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.batch_checks import batch_problems, job_label, refuse
 from pipeline.config import ConfigError
+from pipeline.threads import AUTO, choose_threads, env_threads, usable_cores
 
 #: The folder of a batch's folder where its jobs' composed configs are kept, one pickle per job.
 JOBS_FOLDER = ".jobs"
@@ -50,6 +55,41 @@ def failure(exc: BaseException) -> str:
     """What a failed job's error says, in one line: a :class:`JobFailed`'s message, any other error's class and
     message (one the launcher raised for the job)."""
     return one_line(exc) if isinstance(exc, JobFailed) else f"{type(exc).__name__}: {one_line(exc)}"
+
+
+#: Hydra launchers that run a batch's jobs on this machine, by the end of their ``_target_``
+JOBLIB, SUBMITIT_LOCAL, BASIC = "JoblibLauncher", "submitit_launcher.LocalLauncher", "BasicLauncher"
+
+
+def jobs_at_once(launcher: Any, jobs: int, cores: int) -> int:
+    """How many of a batch's ``jobs`` the launcher (``hydra.launcher``) runs at once on this machine of ``cores``
+    cores: joblib's ``n_jobs`` (its convention: -1 all cores, -2 all but one), submitit's local executor all of
+    them, Hydra's basic launcher one after the other; 0 where they run on other machines (SLURM, Ray, any other)."""
+    target = str(OmegaConf.select(launcher, "_target_", default="") if OmegaConf.is_config(launcher) else "")
+    if target.endswith(JOBLIB):
+        n_jobs = OmegaConf.select(launcher, "n_jobs", default=None)
+        n = 1 if n_jobs is None else int(n_jobs)
+        return min(jobs, n if n > 0 else max(1, cores + 1 + n))
+    if target.endswith(SUBMITIT_LOCAL):
+        return jobs
+    if target.endswith(BASIC):
+        return 1
+    return 0
+
+
+def share_threads(configs: Sequence[DictConfig], launcher: Any) -> int | None:
+    """Set ``run.threads`` of each job whose setting is ``auto`` to its share of this machine's cores when the
+    launcher runs several of them at once here (:func:`jobs_at_once`); the share, or None where nothing was
+    shared."""
+    cores = usable_cores()
+    at_once = jobs_at_once(launcher, len(configs), cores)
+    if at_once < 2:
+        return None
+    threads = choose_threads(AUTO, cores, env_threads(), jobs=at_once)
+    for job in configs:
+        if str(OmegaConf.select(job, "run.threads", default=AUTO)) == AUTO:
+            OmegaConf.update(job, "run.threads", str(threads), force_add=True)
+    return threads
 
 
 class ComposedConfigs(ConfigLoader):
@@ -167,6 +207,7 @@ class CheckedSweeper(Sweeper):
         if problems:
             listed = "\n  - ".join(problems)
             refuse(f"the batch was not started, {len(problems)} of its jobs cannot run:\n  - {listed}")
+        share_threads(list(configs.values()), config.hydra.launcher)
         self.composed.keep(Path(str(config.hydra.sweep.dir)) / JOBS_FOLDER, configs)
         returns = self.basic.sweep(arguments)
         if self.failures.failed:

@@ -26,6 +26,7 @@ from pipeline.device import device_syntax_problem, precision_problem
 from pipeline.overrides import added_key_problems
 from pipeline.registry import RegistryError, StageRegistry
 from pipeline.stage import Stage
+from pipeline.threads import threads_problem
 from pipeline.workspace import method_problem, outputs_problem, seed_problem, subject_problem
 
 #: the app's config tree (Hydra's ``config_path``): ``config.yaml`` and one folder per config group
@@ -74,6 +75,7 @@ class RunConfig:
     lock_timeout_s: float = 3600.0  # how long to wait for another run holding a stage lock
     device: str = "auto"  # where the stages that train and render compute: auto, cpu, cuda, cuda:N (pipeline.device)
     precision: str = "fp32"  # fp32, or bf16: the networks' products in bfloat16 (H, I, PointNet++)
+    threads: str = "auto"  # CPU threads of a job: auto (the cores it may use, shared by a local batch's jobs) or N
     overrides: list[str] = field(default_factory=list)  # set by the CLI: the command line's overrides
 
 
@@ -188,7 +190,11 @@ def validate_config(cfg: DictConfig, registry: StageRegistry) -> DictConfig:
             errors.append("run.only cannot be combined with run.from or run.until")
         errors.extend(
             p
-            for p in (device_syntax_problem(run.get("device", "auto")), precision_problem(run.get("precision", "fp32")))
+            for p in (
+                device_syntax_problem(run.get("device", "auto")),
+                precision_problem(run.get("precision", "fp32")),
+                threads_problem(run.get("threads", "auto")),
+            )
             if p is not None
         )
     paths = check_section(cfg.get("paths", {}), PathsConfig, "paths", errors)

@@ -74,6 +74,7 @@ class Manifest:
     created: str
     sources: dict[str, str] | None = None  # relative path -> sha256 of imported user files
     device: dict[str, Any] | None = None  # a device stage's: kind, name (model), precision, peak_memory_mb (CUDA)
+    threads: int | None = None  # the CPU threads torch computed on (run.threads); None where no stage loaded torch
 
     @property
     def output_digest(self) -> str:
@@ -105,6 +106,8 @@ class Manifest:
             body["sources"] = self.sources
         if self.device is not None:
             body["device"] = self.device
+        if self.threads is not None:
+            body["threads"] = self.threads
         body["manifest_digest"] = sha256_json(body)
         return body
 
@@ -146,6 +149,7 @@ def read_manifest(stage_dir: Path) -> Manifest | None:
         created=body["created"],
         sources=body.get("sources"),
         device=body.get("device"),
+        threads=body.get("threads"),
     )
 
 

@@ -46,6 +46,7 @@ from pipeline.monitor import ResourceMonitor
 from pipeline.registry import StageRegistry
 from pipeline.sources import changed_sources, hash_sources
 from pipeline.stage import Stage, StageContext
+from pipeline.threads import torch_threads
 from pipeline.workspace import Artifact, LockTimeout, Workspace, method_run, run_overrides, subject_problem
 
 Log = Callable[[str], None]
@@ -452,6 +453,7 @@ class Runner:
             )
             if s.device:
                 self.compute.reset_peak_memory()
+            threads = torch_threads()  # before the stage, which may narrow it for a block (avatar.threads)
             with ResourceMonitor() as monitor:
                 s.fn(ctx)
             missing = [rel for rel in s.outputs if not (tmp / rel).exists()]
@@ -474,6 +476,7 @@ class Runner:
                 created=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                 sources=d.sources,
                 device=self.compute.record(s.precision) if s.device else None,
+                threads=threads,
             )
             write_manifest(tmp, manifest)
             self.ws.publish(a, tmp)

@@ -12,9 +12,14 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
-import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
+
+from pipeline.threads import wait_passively
+
+# Idle OpenMP threads sleep in the suite's own process, as in the runs it starts (pipeline.launch): the runtime reads
+# this when torch loads, which is after this file (torch is imported by the test modules and the fixtures below).
+wait_passively()
 
 REPO = Path(__file__).resolve().parent.parent
 CONF_DIR = REPO / "conf"
@@ -60,6 +65,8 @@ def run_cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str
 def one_torch_thread() -> Iterator[None]:
     """Run a test on one torch thread: many small tensor ops gain nothing from threads, and lose
     badly on a busy machine. Directories opt in through an autouse fixture in their conftest."""
+    import torch
+
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
