@@ -94,6 +94,10 @@ QUICK: dict[str, list[list[str]]] = {
         ["--preset", "smoke", "--weights", "0", "0.03", "--every", "50", "--outputs", "{out}", "--results", "{out}"]
     ],
     "bench_make_run": [["--results", "{out}"]],
+    "bench_sharing": [
+        ["--others", "0", "1", "--repeats", "1", "--steps", "2", "--rounds", "1", "--outputs", "{out}/sharing"]
+        + ["--results", "{out}"]
+    ],
     "bench_reenact": [["--outputs", "{smoke}", "--sizes", "128", "--repeats", "1", "--results", "{out}"]],
     "bench_viewer": [["--outputs", "{smoke}", "--frames", "2", "--play-s", "2", "--results", "{out}"]],
     "bench_refine": [

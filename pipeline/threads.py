@@ -5,20 +5,22 @@ Torch's intra-op pool is GNU OpenMP (torch's own ``libgomp``), and the compiled 
 (``avatar/render/gaussians/extension.py``). Two things decide how a run behaves beside other work:
 
 - **How idle threads wait** (:func:`wait_passively`). Unless ``OMP_WAIT_POLICY=PASSIVE``, a thread that waits for
-  the next parallel region or at a barrier spins for a while before it sleeps, and a training step is thousands of
-  short parallel regions with Python in between, so each thread of the pool keeps a core busy for the whole step.
-  Alone on the machine that costs nothing; beside other jobs the spinning threads take the time slices of the
-  threads that have work, and a step takes 20-30 times as long (``benchmarks/bench_sharing.py``). The runtime reads
-  the variable once, when it loads (when torch is imported), so the ``interactavatar`` entry point sets it before
-  it imports anything else; the processes a run starts (a local batch's jobs, the capture's workers, the jobs that
-  SLURM starts with the submitting shell's environment) inherit it. A value the environment already has is kept.
+  the next parallel region or at a barrier spins for a while before it sleeps, and a training step is many short
+  parallel regions with Python in between, so the pool's other threads keep cores busy for most of the step. Alone
+  on the machine that costs little; beside other jobs the spinning threads take the time slices of the threads that
+  have work (on 2 cores beside two other smoke jobs, a smoke stage-two step took 21 s instead of 0.5 s:
+  ``benchmarks/bench_sharing.py``). The runtime reads the variable once, when it loads (when torch is imported), so
+  the ``interactavatar`` entry point sets it before it imports anything else; the processes a run starts (a local
+  batch's jobs, the capture's workers, the jobs that SLURM starts with the submitting shell's environment) inherit
+  it. A value the environment already has is kept.
 - **How many threads** (:func:`choose_threads`). ``run.threads=auto`` takes ``OMP_NUM_THREADS`` where the
   environment sets one (the user, or a launcher that shares the cores out: joblib's workers, Ray's tasks), else the
   cores this process may use (its CPU affinity, within its cgroup's CPU quota: a container limited to 2 CPUs on a
   64-core host gets 2 threads, not 64). A batch that runs several jobs at once on this machine gives each job its
   share (:mod:`pipeline.batch`), so that the jobs' threads together do not exceed the cores. The machine's load is
   not read: the thread count changes the rounding of torch's sums, so a count that followed the load would make
-  the bytes of a stage forced twice depend on what else ran meanwhile.
+  the bytes of a stage forced twice depend on what else ran meanwhile; and with idle threads asleep, fewer threads
+  on a busy machine made a step slower, not faster (``bench_sharing --one-thread``).
 
 The thread count is no part of a cache key; the manifest of a stage records it (``threads``).
 """
