@@ -42,7 +42,7 @@ from avatar.metrics import LPIPS, image_metrics
 from avatar.posing import MeshSequence
 from avatar.preprocess.crops import label_box, overlap_box
 from avatar.reenact.driving import drive, driver_subject, transfer_summary, transferred_params
-from avatar.render.gaussians import resolve_backend
+from avatar.render.gaussians import WorldGaussians, resolve_backend
 from avatar.representations import TrainedAvatar, load_trained
 from avatar.synthetic.rig import held_out_index
 from avatar.templates import TemplateModel
@@ -329,10 +329,15 @@ def _scoring_summary(rows: dict[str, list], scoring: list[str]) -> dict[str, flo
 def _renderer(
     model: TrainedAvatar, cond: SequenceConditioning, meshes: MeshSequence, views: ViewSet, backend: str
 ) -> Renderer:
-    """Frame ``t`` of the sequence (``cond``, ``meshes``) rendered from camera ``c`` of ``views``, (S, S, 3)."""
+    """Frame ``t`` of the sequence (``cond``, ``meshes``) rendered from camera ``c`` of ``views``, (S, S, 3). The
+    frame is posed once for all its cameras: the Gaussians of the last frame asked for are kept."""
+    posed: dict[int, WorldGaussians] = {}
 
     def render(t: int, c: int) -> torch.Tensor:
-        return rasterize(model.pose(cond, meshes.vertices[t], t), views, c, backend).rgb
+        if t not in posed:
+            posed.clear()
+            posed[t] = model.pose(cond, meshes.vertices[t], t)
+        return rasterize(posed[t], views, c, backend).rgb
 
     return render
 
