@@ -15,7 +15,7 @@ import json
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import ClassVar, Protocol, Self
+from typing import ClassVar, Protocol, Self, runtime_checkable
 
 import torch
 from omegaconf import DictConfig
@@ -26,6 +26,7 @@ from avatar.artifacts.stage_run import StageRun
 from avatar.dynamic.conditioning import SequenceConditioning
 from avatar.geometry.views import ViewSet
 from avatar.posing import MeshSequence
+from avatar.training.avatar_tracking import PoseFrame
 from avatar.training.frame_params import FrameParams
 from avatar.training.settings import unused_section_settings
 from avatar.training.validation import Validator
@@ -126,6 +127,26 @@ class TrainedAvatar(Protocol):
         """The world-space Gaussians of frame ``frame`` of a sequence whose conditioning is ``cond`` and whose
         posed meshes of that frame have ``vertices`` (V, 3), as evaluated (no sampling noise)."""
         ...
+
+
+@runtime_checkable
+class PosesRepeatedly(Protocol):
+    """A :class:`TrainedAvatar` that may offer a faster posing for many poses of the same avatar (optional)."""
+
+    def frame_pose(self) -> PoseFrame:
+        """As :func:`frame_pose`; what the avatar computes from inputs that no frame changes is computed here, once,
+        and kept by the function it returns (the same Gaussians as :meth:`TrainedAvatar.pose`, to rounding)."""
+        ...
+
+
+def frame_pose(avatar: TrainedAvatar) -> PoseFrame:
+    """One frame's world-space Gaussians of ``avatar`` as a function of that frame's conditioning and posed vertices
+    (V, 3), for posing the same frozen avatar many times (tracking a motion by it): the avatar's own
+    ``frame_pose()`` where it has one (:class:`PosesRepeatedly`), else its :meth:`~TrainedAvatar.pose` of a sequence
+    of that one frame."""
+    if isinstance(avatar, PosesRepeatedly):
+        return avatar.frame_pose()
+    return lambda cond, vertices: avatar.pose(cond.as_sequence(), vertices, 0)
 
 
 class Representation(ABC):

@@ -12,6 +12,13 @@ none of those views shows in a frame (fewer than :data:`MIN_VISIBLE_PIXELS` pixe
 tracker's parameters there. The face's contact offsets (the pbd stage's, simulated on the tracker's meshes) are
 added to the refined face unchanged, as in training.
 
+The gradient reaches the parameters through the posed meshes alone. The avatar's networks (InteractAvatar's H, I and
+PointNet++) read the frame's conditioning, computed from the current parameters without gradient
+(:meth:`~avatar.training.frame_params.FrameParams.posed`): they run forward only, but at every step, since their
+inputs follow the parameters as these move. What they compute from inputs that no frame changes (a Gaussian's
+position code and point features times their first layers) is computed once, by the pose function the caller passes
+(:func:`avatar.representations.frame_pose`).
+
 Which cameras it may look at is the caller's choice and the protocol's core: a frame tuned on a camera and scored
 on the same camera measures the refinement, not the avatar (see ``stages.evaluate``).
 """
@@ -40,6 +47,8 @@ from data_schemas.tables import SchemaError
 MIN_VISIBLE_PIXELS = 4
 #: part -> the prefix of its params.parquet columns and its crop label
 PARTS: dict[str, tuple[str, int]] = {"face": ("flame_", FACE_LABEL), "hand": ("mano_", HAND_LABEL)}
+#: frames refined together by default (:func:`track_with_avatar`): a draft capture's held-out motion (12) at once
+BATCH_FRAMES = 12
 
 #: The frozen avatar of one frame: (the frame's conditioning, its posed vertices (V, 3)) -> world Gaussians.
 PoseFrame = Callable[[FrameConditioning, Tensor], WorldGaussians]
@@ -106,12 +115,19 @@ def track_with_avatar(
     views: ViewSet,
     config: AvatarTrackingConfig,
     backend: str = "auto",
-    progress: Callable[[Iterable[int]], Iterable[int]] = lambda frames: frames,
+    progress: Callable[[Iterable[int]], Iterable[int]] = lambda steps: steps,
+    batch_frames: int = BATCH_FRAMES,
 ) -> TrackedMotion:
     """Refine every frame of a motion with the avatar ``pose`` frozen, from ``views`` alone.
 
+    The frames are independent problems (each its own Adam; the avatar frozen), refined ``batch_frames`` at a time
+    in lockstep: each step poses the batch's meshes with one run of the template layers, renders every frame, and
+    takes one backward pass through the sum of the frames' losses, whose gradient in a frame's parameters is that
+    frame's own loss's.
+
     Args:
-        pose: the trained avatar of one frame (its parameters must not require gradients: nothing of it moves).
+        pose: the trained avatar of one frame (its parameters must not require gradients: nothing of it moves), as
+            :func:`avatar.representations.frame_pose` gives it.
         params: the tracker's params.parquet columns, T rows each; T must equal ``views.num_frames``.
         head, hand: the templates the avatar was trained on.
         face_offsets: (T, V_face, 3) world-frame contact offsets added to the posed face (None: none).
@@ -119,7 +135,9 @@ def track_with_avatar(
             are refined on their device (the avatar's).
         config: steps and rates.
         backend: the rasterizer.
-        progress: wraps the loop over the frames (a progress bar).
+        progress: wraps each batch's loop over the steps (a progress bar).
+        batch_frames: frames refined together (the memory of their renders' and poses' backward passes grows with
+            it); the parameters found do not depend on it, to rounding.
     """
     num_frames = len(next(iter(params.values())))
     if num_frames != views.num_frames:
@@ -128,26 +146,36 @@ def track_with_avatar(
     held = {part: ~_seen(views, label) for part, (_, label) in PARTS.items()}
     before, after = np.zeros(num_frames), np.zeros(num_frames)
     decay = config.final_rate ** (1 / max(config.steps - 1, 1))
-    for t in progress(range(num_frames)):
+    size = max(batch_frames, 1)
+    for start in range(0, num_frames, size):
+        batch = slice(start, min(start + size, num_frames))
+        for step in progress(range(config.steps)):
+            losses = _losses(pose, frames, views, batch, backend)
+            if step == 0:  # the tracker's parameters
+                before[batch] = host(losses)
+            losses.sum().backward()
+            frames.optimizer.step(batch, lr_scale=decay**step)
         with torch.no_grad():
-            before[t] = _loss(pose, frames, views, t, backend).item()
-        for step in range(config.steps):
-            _loss(pose, frames, views, t, backend).backward()
-            frames.optimizer.step(t, lr_scale=decay**step)
-        _hold(frames, t, [part for part in PARTS if held[part][t]])
-        with torch.no_grad():
-            after[t] = _loss(pose, frames, views, t, backend).item()
+            if config.steps == 0:
+                before[batch] = host(_losses(pose, frames, views, batch, backend))
+            _hold(frames, batch, held)
+            after[batch] = host(_losses(pose, frames, views, batch, backend))
     return TrackedMotion(frames.arrays(), before, after, held)
 
 
-def _loss(pose: PoseFrame, frames: FrameParams, views: ViewSet, t: int, backend: str) -> Tensor:
-    """The mean L1 error of frame ``t``'s renders over every camera of ``views`` (observed pixels only)."""
-    gaussians = pose(frames.conditioning(t), frames.vertices(t))
-    total = torch.zeros((), device=views.images.device)
-    for c in range(views.num_cameras):
-        gt, render = views.target_and_render(rasterize(gaussians, views, c, backend).rgb, t, c)
-        total = total + (render - gt).abs().mean()
-    return total / views.num_cameras
+def _losses(pose: PoseFrame, frames: FrameParams, views: ViewSet, batch: slice, backend: str) -> Tensor:
+    """(B,): the mean L1 error of each frame of ``batch``'s renders over every camera of ``views`` (observed pixels
+    only)."""
+    vertices, cond = frames.posed(batch)
+    losses = []
+    for i, t in enumerate(range(batch.start, batch.stop)):
+        gaussians = pose(cond.frame(i), vertices[i])
+        total = torch.zeros((), device=views.images.device)
+        for c in range(views.num_cameras):
+            gt, render = views.target_and_render(rasterize(gaussians, views, c, backend).rgb, t, c)
+            total = total + (render - gt).abs().mean()
+        losses.append(total / views.num_cameras)
+    return torch.stack(losses)
 
 
 def _seen(views: ViewSet, label: int) -> np.ndarray:
@@ -156,13 +184,16 @@ def _seen(views: ViewSet, label: int) -> np.ndarray:
     return host((counts >= MIN_VISIBLE_PIXELS).any(1))
 
 
-def _hold(frames: FrameParams, t: int, parts: list[str]) -> None:
-    """Put the tracker's parameters of ``parts`` back into frame ``t``."""
-    prefixes = tuple(PARTS[part][0] for part in parts)
+def _hold(frames: FrameParams, batch: slice, held: Mapping[str, np.ndarray]) -> None:
+    """Put the tracker's parameters back into the frames of ``batch`` in which ``held`` (part -> (T,) bool) holds
+    that part."""
+    index = np.arange(frames.num_frames)[batch]
     with torch.no_grad():
-        for column, rows in frames.rows.items():  # the refined columns (REFINED_COLUMNS)
-            if column.startswith(prefixes):
-                rows[t] = frames.start[column][t]
+        for part, (prefix, _) in PARTS.items():
+            rows = torch.as_tensor(index[held[part][batch]], device=frames.face_offsets.device)
+            for column, values in frames.rows.items():  # the refined columns (REFINED_COLUMNS)
+                if column.startswith(prefix) and len(rows):
+                    values[rows] = frames.start[column][rows]
 
 
 def untracked_reason(camera_ids: Sequence[str]) -> str | None:

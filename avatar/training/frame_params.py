@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from avatar.device import host
-from avatar.dynamic.conditioning import Conditioning, conditioning_from_posed
+from avatar.dynamic.conditioning import Conditioning, SequenceConditioning, conditioning_from_posed
 from avatar.geometry.rotations import rotation_angle_deg
 from avatar.posing import posed_keypoints, run_layers, template_layers
 from avatar.templates import TemplateModel
@@ -82,12 +82,16 @@ class FrameAdam:
         self.steps = torch.zeros(num_frames, dtype=torch.long, device="cpu")  # counted on the host
 
     @torch.no_grad()
-    def step(self, frame: int, lr_scale: float = 1.0) -> None:
+    def step(self, frame: int | slice, lr_scale: float = 1.0) -> None:
         """Update row ``frame`` of every parameter with a gradient, then clear the gradients; ``lr_scale``
-        multiplies every group's rate for this update (a schedule)."""
+        multiplies every group's rate for this update (a schedule). A slice of rows updates each of them as its own
+        step would; they must have taken the same number of steps (frames refined in lockstep)."""
         beta1, beta2 = self.betas
         self.steps[frame] += 1
-        n = int(self.steps[frame])
+        counts = self.steps[frame].unique()
+        if counts.numel() != 1:
+            raise ValueError(f"rows {frame} have taken different numbers of steps ({counts.tolist()})")
+        n = int(counts[0])
         for (p, lr), m, v in zip(self.groups, self.exp_avg, self.exp_avg_sq):
             if p.grad is None:
                 continue
@@ -162,10 +166,11 @@ class FrameParams(nn.Module):
     def num_frames(self) -> int:
         return self.face_offsets.shape[0]
 
-    def columns(self, frame: int) -> dict[str, Tensor]:
-        """Every column's row ``frame`` as (1, D) (the refined ones differentiable)."""
-        out = {k: p[frame : frame + 1] for k, p in self.rows.items()}
-        return out | {k: getattr(self, k)[frame : frame + 1] for k in self.fixed}
+    def columns(self, frame: int | slice) -> dict[str, Tensor]:
+        """Every column's row ``frame`` as (1, D), or its rows ``frame`` (a slice) as (B, D) (the refined ones
+        differentiable)."""
+        rows = frame if isinstance(frame, slice) else slice(frame, frame + 1)
+        return {k: p[rows] for k, p in self.rows.items()} | {k: getattr(self, k)[rows] for k in self.fixed}
 
     def vertices(self, frame: int) -> Tensor:
         """(V_face + V_hand, 3) posed face (with its contact offsets) and hand of ``frame``, in the order of
@@ -179,9 +184,28 @@ class FrameParams(nn.Module):
         the meshes; the networks' inputs follow it, as they follow the fit)."""
         t = self.columns(frame)
         face, hand = run_layers(self.flame, self.mano, t)
-        return conditioning_from_posed(
-            t, face.joints[:, 0], hand.joints[:, 0], self.face_offsets[frame : frame + 1]
-        ).frame(0)
+        return self._conditioning(t, face.joints, hand.joints, self.face_offsets[frame : frame + 1]).frame(0)
+
+    def posed(self, frames: slice) -> tuple[Tensor, SequenceConditioning]:
+        """The frames ``frames`` (B of them) posed from their current parameters by one run of the template layers:
+        their vertices (B, V_face + V_hand, 3) as :meth:`vertices`, differentiable in the refined parameters, and
+        their conditioning as :meth:`conditioning`, without gradient."""
+        t = self.columns(frames)
+        face, hand = run_layers(self.flame, self.mano, t)
+        offsets = self.face_offsets[frames]
+        vertices = torch.cat([face.vertices + offsets, hand.vertices], dim=1)
+        return vertices, self._conditioning(t, face.joints.detach(), hand.joints.detach(), offsets)
+
+    @staticmethod
+    def _conditioning(
+        t: Mapping[str, Tensor], face_joints: Tensor, hand_joints: Tensor, offsets: Tensor
+    ) -> SequenceConditioning:
+        """The conditioning of B frames from their columns ``t`` ((B, D) each), posed joints ((B, J, 3) each) and
+        contact offsets (B, V_face, 3), with the columns detached: a row of a refined parameter taken without
+        gradient is a view that still says it requires one, and a backward pass would differentiate the networks
+        that read it for nothing."""
+        columns = {k: v.detach() for k, v in t.items()}
+        return conditioning_from_posed(columns, face_joints[:, 0], hand_joints[:, 0], offsets)
 
     def step(self, frame: int, frames: np.ndarray) -> None:
         """Move row ``frame`` by its gradient (:class:`FrameAdam`) and clear the gradients. ``centred``: then

@@ -43,7 +43,7 @@ from avatar.device import precision
 from avatar.dynamic.conditioning import FrameConditioning
 from avatar.geometry.frames import place_gaussians, place_means, triangle_frames
 from avatar.nets.encoding import encoded_dim, positional_encoding
-from avatar.nets.mlp import HEAD_KINDS, DeltaHeads, SharedDeltaHeads, delta_heads
+from avatar.nets.mlp import HEAD_KINDS, DeltaHeads, FixedProducts, SharedDeltaHeads, delta_heads
 from avatar.nets.pointnet2 import PointNet2Encoder
 from avatar.representations.bound.gaussians import SH_C0, BoundGaussians
 
@@ -144,6 +144,23 @@ class DynamicFrame:
     local_means: Tensor
     local_scales: Tensor
     interaction_evaluations: int = 0
+
+
+@dataclass(frozen=True)
+class FixedInputs:
+    """What a frozen :class:`DynamicAvatar`'s networks compute from the per-Gaussian inputs that no frame changes
+    (:meth:`DynamicAvatar.fixed_inputs`): the products of the position code gamma(mu_cano) (and, for H_app, the point
+    features P_i) by the columns of every MLP's input layer and skip. None for a module the model does not build.
+
+    Attributes:
+        hand_geo, hand_app: per MLP, (N_hand, width) products, the hand Gaussians in ``hand_index`` order.
+        interaction: per MLP, (N_face, width) products of the position code alone (I's offset code changes with the
+            frame), the face Gaussians in ``face_index`` order.
+    """
+
+    hand_geo: FixedProducts | None
+    hand_app: FixedProducts | None
+    interaction: FixedProducts | None
 
 
 def interaction_weights(distance: Tensor, d_max: float) -> Tensor:
@@ -367,10 +384,33 @@ class DynamicAvatar(nn.Module):
         with precision(self.precision, points.device):
             return self.pointnet(points).float()
 
+    @torch.no_grad()
+    def fixed_inputs(self) -> FixedInputs:
+        """The networks' products of the inputs no frame changes (:class:`FixedInputs`), for a model that is frozen
+        from now on: :meth:`forward` given them computes the same frame, to rounding, without these products. They
+        hold 2 x width floats per Gaussian and MLP (every MLP of H on the hand, of I on the face)."""
+        code = self.position_code
+        with precision(self.precision, code.device):
+            return FixedInputs(
+                hand_geo=None if self.hand_geo is None else self.hand_geo.fixed_products(code[self.hand_index]),
+                hand_app=(
+                    None
+                    if self.hand_app is None
+                    else self.hand_app.fixed_products((code[self.hand_index], self.point_features))
+                ),
+                interaction=(
+                    None if self.interaction is None else self.interaction.fixed_products(code[self.face_index])
+                ),
+            )
+
     # -- the frame ---------------------------------------------------------------------------------
 
     def forward(
-        self, cond: FrameConditioning, vertices: Tensor, generator: torch.Generator | None = None
+        self,
+        cond: FrameConditioning,
+        vertices: Tensor,
+        generator: torch.Generator | None = None,
+        fixed: FixedInputs | None = None,
     ) -> DynamicFrame:
         """The Gaussians of one frame.
 
@@ -378,6 +418,7 @@ class DynamicAvatar(nn.Module):
             cond: the frame's conditioning.
             vertices: (V, 3) the frame's posed mesh (face with its PBD offsets, then hand).
             generator: draws the PointNet++ sample (training); None takes the most probable (evaluation).
+            fixed: :meth:`fixed_inputs` of this model as it is now (a frozen model posed many times), or None.
         """
         g = self.gaussians
         frames = triangle_frames(vertices, self.faces)
@@ -400,17 +441,20 @@ class DynamicAvatar(nn.Module):
             assert self.hand_app is not None and feature is not None  # built, and read, with H_geo
             idx = self.hand_index
             code = self.position_code[idx]
+            frame = torch.cat([feature, cond.hand_pose, cond.hand_rotation, cond.rel_rotation, cond.rel_translation])
             with precision(self.precision, code.device):
-                geo = self.hand_geo(code, cond.hand_pose)
-                app = self.hand_app(
-                    (code, self.point_features),
-                    torch.cat([feature, cond.hand_pose, cond.hand_rotation, cond.rel_rotation, cond.rel_translation]),
-                )
+                if fixed is None:
+                    geo = self.hand_geo(code, cond.hand_pose)
+                    app = self.hand_app((code, self.point_features), frame)
+                else:  # every point input is in the products
+                    geo = self.hand_geo((), cond.hand_pose, fixed.hand_geo)
+                    app = self.hand_app((), frame, fixed.hand_app)
             for name, value in {**geo, **app}.items():
                 deltas[name] = deltas[name].index_add(0, idx, value.float())
         if self.interaction is not None:
             assert feature is not None  # I reads F
-            evaluations = self._interact(cond, means0[self.face_index], offsets, vertices, feature, deltas)
+            products = None if fixed is None else fixed.interaction
+            evaluations = self._interact(cond, means0[self.face_index], offsets, vertices, feature, deltas, products)
         local_means = local_means + deltas["mu"]
         local_scales = torch.exp(log_scales + deltas["s"])
         means, scales, world_quats = place_gaussians(frames, g.binding, local_means, local_scales, quats + deltas["q"])
@@ -439,10 +483,12 @@ class DynamicAvatar(nn.Module):
         vertices: Tensor,
         feature: Tensor,
         deltas: dict[str, Tensor],
+        fixed: FixedProducts | None = None,
     ) -> int:
         """Add ``w_i I(...)`` of the face Gaussians near the hand to ``deltas``; returns how many ran I.
         ``face_means`` (N_face, 3): the face Gaussians' world means before any delta; ``offsets`` (N_face, 3):
-        :meth:`triangle_offsets`."""
+        :meth:`triangle_offsets`; ``fixed``: :attr:`FixedInputs.interaction` (None: the position code multiplied
+        here)."""
         assert self.interaction is not None  # called only when I is built
         idx = self.face_index
         with torch.no_grad():
@@ -451,18 +497,15 @@ class DynamicAvatar(nn.Module):
         active = (weight > 0).nonzero()[:, 0]
         if active.numel() == 0:
             return 0
-        point = torch.cat(
-            [
-                self.position_code[idx[active]],
-                positional_encoding(offsets[active] / self.cfg.offset_unit_m, self.cfg.offset_frequencies),
-            ],
-            dim=-1,
-        )
+        offset_code = positional_encoding(offsets[active] / self.cfg.offset_unit_m, self.cfg.offset_frequencies)
         frame = torch.cat(
             [feature, cond.hand_pose, cond.face_pose, cond.expression, cond.rel_translation, cond.rel_rotation]
         )
-        with precision(self.precision, point.device):
-            outputs = self.interaction(point, frame)
+        with precision(self.precision, offset_code.device):
+            if fixed is None:
+                outputs = self.interaction(torch.cat([self.position_code[idx[active]], offset_code], dim=-1), frame)
+            else:  # the position code's products of the active Gaussians, then the offset code's
+                outputs = self.interaction((offset_code,), frame, tuple(f.rows(active) for f in fixed))
         for name, value in outputs.items():
             deltas[name] = deltas[name].index_add(0, idx[active], weight[active, None] * value.float())
         return int(active.numel())

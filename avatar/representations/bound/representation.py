@@ -35,6 +35,7 @@ from avatar.representations.bound.gaussians import BoundGaussians
 from avatar.representations.bound.stage_two import DynamicTrainConfig, DynamicTrainResult, train_dynamic
 from avatar.representations.bound.warmup import WarmupTrainConfig, train_warmup
 from avatar.scene import SceneDecision
+from avatar.training.avatar_tracking import PoseFrame
 from avatar.training.frame_params import FrameParams
 from avatar.training.loop import advising, learning_rates
 from avatar.training.selection import SelectionConfig
@@ -257,6 +258,12 @@ class BoundAvatar:
 
     def pose(self, cond: SequenceConditioning, vertices: torch.Tensor, frame: int) -> WorldGaussians:
         return self.model(cond.frame(frame), vertices)
+
+    def frame_pose(self) -> PoseFrame:
+        """:func:`~avatar.representations.frame_pose`: the networks' products of the position code and the point
+        features (:meth:`DynamicAvatar.fixed_inputs`) computed now, once, and handed to every frame."""
+        fixed = self.model.fixed_inputs()
+        return lambda cond, vertices: self.model(cond, vertices, None, fixed)
 
 
 class BoundRepresentation(Representation):

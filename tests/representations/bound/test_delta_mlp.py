@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from avatar.nets.mlp import DeltaHeads, DeltaMLP, SplitLinear
+from avatar.nets.mlp import DeltaHeads, DeltaMLP, SplitLinear, delta_heads
 from avatar.representations.bound import dynamic_model
 from avatar.representations.bound.dynamic_model import nearest_distance
 from avatar.representations.bound.stage_two import DynamicTrainConfig, train_dynamic
@@ -132,3 +132,28 @@ def test_a_short_stage_two_gives_the_reference_loss_curve(scene: Scene, monkeypa
     assert sum(r.interaction_evaluations for r in reference) > 0  # I ran: its changes are covered
     assert [r.interaction_evaluations for r in fast] == [r.interaction_evaluations for r in reference]
     np.testing.assert_allclose([r.loss for r in fast], [r.loss for r in reference], rtol=1e-5)
+
+
+@pytest.mark.parametrize(("depth", "frame_dim", "fixed_parts"), [(1, 7, 1), (2, 0, 2), (4, 7, 1), (6, 9, 2)])
+@pytest.mark.parametrize("kind", ["per_parameter", "shared"])
+def test_fixed_products_computed_once_give_the_same_deltas(depth: int, frame_dim: int, fixed_parts: int, kind: str):
+    """The leading point blocks multiplied once (fixed_products), the rest and the frame at the call: the deltas of the
+    whole call to rounding, also for a subset of the points (rows)."""
+    torch.manual_seed(0)
+    heads = delta_heads(kind, {"mu": 3, "s": 3, "o": 1}, point_dim=13, frame_dim=frame_dim, width=16, depth=depth)
+    gen = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for layer in heads.output_layers():
+            layer.weight.normal_(0.0, 0.3, generator=gen)
+            layer.bias.normal_(0.0, 0.3, generator=gen)
+    blocks = (torch.randn(23, 6, generator=gen), torch.randn(23, 4, generator=gen), torch.randn(23, 3, generator=gen))
+    frame = torch.randn(frame_dim, generator=gen)
+    fixed, rest = blocks[:fixed_parts], blocks[fixed_parts:]
+    rows = torch.tensor([0, 5, 7, 22])
+    with torch.no_grad():
+        products = heads.fixed_products(fixed)
+        whole, ours = heads(blocks, frame), heads(rest, frame, products)
+        some = heads(tuple(b[rows] for b in rest), frame, tuple(p.rows(rows) for p in products))
+    for name in whole:
+        _close(ours[name], whole[name])
+        _close(some[name], whole[name][rows])
