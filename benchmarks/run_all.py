@@ -4,10 +4,10 @@ status, wall time, and the machine's load.
 
 Quick modes write under a temporary folder (``--keep DIR`` keeps it), never over the committed
 ``benchmarks/results/``. The benchmarks that read a finished run (``bench_reenact``, ``bench_viewer``, ``bench_refine``,
-``bench_train_refine``, ``bench_test_tracking``) get one ``quality=smoke`` DAG made first. ``--full`` runs each with
-its own defaults instead (hours; those that need a run get the same smoke DAG, so pass a bigger one by hand for real
-figures). A benchmark's full mode is always ``python benchmarks/<name>.py`` with its own arguments
-(``--help``).
+``bench_train_refine``, ``bench_test_tracking``, ``bench_avatar_tracking``) get one ``quality=smoke`` DAG made first.
+``--full`` runs each with its own defaults instead (hours; those that need a run get the same smoke DAG, so pass a
+bigger one by hand for real figures). A benchmark's full mode is always ``python benchmarks/<name>.py`` with its own
+arguments (``--help``).
 
 Usage: python benchmarks/run_all.py [--full] [--only bench_ssim bench_runner] [--timeout-s 900] [--keep DIR]
 """
@@ -119,6 +119,7 @@ QUICK: dict[str, list[list[str]]] = {
     "bench_test_tracking": [
         ["rates", "--workspace", "{smoke}/synth_a", "--frames", "2", "--sweep", "5x1", "--results", "{out}"]
     ],
+    "bench_avatar_tracking": [["--outputs", "{smoke}", "--rounds", "1", "--results", "{out}"]],
     "bench_gpu": [
         [
             "--presets",
@@ -143,6 +144,7 @@ NEEDS = {
     "bench_seeds": [["table"]],
     "bench_small_captures": [["table"]],
     "bench_test_tracking": [["rates", "--workspace", "{smoke}/synth_a"]],
+    "bench_avatar_tracking": [["--outputs", "{smoke}"]],
 }
 
 
