@@ -4,7 +4,9 @@ Each stage writes a text file derived from its config value and its inputs, so
 changing ``stage.<name>.value`` changes that stage's output and all below it.
 ``stage.<name>.sleep_s`` makes the stage write half its output, then sleep (for kill
 tests), then read its inputs a second time and record ``parts/mixed.txt`` if
-they changed meanwhile (for tests of concurrent writers); ``stage.a.fail`` makes it raise after writing half its output;
+they changed meanwhile (for tests of concurrent writers); ``stage.<name>.hold_until`` names a file: the stage
+waits, after writing half its output, until the test creates it (an ordering that does not depend on the machine's
+speed); ``stage.a.fail`` makes it raise after writing half its output;
 ``stage.a.fail_once`` makes it leave a checkpoint in its scratch dir and
 raise, and resume from that checkpoint on the next run; ``stage.<name>.trace``
 names a file where start/end times are appended (for
@@ -26,6 +28,7 @@ from pipeline.stage import StageContext, stage
 class ToyConfig:
     value: int = 0
     sleep_s: float = 0.0
+    hold_until: str | None = None
     fail: bool = False
     fail_once: bool = False
     trace: str | None = None
@@ -54,6 +57,8 @@ def _toy(name: str, inputs: tuple[str, ...]):
             again = "".join(Path(ctx.input_dir(i), f"{i}.txt").read_text() for i in inputs)
             if again != upstream:
                 (ctx.out_dir / "parts" / "mixed.txt").write_text(f"first read:\n{upstream}second read:\n{again}")
+        while conf.hold_until and not Path(conf.hold_until).exists():
+            time.sleep(0.05)
         if conf.fail:
             raise RuntimeError(f"toy stage {name} was told to fail")
         checkpoint = ctx.scratch_dir / "checkpoint.txt"

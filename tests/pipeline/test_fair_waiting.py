@@ -64,20 +64,32 @@ def _events(trace: Path) -> list[list[str]]:
     return [line.split() for line in trace.read_text().splitlines()]
 
 
+def _waits_in_turnstile(pid: int, lock: Path) -> bool:
+    """Whether process ``pid`` has ``lock``'s turnstile open (it waits there, or holds it)."""
+    turnstile = str(lock.with_name(lock.name + ".queue"))
+    try:
+        return any(os.readlink(fd) == turnstile for fd in Path(f"/proc/{pid}/fd").iterdir())
+    except OSError:  # a descriptor closed while listing
+        return False
+
+
 def test_a_forced_shared_stage_is_written_before_later_readers_of_it(tmp_path):
     """Readers overlapping one another (here two runs: b, then d, both reading a) used to hold a shared stage
     without a gap, so a run that must rewrite it waited until the last of them ended. Now a reader that comes
-    after the waiting writer waits behind it."""
-    out, trace = tmp_path / "out", tmp_path / "trace.log"
+    after the waiting writer waits behind it. Reader b holds its stage until the writer and reader d both wait (not
+    for a fixed time, which a loaded machine's start-up of the two runs can outlast)."""
+    out, trace, release = tmp_path / "out", tmp_path / "trace.log", tmp_path / "release"
     base = [*TOY, f"paths.outputs={out}"] + [f"++stage.{s}.trace={trace}" for s in "abcd"]
     assert subprocess.run(cli_command(*base), cwd=REPO, env=cli_env(), capture_output=True).returncode == 0
     trace.unlink()
     lock = out / "synth_a" / ".locks" / "a.lock"
-    reader_b = _start(*base, "run.only=b", "run.force=true", "++stage.b.sleep_s=6")
+    reader_b = _start(*base, "run.only=b", "run.force=true", f"++stage.b.hold_until={release}")
     wait_for(lambda: trace.exists() and "b start" in trace.read_text())
     writer = _start(*base, "run.only=a", "run.force=true")
-    wait_for(lambda: _queued(lock), timeout_s=60)
-    reader_d = _start(*base, "run.only=d", "run.force=true", "++stage.d.sleep_s=4")
+    wait_for(lambda: _queued(lock), timeout_s=120)
+    reader_d = _start(*base, "run.only=d", "run.force=true")
+    wait_for(lambda: _waits_in_turnstile(reader_d.pid, lock), timeout_s=120)
+    release.touch()
     outputs = [p.communicate(timeout=180)[0] for p in (reader_b, writer, reader_d)]
     assert [p.returncode for p in (reader_b, writer, reader_d)] == [0, 0, 0], outputs
     order = [(e[0], e[1]) for e in _events(trace)]
