@@ -19,6 +19,7 @@ import pytest
 from benchmarks.campaign.cells import Cell, QueueError, load_queue
 from benchmarks.campaign.priority import LOWEST_NICE
 from benchmarks.campaign.results import ResultFile, aggregate
+from benchmarks.campaign.runner import code_head
 from benchmarks.campaign.tables import render
 from tests.conftest import REPO, wait_for
 
@@ -306,3 +307,21 @@ def test_lowest_priority_refuses_a_shared_session_and_lowers_its_own() -> None:
     assert values.split() == [str(LOWEST_NICE), "True", "True"], second
     if Path("/proc/self/autogroup").is_file():
         assert autogroup.endswith(f"nice {LOWEST_NICE}"), autogroup
+
+
+def test_the_code_a_cell_runs_passes_over_the_campaigns_own_commits_of_results(campaign: dict[str, Path]) -> None:
+    repo = campaign["repo"]
+
+    def commit(path: str, message: str) -> str:
+        (repo / path).parent.mkdir(parents=True, exist_ok=True)
+        (repo / path).write_text(message)
+        subprocess.run(["git", "add", path], cwd=repo, check=True)
+        subprocess.run(["git", "commit", "-q", "-m", message], cwd=repo, check=True)
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True).stdout
+
+    code = commit("avatar/model.py", "code").strip()
+    commit("benchmarks/results/paper_tables.json", "a cell")
+    commit("docs/results/paper_tables.md", "its page")
+    assert code_head(repo) == code
+    newer = commit("benchmarks/campaign/queue.toml", "more cells").strip()  # the queue is code
+    assert code_head(repo) == newer

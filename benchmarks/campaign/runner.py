@@ -6,7 +6,8 @@ Where things go (``--outputs``, default ``outputs/campaign/``, which git ignores
 - ``<setting>/``: the app's outputs folder of the setting's cells (``paths.outputs``), so the cells of one setting and
   subject share their capture, tracking and contact stages, and a cell cut off by a kill resumes from its last
   finished stage (the app's own cache) when the runner starts again;
-- ``code/<commit>/``: a ``git worktree`` of the checkout's newest commit (HEAD) when the cell starts. Cells run
+- ``code/<commit>/``: a ``git worktree`` of the checkout's newest commit of code (:func:`code_head`: HEAD, passing
+  over the runner's own commits of results) when the cell starts, removed once no cell runs it. Cells run
   committed code only: edits in progress in the checkout never reach a measurement, and each record names the commit
   it was trained at;
 - ``logs/<cell>.log``: each cell's output; ``runner.log``: the runner's own lines (``start``);
@@ -52,8 +53,8 @@ LOCK_TIMEOUT_S = 7 * 24 * 3600
 @dataclasses.dataclass
 class Options:
     """How the runner runs: the queue, the result file, the outputs folder, where the code comes from (``code``:
-    None for a worktree of the checkout's HEAD per cell, else this folder's code as it is), the command that starts
-    the app (``launcher``: run in the code folder), parallel cells (``jobs``) and whether to commit results."""
+    None for a worktree of the checkout's newest code per cell, else this folder's code as it is), the command that
+    starts the app (``launcher``: run in the code folder), parallel cells (``jobs``) and whether to commit results."""
 
     queue: Queue
     results: Path
@@ -84,6 +85,16 @@ def code_commit(code: Path) -> str:
     return sha + ("+dirty" if dirty else "")
 
 
+#: what the campaign itself commits (its result files and their pages): never a reason to run a cell on new code
+RESULT_PATHS = ("benchmarks/results", "docs/results")
+
+
+def code_head(repo: Path = REPO) -> str:
+    """The short commit of ``repo``'s newest commit that changed anything but :data:`RESULT_PATHS`: the runner's own
+    commits of finished cells leave the code the next cell runs (and its worktree) as it is."""
+    return _git("log", "-1", "--format=%h", "HEAD", "--", ".", *(f":!{p}" for p in RESULT_PATHS), cwd=repo)
+
+
 class Runner:
     """One campaign runner (see the module's docstring); :meth:`run` until the queue is done or it is stopped."""
 
@@ -93,6 +104,7 @@ class Runner:
         self.lock = threading.Lock()  # the result file, the state and git
         self.running: dict[Cell, subprocess.Popen[bytes]] = {}
         self.claimed: set[Cell] = set()
+        self.in_use: dict[Path, int] = {}  # worktree -> cells running its code
         self.stopping = threading.Event()
         self.failed_path = options.outputs / "failed.json"
         self.failed: dict[str, dict[str, Any]] = (
@@ -118,24 +130,30 @@ class Runner:
     # -- one cell --------------------------------------------------------------------------------------------------
 
     def _code(self) -> tuple[Path, str]:
-        """(the folder whose code the next cell runs, its commit)."""
+        """(the folder whose code the next cell runs, its commit): the worktree of :func:`code_head` (made once)."""
         if self.o.code is not None:
             return self.o.code, code_commit(self.o.code)
-        sha = _git("rev-parse", "--short", "HEAD", cwd=REPO)
+        sha = code_head()
         tree = self.o.outputs / "code" / sha
         with self.lock:
             if not (tree / ".git").exists():
                 tree.parent.mkdir(parents=True, exist_ok=True)
                 _git("worktree", "add", "--detach", "--force", str(tree), sha, cwd=REPO)
+            self.in_use[tree] = self.in_use.get(tree, 0) + 1
         return tree, sha
 
-    def _prune_worktrees(self) -> None:
-        """Remove the worktrees of earlier commits (no cell runs while the runner starts)."""
-        head = _git("rev-parse", "--short", "HEAD", cwd=REPO)
-        for tree in sorted((self.o.outputs / "code").glob("*")):
-            if tree.name != head:
-                subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO, capture_output=True)
-        subprocess.run(["git", "worktree", "prune"], cwd=REPO, capture_output=True)
+    def _release(self, tree: Path) -> None:
+        """A cell is done with ``tree``: remove the worktrees of earlier code that no cell runs any more."""
+        if self.o.code is not None:
+            return
+        with self.lock:
+            self.in_use[tree] -= 1
+            current = self.o.outputs / "code" / code_head()
+            for other in sorted((self.o.outputs / "code").glob("*")):
+                if other != current and not self.in_use.get(other):
+                    subprocess.run(["git", "worktree", "remove", "--force", str(other)], cwd=REPO, capture_output=True)
+                    self.in_use.pop(other, None)
+            subprocess.run(["git", "worktree", "prune"], cwd=REPO, capture_output=True)
 
     def command(self, cell: Cell, code: Path) -> list[str]:
         """The app's command line of ``cell``."""
@@ -249,6 +267,7 @@ class Runner:
             code, commit = self._code()
             cell = self._next(commit)
             if cell is None:
+                self._release(code)
                 return
             try:
                 self.run_cell(cell, code, commit)
@@ -257,6 +276,7 @@ class Runner:
             finally:
                 with self.lock:
                     self.claimed.discard(cell)
+                self._release(code)
                 self._state()
 
     def stop(self) -> None:
@@ -271,8 +291,6 @@ class Runner:
         failed, 130 when stopped."""
         self.o.outputs.mkdir(parents=True, exist_ok=True)
         with hold_lock(self.o.outputs / "runner.lock"):
-            if self.o.code is None:
-                self._prune_worktrees()
             priority = current_priority()
             self.o.log(
                 f"campaign: {len(self.pending())} of {len(self.o.queue.cells)} cells to run, {self.o.jobs} at a time, "
