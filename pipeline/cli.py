@@ -34,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.batch import JobFailed, one_line
 from pipeline.config import CONF_DIR, ConfigError, fix_command, validate_config
-from pipeline.exit_status import INTERRUPTED_BETWEEN_STAGES, INTERRUPTED_STATUS
+from pipeline.exit_status import INTERRUPTED_BETWEEN_STAGES, INTERRUPTED_STATUS, exit_interrupted_before_the_run
 from pipeline.overrides import composition_problem, override_key, setting_paths
 from pipeline.registry import RegistryError, StageRegistry, load_registry
 from pipeline.runner import Interrupted, MissingUpstream, Runner, StageFailed, StageReport
@@ -188,8 +188,7 @@ def _app_quiet_on_ctrl_c() -> None:
     try:
         app()
     except KeyboardInterrupt:
-        print(f"interactavatar: {INTERRUPTED_BETWEEN_STAGES}", file=sys.stderr)
-        sys.exit(INTERRUPTED_STATUS)
+        exit_interrupted_before_the_run()
 
 
 def hydra_args(argv: list[str] | None = None) -> argparse.Namespace:

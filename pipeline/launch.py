@@ -6,16 +6,8 @@ OpenMP runtime reads only when it loads."""
 
 from __future__ import annotations
 
-import sys
-
+from pipeline.exit_status import exit_interrupted_before_the_run  # the standard library only
 from pipeline.threads import wait_passively  # the standard library only
-
-#: The exit status of a run stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
-INTERRUPTED_STATUS = 130
-INTERRUPTED_BETWEEN_STAGES = (
-    "interrupted: the stages finished so far are kept and none was left half written; the same command goes on "
-    "from there"
-)
 
 
 def main() -> None:
@@ -24,8 +16,7 @@ def main() -> None:
     try:
         from pipeline.cli import main as run_command
     except KeyboardInterrupt:
-        print(f"interactavatar: {INTERRUPTED_BETWEEN_STAGES}", file=sys.stderr)
-        sys.exit(INTERRUPTED_STATUS)
+        exit_interrupted_before_the_run()
     run_command()
 
 
