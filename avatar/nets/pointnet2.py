@@ -45,6 +45,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from avatar.geometry.gather import gather_rows
+
 #: Largest (chunk x N) distance block the ball query builds at once (~64 MB of float32).
 BALL_QUERY_CHUNK_ELEMENTS = 1 << 24
 
@@ -239,18 +241,10 @@ def group(
     divided by ``radius``, then the neighbours' features.
 
     xyz (N, 3), features (N, C) or None (C = 0), centres (M, 3), neighbours (M, K) int64."""
-    relative = (_gather_rows(xyz, neighbours) - centres[:, None, :]) / radius
+    relative = (gather_rows(xyz, neighbours) - centres[:, None, :]) / radius
     if features is None:
         return relative
-    return torch.cat([relative, _gather_rows(features, neighbours)], dim=-1)
-
-
-def _gather_rows(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """values (N, C), index (M, K) -> (M, K, C). ``index_select``, not ``values[index]``: its backward is an
-    ``index_add`` that sums repeated indices in a fixed order, whereas advanced indexing's backward
-    (``index_put_`` with accumulation) sums them in a thread-dependent order on CPU, and the ball query
-    repeats indices, so training would not be reproducible bit for bit."""
-    return torch.index_select(values, 0, index.reshape(-1)).reshape(*index.shape, values.shape[-1])
+    return torch.cat([relative, gather_rows(features, neighbours)], dim=-1)
 
 
 class SetAbstraction(nn.Module):

@@ -120,3 +120,38 @@ def test_gradcheck_placement():
         )
 
     assert torch.autograd.gradcheck(fn, (verts, mu))
+
+
+def test_the_gradient_through_shared_frames_is_the_same_bits_on_two_threads_and_matches_float64():
+    """Many Gaussians share a triangle, and (with the tracking refined) a vertex's gradient sums over all of them:
+    summed by advanced indexing's backward (parallel atomic additions on the CPU) it differed from run to run on two
+    threads, which made training with refine_params irreproducible. Now the same bits every time, and within float32
+    rounding of the float64 gradient."""
+    from avatar.geometry.gather import gather_rows
+
+    g = torch.Generator().manual_seed(0)
+    V, F, N = 500, 800, 100_000
+    verts = torch.randn(V, 3, generator=g, dtype=torch.float64)
+    faces = torch.randint(0, V, (F, 3), generator=g)
+    binding = torch.randint(0, F, (N,), generator=g)
+    local = [torch.randn(N, 3, generator=g), torch.rand(N, 3, generator=g), torch.randn(N, 4, generator=g)]
+    weights = [torch.randn(N, c, generator=g, dtype=torch.float64) for c in (3, 3, 4)]
+
+    def vertex_gradient(dtype: torch.dtype) -> torch.Tensor:
+        v = verts.to(dtype).requires_grad_()
+        placed = place_gaussians(triangle_frames(v, faces), binding, *(t.to(dtype) for t in local))
+        sum((p * w.to(dtype)).sum() for p, w in zip(placed, weights)).backward()
+        return v.grad
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        grads = [vertex_gradient(torch.float32) for _ in range(4)]
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(grads[0], other) for other in grads[1:])
+    reference = vertex_gradient(torch.float64)
+    torch.testing.assert_close(grads[0].double(), reference, rtol=1e-3, atol=1e-3 * reference.abs().max().item())
+    index = torch.tensor([[2, 0], [1, 1]])
+    rows = torch.arange(12.0).reshape(2, 3, 2)
+    assert torch.equal(gather_rows(rows, index, dim=1), rows[:, index, :])  # as advanced indexing, any axis
