@@ -34,6 +34,7 @@ QUICK: dict[str, list[list[str]]] = {
     "bench_fitting": [["--size", "96", "--frames", "4", "--results", "{out}"]],
     "bench_pbd": [["--sweeps", "50,100", "--tables", "1,2", "--results", "{out}"]],
     "bench_transfer": [["--results", "{out}"]],
+    "bench_campaign_priority": [["--repeats", "1", "--busy", "1", "--tests", "tests/geometry", "--results", "{out}"]],
     "bench_seeds": [
         [
             "run",
