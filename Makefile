@@ -74,13 +74,15 @@ compare: $(STAMP) ext viewer
 	$(VENV)/bin/interactavatar -m method=$(METHODS) seed=$(SEEDS) $(ARGS)
 	$(VENV)/bin/interactavatar run.from=compare "stage.compare.methods=[$(METHODS)]" "stage.compare.seeds=[$(SEEDS)]" $(ARGS)
 
-## make test: the linter, then the default suite (CPU only, includes the end-to-end smoke DAG)
+## make test: the linter, then the default suite (CPU only, includes the end-to-end smoke DAG), one pytest-xdist
+## worker per core, a test file's tests on one worker (PYTEST_ARGS="-n 0" runs it in one process)
+PYTEST_ARGS ?= -n auto --dist loadfile
 test: $(STAMP) ext viewer browser lint typecheck
-	$(PY) -m pytest -q -m "not slow and not cluster"
+	$(PY) -m pytest -q -m "not slow and not cluster" $(PYTEST_ARGS)
 
 ## make test-all: the default suite plus slow tests
 test-all: $(STAMP) ext viewer browser lint typecheck
-	$(PY) -m pytest -q -m "not cluster"
+	$(PY) -m pytest -q -m "not cluster" $(PYTEST_ARGS)
 
 ## make lint: ruff's rules and its formatting on the whole repository, settings in pyproject.toml ([tool.ruff])
 lint: $(STAMP)

@@ -17,9 +17,44 @@ from omegaconf import DictConfig
 
 from pipeline.threads import wait_passively
 
+
+def _share_the_cores_between_workers() -> None:
+    """Under pytest-xdist (``make test`` runs one worker per core, ``-n auto``), each worker and the runs it starts use
+    their share of the cores (``OMP_NUM_THREADS``, unless the caller set it): a worker's torch taking every core, and
+    the other worker's too, made each slower than alone. Set before torch loads, like :func:`wait_passively`."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1 and "OMP_NUM_THREADS" not in os.environ:
+        os.environ["OMP_NUM_THREADS"] = str(max(1, len(os.sched_getaffinity(0)) // workers))
+
+
 # Idle OpenMP threads sleep in the suite's own process, as in the runs it starts (pipeline.launch): the runtime reads
 # this when torch loads, which is after this file (torch is imported by the test modules and the fixtures below).
 wait_passively()
+_share_the_cores_between_workers()
+
+#: The test files that take longest (minutes on 2 cores: ``pytest --durations``), started first so that under
+#: pytest-xdist (``--dist loadfile``: a file's tests stay on one worker) no worker is left with one of them at the end.
+LONGEST_FIRST = (
+    "tests/test_end_to_end.py",
+    "tests/test_extremes_dag.py",
+    "tests/stages/test_train_refinement.py",
+    "tests/stages/test_keypoints_fit.py",
+    "tests/test_monocular_dag.py",
+    "tests/stages/test_dynamic_selection.py",
+    "tests/stages/test_capture_parallel.py",
+    "tests/pipeline/test_numeric_settings.py",
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The files of :data:`LONGEST_FIRST` first, in its order; the rest as collected."""
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+
+    def key(item: pytest.Item) -> int:
+        return rank.get(Path(item.fspath).relative_to(REPO).as_posix(), len(rank))
+
+    items.sort(key=key)  # stable: within a file and among the rest, the collected order
+
 
 REPO = Path(__file__).resolve().parent.parent
 CONF_DIR = REPO / "conf"
