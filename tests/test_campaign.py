@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -19,7 +20,7 @@ import pytest
 from benchmarks.campaign.cells import Cell, QueueError, load_queue
 from benchmarks.campaign.priority import LOWEST_NICE
 from benchmarks.campaign.results import ResultFile, aggregate
-from benchmarks.campaign.runner import code_head
+from benchmarks.campaign.runner import code_head, lock_holder
 from benchmarks.campaign.tables import render
 from tests.conftest import REPO, wait_for
 
@@ -132,6 +133,9 @@ def test_the_queue_expands_seed_by_seed_and_names_its_file_when_wrong(tmp_path: 
         "m/synth_b/interactavatar/seed0",
     ]
     assert queue.cells[2].run == "interactavatar-seed1" and queue.methods() == ["interactavatar", "gaussian_avatars"]
+    assert queue.settings["a"].commit is None  # the newest code
+    path.write_text(QUEUE.replace('what = "MediaPipe"', 'what = "MediaPipe"\ncommit = "c9a604f"'))
+    assert load_queue(path).settings["m"].commit == "c9a604f"  # a bisect's: its cells run that commit's code
     path.write_text(QUEUE.replace('settings = ["m"]', 'settings = ["x"]'))
     with pytest.raises(QueueError, match=rf"{path}: cells group 2 names settings \['x'\]"):
         load_queue(path)
@@ -210,12 +214,17 @@ def test_the_tables_render_with_cells_missing(tmp_path: Path) -> None:
 def test_the_runner_commits_each_cell_and_resumes_after_a_kill_without_redoing_one(campaign: dict[str, Path]) -> None:
     # the third cell (interactavatar seed 1) hangs: the runner is killed outright while it runs
     runner = _runner(campaign, BLOCK_METHOD="interactavatar", BLOCK_SEED="1")
+    lock = campaign["outputs"] / "runner.lock"
     try:
         wait_for(lambda: Path(str(campaign["trace"]) + ".blocked").exists() or runner.poll() is not None, 120)
         assert runner.poll() is None, runner.communicate()[0]
+        working = lock_holder(lock)  # the runner proper, in a session of its own under the command that started it
+        assert working is not None
+        os.kill(working, signal.SIGKILL)
     finally:
         runner.kill()
         runner.wait()
+    wait_for(lambda: lock_holder(lock) is None, 30)
     subprocess.run(["pkill", "-f", str(campaign["app"])], check=False)  # the hanging stand-in: orphaned by the kill
     done = json.loads(campaign["results"].read_text())["cells"]
     assert [(c["method"], c["seed"]) for c in done] == [("interactavatar", 0), ("gaussian_avatars", 0)]

@@ -20,11 +20,13 @@ class QueueError(ValueError):
 
 @dataclass(frozen=True)
 class Setting:
-    """Overrides of the app's config that every cell of the setting runs with, and what they mean in words."""
+    """Overrides of the app's config that every cell of the setting runs with, what they mean in words, and the
+    commit whose code its cells run (``commit``: a bisect's; None for the newest code)."""
 
     name: str
     what: str
     overrides: tuple[str, ...]
+    commit: str | None = None
 
 
 @dataclass(frozen=True)
@@ -72,7 +74,12 @@ def load_queue(path: Path) -> Queue:
         raise QueueError(f"{path}: cannot read the campaign queue ({err})") from None
     try:
         settings = {
-            name: Setting(name, str(spec["what"]), tuple(str(o) for o in spec["overrides"]))
+            name: Setting(
+                name,
+                str(spec["what"]),
+                tuple(str(o) for o in spec["overrides"]),
+                str(spec["commit"]) if "commit" in spec else None,
+            )
             for name, spec in data["settings"].items()
         }
         cells: list[Cell] = []

@@ -117,11 +117,12 @@ class Runner:
         """The queue's cells with no record, in queue order."""
         return [c for c in self.o.queue.cells if not self.results.finished(c, self.o.queue.quality)]
 
-    def _next(self, commit: str) -> Cell | None:
+    def _next(self) -> Cell | None:
+        """The first pending cell that no job runs and that did not fail at the commit it would run now."""
         with self.lock:
             for cell in self.pending():
                 failed = self.failed.get(cell.key)
-                if cell in self.claimed or (failed is not None and failed["commit"] == commit):
+                if cell in self.claimed or (failed is not None and failed["commit"] == self._commit_of(cell)):
                     continue
                 self.claimed.add(cell)
                 return cell
@@ -129,11 +130,23 @@ class Runner:
 
     # -- one cell --------------------------------------------------------------------------------------------------
 
-    def _code(self) -> tuple[Path, str]:
-        """(the folder whose code the next cell runs, its commit): the worktree of :func:`code_head` (made once)."""
+    def _pinned(self, cell: Cell) -> str | None:
+        """The short commit ``cell``'s setting pins (a bisect's), or None: the newest code."""
+        commit = self.o.queue.settings[cell.setting].commit
+        return None if commit is None else _git("rev-parse", "--short", f"{commit}^{{commit}}", cwd=REPO)
+
+    def _commit_of(self, cell: Cell) -> str:
+        """The commit ``cell`` runs at now."""
+        if self.o.code is not None:
+            return code_commit(self.o.code)
+        return self._pinned(cell) or code_head()
+
+    def _code(self, cell: Cell) -> tuple[Path, str]:
+        """(the folder whose code ``cell`` runs, its commit): the worktree of the commit its setting pins, else of
+        :func:`code_head` (each made once)."""
         if self.o.code is not None:
             return self.o.code, code_commit(self.o.code)
-        sha = code_head()
+        sha = self._commit_of(cell)
         tree = self.o.outputs / "code" / sha
         with self.lock:
             if not (tree / ".git").exists():
@@ -143,14 +156,15 @@ class Runner:
         return tree, sha
 
     def _release(self, tree: Path) -> None:
-        """A cell is done with ``tree``: remove the worktrees of earlier code that no cell runs any more."""
+        """A cell is done with ``tree``: remove the worktrees that no cell runs any more, but the newest code's and
+        those of the commits the queue pins."""
         if self.o.code is not None:
             return
         with self.lock:
             self.in_use[tree] -= 1
-            current = self.o.outputs / "code" / code_head()
+            kept = {code_head()} | {self._pinned(c) for c in self.pending()} - {None}
             for other in sorted((self.o.outputs / "code").glob("*")):
-                if other != current and not self.in_use.get(other):
+                if other.name not in kept and not self.in_use.get(other):
                     subprocess.run(["git", "worktree", "remove", "--force", str(other)], cwd=REPO, capture_output=True)
                     self.in_use.pop(other, None)
             subprocess.run(["git", "worktree", "prune"], cwd=REPO, capture_output=True)
@@ -264,11 +278,10 @@ class Runner:
     def work(self) -> None:
         """One job: cells until none is left or the runner stops."""
         while not self.stopping.is_set():
-            code, commit = self._code()
-            cell = self._next(commit)
+            cell = self._next()
             if cell is None:
-                self._release(code)
                 return
+            code, commit = self._code(cell)
             try:
                 self.run_cell(cell, code, commit)
             except Stopped:
