@@ -182,3 +182,50 @@ def test_the_stage_lists_name_every_stage_in_order():
     first_run = (REPO / "docs" / "tutorials" / "first-run.md").read_text()
     listed = re.search(r"In\s+order: ((?:`[a-z]+`,?\s*)+)\.", first_run)
     assert listed and re.findall(r"`([a-z]+)`", listed.group(1)) == names, "docs/tutorials/first-run.md"
+
+
+#: a config key named in backticks (``stage.dynamic.restarts``, ``run.threads=1``), not a file name (``run.md``)
+CONFIG_KEY = re.compile(
+    r"`[^`\n]*?\b((?:stage|run|fit|quality|dataset|model|method|paths|reenact)\.[A-Za-z0-9_.]*[A-Za-z0-9_])"
+    r"(?!\.\w|\w|\*)"
+)
+FILE_SUFFIXES = (".md", ".yaml", ".json", ".py", ".parquet", ".png", ".ply", ".html", ".js", ".txt", ".mp4")
+#: a path of the repository named in backticks (``tests/.../test_x.py``; globs, ``<name>`` placeholders and
+#: ``{md,json}`` alternatives allowed)
+REPO_PATH = re.compile(r"`((?:tests|benchmarks|avatar|pipeline|stages|data_schemas|reporting|importers|conf)/[^`\s:]+)")
+
+
+def _config_keys() -> set[str]:
+    from omegaconf import OmegaConf
+
+    from tests.conftest import compose_cfg
+
+    def keys(node, prefix: str) -> set[str]:
+        found = set()
+        for key in node.keys() if OmegaConf.is_dict(node) else ():
+            path = f"{prefix}.{key}" if prefix else str(key)
+            found |= {path} | keys(node._get_node(key), path)
+        return found
+
+    return set().union(*(keys(compose_cfg(o), "") for o in ([], ["dataset=folder"], ["dataset=decaf"])))
+
+
+def test_every_config_key_and_repository_path_a_user_page_names_exists():
+    """A key the manual tells a user to set, or a file it points to, that does not exist costs them an hour: every
+    backticked config key of the README and the user's pages is a key of the composed config (with any dataset), and
+    every backticked path of the repository exists (a glob or a ``{a,b}`` alternative matches something)."""
+    known, missing = _config_keys(), []
+    for page in [REPO / "README.md", *user_pages()]:
+        text = page.read_text()
+        for key in CONFIG_KEY.findall(text):
+            if not key.endswith(FILE_SUFFIXES) and key not in known:
+                missing.append(f"{page.relative_to(REPO)}: config key {key}")
+        for path in REPO_PATH.findall(text):
+            path = path.rstrip(".,;)")
+            pattern = re.sub(r"<[^>]+>", "*", path)  # a placeholder: <name>, <target>
+            head, brace, rest = pattern.partition("{")
+            alternatives, _, tail = rest.partition("}")
+            options = [head + alt + tail for alt in alternatives.split(",")] if brace else [pattern]
+            if not any(list(REPO.glob(option)) for option in options):
+                missing.append(f"{page.relative_to(REPO)}: path {path}")
+    assert missing == [], "the manual names what does not exist:\n" + "\n".join(missing)
