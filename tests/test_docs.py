@@ -229,3 +229,38 @@ def test_every_config_key_and_repository_path_a_user_page_names_exists():
             if not any(list(REPO.glob(option)) for option in options):
                 missing.append(f"{page.relative_to(REPO)}: path {path}")
     assert missing == [], "the manual names what does not exist:\n" + "\n".join(missing)
+
+
+STATUS = ("<!-- status:begin -->", "<!-- status:end -->")
+
+
+def _status_block(page) -> str:
+    text = page.read_text()
+    assert text.count(STATUS[0]) == 1 and text.count(STATUS[1]) == 1, f"{page}: one status block"
+    return text.split(STATUS[0])[1].split(STATUS[1])[0]
+
+
+def test_the_status_and_limitations_agree_with_the_result_files_they_cite():
+    """The README's and the index's 'Status and limitations' say what does not work yet; each claim is checked
+    against the result file it cites, so a GPU run or a new tracking measurement makes this fail until the words
+    follow."""
+    import json
+
+    gpu = json.loads((REPO / "benchmarks" / "results" / "bench_gpu.json").read_text())
+    on_gpu = [run["date"] for run in gpu["runs"] if run.get("training_device", "cpu") != "cpu"]
+    tracking = json.loads((REPO / "benchmarks" / "results" / "bench_test_tracking.json").read_text())["runs"][-1]
+    (table,) = [t for t in tracking["tables"] if t["title"].startswith("Each arm minus 'ground truth'")]
+    drops = {
+        name: [abs(float(row[table["columns"].index(name)])) for row in table["rows"]] for name in ("NV", "SR tracker")
+    }
+    blocks = [_status_block(REPO / "README.md"), _status_block(REPO / "docs" / "index.md")]
+    assert blocks[0].replace("docs/results/", "results/") == blocks[1]  # the same words in both
+    status = " ".join(blocks[0].split())
+    assert ("has not run on a GPU yet" in status) == (not on_gpu), f"bench_gpu.json trained on a GPU on {on_gpu}"
+    held_out = re.search(
+        r"held-out motion scores (\d+\.\d)-(\d+\.\d) dB below .* held-out camera (\d+\.\d)-(\d+\.\d) dB", status
+    )
+    assert held_out, status
+    stated = [float(x) for x in held_out.groups()]
+    measured = [min(drops["SR tracker"]), max(drops["SR tracker"]), min(drops["NV"]), max(drops["NV"])]
+    assert stated == [round(x, 1) for x in measured], (stated, measured)
