@@ -264,3 +264,16 @@ def test_the_status_and_limitations_agree_with_the_result_files_they_cite():
     stated = [float(x) for x in held_out.groups()]
     measured = [min(drops["SR tracker"]), max(drops["SR tracker"]), min(drops["NV"]), max(drops["NV"])]
     assert stated == [round(x, 1) for x in measured], (stated, measured)
+
+
+def test_every_make_target_a_page_names_exists():
+    """``make <target>`` in a code span or a code block of the README or a user page is a target of the Makefile."""
+    targets = set(re.findall(r"^([a-zA-Z][\w-]*):", (REPO / "Makefile").read_text(), re.M))
+    named = re.compile(r"(?:`|^\s*)make ([a-z][a-z0-9-]*)", re.M)
+    missing = [
+        f"{page.relative_to(REPO)}: make {target}"
+        for page in [REPO / "README.md", *user_pages()]
+        for target in named.findall(page.read_text())
+        if target not in targets
+    ]
+    assert missing == [], "the manual names Makefile targets that do not exist:\n" + "\n".join(missing)
