@@ -123,8 +123,9 @@ def _default(value: object) -> str:
     return text.replace("|", "\\|").replace("\n", " ")
 
 
-def render(cfg: DictConfig) -> str:
-    """The page for the composed default config ``cfg`` (no ``hydra`` node)."""
+def render(cfg: DictConfig, datasets: dict[str, DictConfig] | None = None) -> str:
+    """The page for the composed default config ``cfg`` (no ``hydra`` node), then, for each other dataset of
+    ``datasets`` (name -> the config composed with ``dataset=<name>``), the keys its file sets."""
     set_by: dict[str, str] = {}
     explained: dict[str, str] = {}
     for path in _files():
@@ -166,7 +167,52 @@ def render(cfg: DictConfig) -> str:
             *groups[group],
             "",
         ]
+    for name, composed in (datasets or {}).items():
+        lines += _dataset_section(name, composed, types)
     return "\n".join(lines)
+
+
+def _dataset_section(name: str, composed: DictConfig, types: dict[str, str]) -> list[str]:
+    """The keys ``conf/dataset/<name>.yaml`` sets, with their values in ``composed`` (the config composed with
+    ``dataset=<name>``) and the file's comments."""
+    path = CONF_DIR / "dataset" / f"{name}.yaml"
+    explained = dict(_commented_keys(path))
+    loaded = OmegaConf.load(path)
+    if not isinstance(loaded, DictConfig):
+        raise ValueError(f"{path}: a config file must hold a mapping of keys, not a list")
+    rows = []
+    for key, _ in _leaves(loaded, _package(path) + "." if _package(path) else ""):
+        desc = explained.get(key, "").replace("|", "\\|")
+        rows.append(f"| `{key}` | `{_default(_node(composed, key))}` | {types.get(key, '')} | {desc} |")
+    return [
+        f"## `dataset={name}`",
+        "",
+        f"The keys `conf/dataset/{name}.yaml` sets (`dataset={name}` on the command line); the others are as above.",
+        "",
+        "| key | value | type | meaning |",
+        "| --- | --- | --- | --- |",
+        *rows,
+        "",
+    ]
+
+
+def _node(cfg: DictConfig, key: str) -> object:
+    """The node of dotted ``key`` in ``cfg`` (its value without resolving interpolations or missing values)."""
+    parent, _, last = key.rpartition(".")
+    container = OmegaConf.select(cfg, parent) if parent else cfg
+    return container._get_node(last) if isinstance(container, DictConfig) else None
+
+
+#: the datasets besides the default whose keys the page lists (``conf/dataset/<name>.yaml``)
+OTHER_DATASETS = ("folder", "decaf")
+
+
+def dataset_configs() -> dict[str, DictConfig]:
+    """Name -> the config composed with ``dataset=<name>``, for :data:`OTHER_DATASETS`."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return {name: compose(config_name="config", overrides=[f"dataset={name}"]) for name in OTHER_DATASETS}
 
 
 def default_config() -> DictConfig:
@@ -178,7 +224,7 @@ def default_config() -> DictConfig:
 
 
 def main() -> None:
-    PAGE.write_text(render(default_config()))
+    PAGE.write_text(render(default_config(), dataset_configs()))
     print(f"wrote {PAGE}")
 
 

@@ -26,12 +26,13 @@ def test_readme_is_a_front_door():
 
 
 def test_the_config_reference_matches_conf_and_the_schemas():
-    from pipeline.config_reference import PAGE, default_config, render
+    from pipeline.config_reference import PAGE, dataset_configs, default_config, render
 
-    assert PAGE.read_text() == render(default_config()), (
+    assert PAGE.read_text() == render(default_config(), dataset_configs()), (
         "docs/reference/config-keys.md is stale: run `python -m pipeline.config_reference`"
     )
     assert "`stage.dynamic.d_max`" in PAGE.read_text()
+    assert "## `dataset=folder`" in PAGE.read_text() and "`dataset.hand_keypoint_order`" in PAGE.read_text()
 
 
 def test_the_results_pages_match_the_committed_data():
