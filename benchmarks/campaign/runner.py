@@ -105,6 +105,7 @@ class Runner:
         self.running: dict[Cell, subprocess.Popen[bytes]] = {}
         self.claimed: set[Cell] = set()
         self.in_use: dict[Path, int] = {}  # worktree -> cells running its code
+        self.short: dict[str, str] = {}  # a pinned commit as the queue names it -> its short commit
         self.stopping = threading.Event()
         self.failed_path = options.outputs / "failed.json"
         self.failed: dict[str, dict[str, Any]] = (
@@ -133,7 +134,9 @@ class Runner:
     def _pinned(self, cell: Cell) -> str | None:
         """The short commit ``cell``'s setting pins (a bisect's), or None: the newest code."""
         commit = self.o.queue.settings[cell.setting].commit
-        return None if commit is None else _git("rev-parse", "--short", f"{commit}^{{commit}}", cwd=REPO)
+        if commit is not None and commit not in self.short:
+            self.short[commit] = _git("rev-parse", "--short", f"{commit}^{{commit}}", cwd=REPO)
+        return None if commit is None else self.short[commit]
 
     def _commit_of(self, cell: Cell) -> str:
         """The commit ``cell`` runs at now."""
@@ -266,12 +269,8 @@ class Runner:
     def _state(self) -> None:
         with self.lock:
             _write_json(
-                self.o.outputs / "state.json",
-                {"pid": os.getpid(), "in_progress": sorted(c.key for c in self.claimed if c not in self._done())},
+                self.o.outputs / "state.json", {"pid": os.getpid(), "in_progress": sorted(c.key for c in self.claimed)}
             )
-
-    def _done(self) -> set[Cell]:
-        return {c for c in self.o.queue.cells if self.results.finished(c, self.o.queue.quality)}
 
     # -- the loop --------------------------------------------------------------------------------------------------
 
